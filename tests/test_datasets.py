@@ -124,6 +124,15 @@ def test_zju_split_protocol_uses_camera_1_for_training_and_others_every_30th_fra
         open_dataset(root, split=SplitSpec("bad", FrameRange(), cameras=("9",)))
 
 
+def test_zju_training_range_can_be_given(tmp_path):
+    root = tmp_path / "synthetic"
+    root.mkdir()
+    write_zju_original(root, num_frames=3, num_cams=2)
+    assert open_dataset(root, split="train").frames == [0, 1, 2]  # unknown subject: every frame
+    held_out = open_dataset(root, split="novel_pose", train_frames=FrameRange(0, 2))
+    assert held_out.frames == [2] and held_out.camera_names == ["1", "2"]
+
+
 def test_313_naming_maps_one_based_files_and_camera_numbers(written):
     root, truth = written["zju_313"]
     dataset = open_dataset(root, split="all", size=None)
@@ -258,6 +267,18 @@ def test_folder_camera_without_intrinsics(tmp_path):
     dataset = open_dataset(tmp_path)
     with pytest.raises(DatasetError, match="cameras.json: camera 'front' lacks 'K'"):
         dataset[0]
+
+
+def test_image_of_another_size_names_the_file(tmp_path):
+    import cv2
+
+    write_folder(tmp_path, num_frames=2)
+    odd = tmp_path / "images" / "front" / "000001.png"
+    cv2.imwrite(str(odd), np.zeros((RAW_SIZE[1] + 2, RAW_SIZE[0], 3), np.uint8))
+    dataset = open_dataset(tmp_path)
+    dataset[0]
+    with pytest.raises(DatasetError, match=r"000001.png: image is 160x122 \(expected 160x120"):
+        dataset[1]
 
 
 def test_thuman4_image_size_mismatch_and_bad_json(tmp_path):

@@ -176,9 +176,6 @@ class FolderDataset(SequenceDataset):
         else:
             self._times = None
 
-    def _has_view(self, frame: int, camera: str) -> bool:
-        return True
-
     @property
     def protocol(self) -> MonocularProtocol:  # type: ignore[override]
         camera = self._train_camera or self.all_camera_names[0]

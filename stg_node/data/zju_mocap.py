@@ -33,7 +33,7 @@ import numpy as np
 from stg_node.data.base import SequenceDataset, image_size, smpl_from_arrays
 from stg_node.data.errors import DatasetError
 from stg_node.data.io import as_array, find_image, load_npy_dict
-from stg_node.data.splits import SplitSpec, zju_protocol
+from stg_node.data.splits import FrameRange, MonocularProtocol, SplitSpec, zju_protocol
 from stg_node.data.types import SmplParams
 from stg_node.data.views import RawCamera
 
@@ -76,13 +76,19 @@ class ZJUMoCapDataset(SequenceDataset):
         train_camera: str = "1",
         mask_source: str = "auto",
         subject: str | None = None,
+        train_frames: FrameRange | None = None,
     ):
+        """``subject`` picks the split table row (default: the folder name, e.g. 'CoreView_377');
+        ``train_frames`` overrides its training range (the test splits follow from it)."""
         if mask_source not in MASK_SOURCES:
             raise ValueError(f"mask_source must be one of {MASK_SOURCES}, got {mask_source!r}")
         self.mask_source = mask_source
         root = Path(root)
         self.subject = subject or root.name
-        super().__init__(root, split, size=size, fps=fps, protocol=zju_protocol(self.subject, train_camera))
+        protocol = zju_protocol(self.subject, train_camera)
+        if train_frames is not None:
+            protocol = MonocularProtocol(train_camera, train_frames, "train_frames given by the caller")
+        super().__init__(root, split, size=size, fps=fps, protocol=protocol)
 
     # --- index ----------------------------------------------------------------------------
     def _index(self) -> None:
