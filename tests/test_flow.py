@@ -44,6 +44,14 @@ def test_subpixel_translation_is_recovered_both_ways(preset):
     assert pair.valid_forward[inner].mean() > 0.95
 
 
+def test_float_images_in_unit_range_give_the_same_flow():
+    a = texture(5)
+    b = warp(a, np.array([[1.0, 0.0, 1.5], [0.0, 1.0, 0.5]]))
+    as_uint8 = compute_flow_pair(a, b)
+    as_float = compute_flow_pair(a / 255.0, b.astype(np.float32) / 255.0)
+    np.testing.assert_allclose(as_float.forward, as_uint8.forward, atol=1e-5)
+
+
 def test_rotation_flow_matches_closed_form():
     a = texture(1)
     matrix = cv2.getRotationMatrix2D((SIZE / 2, SIZE / 2), 3.0, 1.0)  # 3 degrees: up to ~4 px at corners

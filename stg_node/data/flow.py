@@ -62,6 +62,9 @@ class FlowPair:
 
 
 def _gray(image: np.ndarray) -> np.ndarray:
+    """8-bit grey image for DIS; float images are taken to be in [0, 1]."""
+    if image.dtype != np.uint8:
+        image = np.clip(np.rint(np.asarray(image, np.float64) * 255.0), 0, 255).astype(np.uint8)
     if image.ndim == 2:
         return np.ascontiguousarray(image)
     return cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
