@@ -32,7 +32,7 @@ BIG_POSE.setflags(write=False)
 def big_pose_output(model, betas=None):
     """The body in the big pose (model space, no Rh/Th, no pose blend shapes): a BodyOutput whose
     ``vertices`` are the canonical mesh and ``bone_transforms`` map rest -> big pose."""
-    poses = torch.as_tensor(BIG_POSE, dtype=model.v_template.dtype, device=model.v_template.device)
+    poses = torch.tensor(np.array(BIG_POSE), dtype=model.v_template.dtype, device=model.v_template.device)
     return model(betas=betas, poses=poses.reshape(1, 72), pose_blendshapes=False)
 
 
