@@ -36,7 +36,11 @@ def random_smpl_arrays(seed: int = 0, num_verts: int = 400, num_betas: int = 10)
     v_template = joints[owner] + rng.normal(0, 0.05, (num_verts, 3))
     weights = np.zeros((num_verts, 24))
     for k in range(3):  # up to 3 influences: own joint, parent, one random
-        cols = owner if k == 0 else (np.asarray(SMPL_PARENTS)[owner].clip(0) if k == 1 else rng.integers(0, 24, num_verts))
+        cols = (
+            owner
+            if k == 0
+            else (np.asarray(SMPL_PARENTS)[owner].clip(0) if k == 1 else rng.integers(0, 24, num_verts))
+        )
         weights[np.arange(num_verts), cols] += rng.uniform(0.2, 1.0, num_verts)
     weights /= weights.sum(1, keepdims=True)
     regressor = np.zeros((24, num_verts))

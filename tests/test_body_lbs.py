@@ -49,7 +49,9 @@ def test_axis_angle_gradient_is_finite_at_zero():
 def _random_transforms(batch, joints, seed=0):
     rng = np.random.default_rng(seed)
     out = np.tile(np.eye(4), (batch, joints, 1, 1))
-    out[..., :3, :3] = Rotation.from_rotvec(rng.normal(0, 0.6, (batch * joints, 3))).as_matrix().reshape(batch, joints, 3, 3)
+    out[..., :3, :3] = (
+        Rotation.from_rotvec(rng.normal(0, 0.6, (batch * joints, 3))).as_matrix().reshape(batch, joints, 3, 3)
+    )
     out[..., :3, 3] = rng.normal(0, 0.5, (batch, joints, 3))
     return torch.as_tensor(out)
 
@@ -61,7 +63,9 @@ def test_skin_points_one_hot_is_rigid_and_inverse_roundtrips():
     owner = rng.integers(0, 24, 200)
     one_hot = torch.nn.functional.one_hot(torch.as_tensor(owner), 24).double()
     skinned = skin_points(points, one_hot, transforms)
-    expected = (transforms[:, owner, :3, :3] @ points[None, :, :, None]).squeeze(-1) + transforms[:, owner, :3, 3]
+    expected = (transforms[:, owner, :3, :3] @ points[None, :, :, None]).squeeze(-1) + transforms[
+        :, owner, :3, 3
+    ]
     assert torch.allclose(skinned, expected, atol=1e-12)
     soft = torch.as_tensor(rng.dirichlet(np.ones(4) * 0.5, 200))
     weights = torch.zeros(200, 24, dtype=torch.float64)
@@ -87,7 +91,9 @@ def test_skin_rotations_matrices_and_quaternions():
     # Blended weights (up to 4 joints, as skinning weights are): still a proper rotation, and the
     # inverse undoes it.
     weights = torch.zeros(50, 24, dtype=torch.float64)
-    weights.scatter_(1, torch.as_tensor(rng.integers(0, 24, (50, 4))), torch.as_tensor(rng.dirichlet(np.ones(4), 50)))
+    weights.scatter_(
+        1, torch.as_tensor(rng.integers(0, 24, (50, 4))), torch.as_tensor(rng.dirichlet(np.ones(4), 50))
+    )
     weights /= weights.sum(1, keepdim=True)
     blended = skin_rotations(rots, weights, transforms)
     eye = torch.eye(3, dtype=torch.float64)
@@ -133,15 +139,23 @@ def test_canonical_transforms_carry_big_pose_to_posed_world(model):
     posed = model(betas, poses, Rh, Th, pose_blendshapes=False)
     # A point attached to joint j (one-hot weight) lands where the pose puts that joint.
     one_hot = torch.eye(24, dtype=torch.float64)
-    moved = torch.stack([skin_points(canonical_joints[b], one_hot, transforms[b : b + 1])[0] for b in range(2)])
+    moved = torch.stack(
+        [skin_points(canonical_joints[b], one_hot, transforms[b : b + 1])[0] for b in range(2)]
+    )
     assert torch.allclose(moved, posed.joints, atol=1e-9)
     # The per-joint inverses and skin_points(inverse=True) both undo it.
     inverse = canonical_transforms(model, betas, poses, Rh, Th, inverse=True)
-    assert torch.allclose(inverse @ transforms, torch.eye(4, dtype=torch.float64).expand_as(transforms), atol=1e-9)
+    assert torch.allclose(
+        inverse @ transforms, torch.eye(4, dtype=torch.float64).expand_as(transforms), atol=1e-9
+    )
     canonical_verts = big_pose_output(model, betas).vertices
     weights = model.weights
-    there = torch.stack([skin_points(canonical_verts[b], weights, transforms[b : b + 1])[0] for b in range(2)])
-    back = torch.stack([skin_points(there[b], weights, transforms[b : b + 1], inverse=True)[0] for b in range(2)])
+    there = torch.stack(
+        [skin_points(canonical_verts[b], weights, transforms[b : b + 1])[0] for b in range(2)]
+    )
+    back = torch.stack(
+        [skin_points(there[b], weights, transforms[b : b + 1], inverse=True)[0] for b in range(2)]
+    )
     assert torch.allclose(back, canonical_verts, atol=1e-9)
 
 

@@ -116,7 +116,9 @@ def test_raised_arm_and_global_transform(body):
     Th = np.array([0.5, 0.0, -1.0])
     out = body(poses=pose, Rh=torch.as_tensor(Rh)[None], Th=torch.as_tensor(Th)[None])
     for chain, rot in (([16, 18, 20, 22], (0, 0, 90)), ([17, 19, 21, 23], (0, 0, -90))):
-        local = _closed_form_arm(joints, chain, [Rotation.from_euler("xyz", rot, degrees=True)] + [Rotation.identity()] * 2)
+        local = _closed_form_arm(
+            joints, chain, [Rotation.from_euler("xyz", rot, degrees=True)] + [Rotation.identity()] * 2
+        )
         assert np.allclose(local[1:3, 0], local[0, 0], atol=2e-3)  # elbow, wrist straight above the shoulder
         world = Rotation.from_rotvec(Rh).apply(local) + Th
         assert np.allclose(out.joints[0, chain].numpy(), world, atol=2e-3)

@@ -199,5 +199,7 @@ class _Evil:
 def test_pickle_with_foreign_globals_is_refused(tmp_path):
     path = tmp_path / "SMPL_NEUTRAL.pkl"
     path.write_bytes(pickle.dumps({"v_template": _Evil()}, protocol=2))
-    with pytest.raises(BodyModelError, match="refusing to unpickle posix.system|refusing to unpickle os.system"):
+    with pytest.raises(
+        BodyModelError, match="refusing to unpickle posix.system|refusing to unpickle os.system"
+    ):
         load_body_model(path)

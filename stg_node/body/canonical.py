@@ -36,7 +36,9 @@ def big_pose_output(model, betas=None):
     return model(betas=betas, poses=poses.reshape(1, 72), pose_blendshapes=False)
 
 
-def canonical_transforms(model, betas=None, poses=None, Rh=None, Th=None, inverse: bool = False) -> torch.Tensor:
+def canonical_transforms(
+    model, betas=None, poses=None, Rh=None, Th=None, inverse: bool = False
+) -> torch.Tensor:
     """Per-joint transforms ``(B, 24, 4, 4)`` from the big-pose canonical space to the posed world.
 
     With ``inverse=True``, the per-joint inverses (posed world -> canonical). Blend them with
@@ -49,8 +51,9 @@ def canonical_transforms(model, betas=None, poses=None, Rh=None, Th=None, invers
     return invert_rigid(transforms) if inverse else transforms
 
 
-def nearest_vertex_weights(points: torch.Tensor, vertices: torch.Tensor, weights: torch.Tensor,
-                           chunk: int = 8192) -> torch.Tensor:
+def nearest_vertex_weights(
+    points: torch.Tensor, vertices: torch.Tensor, weights: torch.Tensor, chunk: int = 8192
+) -> torch.Tensor:
     """Skinning weights for arbitrary points: those of the nearest mesh vertex.
 
     ``points (N, 3)``, ``vertices (V, 3)`` (same space, e.g. the big-pose mesh), ``weights (V, 24)``

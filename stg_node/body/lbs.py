@@ -158,7 +158,9 @@ def blend_transforms(weights: torch.Tensor, bone_transforms: torch.Tensor) -> to
     flat = bone_transforms.reshape(batch, num_joints, 16)
     if weights.dim() == 2:
         if weights.shape[1] != num_joints:
-            raise ValueError(f"weights are (N, {weights.shape[1]}) but there are {num_joints} bone transforms")
+            raise ValueError(
+                f"weights are (N, {weights.shape[1]}) but there are {num_joints} bone transforms"
+            )
         blended = torch.matmul(weights, flat)  # (B, N, 16) by broadcasting
     elif weights.dim() == 3:
         if weights.shape[2] != num_joints:
@@ -265,7 +267,10 @@ def skin_rotations(
     elif rotations.shape[-2:] == (3, 3):
         matrices = rotations
     else:
-        raise ValueError(f"rotations must be (..., 3, 3) matrices or (..., 4) wxyz quaternions, got {tuple(rotations.shape)}")
+        raise ValueError(
+            "rotations must be (..., 3, 3) matrices or (..., 4) wxyz quaternions, "
+            f"got {tuple(rotations.shape)}"
+        )
     blended = closest_rotation(blend_transforms(weights, bone_transforms)[..., :3, :3])
     if inverse:
         blended = blended.transpose(-1, -2)

@@ -76,13 +76,17 @@ class BodyModel(torch.nn.Module):
     num_joints = SMPL_NUM_JOINTS
     joint_names = SMPL_JOINT_NAMES
 
-    def __init__(self, arrays: ModelArrays, *, num_betas: int | None = None, dtype=torch.float32, device="cpu"):
+    def __init__(
+        self, arrays: ModelArrays, *, num_betas: int | None = None, dtype=torch.float32, device="cpu"
+    ):
         super().__init__()
         available = arrays.shapedirs.shape[2]
         if num_betas is None:
             num_betas = available
         if not 0 <= num_betas <= available:
-            raise BodyModelError(f"num_betas={num_betas} but the model {arrays.name!r} has {available} shape directions")
+            raise BodyModelError(
+                f"num_betas={num_betas} but the model {arrays.name!r} has {available} shape directions"
+            )
         self.name = arrays.name
         self.num_betas = int(num_betas)
         num_verts = arrays.v_template.shape[0]
@@ -196,7 +200,9 @@ class BodyModel(torch.nn.Module):
         world = lbs.make_rigid(lbs.axis_angle_to_matrix(rh_t), th_t)  # (B, 4, 4)
         bone_transforms = world[:, None] @ local_transforms
         vertices = lbs.skin_points(posed_rest, self.weights, bone_transforms)
-        joints = (bone_transforms[..., :3, :3] @ rest_joints[..., None]).squeeze(-1) + bone_transforms[..., :3, 3]
+        joints = (bone_transforms[..., :3, :3] @ rest_joints[..., None]).squeeze(-1) + bone_transforms[
+            ..., :3, 3
+        ]
         return BodyOutput(
             vertices=vertices,
             joints=joints,

@@ -81,7 +81,10 @@ def _from_dict(data: dict, source: str) -> SmplMotion:
     betas = _field(data, ("shapes", "betas"), source)
     count = len(poses)
     if len(rh) != count or len(th) != count or len(betas) not in (1, count):
-        raise ValueError(f"{source}: inconsistent frame counts poses {count}, Rh {len(rh)}, Th {len(th)}, shapes {len(betas)}")
+        raise ValueError(
+            f"{source}: inconsistent frame counts poses {count}, Rh {len(rh)}, Th {len(th)}, "
+            f"shapes {len(betas)}"
+        )
     fps = float(np.asarray(data["fps"])) if "fps" in data else None
     return SmplMotion(poses, rh, th, betas[0] if len(betas) == 1 and count > 1 else betas, fps, source)
 
@@ -121,7 +124,8 @@ def load_smpl_params(path: str | Path) -> SmplMotion:
 
 
 def save_smpl_params(path: str | Path, motion: SmplMotion) -> None:
-    """Write a sequence as ``.npz`` (poses, Rh, Th, shapes, fps), or one frame as a ZJU-style ``.npy`` dict."""
+    """Write a sequence as ``.npz`` (poses, Rh, Th, shapes, fps), or one frame as a ZJU-style ``.npy``
+    dict."""
     path = Path(path)
     betas = np.atleast_2d(motion.betas).astype(np.float32)
     if path.suffix == ".npy":
@@ -134,7 +138,11 @@ def save_smpl_params(path: str | Path, motion: SmplMotion) -> None:
 
 
 def drive_body(model, motion: SmplMotion, frames=None, pose_blendshapes: bool = True):
-    """Pose ``model`` (any SMPL-format BodyModel) with frames of ``motion`` -> BodyOutput, batched over frames."""
+    """Pose ``model`` (any SMPL-format BodyModel) with frames of ``motion``.
+
+    Returns one BodyOutput batched over the frames (all of them, or ``frames``: an index, slice or
+    list). The official SMPL model and the open body take exactly this path.
+    """
     if frames is not None:
         motion = motion[frames]
     like = model.v_template
@@ -148,4 +156,58 @@ def drive_body(model, motion: SmplMotion, frames=None, pose_blendshapes: bool = 
         Rh=tensor(motion.Rh),
         Th=tensor(motion.Th),
         pose_blendshapes=pose_blendshapes,
+    )
+
+
+def procedural_walk(num_frames: int = 120, fps: float = 30.0, seed: int = 0, betas=None) -> SmplMotion:
+    """A plausible SMPL walking sequence made from sinusoids (no captured data involved).
+
+    One stride per second along a slow circle, arms swinging against the legs, a little trunk
+    twist and head turn, and from half-way on the left arm waves. ``seed`` jitters amplitudes
+    and phases, so different seeds give different walkers. Y-up world, ZJU convention.
+    """
+    rng = np.random.default_rng(seed)
+    t = np.arange(num_frames) / fps
+    jitter = lambda scale: 1.0 + scale * rng.uniform(-1, 1)  # noqa: E731
+    stride = 2 * np.pi * 1.0 * jitter(0.1) * t + rng.uniform(0, 2 * np.pi)
+    swing = np.sin(stride)
+    poses = np.zeros((num_frames, 24, 3))
+    hip = 0.45 * jitter(0.15)
+    poses[:, 1, 0] = -hip * swing  # left hip: forward (negative x rotation) when swing > 0
+    poses[:, 2, 0] = hip * swing
+    knee = 0.7 * jitter(0.15)
+    poses[:, 4, 0] = knee * np.clip(np.sin(stride + np.pi / 3), 0, None) + 0.05
+    poses[:, 5, 0] = knee * np.clip(np.sin(stride + np.pi / 3 + np.pi), 0, None) + 0.05
+    poses[:, 7, 0] = -0.15 * np.sin(stride + np.pi / 2)
+    poses[:, 8, 0] = 0.15 * np.sin(stride + np.pi / 2)
+    poses[:, 16, 2] = -1.2  # arms down along the body
+    poses[:, 17, 2] = 1.2
+    arm = 0.35 * jitter(0.2)
+    poses[:, 16, 1] = arm * swing  # left arm forward when the right leg is
+    poses[:, 17, 1] = arm * swing
+    poses[:, 18, 1] = -0.35 - 0.15 * (1 + swing)
+    poses[:, 19, 1] = 0.35 + 0.15 * (1 - swing)
+    poses[:, 3, 1] = 0.08 * swing  # trunk counter-twist
+    poses[:, 9, 1] = 0.06 * swing
+    poses[:, 15, 1] = 0.3 * np.sin(2 * np.pi * 0.2 * t)  # looking around
+    wave = t > t[-1] / 2 if num_frames > 1 else np.zeros(num_frames, bool)
+    poses[wave, 16, 2] = 1.1  # left arm up ...
+    poses[wave, 16, 1] = 0.0
+    poses[wave, 18, 2] = 0.9 + 0.5 * np.sin(2 * np.pi * 1.5 * t[wave])  # ... waving from the elbow
+    poses[wave, 18, 1] = 0.0
+    # Walk on a circle of radius 2 m at about 0.8 m/s, facing along the path.
+    radius = 2.0
+    angle = 0.4 * t * jitter(0.1)
+    heading = angle + np.pi / 2
+    Rh = np.stack([np.zeros_like(t), heading, np.zeros_like(t)], axis=1)
+    Th = np.stack([radius * np.sin(angle), 0.02 * np.cos(2 * stride), radius * np.cos(angle)], axis=1)
+    Th[:, 1] += 1.2  # puts the feet of SMPL-sized bodies (soles at y = -1.2 in the model) on y = 0
+    shape = np.zeros(10) if betas is None else np.asarray(betas, dtype=np.float64)
+    return SmplMotion(
+        poses.reshape(num_frames, 72).astype(np.float32),
+        Rh.astype(np.float32),
+        Th.astype(np.float32),
+        shape.astype(np.float32),
+        fps,
+        f"procedural_walk(seed={seed})",
     )

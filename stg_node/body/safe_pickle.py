@@ -24,7 +24,10 @@ class NumpyUnpickler(pickle.Unpickler):
     """Unpickler allowing numpy arrays, dtypes and scalars (and Python's own containers)."""
 
     def find_class(self, module: str, name: str):
-        if module in ("numpy.core.multiarray", "numpy._core.multiarray") and name in ("_reconstruct", "scalar"):
+        if module in ("numpy.core.multiarray", "numpy._core.multiarray") and name in (
+            "_reconstruct",
+            "scalar",
+        ):
             return getattr(_CORE.multiarray, name)
         if module in ("numpy.core.numeric", "numpy._core.numeric") and name == "_frombuffer":
             return _CORE.numeric._frombuffer

@@ -242,7 +242,8 @@ def read_npz_model(path: Path) -> dict:
             return {k: archive[k] for k in archive.files}
     except ValueError as exc:
         raise BodyModelError(
-            f"{path}: holds pickled objects, which we do not load from .npz ({exc}); re-save it with plain arrays"
+            f"{path}: holds pickled objects, which we do not load from .npz ({exc}); "
+            "re-save it with plain arrays"
         ) from None
     except Exception as exc:
         raise BodyModelError(f"{path}: not a readable .npz archive ({type(exc).__name__}: {exc})") from None
@@ -323,8 +324,14 @@ def validate_model_arrays(data: dict, source: str) -> ModelArrays:
     if posedirs.ndim == 2 and posedirs.shape == (num_pose, num_verts * 3):  # smplx's in-memory layout
         posedirs = posedirs.T.reshape(num_verts, 3, num_pose)
     if posedirs.ndim != 3 or posedirs.shape != (num_verts, 3, num_pose):
-        if posedirs.ndim == 3 and posedirs.shape[:2] == (num_verts, 3) and posedirs.shape[2] in (459, 486, 135):
-            raise BodyModelError(f"{source}: posedirs have {posedirs.shape[2]} pose features: not an SMPL model")
+        if (
+            posedirs.ndim == 3
+            and posedirs.shape[:2] == (num_verts, 3)
+            and posedirs.shape[2] in (459, 486, 135)
+        ):
+            raise BodyModelError(
+                f"{source}: posedirs have {posedirs.shape[2]} pose features: not an SMPL model"
+            )
         raise _shape_error(source, "posedirs", posedirs, f"({num_verts}, 3, {num_pose})")
 
     j_regressor = array("J_regressor")
@@ -337,7 +344,9 @@ def validate_model_arrays(data: dict, source: str) -> ModelArrays:
     parents = kintree[0].astype(np.int64)
     parents[0] = -1  # stored as 2**32 - 1 in the official files
     if np.any(parents[1:] < 0) or np.any(parents[1:] >= np.arange(1, SMPL_NUM_JOINTS)):
-        raise BodyModelError(f"{source}: kintree_table parents {parents.tolist()} are not a tree in SMPL order")
+        raise BodyModelError(
+            f"{source}: kintree_table parents {parents.tolist()} are not a tree in SMPL order"
+        )
 
     faces = np.asarray(data["f"])
     if faces.ndim != 2 or faces.shape[1] != 3:
@@ -353,7 +362,8 @@ def validate_model_arrays(data: dict, source: str) -> ModelArrays:
     sums = weights.sum(axis=1)
     if np.abs(sums - 1).max() > 1e-3:
         raise BodyModelError(
-            f"{source}: skinning weights must sum to 1 per vertex (found sums in [{sums.min():.4f}, {sums.max():.4f}])"
+            f"{source}: skinning weights must sum to 1 per vertex "
+            f"(found sums in [{sums.min():.4f}, {sums.max():.4f}])"
         )
 
     uv = uv_faces = texture = None
@@ -367,7 +377,9 @@ def validate_model_arrays(data: dict, source: str) -> ModelArrays:
     if "texture" in data:
         texture = np.asarray(data["texture"])
         if texture.ndim != 3 or texture.shape[2] != 3 or texture.dtype != np.uint8:
-            raise BodyModelError(f"{source}: 'texture' must be (H, W, 3) uint8, got {texture.shape} {texture.dtype}")
+            raise BodyModelError(
+                f"{source}: 'texture' must be (H, W, 3) uint8, got {texture.shape} {texture.dtype}"
+            )
     name = str(np.asarray(data["name"])) if "name" in data else "smpl"
     return ModelArrays(
         v_template=v_template, shapedirs=shapedirs, posedirs=posedirs, J_regressor=j_regressor,
