@@ -204,42 +204,45 @@ def skin_points(
     return (linear @ points[..., None]).squeeze(-1) + translation
 
 
+def _cofactor_and_det(matrices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Cofactor matrices and determinants of ``(..., 3, 3)`` matrices (``X^-T = cofactor / det``)."""
+    a, b, c, d, e, f, g, h, i = matrices.flatten(-2).unbind(-1)
+    co00, co01, co02 = e * i - f * h, f * g - d * i, d * h - e * g
+    cofactor = torch.stack(
+        [
+            co00, co01, co02,
+            c * h - b * i, a * i - c * g, b * g - a * h,
+            b * f - c * e, c * d - a * f, a * e - b * d,
+        ],
+        dim=-1,
+    ).reshape(matrices.shape)  # fmt: skip
+    return cofactor, a * co00 + b * co01 + c * co02
+
+
 def inverse_3x3(matrices: torch.Tensor) -> torch.Tensor:
     """Closed-form inverse of ``(..., 3, 3)`` matrices (adjugate / determinant), vectorised.
 
     Several times faster than batched LU for millions of tiny matrices; meant for the
     well-conditioned blended skinning matrices (no pivoting, no singularity check).
     """
-    a, b, c = matrices[..., 0, 0], matrices[..., 0, 1], matrices[..., 0, 2]
-    d, e, f = matrices[..., 1, 0], matrices[..., 1, 1], matrices[..., 1, 2]
-    g, h, i = matrices[..., 2, 0], matrices[..., 2, 1], matrices[..., 2, 2]
-    co00, co01, co02 = e * i - f * h, f * g - d * i, d * h - e * g
-    det = a * co00 + b * co01 + c * co02
-    adjugate = torch.stack(
-        [
-            co00, c * h - b * i, b * f - c * e,
-            co01, a * i - c * g, c * d - a * f,
-            co02, b * g - a * h, a * e - b * d,
-        ],
-        dim=-1,
-    ).reshape(matrices.shape)  # fmt: skip
-    return adjugate / det[..., None, None]
+    cofactor, det = _cofactor_and_det(matrices)
+    return cofactor.transpose(-1, -2) / det[..., None, None]
 
 
-def closest_rotation(matrices: torch.Tensor, iterations: int = 6) -> torch.Tensor:
+def closest_rotation(matrices: torch.Tensor, iterations: int = 4) -> torch.Tensor:
     """The rotation nearest (Frobenius) to each ``(..., 3, 3)`` matrix: its orthogonal polar factor.
 
-    Scaled Newton iteration ``X <- (g X + X^-T / g) / 2`` with ``g = sqrt(|X^-1| / |X|)``
-    (Higham): quadratic convergence, fast from far away, vectorised and differentiable
+    Scaled Newton iteration ``X <- (g X + X^-T / g) / 2`` with the determinant scaling
+    ``g = |det X|^(-1/3)`` (Higham): quadratic convergence, vectorised, and differentiable
     everywhere (unlike an SVD, whose gradient breaks down for the repeated singular values that
-    near-rotations have). Blended skinning matrices reach float precision in a few steps.
+    near-rotations have). Blended skinning matrices (singular values within [0.5, 1]) reach
+    float64 precision in 4 steps; pass more for matrices further from a rotation.
     """
     x = matrices
     for _ in range(iterations):
-        inv_t = inverse_3x3(x).transpose(-1, -2)
-        gamma = (inv_t.flatten(-2).norm(dim=-1) / x.flatten(-2).norm(dim=-1).clamp_min(1e-30)).sqrt()
-        gamma = gamma[..., None, None]
-        x = 0.5 * (gamma * x + inv_t / gamma)
+        cofactor, det = _cofactor_and_det(x)  # X^-T = cofactor / det
+        gamma = det.abs().clamp_min(1e-30).pow(-1.0 / 3.0)[..., None, None]
+        x = 0.5 * (gamma * x + cofactor / (gamma * det[..., None, None]))
     return x
 
 
