@@ -69,8 +69,10 @@ class BodyModel(torch.nn.Module):
         v_template (V, 3), shapedirs (V, 3, S), posedirs (207, V*3) (smplx's layout: row k is the
         displacement of the k-th pose feature ``(R_j - I)`` flattened, joints 1..23 in order),
         J_regressor (24, V) dense, weights (V, 24), parents (24,), faces (F, 3).
-    Optional (the open body has them, SMPL files do not): uv (Vt, 2) in [0, 1] with uv_faces
-    (F, 3) indexing it per face corner, and ``texture`` (H, W, 3) uint8 numpy, the albedo.
+    Optional (the open body has them, SMPL files do not; ``None`` otherwise): uv (Vt, 2) in
+    [0, 1], OBJ convention (v up), with uv_faces (F, 3) indexing it per face corner, and
+    ``texture`` (H, W, 3) uint8 numpy, the albedo, whose row 0 is v = 1 (sample at
+    ``texture[(1 - v) * H, u * W]``).
     """
 
     num_joints = SMPL_NUM_JOINTS
