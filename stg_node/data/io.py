@@ -1,0 +1,121 @@
+"""Reading the files datasets are made of: images, masks, pickled numpy dicts, JSON.
+
+Each reader checks what it got and raises :class:`~stg_node.data.errors.DatasetError` naming
+the file: OpenCV returns ``None`` for a corrupt image and numpy raises bare pickling errors, and
+neither says which of ten thousand files is broken.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from stg_node.data.errors import DatasetError
+
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp")
+
+# Threshold for lossy (JPEG) masks, whose edges and background carry compression noise.
+# Lossless masks count every non-zero value as foreground (ZJU-MoCap's mask_cihp stores part
+# labels 1..N, its mask/ folder 0/1 or 0/255).
+JPEG_MASK_THRESHOLD = 128
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """An RGB ``(H, W, 3)`` uint8 image; grey and RGBA inputs are converted."""
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(path, "image file is missing", "an existing .jpg/.png file")
+    data = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if data is None or data.size == 0:
+        raise DatasetError(path, "image cannot be decoded (corrupt or not an image)", "a readable JPEG/PNG")
+    if data.dtype == np.uint16:
+        data = (data // 257).astype(np.uint8)
+    if data.dtype != np.uint8:
+        raise DatasetError(path, f"image has dtype {data.dtype}", "8-bit (or 16-bit) pixels")
+    if data.ndim == 2:
+        return cv2.cvtColor(data, cv2.COLOR_GRAY2RGB)
+    if data.shape[2] == 4:
+        return cv2.cvtColor(data, cv2.COLOR_BGRA2RGB)
+    if data.shape[2] == 3:
+        return cv2.cvtColor(data, cv2.COLOR_BGR2RGB)
+    raise DatasetError(path, f"image has {data.shape[2]} channels", "1, 3 or 4 channels")
+
+
+def read_mask(path: str | Path) -> np.ndarray:
+    """A ``(H, W)`` uint8 mask, 255 on the person and 0 elsewhere.
+
+    Lossless files (PNG, BMP): any non-zero value is the person. JPEG files: values of at least
+    ``JPEG_MASK_THRESHOLD``. Colour masks use their maximum over channels.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(path, "mask file is missing", "an existing .png/.jpg mask")
+    data = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if data is None or data.size == 0:
+        raise DatasetError(path, "mask cannot be decoded (corrupt or not an image)", "a readable PNG/JPEG")
+    if data.ndim == 3:
+        data = data[..., :3].max(axis=2) if data.shape[2] >= 3 else data[..., 0]
+    lossy = path.suffix.lower() in (".jpg", ".jpeg")
+    if lossy:
+        scale = 257 if data.dtype == np.uint16 else 1
+        on = data >= JPEG_MASK_THRESHOLD * scale
+    else:
+        on = data != 0
+    return np.where(on, np.uint8(255), np.uint8(0))
+
+
+def load_npy_dict(path: str | Path) -> dict[str, Any]:
+    """A dict saved with ``np.save(path, dict)`` (ZJU-MoCap's annots.npy, new_params/*.npy)."""
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(path, "file is missing", "a .npy file holding a pickled dict")
+    try:
+        data = np.load(path, allow_pickle=True)
+    except Exception as exc:  # numpy raises ValueError, UnpicklingError, EOFError, OSError ...
+        raise DatasetError(
+            path, f"cannot be read as .npy ({type(exc).__name__}: {exc})", "a .npy file written by np.save"
+        ) from exc
+    if isinstance(data, np.ndarray) and data.dtype == object and data.shape == ():
+        data = data.item()
+    if not isinstance(data, dict):
+        raise DatasetError(path, f"holds a {type(data).__name__}", "a dict saved with np.save(path, dict)")
+    return data
+
+
+def load_json(path: str | Path) -> Any:
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(path, "file is missing", "a JSON file")
+    try:
+        return json.loads(path.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise DatasetError(path, f"is not valid JSON ({exc})", "a JSON document") from exc
+
+
+def as_array(
+    value: Any, shape: tuple[int, ...], *, path: str | Path, name: str, dtype=np.float64
+) -> np.ndarray:
+    """``value`` as a finite array of ``shape`` (size-compatible reshapes allowed), else an error."""
+    try:
+        array = np.asarray(value, dtype=dtype)
+    except (TypeError, ValueError) as exc:
+        raise DatasetError(path, f"{name} is not numeric ({exc})", f"{name} of shape {shape}") from exc
+    if array.size != int(np.prod(shape)):
+        raise DatasetError(path, f"{name} has shape {array.shape}", f"{name} of shape {shape}")
+    array = array.reshape(shape)
+    if not np.all(np.isfinite(array)):
+        raise DatasetError(path, f"{name} contains NaN or infinite values", f"finite {name}")
+    return array
+
+
+def find_image(stem: Path) -> Path | None:
+    """The existing file ``stem`` + one of the image suffixes, or None."""
+    for suffix in IMAGE_SUFFIXES:
+        candidate = stem.with_name(stem.name + suffix)
+        if candidate.is_file():
+            return candidate
+    return None
