@@ -6,9 +6,11 @@ training camera and a ring of held-out cameras, and written in ZJU-MoCap's origi
 
 Modules: ``motions`` (SMPL motion sequences) and ``joint_limits``; ``garment`` (cloth
 dynamics); ``mesh_raster`` (the ground-truth renderer); ``cameras`` (the rig); ``writer``
-(the ZJU-MoCap layout and ``synth.json``); ``generate`` (the pipeline).
+(the ZJU-MoCap layout and ``synth.json``); ``generate`` (the pipeline); ``dataset``
+(:func:`open_synth`: the generated folder through the ZJU-MoCap loader).
 """
 
+from stg_node.data.synth.dataset import open_synth, synth_split
 from stg_node.data.synth.garment import GarmentParams
 from stg_node.data.synth.generate import SynthConfig, SynthResult, generate, render_schedule, split_spec
 from stg_node.data.synth.motions import DEFAULT_MOTION, MOTIONS, MotionSequence, make_motion
@@ -24,7 +26,9 @@ __all__ = [
     "SynthResult",
     "generate",
     "make_motion",
+    "open_synth",
     "read_metadata",
     "render_schedule",
     "split_spec",
+    "synth_split",
 ]

@@ -90,17 +90,32 @@ class SynthResult:
     timings: dict[str, float]  # seconds per stage
 
 
+def held_out_frames(config: SynthConfig) -> list[int]:
+    """Frames the held-out cameras render: every view_every-th of the training range, and of the rest.
+
+    ``range(0, n_train, K)`` and ``range(n_train, N, K)``: exactly the frames of the loaders'
+    novel-view and novel-pose splits (stg_node.data.splits with ``train_frames=(0, n_train)``).
+    """
+    n_train, every = config.num_train_frames, config.view_every
+    return list(range(0, n_train, every)) + list(range(n_train, config.num_frames, every))
+
+
 def render_schedule(config: SynthConfig) -> list[list[int]]:
-    """Cameras to render at each frame: the training camera always, held-out ones every view_every-th."""
+    """Cameras per frame: the training camera always, the held-out ones on :func:`held_out_frames`."""
     novel = list(range(1, config.num_novel_views + 1))
-    return [[0] + (novel if frame % config.view_every == 0 else []) for frame in range(config.num_frames)]
+    strided = set(held_out_frames(config))
+    return [[0] + (novel if frame in strided else []) for frame in range(config.num_frames)]
 
 
 def split_spec(config: SynthConfig) -> dict[str, list[dict]]:
-    """Train / novel-view / novel-pose splits as lists of {cameras, frames} products (0-based)."""
+    """Train / novel-view / novel-pose splits as lists of {cameras, frames} products (0-based cameras).
+
+    The same selections ``open_dataset(..., train_frames=FrameRange(0, n_train))`` makes, plus
+    every held-out frame from the training camera (the monocular camera's own novel poses).
+    """
     n_train = config.num_train_frames
     novel = list(range(1, config.num_novel_views + 1))
-    strided = [f for f in range(config.num_frames) if f % config.view_every == 0]
+    strided = held_out_frames(config)
     splits: dict[str, list[dict]] = {
         "train": [{"cameras": [0], "frames": list(range(n_train))}],
         "novel_view": [],

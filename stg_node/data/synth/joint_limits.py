@@ -23,34 +23,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from stg_node.body import SMPL_JOINT_NAMES
 from stg_node.data.synth.rotations import euler_zyx_to_matrix, matrix_to_axis_angle
 
-JOINT_NAMES = (
-    "pelvis",
-    "left_hip",
-    "right_hip",
-    "spine1",
-    "left_knee",
-    "right_knee",
-    "spine2",
-    "left_ankle",
-    "right_ankle",
-    "spine3",
-    "left_foot",
-    "right_foot",
-    "neck",
-    "left_collar",
-    "right_collar",
-    "head",
-    "left_shoulder",
-    "right_shoulder",
-    "left_elbow",
-    "right_elbow",
-    "left_wrist",
-    "right_wrist",
-    "left_hand",
-    "right_hand",
-)
+JOINT_NAMES = SMPL_JOINT_NAMES
 NUM_JOINTS = len(JOINT_NAMES)
 JOINT_INDEX = {name: i for i, name in enumerate(JOINT_NAMES)}
 
