@@ -173,6 +173,11 @@ def generate(config: SynthConfig, body=None, progress: bool = True) -> SynthResu
         from stg_node.body import load_body_model
 
         body = load_body_model()
+    if getattr(body, "uv", None) is None or getattr(body, "texture", None) is None:
+        raise ValueError(
+            f"body model {getattr(body, 'name', type(body).__name__)!r} has no uv/uv_faces/texture; "
+            "stg-synth renders a textured body (the shipped open body has one)"
+        )
     out = writer.prepare_output(Path(config.out), config.overwrite)
 
     motion_seq, shape_seq, camera_seq = np.random.SeedSequence(config.seed).spawn(3)
