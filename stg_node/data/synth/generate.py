@@ -18,6 +18,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+import stg_node
 from stg_node.data.synth import writer
 from stg_node.data.synth.cameras import make_rig
 from stg_node.data.synth.garment import GarmentParams, garment_regions, simulate_garment
@@ -284,6 +285,7 @@ def generate(config: SynthConfig, body=None, progress: bool = True) -> SynthResu
 
     metadata = {
         "generator": "stg-synth",
+        "stg_node_version": stg_node.__version__,
         "seed": int(config.seed),
         "motion": config.motion,
         "motion_segments": [
