@@ -294,3 +294,25 @@ def test_benchmark_tool_runs_a_small_workload(capsys):
     assert _tool("bench_synth").main(["--frames", "3", "--size", "32", "--views", "1"]) == 0
     printed = capsys.readouterr().out
     assert "ratio total / baseline" in printed and "MET" in printed
+
+
+def test_back_face_culling_does_not_change_the_body_render(tiny, body):
+    """The generator culls back faces; on the closed, outward-wound body that must be invisible."""
+    from stg_node.data.synth.generate import _outward_faces
+    from stg_node.data.synth.mesh_raster import TexturedMesh, render_mesh
+    from stg_node.data.types import Camera
+
+    with torch.no_grad():
+        rest = body(poses=torch.zeros(1, 72)).vertices[0].numpy()
+    faces, flipped = _outward_faces(rest, body.faces.numpy())
+    assert not flipped  # the open body is wound counter-clockwise outwards
+    annots = np.load(tiny.out / "annots.npy", allow_pickle=True).item()
+    cams = annots["cams"]
+    mesh = TexturedMesh.from_arrays(faces, body.uv.numpy(), body.uv_faces.numpy(), body.texture)
+    vertices = np.load(tiny.out / "new_vertices" / "3.npy")
+    for k in range(3):
+        camera = Camera(K=cams["K"][k], R=cams["R"][k], t=cams["T"][k][:, 0] / 1000.0, width=64, height=64)
+        culled = render_mesh(mesh, vertices, camera, cull_backfaces=True)
+        full = render_mesh(mesh, vertices, camera, cull_backfaces=False)
+        np.testing.assert_array_equal(culled.mask, full.mask)
+        np.testing.assert_array_equal(culled.image, full.image)
