@@ -1,0 +1,343 @@
+"""Generates the synthetic benchmark: motion -> body -> garment -> cameras -> rasterized views -> ZJU layout.
+
+:func:`generate` is what ``stg-synth`` runs. Everything is drawn from one seed through
+independent ``numpy.random.SeedSequence`` children (motion, body shape, cameras), so changing
+the number of held-out cameras does not change the motion, and the same seed and settings give
+bit-identical files on the same machine and thread count. See docs/SYNTH.md.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+import stg_node
+from stg_node.data.synth import writer
+from stg_node.data.synth.cameras import make_rig
+from stg_node.data.synth.garment import GarmentParams, garment_regions, simulate_garment
+from stg_node.data.synth.mesh_raster import TexturedMesh, render_mesh, vertex_normals
+from stg_node.data.synth.motions import DEFAULT_MOTION, MOTIONS, make_motion
+from stg_node.data.synth.rotations import axis_angle_to_matrix
+
+log = logging.getLogger(__name__)
+
+SHADING_MODES = ("lambert", "none")
+# Lambert shading with one directional light fixed in the body (root) frame: from the subject's
+# upper left front, in SMPL axes (x left, y up, z front). Turning the whole body does not change
+# the shading; bending a limb does.
+LIGHT_DIRECTION_BODY = np.array([0.35, 0.55, 0.75]) / np.linalg.norm([0.35, 0.55, 0.75])
+AMBIENT = 0.45
+DIFFUSE = 0.55
+BODY_CHUNK_FRAMES = 64
+MAX_PENDING_WRITES = 16
+
+
+@dataclass(frozen=True)
+class SynthConfig:
+    """Everything that determines a generated benchmark (the output is a function of these)."""
+
+    out: Path
+    seed: int = 0
+    num_frames: int = 300
+    size: int = 512
+    motion: str = DEFAULT_MOTION
+    fps: float = 30.0
+    num_novel_views: int = 8
+    view_every: int = 30  # held-out cameras render every view_every-th frame (ZJU protocol: 30)
+    train_fraction: float = 0.8  # the first frames train; the rest are held-out (novel) poses
+    supersample: int = 2
+    shading: str = "lambert"
+    write_depth: bool = False
+    cull_backfaces: bool = True
+    betas_std: float = 0.5
+    overwrite: bool = False
+    garment: GarmentParams = field(default_factory=GarmentParams)
+
+    def validate(self) -> None:
+        if self.motion not in MOTIONS:
+            raise ValueError(f"unknown motion {self.motion!r}; choose one of {', '.join(MOTIONS)}")
+        if self.shading not in SHADING_MODES:
+            raise ValueError(f"unknown shading {self.shading!r}; choose one of {', '.join(SHADING_MODES)}")
+        if self.num_frames < 1:
+            raise ValueError(f"--frames must be >= 1, got {self.num_frames}")
+        if self.size < 8:
+            raise ValueError(f"--size must be >= 8 pixels, got {self.size}")
+        if self.num_novel_views < 0 or self.view_every < 1:
+            raise ValueError("--views must be >= 0 and --view-every >= 1")
+        if not 0.0 < self.train_fraction <= 1.0:
+            raise ValueError(f"train_fraction must be in (0, 1], got {self.train_fraction}")
+        if self.supersample < 1:
+            raise ValueError(f"--supersample must be >= 1, got {self.supersample}")
+        if not self.fps > 0:
+            raise ValueError(f"--fps must be positive, got {self.fps}")
+
+    @property
+    def num_train_frames(self) -> int:
+        return max(1, min(self.num_frames, int(round(self.train_fraction * self.num_frames))))
+
+
+@dataclass
+class SynthResult:
+    out: Path
+    metadata: dict
+    num_views: int  # rendered (camera, frame) pairs
+    timings: dict[str, float]  # seconds per stage
+
+
+def held_out_frames(config: SynthConfig) -> list[int]:
+    """Frames the held-out cameras render: every view_every-th of the training range, and of the rest.
+
+    ``range(0, n_train, K)`` and ``range(n_train, N, K)``: exactly the frames of the loaders'
+    novel-view and novel-pose splits (stg_node.data.splits with ``train_frames=(0, n_train)``).
+    """
+    n_train, every = config.num_train_frames, config.view_every
+    return list(range(0, n_train, every)) + list(range(n_train, config.num_frames, every))
+
+
+def render_schedule(config: SynthConfig) -> list[list[int]]:
+    """Cameras per frame: the training camera always, the held-out ones on :func:`held_out_frames`."""
+    novel = list(range(1, config.num_novel_views + 1))
+    strided = set(held_out_frames(config))
+    return [[0] + (novel if frame in strided else []) for frame in range(config.num_frames)]
+
+
+def split_spec(config: SynthConfig) -> dict[str, list[dict]]:
+    """Train / novel-view / novel-pose splits as lists of {cameras, frames} products (0-based cameras).
+
+    The same selections ``open_dataset(..., train_frames=FrameRange(0, n_train))`` makes, plus
+    every held-out frame from the training camera (the monocular camera's own novel poses).
+    """
+    n_train = config.num_train_frames
+    novel = list(range(1, config.num_novel_views + 1))
+    strided = held_out_frames(config)
+    splits: dict[str, list[dict]] = {
+        "train": [{"cameras": [0], "frames": list(range(n_train))}],
+        "novel_view": [],
+        "novel_pose": [],
+    }
+    view_frames = [f for f in strided if f < n_train]
+    if novel and view_frames:
+        splits["novel_view"].append({"cameras": novel, "frames": view_frames})
+    if n_train < config.num_frames:
+        splits["novel_pose"].append({"cameras": [0], "frames": list(range(n_train, config.num_frames))})
+        pose_frames = [f for f in strided if f >= n_train]
+        if novel and pose_frames:
+            splits["novel_pose"].append({"cameras": novel, "frames": pose_frames})
+    return splits
+
+
+def _outward_faces(rest_vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, bool]:
+    """Faces wound counter-clockwise seen from outside (positive signed volume); flipped if needed."""
+    tri = rest_vertices[faces].astype(np.float64)
+    volume = np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum() / 6.0
+    if volume >= 0:
+        return faces, False
+    return faces[:, [0, 2, 1]], True
+
+
+def _body_forward(model, betas: np.ndarray, poses: np.ndarray, Rh: np.ndarray, Th: np.ndarray) -> np.ndarray:
+    """World vertices (T, V, 3) float32 for every frame, in fixed-size chunks (deterministic)."""
+    chunks = []
+    with torch.no_grad():
+        for lo in range(0, poses.shape[0], BODY_CHUNK_FRAMES):
+            hi = min(lo + BODY_CHUNK_FRAMES, poses.shape[0])
+            out = model(
+                betas=torch.as_tensor(np.repeat(betas[None], hi - lo, axis=0)),
+                poses=torch.as_tensor(poses[lo:hi].reshape(hi - lo, -1)),
+                Rh=torch.as_tensor(Rh[lo:hi]),
+                Th=torch.as_tensor(Th[lo:hi]),
+            )
+            chunks.append(out.vertices.detach().to(torch.float32).cpu().numpy())
+    return np.concatenate(chunks, axis=0)
+
+
+def _lambert_shade(vertices: torch.Tensor, faces: torch.Tensor, Rh: np.ndarray) -> torch.Tensor:
+    light_world = axis_angle_to_matrix(Rh.astype(np.float64)) @ LIGHT_DIRECTION_BODY
+    normals = vertex_normals(vertices, faces)
+    cosine = (normals @ torch.as_tensor(light_world, dtype=torch.float32)).clamp(min=0.0)
+    return AMBIENT + DIFFUSE * cosine
+
+
+def generate(config: SynthConfig, body=None, progress: bool = True) -> SynthResult:
+    """Generate the benchmark described by ``config``; ``body`` defaults to the shipped open body."""
+    config.validate()
+    timings: dict[str, float] = {}
+    t_start = time.perf_counter()
+    if body is None:
+        from stg_node.body import load_body_model
+
+        body = load_body_model()
+    if getattr(body, "uv", None) is None or getattr(body, "texture", None) is None:
+        raise ValueError(
+            f"body model {getattr(body, 'name', type(body).__name__)!r} has no uv/uv_faces/texture; "
+            "stg-synth renders a textured body (the shipped open body has one)"
+        )
+    out = writer.prepare_output(Path(config.out), config.overwrite)
+
+    motion_seq, shape_seq, camera_seq = np.random.SeedSequence(config.seed).spawn(3)
+    n_train = config.num_train_frames
+    motion = make_motion(
+        config.motion, config.num_frames, config.fps, np.random.default_rng(motion_seq), n_train
+    )
+    betas = np.clip(
+        np.random.default_rng(shape_seq).normal(0.0, config.betas_std, size=int(body.num_betas)),
+        -3 * config.betas_std,
+        3 * config.betas_std,
+    ).astype(np.float32)
+    cameras = make_rig(config.size, config.num_novel_views, np.random.default_rng(camera_seq))
+
+    # Skinned body; then lift every frame so its lowest vertex touches the floor (z = 0).
+    t0 = time.perf_counter()
+    Th = motion.Th.copy()
+    skinned = _body_forward(body, betas, motion.poses, motion.Rh, Th)
+    lift = -skinned[:, :, 2].min(axis=1)
+    Th[:, 2] += lift
+    skinned = _body_forward(body, betas, motion.poses, motion.Rh, Th)
+    zero = np.zeros((1, 3), dtype=np.float32)
+    with torch.no_grad():
+        rest = body(
+            betas=torch.as_tensor(betas[None]),
+            poses=torch.zeros(1, 72),
+            Rh=torch.as_tensor(zero),
+            Th=torch.as_tensor(zero),
+        )
+    rest_vertices = rest.vertices[0].detach().cpu().numpy()
+    rest_joints = rest.joints[0].detach().cpu().numpy()
+    timings["body"] = time.perf_counter() - t0
+
+    # Garment dynamics on top of skinning: the ground truth has it, the SMPL parameters do not.
+    t0 = time.perf_counter()
+    regions = garment_regions(rest_vertices, rest_joints, config.garment)
+    offsets = simulate_garment(skinned, regions.weight, config.fps, config.garment, regions.freq_scale)
+    gt_vertices = skinned + offsets
+    timings["garment"] = time.perf_counter() - t0
+
+    faces, flipped = _outward_faces(
+        rest_vertices, np.asarray(body.faces.cpu() if torch.is_tensor(body.faces) else body.faces)
+    )
+    uv = body.uv.cpu().numpy() if torch.is_tensor(body.uv) else np.asarray(body.uv)
+    uv_faces = np.asarray(body.uv_faces.cpu() if torch.is_tensor(body.uv_faces) else body.uv_faces)
+    if flipped:
+        uv_faces = uv_faces[:, [0, 2, 1]]
+        log.info("body faces are wound clockwise; flipped them for rendering")
+    mesh = TexturedMesh.from_arrays(faces, uv, uv_faces, body.texture)
+
+    schedule = render_schedule(config)
+    num_views = sum(len(cams) for cams in schedule)
+    writer.write_annots(out, cameras, config.num_frames)
+
+    render_time = 0.0
+    t_loop = time.perf_counter()
+    pending: list[Future] = []
+    bar = tqdm(total=num_views, unit="view", desc="stg-synth", disable=not progress, dynamic_ncols=True)
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="synth-writer") as pool:
+        try:
+            for frame, cams in enumerate(schedule):
+                pending.append(
+                    pool.submit(
+                        writer.write_frame_smpl,
+                        out,
+                        frame,
+                        motion.poses[frame],
+                        motion.Rh[frame],
+                        Th[frame],
+                        betas,
+                    )
+                )
+                pending.append(pool.submit(writer.write_frame_vertices, out, frame, gt_vertices[frame]))
+                t0 = time.perf_counter()
+                verts = torch.from_numpy(gt_vertices[frame])
+                shade = (
+                    _lambert_shade(verts, mesh.faces, motion.Rh[frame])
+                    if config.shading == "lambert"
+                    else None
+                )
+                for k in cams:
+                    result = render_mesh(
+                        mesh,
+                        verts,
+                        cameras[k],
+                        supersample=config.supersample,
+                        vertex_shade=shade,
+                        cull_backfaces=config.cull_backfaces,
+                    )
+                    depth = result.depth if config.write_depth else None
+                    pending.append(
+                        pool.submit(writer.write_view, out, k, frame, result.image, result.mask, depth)
+                    )
+                    bar.update(1)
+                render_time += time.perf_counter() - t0
+                while len(pending) > MAX_PENDING_WRITES:
+                    pending.pop(0).result()
+            for job in pending:
+                job.result()
+        finally:
+            bar.close()
+    timings["render"] = render_time
+    timings["render_and_write"] = time.perf_counter() - t_loop
+
+    metadata = {
+        "generator": "stg-synth",
+        "stg_node_version": stg_node.__version__,
+        "seed": int(config.seed),
+        "motion": config.motion,
+        "motion_segments": [
+            {"name": seg.name, "start": seg.start, "stop": seg.stop} for seg in motion.segments
+        ],
+        "fps": float(config.fps),
+        "num_frames": int(config.num_frames),
+        "size": [int(config.size), int(config.size)],
+        "image_format": "png",
+        "supersample": int(config.supersample),
+        "shading": {
+            "mode": config.shading,
+            "light_direction_body": LIGHT_DIRECTION_BODY.tolist(),
+            "ambient": AMBIENT,
+            "diffuse": DIFFUSE,
+        },
+        "world": {"up": [0.0, 0.0, 1.0], "floor_z": 0.0, "units": "metres"},
+        "body": {
+            "name": str(getattr(body, "name", type(body).__name__)),
+            "num_vertices": int(rest_vertices.shape[0]),
+            "num_faces": int(faces.shape[0]),
+            "betas": betas.tolist(),
+        },
+        "garment": {
+            **config.garment.to_dict(),
+            "hem_vertices": int(regions.hem.sum()),
+            "sleeve_vertices": int(regions.sleeves.sum()),
+            "max_offset_written_m": float(np.linalg.norm(offsets, axis=-1).max()) if offsets.size else 0.0,
+            "in_smpl_params": False,
+            "in_new_vertices": True,
+        },
+        "cameras": [
+            {"index": k, "name": cam.name, "role": "train" if k == 0 else "novel_view"}
+            for k, cam in enumerate(cameras)
+        ],
+        "num_train_frames": n_train,
+        "view_every": int(config.view_every),
+        "splits": split_spec(config),
+        "rendered": {
+            cam.name: [frame for frame, cams in enumerate(schedule) if k in cams]
+            for k, cam in enumerate(cameras)
+        },
+        "depth": {"written": bool(config.write_depth), "unit": "millimetre", "zero": "background"},
+    }
+    writer.write_metadata(out, metadata)
+    timings["total"] = time.perf_counter() - t_start
+    log.info(
+        "wrote %d views of %d frames to %s in %.1f s (render %.1f s)",
+        num_views,
+        config.num_frames,
+        out,
+        timings["total"],
+        render_time,
+    )
+    return SynthResult(out=out, metadata=metadata, num_views=num_views, timings=timings)

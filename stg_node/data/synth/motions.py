@@ -1,0 +1,465 @@
+"""Procedural SMPL motion sequences for the synthetic benchmark: turn, walk, wave, dance, mixed.
+
+Each motion is a set of smooth functions of time (sums of sinusoids whose amplitudes and
+phases are drawn from a seeded generator and slowly modulated, so no two seconds repeat
+exactly) that give per-joint Euler angles in SMPL's parent-relative frames, a root yaw
+rate, a forward speed and a few root wobbles. Segments are cross-faded with a smoothstep
+(angles and rates blend linearly, which keeps every angle inside its limit box), the yaw
+and the ground-plane position are integrated from the blended rates, and the angles
+are clamped to :mod:`joint_limits` before they become SMPL axis-angle vectors.
+
+World frame (as in ZJU-MoCap): z up, floor at z = 0 once the generator places the feet.
+At yaw 0 the subject faces -y, towards the training camera. Poses follow ZJU-MoCap's
+convention: ``poses[:, 0] == 0`` and the global rotation lives in ``Rh``; ``Th`` here
+holds only the ground-plane position (the generator adds the height that puts the
+lowest vertex on the floor, which needs the body model).
+
+Motions (``--motion``):
+- ``turn``: standing and turning in place with slow arm raises and look-arounds (ZJU-MoCap style).
+- ``walk``: a walking gait on a circle of 0.4-0.5 m radius (one circle for the whole sequence).
+- ``wave``: standing, turning slowly, one arm raised and waving at about 2 Hz.
+- ``dance``: fast (about 2 beats/s) bouncing, twisting, large arm swings, swaying.
+- ``mixed`` (default): turn, walk, wave and dance in turn over the training range.
+
+Held-out poses: the last ``novel_pose_start..`` frames use a fresh parameter draw of the
+same motion (for ``mixed``: walking while waving, a combination never seen in training),
+cross-faded in so the dynamics stay continuous. Over the training range the root yaw is
+adjusted by a constant rate so the body turns through at least one full revolution: a
+fixed monocular camera then sees every side of the subject.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from stg_node.data.synth.joint_limits import (
+    JOINT_INDEX,
+    NUM_JOINTS,
+    clamp_to_limits,
+    euler_to_smpl_pose,
+)
+from stg_node.data.synth.rotations import axis_rotation, euler_zyx_to_matrix, matrix_to_axis_angle
+
+MOTIONS = ("mixed", "turn", "walk", "wave", "dance")
+DEFAULT_MOTION = "mixed"
+CROSSFADE_SECONDS = 0.5
+# Steering onto the walking circle: heading error gain (1/s) and radial pull (dimensionless).
+STEER_GAIN = 3.0
+STEER_RADIAL_GAIN = 1.5
+# Rotation from SMPL's frame (y up, facing +z) to the world (z up, facing -y): Rx(+90 deg).
+SMPL_TO_WORLD = axis_rotation("x", np.pi / 2)
+# Root wobble limits (pitch x, yaw y, roll z) in degrees, in the SMPL frame of the pelvis.
+ROOT_WOBBLE_LIMITS_DEG = np.array([[-20.0, 20.0], [-30.0, 30.0], [-15.0, 15.0]])
+UPPER_BODY_JOINTS = tuple(
+    JOINT_INDEX[name]
+    for name in (
+        "neck",
+        "head",
+        "left_collar",
+        "right_collar",
+        "left_shoulder",
+        "right_shoulder",
+        "left_elbow",
+        "right_elbow",
+        "left_wrist",
+        "right_wrist",
+        "left_hand",
+        "right_hand",
+    )
+)
+
+
+@dataclass(frozen=True)
+class MotionSegment:
+    """A named stretch of the sequence: frames ``start`` (inclusive) to ``stop`` (exclusive)."""
+
+    name: str
+    start: int
+    stop: int
+
+
+@dataclass(frozen=True)
+class MotionSequence:
+    """SMPL parameters of a whole sequence (ZJU-MoCap convention), before floor placement."""
+
+    poses: np.ndarray  # (N, 24, 3) float32 axis-angle; poses[:, 0] == 0
+    Rh: np.ndarray  # (N, 3) float32 axis-angle global rotation
+    Th: np.ndarray  # (N, 3) float32 translation; z is 0 until the feet are put on the floor
+    euler_deg: np.ndarray  # (N, 24, 3) float64 the clamped Euler angles the poses were built from
+    fps: float
+    segments: tuple[MotionSegment, ...]
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.poses.shape[0])
+
+
+@dataclass
+class _Drive:
+    """What one motion primitive asks for at each instant (all arrays have N rows)."""
+
+    euler: np.ndarray  # (N, 24, 3) degrees, before clamping
+    yaw_rate: np.ndarray  # (N,) rad/s about world z
+    speed: np.ndarray  # (N,) m/s along the facing direction
+    root: np.ndarray  # (N, 3) degrees: pelvis pitch / yaw wobble / roll in the SMPL frame
+    sway: np.ndarray  # (N, 2) metres: offset along the subject's left and forward axes
+    walking: bool = False  # its yaw rate is the walking circle's curvature times the speed
+
+
+@dataclass(frozen=True)
+class _Style:
+    """Drawn once per sequence, shared by every segment: turning sense and walking circle.
+
+    Keeping them fixed means consecutive walking segments stay on one circle (same curvature)
+    instead of drifting out of the cameras' view.
+    """
+
+    direction: float  # +1 counter-clockwise seen from above, -1 clockwise
+    walk_radius: float  # metres
+
+
+def _relaxed(n: int) -> np.ndarray:
+    """Arms hanging slightly away from the body, elbows a little bent, everything else neutral."""
+    euler = np.zeros((n, NUM_JOINTS, 3))
+    _set_left(euler, "shoulder", np.array([0.0, 0.0, -70.0]))
+    _set_left(euler, "elbow", np.array([0.0, -12.0, 0.0]))
+    _mirror_pair(euler, "shoulder")
+    _mirror_pair(euler, "elbow")
+    return euler
+
+
+def _set_left(euler: np.ndarray, part: str, value: np.ndarray) -> None:
+    euler[:, JOINT_INDEX["left_" + part]] = value
+
+
+def _mirror(angles: np.ndarray) -> np.ndarray:
+    """Left-side angles -> the mirror-image right-side angles (x kept, y and z negated)."""
+    out = np.array(angles, dtype=np.float64, copy=True)
+    out[..., 1:] *= -1.0
+    return out
+
+
+def _mirror_pair(euler: np.ndarray, part: str) -> None:
+    euler[:, JOINT_INDEX["right_" + part]] = _mirror(euler[:, JOINT_INDEX["left_" + part]])
+
+
+def _modulation(t: np.ndarray, rng: np.random.Generator, depth: float = 0.25) -> np.ndarray:
+    """A slow random amplitude modulation around 1 (keeps motions from being exactly periodic)."""
+    freq = rng.uniform(0.05, 0.13)
+    phase = rng.uniform(0, 2 * np.pi)
+    return 1.0 + depth * np.sin(2 * np.pi * freq * t + phase)
+
+
+def _zeros(t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    n = t.shape[0]
+    return np.zeros(n), np.zeros(n), np.zeros((n, 3)), np.zeros((n, 2))
+
+
+def _turn(t: np.ndarray, rng: np.random.Generator, style: _Style) -> _Drive:
+    """Standing and turning in place (ZJU-MoCap's typical capture), arms rising and falling."""
+    n = t.shape[0]
+    euler = _relaxed(n)
+    _, speed, root, sway = _zeros(t)
+    yaw_rate = np.full(n, style.direction * 2 * np.pi / rng.uniform(7.0, 11.0))
+    for side, sign in (("left", 1.0), ("right", -1.0)):
+        f_raise, f_swing = rng.uniform(0.15, 0.35), rng.uniform(0.2, 0.4)
+        p_raise, p_swing = rng.uniform(0, 2 * np.pi, size=2)
+        raise_ = 0.5 - 0.5 * np.cos(2 * np.pi * f_raise * t + p_raise)
+        left_equiv = np.stack(
+            [
+                20.0 * np.sin(2 * np.pi * 0.17 * t + p_swing),
+                -15.0 * np.sin(2 * np.pi * f_swing * t + p_swing),
+                -70.0 + 55.0 * raise_ * _modulation(t, rng, 0.2),
+            ],
+            axis=-1,
+        )
+        elbow = np.stack([np.zeros(n), -(12.0 + 40.0 * raise_), np.zeros(n)], axis=-1)
+        if sign < 0:
+            left_equiv, elbow = _mirror(left_equiv), _mirror(elbow)
+        euler[:, JOINT_INDEX[f"{side}_shoulder"]] = left_equiv
+        euler[:, JOINT_INDEX[f"{side}_elbow"]] = elbow
+    look = rng.uniform(0, 2 * np.pi, size=3)
+    euler[:, JOINT_INDEX["neck"]] = np.stack(
+        [
+            8.0 * np.sin(2 * np.pi * 0.21 * t + look[0]),
+            25.0 * np.sin(2 * np.pi * 0.13 * t + look[1]),
+            np.zeros(n),
+        ],
+        axis=-1,
+    )
+    euler[:, JOINT_INDEX["head"], 1] = 10.0 * np.sin(2 * np.pi * 0.17 * t + look[2])
+    euler[:, JOINT_INDEX["spine2"], 1] = 8.0 * np.sin(2 * np.pi * 0.19 * t + look[0])
+    shift = 4.0 * np.sin(2 * np.pi * rng.uniform(0.15, 0.3) * t + look[2])
+    euler[:, JOINT_INDEX["left_hip"], 2] = shift
+    euler[:, JOINT_INDEX["right_hip"], 2] = shift  # both legs lean the same way: a weight shift
+    root[:, 2] = -0.5 * shift
+    euler[:, JOINT_INDEX["left_knee"], 0] = 4.0 + 3.0 * np.maximum(0.0, np.sin(2 * np.pi * 0.3 * t))
+    euler[:, JOINT_INDEX["right_knee"], 0] = 4.0 + 3.0 * np.maximum(0.0, -np.sin(2 * np.pi * 0.3 * t))
+    return _Drive(euler, yaw_rate, speed, root, sway)
+
+
+def _walk(t: np.ndarray, rng: np.random.Generator, style: _Style) -> _Drive:
+    """A walking gait along the sequence's circle (0.4-0.5 m radius, so the subject stays in frame)."""
+    n = t.shape[0]
+    euler = _relaxed(n)
+    _, _, root, sway = _zeros(t)
+    stride_freq = rng.uniform(0.75, 0.95)  # gait cycles per second (two steps each)
+    stride_length = rng.uniform(0.7, 0.9)  # metres per gait cycle
+    speed = np.full(n, stride_length * stride_freq)
+    yaw_rate = style.direction * speed / style.walk_radius
+    phase0 = rng.uniform(0, 2 * np.pi)
+    amp = _modulation(t, rng, 0.15)
+    phase = 2 * np.pi * stride_freq * t + phase0
+
+    def leg(ph: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        hip = -8.0 - 20.0 * amp * np.sin(ph)
+        knee = 5.0 + 55.0 * amp * np.maximum(0.0, np.cos(ph + np.pi / 4)) ** 2
+        ankle = 12.0 * np.sin(ph - np.pi / 3)
+        return hip, knee, ankle
+
+    for side, offset in (("left", 0.0), ("right", np.pi)):
+        hip, knee, ankle = leg(phase + offset)
+        euler[:, JOINT_INDEX[f"{side}_hip"], 0] = hip
+        euler[:, JOINT_INDEX[f"{side}_knee"], 0] = knee
+        euler[:, JOINT_INDEX[f"{side}_ankle"], 0] = ankle
+        arm = np.stack(
+            [np.zeros(n), 18.0 * amp * np.sin(phase + offset), np.full(n, -75.0)], axis=-1
+        )  # arm swings opposite to the leg of its side
+        elbow = np.stack([np.zeros(n), -(18.0 + 12.0 * (1 - np.sin(phase + offset)) / 2), np.zeros(n)], -1)
+        if side == "right":
+            arm, elbow = _mirror(arm), _mirror(elbow)
+        euler[:, JOINT_INDEX[f"{side}_shoulder"]] = arm
+        euler[:, JOINT_INDEX[f"{side}_elbow"]] = elbow
+    euler[:, JOINT_INDEX["spine2"], 1] = 6.0 * np.sin(phase)
+    euler[:, JOINT_INDEX["spine1"], 0] = 4.0
+    root[:, 1] = -5.0 * np.sin(phase)
+    root[:, 2] = 3.0 * np.sin(2 * phase)
+    return _Drive(euler, yaw_rate, speed, root, sway, walking=True)
+
+
+def _wave(t: np.ndarray, rng: np.random.Generator, style: _Style) -> _Drive:
+    """Standing, turning slowly, one arm raised and waving; the arm comes down now and then."""
+    n = t.shape[0]
+    euler = _relaxed(n)
+    speed, _, root, sway = _zeros(t)
+    yaw_rate = np.full(n, style.direction * 2 * np.pi / rng.uniform(10.0, 14.0))
+    side = "left" if rng.random() < 0.5 else "right"
+    wave_freq = rng.uniform(1.6, 2.4)
+    raise_period = rng.uniform(4.0, 6.0)
+    phase = rng.uniform(0, 2 * np.pi)
+    # Raised most of the time; a smooth dip lowers the arm once per period.
+    envelope = np.clip(0.5 + 0.8 * np.cos(2 * np.pi * t / raise_period + phase), 0.0, 1.0)
+    envelope = envelope * envelope * (3 - 2 * envelope)
+    oscillation = np.sin(2 * np.pi * wave_freq * t)
+    relaxed_shoulder = np.array([0.0, 0.0, -70.0])
+    raised_shoulder = np.stack([np.full(n, -85.0), np.full(n, -20.0), 55.0 + 5.0 * oscillation], axis=-1)
+    shoulder = relaxed_shoulder + envelope[:, None] * (raised_shoulder - relaxed_shoulder)
+    elbow = np.stack([np.zeros(n), -(12.0 + envelope * (58.0 + 30.0 * oscillation)), np.zeros(n)], axis=-1)
+    wrist = np.stack([np.zeros(n), np.zeros(n), 20.0 * envelope * oscillation], axis=-1)
+    if side == "right":
+        shoulder, elbow, wrist = _mirror(shoulder), _mirror(elbow), _mirror(wrist)
+    euler[:, JOINT_INDEX[f"{side}_shoulder"]] = shoulder
+    euler[:, JOINT_INDEX[f"{side}_elbow"]] = elbow
+    euler[:, JOINT_INDEX[f"{side}_wrist"]] = wrist
+    other = "right" if side == "left" else "left"
+    sway_arm = 10.0 * np.sin(2 * np.pi * rng.uniform(0.2, 0.4) * t)
+    other_shoulder = np.stack([np.zeros(n), sway_arm, np.full(n, -72.0)], axis=-1)
+    euler[:, JOINT_INDEX[f"{other}_shoulder"]] = (
+        other_shoulder if other == "left" else _mirror(other_shoulder)
+    )
+    euler[:, JOINT_INDEX["neck"], 1] = 15.0 * np.sin(2 * np.pi * 0.15 * t + phase)
+    euler[:, JOINT_INDEX["head"], 0] = 5.0 * np.sin(2 * np.pi * 0.3 * t)
+    euler[:, JOINT_INDEX["spine3"], 2] = (-6.0 if side == "left" else 6.0) * envelope
+    return _Drive(euler, yaw_rate, speed, root, sway)
+
+
+def _dance(t: np.ndarray, rng: np.random.Generator, style: _Style) -> _Drive:
+    """A fast dance-like sequence: bouncing knees, twisting torso, large arm swings, side sway."""
+    n = t.shape[0]
+    euler = _relaxed(n)
+    speed, _, root, sway = _zeros(t)
+    beat = rng.uniform(1.8, 2.2)  # beats per second
+    w = 2 * np.pi * beat
+    amp = _modulation(t, rng, 0.2)
+    phases = rng.uniform(0, 2 * np.pi, size=8)
+    bounce = 0.5 - 0.5 * np.cos(w * t)
+    spin = style.direction * 2 * np.pi * rng.uniform(0.06, 0.1)
+    yaw_amp = np.deg2rad(rng.uniform(30.0, 45.0))
+    yaw_freq = beat / 8
+    yaw_rate = spin + yaw_amp * 2 * np.pi * yaw_freq * np.cos(2 * np.pi * yaw_freq * t + phases[0])
+    for side, offset in (("left", 0.0), ("right", np.pi)):
+        hip = -(12.0 + 14.0 * bounce) - 8.0 * np.sin(w / 2 * t + offset)
+        knee = 18.0 + 28.0 * bounce + 6.0 * np.sin(w / 2 * t + offset)
+        euler[:, JOINT_INDEX[f"{side}_hip"], 0] = hip
+        euler[:, JOINT_INDEX[f"{side}_knee"], 0] = knee
+        euler[:, JOINT_INDEX[f"{side}_ankle"], 0] = -(hip + knee) * 0.6
+        euler[:, JOINT_INDEX[f"{side}_hip"], 2] = 8.0 + 4.0 * np.sin(w / 4 * t + offset)
+        arm_phase = w / 2 * t + phases[1] + offset * rng.uniform(0.3, 1.0)
+        shoulder = np.stack(
+            [
+                30.0 * np.sin(w / 4 * t + phases[2] + offset),
+                -35.0 * amp * np.sin(arm_phase + phases[3]),
+                10.0 + 55.0 * amp * np.sin(arm_phase),
+            ],
+            axis=-1,
+        )
+        elbow = np.stack(
+            [np.zeros(n), -(45.0 + 40.0 * np.sin(w * t + phases[4] + offset)), np.zeros(n)], axis=-1
+        )
+        wrist = np.stack([np.zeros(n), np.zeros(n), 25.0 * np.sin(w * t + phases[5] + offset)], axis=-1)
+        if side == "right":
+            shoulder, elbow, wrist = _mirror(shoulder), _mirror(elbow), _mirror(wrist)
+        euler[:, JOINT_INDEX[f"{side}_shoulder"]] = shoulder
+        euler[:, JOINT_INDEX[f"{side}_elbow"]] = elbow
+        euler[:, JOINT_INDEX[f"{side}_wrist"]] = wrist
+        euler[:, JOINT_INDEX[f"{side}_collar"], 2] = (1 if side == "left" else -1) * 8.0 * bounce
+    euler[:, JOINT_INDEX["spine1"], 0] = 8.0 + 6.0 * bounce
+    euler[:, JOINT_INDEX["spine2"], 1] = 18.0 * amp * np.sin(w / 2 * t + phases[6])
+    euler[:, JOINT_INDEX["spine3"], 2] = 8.0 * np.sin(w / 4 * t + phases[7])
+    euler[:, JOINT_INDEX["neck"], 0] = 10.0 * bounce
+    euler[:, JOINT_INDEX["head"], 1] = 20.0 * np.sin(w / 4 * t + phases[2])
+    root[:, 0] = 6.0 * bounce
+    root[:, 2] = 8.0 * np.sin(w / 4 * t + phases[7])
+    sway[:, 0] = 0.12 * np.sin(w / 4 * t + phases[6])
+    return _Drive(euler, yaw_rate, speed, root, sway)
+
+
+def _walk_wave(t: np.ndarray, rng: np.random.Generator, style: _Style) -> _Drive:
+    """Walking while waving: lower body and root from a walk, arms and head from a wave."""
+    lower = _walk(t, rng, style)
+    upper = _wave(t, rng, style)
+    euler = lower.euler.copy()
+    euler[:, list(UPPER_BODY_JOINTS)] = upper.euler[:, list(UPPER_BODY_JOINTS)]
+    return _Drive(euler, lower.yaw_rate, lower.speed, lower.root, lower.sway, walking=True)
+
+
+_PRIMITIVES = {"turn": _turn, "walk": _walk, "wave": _wave, "dance": _dance, "walk+wave": _walk_wave}
+
+
+def _segment_plan(motion: str, num_frames: int, novel_pose_start: int) -> list[tuple[str, int, int]]:
+    """(primitive, start, stop) per segment: the training range first, then the held-out tail."""
+    train_end = min(max(novel_pose_start, 1), num_frames)
+    plan: list[tuple[str, int, int]] = []
+    if motion == "mixed":
+        names = ("turn", "walk", "wave", "dance")
+        bounds = np.linspace(0, train_end, len(names) + 1).round().astype(int)
+        plan += [(name, int(a), int(b)) for name, a, b in zip(names, bounds[:-1], bounds[1:], strict=True)]
+        tail = "walk+wave"
+    else:
+        plan.append((motion, 0, train_end))
+        tail = motion
+    if train_end < num_frames:
+        plan.append((tail, train_end, num_frames))
+    return [seg for seg in plan if seg[2] > seg[1]]
+
+
+def _blend_weights(frame_time: np.ndarray, starts: list[float]) -> np.ndarray:
+    """(N, K) smoothstep cross-fade weights for K segments starting at ``starts`` (seconds); rows sum to 1."""
+    steps = [np.ones_like(frame_time)]
+    for start in starts[1:]:
+        s = np.clip((frame_time - start) / CROSSFADE_SECONDS + 0.5, 0.0, 1.0)
+        steps.append(s * s * (3 - 2 * s))
+    steps.append(np.zeros_like(frame_time))
+    return np.stack([steps[k] - steps[k + 1] for k in range(len(starts))], axis=-1)
+
+
+def _integrate_root(
+    yaw_rate: np.ndarray, speed: np.ndarray, walking: np.ndarray, style: _Style, dt: float, yaw0: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Integrate yaw (N,) and ground position (N, 2) from the blended rates, frame by frame.
+
+    While walking, a steering term turns the subject onto the sequence's circle around the
+    origin (tangent to it, pulled radially back onto it), so every walking segment shares
+    one circle and the subject never leaves the cameras' view.
+    """
+    n = yaw_rate.shape[0]
+    yaw = np.empty(n)
+    ground = np.empty((n, 2))
+    yaw[0], ground[0] = yaw0, 0.0
+    radius = style.walk_radius
+    for i in range(n - 1):
+        heading = np.array([np.sin(yaw[i]), -np.cos(yaw[i])])  # facing -y at yaw 0
+        steer = 0.0
+        rho = float(np.hypot(*ground[i]))
+        if walking[i] > 0 and rho > 1e-3:
+            radial = ground[i] / rho
+            tangent = style.direction * np.array([-radial[1], radial[0]])
+            desired = tangent - STEER_RADIAL_GAIN * (rho - radius) / radius * radial
+            error = np.arctan2(heading[0] * desired[1] - heading[1] * desired[0], heading @ desired)
+            steer = walking[i] * STEER_GAIN * error
+        yaw[i + 1] = yaw[i] + dt * (yaw_rate[i] + steer)
+        ground[i + 1] = ground[i] + dt * speed[i] * heading
+    return yaw, ground
+
+
+def make_motion(
+    motion: str,
+    num_frames: int,
+    fps: float,
+    rng: np.random.Generator,
+    novel_pose_start: int | None = None,
+) -> MotionSequence:
+    """Generate ``num_frames`` frames of ``motion`` at ``fps``, reproducibly from ``rng``.
+
+    ``novel_pose_start`` is the first held-out frame (default: all frames are training
+    frames); frames from there on use a fresh draw of the motion's parameters.
+    """
+    if motion not in MOTIONS:
+        raise ValueError(f"unknown motion {motion!r}; choose one of {', '.join(MOTIONS)}")
+    if num_frames < 1:
+        raise ValueError(f"num_frames must be >= 1, got {num_frames}")
+    if not fps > 0:
+        raise ValueError(f"fps must be positive, got {fps}")
+    novel_pose_start = num_frames if novel_pose_start is None else int(novel_pose_start)
+    frame_time = np.arange(num_frames) / fps
+    plan = _segment_plan(motion, num_frames, novel_pose_start)
+    style = _Style(direction=float(rng.choice([-1.0, 1.0])), walk_radius=float(rng.uniform(0.4, 0.5)))
+    drives = [_PRIMITIVES[name](frame_time, rng, style) for name, _, _ in plan]
+    weights = _blend_weights(frame_time, [start / fps for _, start, _ in plan])
+
+    def blend(field: str) -> np.ndarray:
+        stacked = np.stack([getattr(d, field) for d in drives], axis=1)  # (N, K, ...)
+        w = weights.reshape(weights.shape + (1,) * (stacked.ndim - 2))
+        return (stacked * w).sum(axis=1)
+
+    euler = clamp_to_limits(blend("euler"))
+    euler[:, 0] = 0.0
+    yaw_rate, speed = blend("yaw_rate"), blend("speed")
+    root = np.clip(blend("root"), ROOT_WOBBLE_LIMITS_DEG[:, 0], ROOT_WOBBLE_LIMITS_DEG[:, 1])
+    sway = blend("sway")
+
+    dt = 1.0 / fps
+    walking = weights @ np.array([float(d.walking) for d in drives])
+    yaw0 = rng.uniform(-0.3, 0.3)
+    yaw, ground = _integrate_root(yaw_rate, speed, walking, style, dt, yaw0)
+    # Full coverage: over the training range the body turns through >= one whole revolution.
+    # The extra turning goes to the standing frames (walking follows its circle).
+    train_end = min(novel_pose_start, num_frames)
+    if train_end > 1:
+        turned = yaw[train_end - 1] - yaw[0]
+        target = style.direction * max(2 * np.pi, np.ceil(abs(turned) / (2 * np.pi)) * 2 * np.pi)
+        standing = 1.0 - walking
+        room = standing[: train_end - 1].sum() * dt
+        if room > 1e-6 and abs(target) > abs(turned):
+            yaw_rate = yaw_rate.copy()
+            yaw_rate[:train_end] += standing[:train_end] * (target - turned) / room
+            yaw, ground = _integrate_root(yaw_rate, speed, walking, style, dt, yaw0)
+    yaw_rot = axis_rotation("z", yaw)  # (N, 3, 3)
+    forward = yaw_rot @ np.array([0.0, -1.0, 0.0])
+    left = yaw_rot @ np.array([1.0, 0.0, 0.0])
+    position = np.zeros((num_frames, 3))
+    position[:, :2] = ground
+    position += sway[:, :1] * left + sway[:, 1:] * forward
+
+    rotation = yaw_rot @ SMPL_TO_WORLD @ euler_zyx_to_matrix(np.deg2rad(root))
+    segments = tuple(MotionSegment(name, start, stop) for name, start, stop in plan)
+    return MotionSequence(
+        poses=euler_to_smpl_pose(euler).astype(np.float32),
+        Rh=matrix_to_axis_angle(rotation).astype(np.float32),
+        Th=position.astype(np.float32),
+        euler_deg=euler,
+        fps=float(fps),
+        segments=segments,
+    )
