@@ -107,6 +107,7 @@ def resolve_backend(backend: str, device: torch.device) -> str:
     if backend == "cpu":
         if device.type != "cpu":
             raise ValueError(f"backend='cpu' needs CPU tensors, got tensors on {device}")
+        load_kernels()  # raises ExtensionUnavailable, naming the reason (and the build log)
         return "cpu"
     if backend == "torch":
         return "torch"
@@ -230,6 +231,10 @@ def rasterize(
         dtype = means.dtype
         means_, quats_, scales_, opacities_, colors_ = means, quats, scales, opacities, colors
 
+    # Depth planes in the precision of the (working) inputs, so a centre placed exactly on the
+    # near plane in float32 is kept, as in gsplat.
+    for key in ("near_plane", "far_plane"):
+        options[key] = float(torch.tensor(options[key], dtype=means_.dtype))
     proj = impl.project(means_, quats_, scales_, opacities_, viewmat, K, width, height, **options)
     means2d = proj.means2d
     holder = None

@@ -135,3 +135,54 @@ def front_camera(width: int, height: int, distance: float = 3.0, fill: float = 0
         [[1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, centre_y], [0.0, 0.0, -1.0, distance], [0.0, 0.0, 0.0, 1.0]]
     )
     return viewmat, K
+
+
+def random_camera(width: int, height: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    """A random rigid world-to-camera matrix and a pinhole K with an off-centre principal point."""
+    gen = torch.Generator().manual_seed(seed + 7919)
+    q = torch.randn(4, generator=gen, dtype=torch.float64)
+    w, x, y, z = (q / q.norm()).tolist()
+    R = torch.tensor(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ],
+        dtype=torch.float64,
+    )
+    viewmat = torch.eye(4, dtype=torch.float64)
+    viewmat[:3, :3] = R
+    viewmat[:3, 3] = torch.randn(3, generator=gen, dtype=torch.float64)
+    f = 0.9 * max(width, height)
+    cx = width / 2 + 0.13 * width * float(torch.rand(1, generator=gen) - 0.5)
+    cy = height / 2 + 0.13 * height * float(torch.rand(1, generator=gen) - 0.5)
+    K = torch.tensor([[f, 0.0, cx], [0.0, 1.05 * f, cy], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    return viewmat.float(), K.float()
+
+
+def random_scene(
+    n: int, width: int, height: int, seed: int = 0, channels: int = 3, max_opacity: float = 0.95
+) -> tuple[Scene, torch.Tensor, torch.Tensor]:
+    """n overlapping Gaussians of mixed sizes in (and slightly around) a random camera's view.
+
+    Returns (scene, viewmat, K); float32 on the CPU. Used to compare backends.
+    """
+    viewmat, K = random_camera(width, height, seed)
+    gen = torch.Generator().manual_seed(seed)
+    f, cx, cy = float(K[0, 0]), float(K[0, 2]), float(K[1, 2])
+    depth = torch.empty(n, dtype=torch.float64).uniform_(1.5, 6.0, generator=gen)
+    # Pixel positions spread 15 % beyond the image, so some Gaussians straddle the border.
+    u = torch.empty(n, dtype=torch.float64).uniform_(-0.15 * width, 1.15 * width, generator=gen)
+    v = torch.empty(n, dtype=torch.float64).uniform_(-0.15 * height, 1.15 * height, generator=gen)
+    cam = torch.stack([(u - cx) / f * depth, (v - cy) / (1.05 * f) * depth, depth], dim=1)
+    R, t = viewmat[:3, :3].double(), viewmat[:3, 3].double()
+    world = (cam - t) @ R  # R^T (cam - t)
+    log_s = torch.empty(n, 3, dtype=torch.float64).uniform_(math.log(0.005), math.log(0.3), generator=gen)
+    scene = Scene(
+        means=world.float(),
+        quats=torch.randn(n, 4, generator=gen).float(),
+        scales=log_s.exp().float(),
+        opacities=torch.empty(n).uniform_(0.05, max_opacity, generator=gen),
+        colors=torch.rand(n, channels, generator=gen),
+    )
+    return scene, viewmat, K

@@ -296,4 +296,11 @@ def rasterize(
         )
     image = torch.cat([r[0] for r in rows], dim=0)
     T_final = torch.cat([r[1] for r in rows], dim=0)
+    if torch.is_grad_enabled() and not image.requires_grad:
+        # Nothing was visible: keep the outputs in the graph (zero gradients), as the other
+        # backends' autograd Functions do, so a training step never fails on an empty view.
+        inputs = [t for t in (proj.means2d, proj.conics, proj.opacities, colors) if t.requires_grad]
+        if inputs:
+            anchor = sum(t.sum() for t in inputs) * 0.0
+            image, T_final = image + anchor, T_final + anchor
     return image, (1.0 - T_final)[..., None]

@@ -232,6 +232,24 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
     return {g_means2d, g_conics, g_opac, g_colors, g_abs, stats_tensor(st)};
 }
 
+at::Tensor count_isect(const at::Tensor& bbox, const at::Tensor& visible, int64_t width, int64_t height,
+                       int64_t max_per_chunk) {
+    const int64_t n = visible.numel();
+    TORCH_CHECK(bbox.scalar_type() == at::kInt && bbox.is_contiguous() && bbox.numel() == n * 4,
+                "bbox must be a contiguous int32 [n, 4] tensor");
+    TORCH_CHECK(visible.scalar_type() == at::kBool && visible.is_contiguous(), "visible must be contiguous bool");
+    TORCH_CHECK(width >= 1 && height >= 1 && max_per_chunk >= 1, "bad image size or chunk budget");
+    int64_t total = 0, chunks = 0;
+    stg_splat::count_intersections(n, bbox.data_ptr<int32_t>(),
+                                   reinterpret_cast<const uint8_t*>(visible.data_ptr<bool>()),
+                                   static_cast<int>(width), static_cast<int>(height), max_per_chunk, &total,
+                                   &chunks);
+    at::Tensor out = at::empty({2}, at::TensorOptions().dtype(at::kLong));
+    out[0] = total;
+    out[1] = chunks;
+    return out;
+}
+
 int64_t tile_size() { return stg_splat::kTileSize; }
 
 int64_t num_settings() { return stg_splat::kNumSettings; }
@@ -241,6 +259,8 @@ int64_t num_settings() { return stg_splat::kNumSettings; }
 TORCH_LIBRARY(STG_SPLAT_NS, m) {
     m.def("tile_size() -> int", &tile_size);
     m.def("num_settings() -> int", &num_settings);
+    m.def("count_intersections(Tensor bbox, Tensor visible, int width, int height, int max_per_chunk) -> Tensor",
+          &count_isect);
     m.def(
         "project_fwd(Tensor means, Tensor quats, Tensor scales, Tensor opacities, Tensor viewmat, "
         "Tensor K, int width, int height, float[] settings, int threads) -> (Tensor, Tensor, Tensor, "

@@ -512,19 +512,37 @@ inline TileRect tile_rect(const TileGrid& grid, int64_t tile) {
     return r;
 }
 
+// A tile row is two 8-lane halves (one AVX2 vector each); a Gaussian only visits the halves
+// its box touches, and whole halves are skipped when nothing there can change.
+constexpr int kHalf = kTileSize / 2;
+
+inline uint32_t span_bits(int lx0, int lx1) {
+    return ((2u << lx1) - 1u) & ~((1u << lx0) - 1u);
+}
+
 // ---- forward, one tile ----
 struct ForwardScratch {
     alignas(64) float T[kTilePixels];
     alignas(64) float done[kTilePixels];
     alignas(64) int32_t last[kTilePixels];
     alignas(64) float w[kTileSize];
-    std::vector<float> acc;  // [C][256]
+    uint32_t done_bits[kTileSize];  // per row, bit l set once pixel l is finished (or outside)
+    std::vector<float> acc;         // [C][256]
 };
 
 void forward_tile(const SortedGaussians& S, const TileRect& r, const int32_t* list, int64_t len,
                   const Settings& s, ForwardScratch& sc, float* out_color, float* out_T,
                   int32_t* out_last, int width) {
     const int C = S.channels;
+    if (len == 0) {  // nothing here (most tiles of a sparse view): write the empty result directly
+        for (int ly = 0; ly < r.h; ++ly) {
+            const int64_t pix = static_cast<int64_t>(r.Y0 + ly) * width + r.X0;
+            std::fill(out_T + pix, out_T + pix + r.w, 1.0f);
+            std::fill(out_last + pix, out_last + pix + r.w, -1);
+            std::fill(out_color + pix * C, out_color + (pix + r.w) * C, 0.0f);
+        }
+        return;
+    }
     const float amin = s.alpha_min, amax = s.alpha_max, tmin = s.transmittance_min;
     float* acc = sc.acc.data();
     std::fill(acc, acc + static_cast<size_t>(C) * kTilePixels, 0.0f);
@@ -534,6 +552,8 @@ void forward_tile(const SortedGaussians& S, const TileRect& r, const int32_t* li
         const int ly = p / kTileSize, lx = p % kTileSize;
         sc.done[p] = (ly < r.h && lx < r.w) ? 0.0f : 1.0f;
     }
+    for (int ly = 0; ly < kTileSize; ++ly)
+        sc.done_bits[ly] = ly < r.h ? ~span_bits(0, r.w - 1) & 0xFFFFu : 0xFFFFu;
     alignas(64) float px[kTileSize];
     for (int l = 0; l < kTileSize; ++l) px[l] = static_cast<float>(r.X0 + l) + 0.5f;
     const int active = r.w * r.h;
@@ -545,49 +565,60 @@ void forward_tile(const SortedGaussians& S, const TileRect& r, const int32_t* li
         const int ly0 = std::max(S.y0[v] - r.Y0, 0), ly1 = std::min(S.y1[v] - r.Y0, r.h - 1);
         const float* col = &S.col[static_cast<size_t>(v) * C];
         const int32_t kk = static_cast<int32_t>(k);
+        const uint32_t span = span_bits(lx0, lx1);
+        const int h0 = lx0 < kHalf ? 0 : kHalf;
+        const int h1 = lx1 < kHalf ? kHalf : kTileSize;
         for (int ly = ly0; ly <= ly1; ++ly) {
+            if ((sc.done_bits[ly] & span) == span) continue;  // every pixel it could touch is done
             const float dy = my - (static_cast<float>(r.Y0 + ly) + 0.5f);
             const int row = ly * kTileSize;
             float* T = sc.T + row;
             float* done = sc.done + row;
             int32_t* last = sc.last + row;
-            int stops = 0;
-            // Branch-free on purpose (bitwise &, selects): this loop must vectorise.
+            for (int h = h0; h < h1; h += kHalf) {
+                int stops = 0;
+                // Branch-free on purpose (bitwise &, selects): this loop must vectorise.
 #pragma omp simd reduction(+ : stops)
-            for (int l = 0; l < kTileSize; ++l) {
-                const float dx = mx - px[l];
-                const float sigma = 0.5f * (a * dx * dx + c * dy * dy) + b * dx * dy;
-                float alpha = op * fast_exp(-sigma);
-                alpha = alpha > amax ? amax : alpha;
-                const bool valid = (l >= lx0) & (l <= lx1) & (sigma >= 0.0f) & (alpha >= amin) &
-                                   (done[l] == 0.0f);
-                const float Tl = T[l];
-                const float Tn = Tl * (1.0f - alpha);
-                const bool stop = valid & (Tn < tmin);
-                const bool blend = valid & (Tn >= tmin);
-                sc.w[l] = blend ? alpha * Tl : 0.0f;
-                T[l] = blend ? Tn : Tl;
-                last[l] = blend ? kk : last[l];
-                done[l] = stop ? 1.0f : done[l];
-                stops += stop ? 1 : 0;
-            }
-            for (int ch = 0; ch < C; ++ch) {
-                const float cv = col[ch];
-                float* acc_row = acc + static_cast<size_t>(ch) * kTilePixels + row;
+                for (int l = h; l < h + kHalf; ++l) {
+                    const float dx = mx - px[l];
+                    const float sigma = 0.5f * (a * dx * dx + c * dy * dy) + b * dx * dy;
+                    float alpha = op * fast_exp(-sigma);
+                    alpha = alpha > amax ? amax : alpha;
+                    const bool valid = (l >= lx0) & (l <= lx1) & (sigma >= 0.0f) & (alpha >= amin) &
+                                       (done[l] == 0.0f);
+                    const float Tl = T[l];
+                    const float Tn = Tl * (1.0f - alpha);
+                    const bool stop = valid & (Tn < tmin);
+                    const bool blend = valid & (Tn >= tmin);
+                    sc.w[l] = blend ? alpha * Tl : 0.0f;
+                    T[l] = blend ? Tn : Tl;
+                    last[l] = blend ? kk : last[l];
+                    done[l] = stop ? 1.0f : done[l];
+                    stops += stop ? 1 : 0;
+                }
+                for (int ch = 0; ch < C; ++ch) {
+                    const float cv = col[ch];
+                    float* acc_row = acc + static_cast<size_t>(ch) * kTilePixels + row;
 #pragma omp simd
-                for (int l = 0; l < kTileSize; ++l) acc_row[l] += sc.w[l] * cv;
+                    for (int l = h; l < h + kHalf; ++l) acc_row[l] += sc.w[l] * cv;
+                }
+                if (stops) {
+                    finished += stops;
+                    for (int l = h; l < h + kHalf; ++l)
+                        if (done[l] != 0.0f) sc.done_bits[ly] |= 1u << l;
+                }
             }
-            finished += stops;
         }
     }
     for (int ly = 0; ly < r.h; ++ly) {
-        for (int lx = 0; lx < r.w; ++lx) {
-            const int p = ly * kTileSize + lx;
-            const int64_t pix = static_cast<int64_t>(r.Y0 + ly) * width + (r.X0 + lx);
-            out_T[pix] = sc.T[p];
-            out_last[pix] = sc.last[p];
-            for (int ch = 0; ch < C; ++ch)
-                out_color[pix * C + ch] = acc[static_cast<size_t>(ch) * kTilePixels + p];
+        const int row = ly * kTileSize;
+        const int64_t pix = static_cast<int64_t>(r.Y0 + ly) * width + r.X0;
+        std::copy(sc.T + row, sc.T + row + r.w, out_T + pix);
+        std::copy(sc.last + row, sc.last + row + r.w, out_last + pix);
+        float* out = out_color + pix * C;
+        for (int ch = 0; ch < C; ++ch) {
+            const float* a = acc + static_cast<size_t>(ch) * kTilePixels + row;
+            for (int lx = 0; lx < r.w; ++lx) out[lx * C + ch] = a[lx];
         }
     }
 }
@@ -601,6 +632,7 @@ struct BackwardScratch {
     alignas(64) int32_t last[kTilePixels];
     alignas(64) float w[kTileSize], Ti[kTileSize], ra[kTileSize], dA[kTileSize];
     alignas(64) float valid[kTileSize];
+    int32_t half_last[kTileSize][2];  // per row and half: the largest `last` there
     std::vector<float> g;    // [C][256] dL/dcolor_out
     std::vector<float> buf;  // [C][256] colour accumulated behind the current Gaussian
     std::vector<float> gcol; // [C]
@@ -620,17 +652,26 @@ void backward_tile(const SortedGaussians& S, const TileRect& r, const int32_t* l
         sc.q[p] = 0.0f;
         sc.last[p] = -1;
     }
+    for (int ly = 0; ly < kTileSize; ++ly) sc.half_last[ly][0] = sc.half_last[ly][1] = -1;
     for (int ly = 0; ly < r.h; ++ly) {
+        const int row = ly * kTileSize;
+        const int64_t pix0 = static_cast<int64_t>(r.Y0 + ly) * width + r.X0;
         for (int lx = 0; lx < r.w; ++lx) {
-            const int p = ly * kTileSize + lx;
-            const int64_t pix = static_cast<int64_t>(r.Y0 + ly) * width + (r.X0 + lx);
-            sc.T[p] = T_final[pix];
-            sc.last[p] = last_in[pix];
-            sc.q[p] = g_alpha[pix] * T_final[pix];
-            for (int ch = 0; ch < C; ++ch) sc.g[static_cast<size_t>(ch) * kTilePixels + p] = g_color[pix * C + ch];
-            kmax = std::max(kmax, last_in[pix]);
+            const int64_t pix = pix0 + lx;
+            sc.T[row + lx] = T_final[pix];
+            sc.last[row + lx] = last_in[pix];
+            sc.q[row + lx] = g_alpha[pix] * T_final[pix];
+            int32_t& hl = sc.half_last[ly][lx / kHalf];
+            hl = std::max(hl, last_in[pix]);
+        }
+        kmax = std::max({kmax, sc.half_last[ly][0], sc.half_last[ly][1]});
+        const float* g_in = g_color + pix0 * C;
+        for (int ch = 0; ch < C; ++ch) {
+            float* g = sc.g.data() + static_cast<size_t>(ch) * kTilePixels + row;
+            for (int lx = 0; lx < r.w; ++lx) g[lx] = g_in[lx * C + ch];
         }
     }
+    if (kmax < 0) return;  // nothing was blended in this tile
     alignas(64) float px[kTileSize];
     for (int l = 0; l < kTileSize; ++l) px[l] = static_cast<float>(r.X0 + l) + 0.5f;
 
@@ -639,9 +680,10 @@ void backward_tile(const SortedGaussians& S, const TileRect& r, const int32_t* l
         const float mx = S.mx[v], my = S.my[v], a = S.ca[v], b = S.cb[v], c = S.cc[v], op = S.op[v];
         const int lx0 = std::max(S.x0[v] - r.X0, 0), lx1 = std::min(S.x1[v] - r.X0, kTileSize - 1);
         const int ly0 = std::max(S.y0[v] - r.Y0, 0), ly1 = std::min(S.y1[v] - r.Y0, r.h - 1);
+        const int h0 = lx0 < kHalf ? 0 : kHalf;
+        const int h1 = lx1 < kHalf ? kHalf : kTileSize;
         const float* col = &S.col[static_cast<size_t>(v) * C];
         float gmx = 0, gmy = 0, ga = 0, gb = 0, gc = 0, gop = 0, absx = 0, absy = 0;
-        std::fill(sc.gcol.begin(), sc.gcol.end(), 0.0f);
         bool any = false;
         for (int ly = ly0; ly <= ly1; ++ly) {
             const float dy = my - (static_cast<float>(r.Y0 + ly) + 0.5f);
@@ -649,59 +691,66 @@ void backward_tile(const SortedGaussians& S, const TileRect& r, const int32_t* l
             float* T = sc.T + row;
             const float* q = sc.q + row;
             const int32_t* last = sc.last + row;
-            int nvalid = 0;
+            for (int h = h0; h < h1; h += kHalf) {
+                if (k > sc.half_last[ly][h / kHalf]) continue;  // no pixel here blended it
+                int nvalid = 0;
 #pragma omp simd reduction(+ : nvalid)
-            for (int l = 0; l < kTileSize; ++l) {
-                const float dx = mx - px[l];
-                const float sigma = 0.5f * (a * dx * dx + c * dy * dy) + b * dx * dy;
-                float alpha = op * fast_exp(-sigma);
-                alpha = alpha > amax ? amax : alpha;
-                const bool valid = l >= lx0 && l <= lx1 && k <= last[l] && sigma >= 0.0f && alpha >= amin;
-                const float ra = 1.0f / (1.0f - alpha);
-                const float Ti = T[l] * ra;
-                sc.valid[l] = valid ? 1.0f : 0.0f;
-                sc.ra[l] = ra;
-                sc.Ti[l] = Ti;
-                sc.w[l] = valid ? alpha * Ti : 0.0f;
-                sc.dA[l] = valid ? q[l] * ra : 0.0f;
-                nvalid += valid ? 1 : 0;
-            }
-            if (nvalid == 0) continue;
-            any = true;
-            for (int ch = 0; ch < C; ++ch) {
-                const float cv = col[ch];
-                const float* g = sc.g.data() + static_cast<size_t>(ch) * kTilePixels + row;
-                float* buf = sc.buf.data() + static_cast<size_t>(ch) * kTilePixels + row;
-                float gsum = 0.0f;
-#pragma omp simd reduction(+ : gsum)
-                for (int l = 0; l < kTileSize; ++l) {
-                    gsum += sc.w[l] * g[l];
-                    sc.dA[l] += sc.valid[l] * g[l] * (cv * sc.Ti[l] - buf[l] * sc.ra[l]);
-                    buf[l] += cv * sc.w[l];
+                for (int l = h; l < h + kHalf; ++l) {
+                    const float dx = mx - px[l];
+                    const float sigma = 0.5f * (a * dx * dx + c * dy * dy) + b * dx * dy;
+                    float alpha = op * fast_exp(-sigma);
+                    alpha = alpha > amax ? amax : alpha;
+                    const bool valid = (l >= lx0) & (l <= lx1) & (k <= last[l]) & (sigma >= 0.0f) &
+                                       (alpha >= amin);
+                    const float ra = 1.0f / (1.0f - alpha);
+                    const float Ti = T[l] * ra;
+                    sc.valid[l] = valid ? 1.0f : 0.0f;
+                    sc.ra[l] = ra;
+                    sc.Ti[l] = Ti;
+                    sc.w[l] = valid ? alpha * Ti : 0.0f;
+                    sc.dA[l] = valid ? q[l] * ra : 0.0f;
+                    nvalid += valid ? 1 : 0;
                 }
-                sc.gcol[ch] += gsum;
-            }
+                if (nvalid == 0) continue;
+                if (!any) {
+                    std::fill(sc.gcol.begin(), sc.gcol.end(), 0.0f);
+                    any = true;
+                }
+                for (int ch = 0; ch < C; ++ch) {
+                    const float cv = col[ch];
+                    const float* g = sc.g.data() + static_cast<size_t>(ch) * kTilePixels + row;
+                    float* buf = sc.buf.data() + static_cast<size_t>(ch) * kTilePixels + row;
+                    float gsum = 0.0f;
+#pragma omp simd reduction(+ : gsum)
+                    for (int l = h; l < h + kHalf; ++l) {
+                        gsum += sc.w[l] * g[l];
+                        sc.dA[l] += sc.valid[l] * g[l] * (cv * sc.Ti[l] - buf[l] * sc.ra[l]);
+                        buf[l] += cv * sc.w[l];
+                    }
+                    sc.gcol[ch] += gsum;
+                }
 #pragma omp simd reduction(+ : gmx, gmy, ga, gb, gc, gop, absx, absy)
-            for (int l = 0; l < kTileSize; ++l) {
-                const float dx = mx - px[l];
-                const float sigma = 0.5f * (a * dx * dx + c * dy * dy) + b * dx * dy;
-                const float G = fast_exp(-sigma);
-                const float raw = op * G;
-                const bool live = sc.valid[l] != 0.0f && !(raw > amax);
-                const float dA = sc.dA[l];
-                const float alpha = raw;
-                const float dsig = live ? -alpha * dA : 0.0f;
-                gop += live ? G * dA : 0.0f;
-                const float gx = dsig * (a * dx + b * dy);
-                const float gy = dsig * (b * dx + c * dy);
-                gmx += gx;
-                gmy += gy;
-                absx += std::fabs(gx);
-                absy += std::fabs(gy);
-                ga += 0.5f * dsig * dx * dx;
-                gb += dsig * dx * dy;
-                gc += 0.5f * dsig * dy * dy;
-                T[l] = sc.valid[l] != 0.0f ? sc.Ti[l] : T[l];
+                for (int l = h; l < h + kHalf; ++l) {
+                    const float dx = mx - px[l];
+                    const float sigma = 0.5f * (a * dx * dx + c * dy * dy) + b * dx * dy;
+                    const float G = fast_exp(-sigma);
+                    const float raw = op * G;
+                    // Where the clamp was active alpha does not depend on opacity or sigma.
+                    const bool live = (sc.valid[l] != 0.0f) & (raw <= amax);
+                    const float dA = sc.dA[l];
+                    const float dsig = live ? -raw * dA : 0.0f;
+                    gop += live ? G * dA : 0.0f;
+                    const float gx = dsig * (a * dx + b * dy);
+                    const float gy = dsig * (b * dx + c * dy);
+                    gmx += gx;
+                    gmy += gy;
+                    absx += std::fabs(gx);
+                    absy += std::fabs(gy);
+                    ga += 0.5f * dsig * dx * dx;
+                    gb += dsig * dx * dy;
+                    gc += 0.5f * dsig * dy * dy;
+                    T[l] = sc.valid[l] != 0.0f ? sc.Ti[l] : T[l];
+                }
             }
         }
         if (!any) continue;
@@ -719,6 +768,23 @@ void backward_tile(const SortedGaussians& S, const TileRect& r, const int32_t* l
 }
 
 }  // namespace
+
+void count_intersections(int64_t n, const int32_t* bbox, const uint8_t* visible, int width,
+                         int height, int64_t max_per_chunk, int64_t* total, int64_t* chunks) {
+    SortedGaussians S;  // only the boxes matter for counting; order is irrelevant
+    for (int64_t i = 0; i < n; ++i) {
+        if (!visible[i]) continue;
+        S.x0.push_back(bbox[i * 4]);
+        S.x1.push_back(bbox[i * 4 + 1]);
+        S.y0.push_back(bbox[i * 4 + 2]);
+        S.y1.push_back(bbox[i * 4 + 3]);
+    }
+    S.count = static_cast<int64_t>(S.x0.size());
+    TileGrid grid;
+    count_and_plan(S, width, height, max_per_chunk, grid);
+    *total = grid.total;
+    *chunks = static_cast<int64_t>(grid.chunks.size());
+}
 
 void rasterize_forward(int64_t n, const float* means2d, const float* conics, const float* opac_eff,
                        const float* colors, int channels, const float* depths, const int32_t* bbox,

@@ -79,6 +79,11 @@ struct RasterStats {
     int64_t n_visible = 0, n_intersections = 0, n_chunks = 0;
 };
 
+// Counts tile intersections (int64) and the number of chunks rasterize_forward would use,
+// without rasterizing: a cheap check that huge scenes stay within bounds.
+void count_intersections(int64_t n, const int32_t* bbox, const uint8_t* visible, int width,
+                         int height, int64_t max_per_chunk, int64_t* total, int64_t* chunks);
+
 // Front-to-back alpha compositing of the visible Gaussians, depth sorted, in 16x16 tiles.
 // Outputs: out_color [H*W*C] (no background), out_T [H*W] final transmittance, out_last [H*W]
 // index (within its tile's depth-sorted list) of the last Gaussian blended there, -1 if none.
