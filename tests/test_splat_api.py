@@ -55,8 +55,11 @@ def test_wrong_types_sizes_and_camera_are_clear_errors():
     bad[0] = bad[0].numpy()
     with pytest.raises(TypeError, match="means must be a torch.Tensor"):
         _call(bad)
-    for w, h, msg in [(0, 16, "width must be >= 1"), (24, -1, "height must be >= 1"),
-                      (24.0, 16, "width must be an int")]:
+    for w, h, msg in [
+        (0, 16, "width must be >= 1"),
+        (24, -1, "height must be >= 1"),
+        (24.0, 16, "width must be an int"),
+    ]:
         bad = list(args)
         bad[7], bad[8] = w, h
         with pytest.raises((ValueError, TypeError), match=msg):
@@ -91,7 +94,10 @@ def test_wrong_types_sizes_and_camera_are_clear_errors():
 
 
 def test_info_carries_what_densification_needs():
-    args = [t.requires_grad_(True) if isinstance(t, torch.Tensor) and i < 5 else t for i, t in enumerate(_args(30))]
+    args = [
+        t.requires_grad_(True) if isinstance(t, torch.Tensor) and i < 5 else t
+        for i, t in enumerate(_args(30))
+    ]
     image, alpha, info = _call(args, render_depth=True)
     n = 30
     assert info["backend"] == "torch"
@@ -155,7 +161,9 @@ def test_torch_reference_memory_chunking_does_not_change_the_result():
     proj = torch_reference.project(*scene.params()[:4], viewmat, K, 40, 30)
     full, alpha_full = torch_reference.rasterize(proj, scene.colors, 40, 30)
     for block, pairs in [(8, 640), (40, 60_000)]:
-        image, alpha = torch_reference.rasterize(proj, scene.colors, 40, 30, block_size=block, max_pairs=pairs)
+        image, alpha = torch_reference.rasterize(
+            proj, scene.colors, 40, 30, block_size=block, max_pairs=pairs
+        )
         assert torch.allclose(image, full, atol=1e-6), (block, pairs)
         assert torch.allclose(alpha, alpha_full, atol=1e-6), (block, pairs)
     assert (alpha_full > 0.999).float().mean() > 0.05  # early termination exercised

@@ -29,8 +29,9 @@ def _analytic_alpha(width, height, f, cx, cy, scale, depth, opacity, antialiased
     var = (f * scale / depth) ** 2
     var_dilated = var + constants.LOW_PASS_EPS2D
     o = opacity * (var / var_dilated if antialiased else 1.0)  # sqrt(det ratio) = var / var'
-    v, u = torch.meshgrid(torch.arange(height, dtype=torch.float64), torch.arange(width, dtype=torch.float64),
-                          indexing="ij")
+    v, u = torch.meshgrid(
+        torch.arange(height, dtype=torch.float64), torch.arange(width, dtype=torch.float64), indexing="ij"
+    )
     d2 = (u + 0.5 - cx) ** 2 + (v + 0.5 - cy) ** 2
     alpha = (o * torch.exp(-0.5 * d2 / var_dilated)).clamp(max=constants.ALPHA_MAX)
     return torch.where(alpha >= constants.ALPHA_MIN, alpha, torch.zeros_like(alpha))
@@ -44,8 +45,9 @@ def test_isotropic_gaussian_facing_camera_is_an_analytic_2d_gaussian(backend, an
     dtype = torch.float64 if backend == "torch" else torch.float32
     params = _one_gaussian(scale, depth, opacity, dtype)
     K = torch.tensor([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]], dtype=dtype)
-    image, alpha, info = rasterize(*params, torch.eye(4, dtype=dtype), K, width, height, backend=backend,
-                                   antialiased=antialiased)
+    image, alpha, info = rasterize(
+        *params, torch.eye(4, dtype=dtype), K, width, height, backend=backend, antialiased=antialiased
+    )
     expected = _analytic_alpha(width, height, f, cx, cy, scale, depth, opacity, antialiased)
     tol = 1e-10 if dtype == torch.float64 else 2e-6
     assert torch.allclose(alpha[..., 0].double(), expected, atol=tol, rtol=0)
@@ -62,15 +64,25 @@ def test_expected_depth_of_a_single_gaussian_is_its_camera_z(backend):
     dtype = torch.float64 if backend == "torch" else torch.float32
     params = _one_gaussian(0.02, 2.5, 0.9, dtype)
     K = torch.tensor([[80.0, 0.0, 16.0], [0.0, 80.0, 12.0], [0.0, 0.0, 1.0]], dtype=dtype)
-    _, alpha, info = rasterize(*params, torch.eye(4, dtype=dtype), K, 32, 24, backend=backend,
-                               render_depth=True)
+    _, alpha, info = rasterize(
+        *params, torch.eye(4, dtype=dtype), K, 32, 24, backend=backend, render_depth=True
+    )
     covered = alpha[..., 0] > 0
     assert covered.sum() > 20
-    assert torch.allclose(info["depth"][..., 0][covered].double(), torch.tensor(2.5, dtype=torch.float64),
-                          atol=1e-5)
+    assert torch.allclose(
+        info["depth"][..., 0][covered].double(), torch.tensor(2.5, dtype=torch.float64), atol=1e-5
+    )
     assert (info["depth"][~covered] == 0).all()
-    _, alpha_acc, info_acc = rasterize(*params, torch.eye(4, dtype=dtype), K, 32, 24, backend=backend,
-                                       render_depth=True, depth_mode="accumulated")
+    _, alpha_acc, info_acc = rasterize(
+        *params,
+        torch.eye(4, dtype=dtype),
+        K,
+        32,
+        24,
+        backend=backend,
+        render_depth=True,
+        depth_mode="accumulated",
+    )
     assert torch.allclose(info_acc["depth"], 2.5 * alpha_acc, atol=1e-5)
 
 
@@ -84,8 +96,19 @@ def test_two_gaussians_composite_front_to_back(backend):
     opacities = torch.tensor([0.7, 0.6], dtype=dtype)
     colors = torch.tensor([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0]], dtype=dtype)
     K = torch.tensor([[100.0, 0.0, 10.0], [0.0, 100.0, 10.0], [0.0, 0.0, 1.0]], dtype=dtype)
-    image, alpha, _ = rasterize(means, quats, scales, opacities, colors, torch.eye(4, dtype=dtype), K, 20, 20,
-                                background=torch.tensor([0.0, 0.0, 1.0], dtype=dtype), backend=backend)
+    image, alpha, _ = rasterize(
+        means,
+        quats,
+        scales,
+        opacities,
+        colors,
+        torch.eye(4, dtype=dtype),
+        K,
+        20,
+        20,
+        background=torch.tensor([0.0, 0.0, 1.0], dtype=dtype),
+        backend=backend,
+    )
     var = 10.0**2 + constants.LOW_PASS_EPS2D
     g = math.exp(-0.5 * 0.5 / var)  # pixel (10, 10) centre is 0.5 px from the mean in x and y
     a1, a2 = 0.6 * g, 0.7 * g
@@ -105,15 +128,27 @@ def test_opaque_stack_stops_when_transmittance_would_drop_below_threshold():
     K = torch.tensor([[50.0, 0.0, 4.0], [0.0, 50.0, 4.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
     for backend in BACKENDS:
         for dtype in (torch.float32, torch.float64) if backend == "torch" else (torch.float32,):
-            image, alpha, _ = rasterize(means.to(dtype), quats.to(dtype), scales.to(dtype),
-                                        opacities.to(dtype), colors.to(dtype), torch.eye(4, dtype=dtype),
-                                        K.to(dtype), 8, 8, backend=backend)
+            image, alpha, _ = rasterize(
+                means.to(dtype),
+                quats.to(dtype),
+                scales.to(dtype),
+                opacities.to(dtype),
+                colors.to(dtype),
+                torch.eye(4, dtype=dtype),
+                K.to(dtype),
+                8,
+                8,
+                backend=backend,
+            )
             # The same rule in the working precision: T 1 -> 0.01 -> ~1e-4, and whether the
             # second layer's T lands just above or just below 1e-4 depends on rounding.
             keep = 1.0 - torch.tensor(constants.ALPHA_MAX, dtype=dtype)
             t2 = keep * keep
             second = bool(t2 >= torch.tensor(constants.TRANSMITTANCE_MIN, dtype=dtype))
-            expected = [constants.ALPHA_MAX, constants.ALPHA_MAX * (1 - constants.ALPHA_MAX) if second else 0.0]
+            expected = [
+                constants.ALPHA_MAX,
+                constants.ALPHA_MAX * (1 - constants.ALPHA_MAX) if second else 0.0,
+            ]
             pix = image[4, 4].double()
             assert pix[:2].tolist() == pytest.approx(expected, abs=1e-6), (backend, dtype)
             assert pix[2:].abs().max().item() == 0.0
@@ -133,11 +168,26 @@ def test_gradcheck_torch_reference_float64():
     background = torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64)
 
     for antialiased in (False, True):
+
         def loss(m, q, s, o, c, bg, antialiased=antialiased):
-            image, alpha, info = rasterize(m, q, s, o, c, torch.eye(4, dtype=torch.float64), K, width, height,
-                                           background=bg, backend="torch", antialiased=antialiased,
-                                           render_depth=True)
+            image, alpha, info = rasterize(
+                m,
+                q,
+                s,
+                o,
+                c,
+                torch.eye(4, dtype=torch.float64),
+                K,
+                width,
+                height,
+                background=bg,
+                backend="torch",
+                antialiased=antialiased,
+                render_depth=True,
+            )
             return (image * weights).sum() + alpha.sum() * 0.3 + info["depth"].sum() * 0.01
 
-        inputs = [t.clone().requires_grad_(True) for t in (means, quats, scales, opacities, colors, background)]
+        inputs = [
+            t.clone().requires_grad_(True) for t in (means, quats, scales, opacities, colors, background)
+        ]
         assert torch.autograd.gradcheck(loss, inputs, eps=1e-6, atol=1e-5, rtol=1e-4)

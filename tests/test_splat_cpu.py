@@ -11,7 +11,7 @@ import torch
 
 from stg_node.splat import build, cpu_backend, rasterize
 from stg_node.splat.api import cpu_backend_status
-from stg_node.splat.scenes import person_sized_scene, front_camera, random_scene
+from stg_node.splat.scenes import front_camera, person_sized_scene, random_scene
 
 pytestmark = pytest.mark.skipif(cpu_backend_status() is not None, reason="C++ splat kernels unavailable")
 
@@ -24,8 +24,16 @@ def _render(backend, scene, viewmat, K, width, height, seed=0, dtype=torch.float
     background = options.pop("background", None)
     if background is not None:
         background = background.to(dtype).clone().requires_grad_(True)
-    image, alpha, info = rasterize(*params, viewmat.to(dtype), K.to(dtype), width, height,
-                                   background=background, backend=backend, **options)
+    image, alpha, info = rasterize(
+        *params,
+        viewmat.to(dtype),
+        K.to(dtype),
+        width,
+        height,
+        background=background,
+        backend=backend,
+        **options,
+    )
     gen = torch.Generator().manual_seed(seed + 1)
     loss = (image * torch.rand(image.shape, generator=gen, dtype=torch.float64).to(dtype)).sum()
     loss = loss + (alpha * torch.rand(alpha.shape, generator=gen, dtype=torch.float64).to(dtype)).sum()
@@ -52,8 +60,17 @@ CASES = [
     dict(n=800, width=96, height=80, seed=1, channels=3, background=torch.tensor([0.2, 0.4, 0.9])),
     dict(n=400, width=70, height=33, seed=2, channels=5, antialiased=True),
     dict(n=500, width=64, height=64, seed=3, channels=1, render_depth=True),
-    dict(n=500, width=50, height=70, seed=4, channels=3, render_depth=True, depth_mode="accumulated",
-         antialiased=True, background=torch.tensor([1.0, 1.0, 1.0])),
+    dict(
+        n=500,
+        width=50,
+        height=70,
+        seed=4,
+        channels=3,
+        render_depth=True,
+        depth_mode="accumulated",
+        antialiased=True,
+        background=torch.tensor([1.0, 1.0, 1.0]),
+    ),
     # Dense and opaque: many pixels stop early on the transmittance threshold, alphas clamp.
     dict(n=2500, width=64, height=48, seed=8, channels=3, max_opacity=1.0),
 ]
@@ -136,7 +153,9 @@ def test_absgrad_is_sum_of_per_pixel_absolute_gradients():
     K = torch.tensor([[100.0, 0.0, 10.3], [0.0, 100.0, 9.6], [0.0, 0.0, 1.0]], dtype=torch.float64)
     weights = torch.rand(20, 20, 1, generator=torch.Generator().manual_seed(0), dtype=torch.float64) - 0.3
 
-    proj = torch_reference.project(means, quats, scales, opacities, torch.eye(4, dtype=torch.float64), K, 20, 20)
+    proj = torch_reference.project(
+        means, quats, scales, opacities, torch.eye(4, dtype=torch.float64), K, 20, 20
+    )
 
     def weighted_image(m2):
         proj.means2d = m2

@@ -41,7 +41,9 @@ def _gaussians(means, scales=None, opacities=None, quats=None, colors=None, devi
     n = means.shape[0]
     scales = torch.full((n, 3), 0.05) if scales is None else torch.as_tensor(scales, dtype=torch.float32)
     scales = scales.reshape(n, scales.numel() // max(n, 1) or 3).expand(n, 3).contiguous()
-    opacities = torch.full((n,), 0.8) if opacities is None else torch.as_tensor(opacities, dtype=torch.float32)
+    opacities = (
+        torch.full((n,), 0.8) if opacities is None else torch.as_tensor(opacities, dtype=torch.float32)
+    )
     quats = torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1) if quats is None else torch.as_tensor(quats).float()
     colors = torch.rand(n, 3, generator=torch.Generator().manual_seed(n)) if colors is None else colors
     return [t.to(device) for t in (means, quats, scales, opacities.reshape(n), colors)]
@@ -54,8 +56,10 @@ def _render_and_backprop(backend, params, viewmat, K, width, height, **options):
     assert image.shape == (height, width, params[4].shape[1])
     assert alpha.shape == (height, width, 1)
     assert torch.isfinite(image).all() and torch.isfinite(alpha).all()
-    ((image * torch.linspace(0.1, 1, image.numel(), device=device).reshape(image.shape)).sum()
-     + alpha.sum()).backward()
+    (
+        (image * torch.linspace(0.1, 1, image.numel(), device=device).reshape(image.shape)).sum()
+        + alpha.sum()
+    ).backward()
     for p in params:
         assert p.grad is not None and torch.isfinite(p.grad).all()
     return image.detach(), alpha.detach(), info, [p.grad for p in params]
@@ -68,8 +72,9 @@ def test_scales_from_1e_minus_6_to_1e3(backend):
     means = torch.stack([torch.tensor([0.05 * (i - 5), 0.02 * (i % 3), 0.5 + 0.3 * i]) for i in range(10)])
     params = _gaussians(means, scales[:, None], device=device)
     for antialiased in (False, True):
-        image, alpha, info, _ = _render_and_backprop(backend, params, viewmat, K, 32, 24,
-                                                     antialiased=antialiased)
+        image, alpha, info, _ = _render_and_backprop(
+            backend, params, viewmat, K, 32, 24, antialiased=antialiased
+        )
         assert alpha.max() > 0.5
         assert (info["radii"] >= 0).all()
 
@@ -97,8 +102,9 @@ def test_a_tiny_gaussian_is_the_low_pass_filter(backend):
 
 def test_behind_the_camera_is_culled(backend):
     viewmat, K = _camera(device=backend[1])
-    params = _gaussians([[0.0, 0.0, -2.0], [0.1, 0.0, -0.001], [0.0, 0.0, 0.0]], [[0.5]] * 3,
-                        device=backend[1])
+    params = _gaussians(
+        [[0.0, 0.0, -2.0], [0.1, 0.0, -0.001], [0.0, 0.0, 0.0]], [[0.5]] * 3, device=backend[1]
+    )
     bg = torch.tensor([0.1, 0.2, 0.3], device=backend[1])
     image, alpha, info, grads = _render_and_backprop(backend, params, viewmat, K, 32, 24, background=bg)
     assert alpha.max() == 0
@@ -154,37 +160,68 @@ def test_zero_and_unnormalised_quaternions(backend):
     scales = [[0.08, 0.02, 0.04], [0.03, 0.09, 0.02]]
     q = torch.tensor([[0.9, 0.3, -0.2, 0.1], [0.2, -0.5, 0.4, 0.7]])
     q_unit = q / q.norm(dim=1, keepdim=True)
-    ref = _render_and_backprop(backend, _gaussians(means, scales, quats=q_unit, device=device), viewmat, K, 32, 24)
-    scaled = _render_and_backprop(backend, _gaussians(means, scales, quats=q * 7.3, device=device), viewmat, K,
-                                  32, 24)
+    ref = _render_and_backprop(
+        backend, _gaussians(means, scales, quats=q_unit, device=device), viewmat, K, 32, 24
+    )
+    scaled = _render_and_backprop(
+        backend, _gaussians(means, scales, quats=q * 7.3, device=device), viewmat, K, 32, 24
+    )
     assert torch.allclose(ref[0], scaled[0], atol=1e-6)
     # Gradients w.r.t. q scale by 1/|q| and are tangent to the unit sphere.
     norms = (q * 7.3).norm(dim=1, keepdim=True).to(device)
     assert torch.allclose(scaled[3][1] * norms, ref[3][1], rtol=1e-3, atol=1e-5)
-    assert torch.allclose((ref[3][1] * q_unit.to(device)).sum(dim=1), torch.zeros(2, device=device), atol=1e-4)
-    zero = _render_and_backprop(backend, _gaussians(means, scales, quats=torch.zeros(2, 4), device=device),
-                                viewmat, K, 32, 24)
+    assert torch.allclose(
+        (ref[3][1] * q_unit.to(device)).sum(dim=1), torch.zeros(2, device=device), atol=1e-4
+    )
+    zero = _render_and_backprop(
+        backend, _gaussians(means, scales, quats=torch.zeros(2, 4), device=device), viewmat, K, 32, 24
+    )
     identity = _render_and_backprop(
-        backend, _gaussians(means, scales, quats=torch.tensor([[1.0, 0, 0, 0]] * 2), device=device), viewmat, K,
-        32, 24,
+        backend,
+        _gaussians(means, scales, quats=torch.tensor([[1.0, 0, 0, 0]] * 2), device=device),
+        viewmat,
+        K,
+        32,
+        24,
     )
     assert torch.allclose(zero[0], identity[0], atol=1e-6)
 
 
-@pytest.mark.parametrize("name", ["means", "quats", "scales", "opacities", "colors", "viewmat", "K", "background"])
+@pytest.mark.parametrize(
+    "name", ["means", "quats", "scales", "opacities", "colors", "viewmat", "K", "background"]
+)
 @pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
 def test_nan_or_inf_in_any_input_is_a_clear_error(backend, name, bad):
     device = backend[1]
     viewmat, K = _camera(device=device)
     means, quats, scales, opacities, colors = _gaussians([[0.0, 0.0, 2.0], [0.1, 0.1, 3.0]], device=device)
-    args = dict(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors, viewmat=viewmat,
-                K=K, background=torch.zeros(3, device=device))
+    args = dict(
+        means=means,
+        quats=quats,
+        scales=scales,
+        opacities=opacities,
+        colors=colors,
+        viewmat=viewmat,
+        K=K,
+        background=torch.zeros(3, device=device),
+    )
     poisoned = args[name].clone()
     poisoned.view(-1)[-1] = bad
     args[name] = poisoned
     with pytest.raises(ValueError, match=f"^{name} contains non-finite values"):
-        rasterize(args["means"], args["quats"], args["scales"], args["opacities"], args["colors"],
-                  args["viewmat"], args["K"], 32, 24, background=args["background"], backend=backend[0])
+        rasterize(
+            args["means"],
+            args["quats"],
+            args["scales"],
+            args["opacities"],
+            args["colors"],
+            args["viewmat"],
+            args["K"],
+            32,
+            24,
+            background=args["background"],
+            backend=backend[0],
+        )
 
 
 @pytest.mark.parametrize("n", [0, 1])
@@ -266,8 +303,11 @@ def test_intersection_count_is_int64_and_chunked(backend):
     n, width, height = 40_000, 4096, 4096
     bbox = torch.tensor([[0, width - 1, 0, height - 1]], dtype=torch.int32).repeat(n, 1)
     visible = torch.ones(n, dtype=torch.bool)
-    total, chunks = load_kernels().ops.count_intersections(bbox, visible, width, height,
-                                                          constants.MAX_INTERSECTIONS_PER_CHUNK).tolist()
+    total, chunks = (
+        load_kernels()
+        .ops.count_intersections(bbox, visible, width, height, constants.MAX_INTERSECTIONS_PER_CHUNK)
+        .tolist()
+    )
     assert total == n * (width // 16) * (height // 16) > 2**31
     assert chunks == math.ceil(total / constants.MAX_INTERSECTIONS_PER_CHUNK)
 

@@ -201,19 +201,43 @@ def rasterize(
     if not isinstance(background, torch.Tensor) and background is not None:
         background = torch.as_tensor(float(background), dtype=colors.dtype, device=colors.device)
     check_inputs(
-        means, quats, scales, opacities, colors, viewmat, K, width, height, background,
+        means,
+        quats,
+        scales,
+        opacities,
+        colors,
+        viewmat,
+        K,
+        width,
+        height,
+        background,
         finite=check_inputs_finite,
     )
     chosen = resolve_backend(backend, means.device)
     options = dict(
-        near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, radius_clip=radius_clip,
+        near_plane=near_plane,
+        far_plane=far_plane,
+        eps2d=eps2d,
+        radius_clip=radius_clip,
         antialiased=antialiased,
     )
     if chosen == "cuda":
         try:
             return _rasterize_cuda(
-                means, quats, scales, opacities, colors, viewmat, K, width, height, background,
-                render_depth, depth_mode, options, explicit=backend == "cuda",
+                means,
+                quats,
+                scales,
+                opacities,
+                colors,
+                viewmat,
+                K,
+                width,
+                height,
+                background,
+                render_depth,
+                depth_mode,
+                options,
+                explicit=backend == "cuda",
             )
         except _FallBack:
             chosen = "torch"
@@ -284,15 +308,41 @@ class _FallBack(Exception):
     pass
 
 
-def _rasterize_cuda(means, quats, scales, opacities, colors, viewmat, K, width, height, background,
-                    render_depth, depth_mode, options, *, explicit: bool):
+def _rasterize_cuda(
+    means,
+    quats,
+    scales,
+    opacities,
+    colors,
+    viewmat,
+    K,
+    width,
+    height,
+    background,
+    render_depth,
+    depth_mode,
+    options,
+    *,
+    explicit: bool,
+):
     global _cuda_failure
     from . import cuda_backend
 
     try:
         image, alpha, depth, info = cuda_backend.rasterize(
-            means, quats, scales, opacities, colors, viewmat, K, width, height, background,
-            render_depth=render_depth, depth_mode=depth_mode, **options,
+            means,
+            quats,
+            scales,
+            opacities,
+            colors,
+            viewmat,
+            K,
+            width,
+            height,
+            background,
+            render_depth=render_depth,
+            depth_mode=depth_mode,
+            **options,
         )
     except cuda_backend.GsplatUnavailable as exc:
         if explicit:

@@ -155,8 +155,9 @@ def build_extension(source_dir: Path = CSRC_DIR, cache_dir: Path | None = None) 
                 "`pip install ninja` or your system's ninja package)",
                 reason="no-compiler",
             )
-        log.info("building the CPU splat kernels with %s %s (once; cached in %s)", cxx,
-                 " ".join(cflags), build_dir)
+        log.info(
+            "building the CPU splat kernels with %s %s (once; cached in %s)", cxx, " ".join(cflags), build_dir
+        )
         try:
             cpp_extension.load(
                 name=namespace,

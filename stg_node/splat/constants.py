@@ -58,9 +58,8 @@ COMPENSATION_GRAD_EPS = 1e-6
 RADIUS_REPORT_MAX = 1 << 30
 MAX_INTERSECTIONS_PER_CHUNK = 1 << 26
 
-# The torch reference evaluates (pixel, Gaussian) pairs densely in pixel blocks of this
-# edge length and chunks of at most this many pairs, which bounds its memory.
-TORCH_BLOCK_SIZE = 32
+# The torch reference evaluates (pixel, Gaussian) pairs densely, per pixel block, in chunks of
+# at most this many pairs, which bounds its memory.
 TORCH_MAX_PAIRS = 1 << 21
 
 # Depth-dependent alpha thresholds used by the expected-depth output: where a pixel's alpha

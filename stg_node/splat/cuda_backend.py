@@ -72,8 +72,24 @@ def _attach_means2d_grads(base: torch.Tensor) -> torch.Tensor:
 
 
 def rasterize(
-    means, quats, scales, opacities, colors, viewmat, K, width, height, background, *,
-    near_plane, far_plane, eps2d, radius_clip, antialiased, render_depth, depth_mode,
+    means,
+    quats,
+    scales,
+    opacities,
+    colors,
+    viewmat,
+    K,
+    width,
+    height,
+    background,
+    *,
+    near_plane,
+    far_plane,
+    eps2d,
+    radius_clip,
+    antialiased,
+    render_depth,
+    depth_mode,
 ):
     """Render with gsplat; returns (image [H, W, C], alpha [H, W, 1], depth or None, info)."""
     gsplat = import_gsplat()
@@ -85,11 +101,24 @@ def rasterize(
     if background is not None:
         backgrounds = background.expand(colors.shape[1])[None].to(colors.dtype)
     renders, alphas, meta = gsplat.rasterization(
-        means, quats, scales, opacities, colors,
-        viewmats=viewmat[None].to(means.dtype), Ks=K[None].to(means.dtype),
-        width=width, height=height, near_plane=near_plane, far_plane=far_plane,
-        radius_clip=radius_clip, eps2d=eps2d, packed=False, tile_size=K_.TILE_SIZE,
-        backgrounds=backgrounds, render_mode=render_mode, absgrad=means.requires_grad,
+        means,
+        quats,
+        scales,
+        opacities,
+        colors,
+        viewmats=viewmat[None].to(means.dtype),
+        Ks=K[None].to(means.dtype),
+        width=width,
+        height=height,
+        near_plane=near_plane,
+        far_plane=far_plane,
+        radius_clip=radius_clip,
+        eps2d=eps2d,
+        packed=False,
+        tile_size=K_.TILE_SIZE,
+        backgrounds=backgrounds,
+        render_mode=render_mode,
+        absgrad=means.requires_grad,
         rasterize_mode="antialiased" if antialiased else "classic",
     )
     renders, alpha = renders[0], alphas[0]

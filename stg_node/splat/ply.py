@@ -30,10 +30,22 @@ OPACITY_EPS = 1e-7
 SCALE_MIN = 1e-20
 
 _PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
-    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
-    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+    "char": "i1",
+    "int8": "i1",
+    "uchar": "u1",
+    "uint8": "u1",
+    "short": "i2",
+    "int16": "i2",
+    "ushort": "u2",
+    "uint16": "u2",
+    "int": "i4",
+    "int32": "i4",
+    "uint": "u4",
+    "uint32": "u4",
+    "float": "f4",
+    "float32": "f4",
+    "double": "f8",
+    "float64": "f8",
 }
 
 
@@ -117,9 +129,12 @@ def save_ply(path, means, quats, scales, opacities, colors=None, *, sh_dc=None, 
         quats,
     ]
     data = np.concatenate(columns, axis=1).astype("<f4")
-    header = ["ply", "format binary_little_endian 1.0",
-              "comment stg_node.splat 3DGS layout: opacity=logit, scale=log, rot=wxyz",
-              f"element vertex {n}"]
+    header = [
+        "ply",
+        "format binary_little_endian 1.0",
+        "comment stg_node.splat 3DGS layout: opacity=logit, scale=log, rot=wxyz",
+        f"element vertex {n}",
+    ]
     header += [f"property float {name}" for name in names]
     header.append("end_header")
     path = Path(path)
@@ -205,8 +220,22 @@ def load_ply(path) -> GaussianPly:
         table = np.frombuffer(body, dtype=dtype, count=n, offset=offset)
         columns = {name: table[name].astype(np.float64) for name in names}
 
-    required = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2",
-                "rot_0", "rot_1", "rot_2", "rot_3"]
+    required = [
+        "x",
+        "y",
+        "z",
+        "f_dc_0",
+        "f_dc_1",
+        "f_dc_2",
+        "opacity",
+        "scale_0",
+        "scale_1",
+        "scale_2",
+        "rot_0",
+        "rot_1",
+        "rot_2",
+        "rot_3",
+    ]
     missing = [r for r in required if r not in columns]
     if missing:
         raise ValueError(f"{path}: not a 3DGS PLY, missing properties {', '.join(missing)}")
@@ -234,4 +263,3 @@ def load_ply(path) -> GaussianPly:
         if not np.all(np.isfinite(getattr(out, field))):
             raise ValueError(f"{path}: {field} contains NaN or inf")
     return out
-

@@ -69,14 +69,24 @@ def _quat_from_normal(normals: torch.Tensor, gen: torch.Generator) -> torch.Tens
     align = torch.cat([torch.cos(angle / 2)[:, None], axis * torch.sin(angle / 2)[:, None]], dim=1)
     twist_angle = torch.rand(normals.shape[0], generator=gen, dtype=normals.dtype) * 2 * math.pi
     twist = torch.stack(
-        [torch.cos(twist_angle / 2), torch.zeros_like(twist_angle), torch.zeros_like(twist_angle),
-         torch.sin(twist_angle / 2)], dim=1,
+        [
+            torch.cos(twist_angle / 2),
+            torch.zeros_like(twist_angle),
+            torch.zeros_like(twist_angle),
+            torch.sin(twist_angle / 2),
+        ],
+        dim=1,
     )
     w1, x1, y1, z1 = align.unbind(1)
     w2, x2, y2, z2 = twist.unbind(1)
     return torch.stack(
-        [w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-         w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2], dim=1,
+        [
+            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+        ],
+        dim=1,
     )
 
 
@@ -119,13 +129,17 @@ def person_sized_scene(n: int, seed: int = 0, min_scale: float = 0.003, max_scal
     quats = _quat_from_normal(normals_t, gen)
     opacities = torch.empty(n, dtype=torch.float64).uniform_(0.3, 1.0, generator=gen)
     return Scene(
-        means=means_t.float(), quats=quats.float(), scales=scales.float(), opacities=opacities.float(),
+        means=means_t.float(),
+        quats=quats.float(),
+        scales=scales.float(),
+        opacities=opacities.float(),
         colors=colors_t.float(),
     )
 
 
-def front_camera(width: int, height: int, distance: float = 3.0, fill: float = 0.85,
-                 subject_height: float = 1.8) -> tuple[torch.Tensor, torch.Tensor]:
+def front_camera(
+    width: int, height: int, distance: float = 3.0, fill: float = 0.85, subject_height: float = 1.8
+) -> tuple[torch.Tensor, torch.Tensor]:
     """(viewmat, K) of a camera `distance` m in front of the figure, framing it to `fill`."""
     f = fill * height * distance / subject_height
     K = torch.tensor([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])

@@ -50,8 +50,13 @@ def check_inputs(
         raise ValueError(f"image of {width}x{height} pixels is too large (at most 2^31 - 1 pixels)")
 
     tensors = {
-        "means": means, "quats": quats, "scales": scales, "opacities": opacities, "colors": colors,
-        "viewmat": viewmat, "K": K,
+        "means": means,
+        "quats": quats,
+        "scales": scales,
+        "opacities": opacities,
+        "colors": colors,
+        "viewmat": viewmat,
+        "K": K,
     }
     for name, value in tensors.items():
         require_tensor(name, value)
@@ -104,12 +109,12 @@ def check_inputs(
     fx, fy = kk[0, 0].item(), kk[1, 1].item()
     if fx <= 0 or fy <= 0:
         raise ValueError(f"K must have positive focal lengths, got fx={fx}, fy={fy}")
-    if abs(kk[0, 1].item()) > 1e-9 * fx or kk[1, 0].item() != 0 or not torch.equal(
-        kk[2], torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    if (
+        abs(kk[0, 1].item()) > 1e-9 * fx
+        or kk[1, 0].item() != 0
+        or not torch.equal(kk[2], torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
     ):
-        raise ValueError(
-            f"K must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (no skew), got {kk.tolist()}"
-        )
+        raise ValueError(f"K must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (no skew), got {kk.tolist()}")
     if n and bool((scales.detach() < 0).any()):
         i = int(torch.nonzero(scales.detach() < 0)[0, 0])
         raise ValueError(
