@@ -38,26 +38,41 @@ inline double ms_since(Clock::time_point t0) {
     return std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
 }
 
+// a * b + c, fused when the target has FMA. Contraction is otherwise off (-ffp-contract=off):
+// every expression that both passes evaluate goes through the same inline code, so the
+// forward and backward passes get bit-identical alphas either way.
+#ifdef __FMA__
+#define STG_MADD(a, b, c) __builtin_fmaf((a), (b), (c))
+#else
+#define STG_MADD(a, b, c) ((a) * (b) + (c))
+#endif
+
 // exp(x) for x in [-87, 88] to ~1 ulp, written so that it vectorises (no libm call, no
-// branches). Used for exp(-sigma) in both passes, so they agree bit for bit.
+// branches). Used for exp(-sigma) in both passes.
 inline float fast_exp(float x) {
-    x = x < -87.0f ? -87.0f : x;
+    x = x < -60.0f ? -60.0f : x;
     x = x > 88.0f ? 88.0f : x;
     float k = x * 1.44269504088896341f;
     k = (k + 12582912.0f) - 12582912.0f;  // round to nearest integer
-    float r = x - k * 0.693145751953125f;  // Cody-Waite: ln2 = hi + lo
-    r = r - k * 1.42860682030941723212e-6f;
+    float r = STG_MADD(k, -0.693145751953125f, x);  // Cody-Waite: ln2 = hi + lo
+    r = STG_MADD(k, -1.42860682030941723212e-6f, r);
     float p = 1.0f / 720.0f;
-    p = p * r + 1.0f / 120.0f;
-    p = p * r + 1.0f / 24.0f;
-    p = p * r + 1.0f / 6.0f;
-    p = p * r + 0.5f;
-    p = p * r + 1.0f;
-    p = p * r + 1.0f;
+    p = STG_MADD(p, r, 1.0f / 120.0f);
+    p = STG_MADD(p, r, 1.0f / 24.0f);
+    p = STG_MADD(p, r, 1.0f / 6.0f);
+    p = STG_MADD(p, r, 0.5f);
+    p = STG_MADD(p, r, 1.0f);
+    p = STG_MADD(p, r, 1.0f);
     int32_t bits = (static_cast<int32_t>(k) + 127) << 23;
     float scale;
     std::memcpy(&scale, &bits, sizeof(float));
     return p * scale;
+}
+
+// The Gaussian's exponent at a pixel, sigma = a/2 dx^2 + b dx dy + c/2 dy^2, as
+// (ha dx + b dy) dx + c/2 dy^2 with the row terms hoisted (dx = mean_x - pixel_x).
+inline float sigma_at(float ha, float bdy, float rowc, float dx) {
+    return STG_MADD(STG_MADD(ha, dx, bdy), dx, rowc);
 }
 
 // ---------------------------------------------------------------------------------------
@@ -68,7 +83,8 @@ struct ProjectedGaussian {
     double qnorm;      // |q| before normalisation
     double Rq[9];      // rotation of the Gaussian
     double M[9];       // Rq * diag(scale)
-    double cov_c[9];   // camera-space covariance
+    double RM[9];      // camera rotation * M
+    double cov_c[9];   // camera-space covariance = RM RM^T
     double tx, ty;     // frustum-clamped camera x, y used by the Jacobian
     bool clamp_x, clamp_y;
     double J[6];       // 2x3 EWA Jacobian, row-major
@@ -110,20 +126,17 @@ inline bool project_one(int64_t i, const float* means, const float* quats, const
     const double sc[3] = {scales[i * 3], scales[i * 3 + 1], scales[i * 3 + 2]};
     for (int r = 0; r < 3; ++r)
         for (int k = 0; k < 3; ++k) g.M[r * 3 + k] = g.Rq[r * 3 + k] * sc[k];
-    double cov[9];
+    // cov_c = R cov R^T = (R M)(R M)^T with RM = R * M: fewer products than forming cov.
     for (int r = 0; r < 3; ++r)
         for (int k = 0; k < 3; ++k)
-            cov[r * 3 + k] = g.M[r * 3] * g.M[k * 3] + g.M[r * 3 + 1] * g.M[k * 3 + 1] +
-                             g.M[r * 3 + 2] * g.M[k * 3 + 2];
-    double tmp[9];  // R cov
+            g.RM[r * 3 + k] = cam.R[r * 3] * g.M[k] + cam.R[r * 3 + 1] * g.M[3 + k] +
+                              cam.R[r * 3 + 2] * g.M[6 + k];
     for (int r = 0; r < 3; ++r)
-        for (int k = 0; k < 3; ++k)
-            tmp[r * 3 + k] = cam.R[r * 3] * cov[k] + cam.R[r * 3 + 1] * cov[3 + k] +
-                             cam.R[r * 3 + 2] * cov[6 + k];
-    for (int r = 0; r < 3; ++r)  // (R cov) R^T
-        for (int k = 0; k < 3; ++k)
-            g.cov_c[r * 3 + k] = tmp[r * 3] * cam.R[k * 3] + tmp[r * 3 + 1] * cam.R[k * 3 + 1] +
-                                 tmp[r * 3 + 2] * cam.R[k * 3 + 2];
+        for (int k = r; k < 3; ++k) {
+            const double v = g.RM[r * 3] * g.RM[k * 3] + g.RM[r * 3 + 1] * g.RM[k * 3 + 1] +
+                             g.RM[r * 3 + 2] * g.RM[k * 3 + 2];
+            g.cov_c[r * 3 + k] = g.cov_c[k * 3 + r] = v;
+        }
 
     const double W = cam.width, H = cam.height;
     const double tan_x = 0.5 * W / cam.fx, tan_y = 0.5 * H / cam.fy;
@@ -309,24 +322,18 @@ void project_backward(int64_t n, const float* means, const float* quats, const f
         for (int k = 0; k < 3; ++k)
             g_means[i * 3 + k] = static_cast<float>(cam.R[k] * gp[0] + cam.R[3 + k] * gp[1] +
                                                     cam.R[6 + k] * gp[2]);
-        double tmp[9];  // R^T gcov_c
-        for (int r = 0; r < 3; ++r)
-            for (int k = 0; k < 3; ++k)
-                tmp[r * 3 + k] = cam.R[r] * gcov_c[k] + cam.R[3 + r] * gcov_c[3 + k] +
-                                 cam.R[6 + r] * gcov_c[6 + k];
-        double gcov[9];  // (R^T gcov_c) R
-        for (int r = 0; r < 3; ++r)
-            for (int k = 0; k < 3; ++k)
-                gcov[r * 3 + k] = tmp[r * 3] * cam.R[k] + tmp[r * 3 + 1] * cam.R[3 + k] +
-                                  tmp[r * 3 + 2] * cam.R[6 + k];
-        // cov = M M^T -> dM = (gcov + gcov^T) M
-        double gM[9];
+        // cov_c = RM RM^T -> dRM = (gcov_c + gcov_c^T) RM ; RM = R M -> dM = R^T dRM
+        double gRM[9];
         for (int r = 0; r < 3; ++r)
             for (int k = 0; k < 3; ++k) {
                 double acc = 0.0;
-                for (int j = 0; j < 3; ++j) acc += (gcov[r * 3 + j] + gcov[j * 3 + r]) * g.M[j * 3 + k];
-                gM[r * 3 + k] = acc;
+                for (int j = 0; j < 3; ++j) acc += (gcov_c[r * 3 + j] + gcov_c[j * 3 + r]) * g.RM[j * 3 + k];
+                gRM[r * 3 + k] = acc;
             }
+        double gM[9];
+        for (int r = 0; r < 3; ++r)
+            for (int k = 0; k < 3; ++k)
+                gM[r * 3 + k] = cam.R[r] * gRM[k] + cam.R[3 + r] * gRM[3 + k] + cam.R[6 + r] * gRM[6 + k];
         const double sc[3] = {scales[i * 3], scales[i * 3 + 1], scales[i * 3 + 2]};
         double gR[9];
         for (int k = 0; k < 3; ++k) {
@@ -523,7 +530,7 @@ inline uint32_t span_bits(int lx0, int lx1) {
 // ---- forward, one tile ----
 struct ForwardScratch {
     alignas(64) float T[kTilePixels];
-    alignas(64) float done[kTilePixels];
+    alignas(64) float thr[kTilePixels];  // alpha_min, or 2 once the pixel is finished
     alignas(64) int32_t last[kTilePixels];
     alignas(64) float w[kTileSize];
     uint32_t done_bits[kTileSize];  // per row, bit l set once pixel l is finished (or outside)
@@ -550,7 +557,7 @@ void forward_tile(const SortedGaussians& S, const TileRect& r, const int32_t* li
         sc.T[p] = 1.0f;
         sc.last[p] = -1;
         const int ly = p / kTileSize, lx = p % kTileSize;
-        sc.done[p] = (ly < r.h && lx < r.w) ? 0.0f : 1.0f;
+        sc.thr[p] = (ly < r.h && lx < r.w) ? amin : 2.0f;
     }
     for (int ly = 0; ly < kTileSize; ++ly)
         sc.done_bits[ly] = ly < r.h ? ~span_bits(0, r.w - 1) & 0xFFFFu : 0xFFFFu;
@@ -560,32 +567,32 @@ void forward_tile(const SortedGaussians& S, const TileRect& r, const int32_t* li
     int finished = 0;
     for (int64_t k = 0; k < len && finished < active; ++k) {
         const int32_t v = list[k];
-        const float mx = S.mx[v], my = S.my[v], a = S.ca[v], b = S.cb[v], c = S.cc[v], op = S.op[v];
+        const float mx = S.mx[v], my = S.my[v], op = S.op[v];
+        const float ha = 0.5f * S.ca[v], b = S.cb[v], hc = 0.5f * S.cc[v];
         const int lx0 = std::max(S.x0[v] - r.X0, 0), lx1 = std::min(S.x1[v] - r.X0, kTileSize - 1);
         const int ly0 = std::max(S.y0[v] - r.Y0, 0), ly1 = std::min(S.y1[v] - r.Y0, r.h - 1);
         const float* col = &S.col[static_cast<size_t>(v) * C];
         const int32_t kk = static_cast<int32_t>(k);
         const uint32_t span = span_bits(lx0, lx1);
-        const int h0 = lx0 < kHalf ? 0 : kHalf;
-        const int h1 = lx1 < kHalf ? kHalf : kTileSize;
+        const int h_first = lx0 < kHalf ? 0 : kHalf;
         for (int ly = ly0; ly <= ly1; ++ly) {
             if ((sc.done_bits[ly] & span) == span) continue;  // every pixel it could touch is done
             const float dy = my - (static_cast<float>(r.Y0 + ly) + 0.5f);
+            const float bdy = b * dy, rowc = hc * dy * dy;
             const int row = ly * kTileSize;
             float* T = sc.T + row;
-            float* done = sc.done + row;
+            float* thr = sc.thr + row;
             int32_t* last = sc.last + row;
-            for (int h = h0; h < h1; h += kHalf) {
+            for (int h = h_first; h <= lx1; h += kHalf) {
                 int stops = 0;
-                // Branch-free on purpose (bitwise &, selects): this loop must vectorise.
+                // Branch-free on purpose (bitwise &, selects): this loop must vectorise. A
+                // finished pixel has thr = 2, which no alpha reaches.
 #pragma omp simd reduction(+ : stops)
                 for (int l = h; l < h + kHalf; ++l) {
-                    const float dx = mx - px[l];
-                    const float sigma = 0.5f * (a * dx * dx + c * dy * dy) + b * dx * dy;
+                    const float sigma = sigma_at(ha, bdy, rowc, mx - px[l]);
                     float alpha = op * fast_exp(-sigma);
                     alpha = alpha > amax ? amax : alpha;
-                    const bool valid = (l >= lx0) & (l <= lx1) & (sigma >= 0.0f) & (alpha >= amin) &
-                                       (done[l] == 0.0f);
+                    const bool valid = (l >= lx0) & (l <= lx1) & (sigma >= 0.0f) & (alpha >= thr[l]);
                     const float Tl = T[l];
                     const float Tn = Tl * (1.0f - alpha);
                     const bool stop = valid & (Tn < tmin);
@@ -593,7 +600,7 @@ void forward_tile(const SortedGaussians& S, const TileRect& r, const int32_t* li
                     sc.w[l] = blend ? alpha * Tl : 0.0f;
                     T[l] = blend ? Tn : Tl;
                     last[l] = blend ? kk : last[l];
-                    done[l] = stop ? 1.0f : done[l];
+                    thr[l] = stop ? 2.0f : thr[l];
                     stops += stop ? 1 : 0;
                 }
                 for (int ch = 0; ch < C; ++ch) {
@@ -605,7 +612,7 @@ void forward_tile(const SortedGaussians& S, const TileRect& r, const int32_t* li
                 if (stops) {
                     finished += stops;
                     for (int l = h; l < h + kHalf; ++l)
-                        if (done[l] != 0.0f) sc.done_bits[ly] |= 1u << l;
+                        if (thr[l] > 1.0f) sc.done_bits[ly] |= 1u << l;
                 }
             }
         }
@@ -635,7 +642,8 @@ struct BackwardScratch {
     int32_t half_last[kTileSize][2];  // per row and half: the largest `last` there
     std::vector<float> g;    // [C][256] dL/dcolor_out
     std::vector<float> buf;  // [C][256] colour accumulated behind the current Gaussian
-    std::vector<float> gcol; // [C]
+    alignas(64) float lanes[kGradStride][kHalf];  // per-lane sums: mx, my, a, b, c, opacity, |mx|, |my|
+    std::vector<float> gcol;  // [C][kHalf] per-lane colour gradient sums
 };
 
 void backward_tile(const SortedGaussians& S, const TileRect& r, const int32_t* list,
@@ -677,27 +685,26 @@ void backward_tile(const SortedGaussians& S, const TileRect& r, const int32_t* l
 
     for (int32_t k = kmax; k >= 0; --k) {
         const int32_t v = list[k];
-        const float mx = S.mx[v], my = S.my[v], a = S.ca[v], b = S.cb[v], c = S.cc[v], op = S.op[v];
+        const float mx = S.mx[v], my = S.my[v], op = S.op[v];
+        const float a = S.ca[v], b = S.cb[v], c = S.cc[v];
+        const float ha = 0.5f * a, hc = 0.5f * c;
         const int lx0 = std::max(S.x0[v] - r.X0, 0), lx1 = std::min(S.x1[v] - r.X0, kTileSize - 1);
         const int ly0 = std::max(S.y0[v] - r.Y0, 0), ly1 = std::min(S.y1[v] - r.Y0, r.h - 1);
-        const int h0 = lx0 < kHalf ? 0 : kHalf;
-        const int h1 = lx1 < kHalf ? kHalf : kTileSize;
         const float* col = &S.col[static_cast<size_t>(v) * C];
-        float gmx = 0, gmy = 0, ga = 0, gb = 0, gc = 0, gop = 0, absx = 0, absy = 0;
         bool any = false;
         for (int ly = ly0; ly <= ly1; ++ly) {
             const float dy = my - (static_cast<float>(r.Y0 + ly) + 0.5f);
+            const float bdy = b * dy, rowc = hc * dy * dy;
             const int row = ly * kTileSize;
             float* T = sc.T + row;
             const float* q = sc.q + row;
             const int32_t* last = sc.last + row;
-            for (int h = h0; h < h1; h += kHalf) {
+            for (int h = lx0 < kHalf ? 0 : kHalf; h <= lx1; h += kHalf) {
                 if (k > sc.half_last[ly][h / kHalf]) continue;  // no pixel here blended it
                 int nvalid = 0;
 #pragma omp simd reduction(+ : nvalid)
                 for (int l = h; l < h + kHalf; ++l) {
-                    const float dx = mx - px[l];
-                    const float sigma = 0.5f * (a * dx * dx + c * dy * dy) + b * dx * dy;
+                    const float sigma = sigma_at(ha, bdy, rowc, mx - px[l]);
                     float alpha = op * fast_exp(-sigma);
                     alpha = alpha > amax ? amax : alpha;
                     const bool valid = (l >= lx0) & (l <= lx1) & (k <= last[l]) & (sigma >= 0.0f) &
@@ -712,58 +719,68 @@ void backward_tile(const SortedGaussians& S, const TileRect& r, const int32_t* l
                     nvalid += valid ? 1 : 0;
                 }
                 if (nvalid == 0) continue;
-                if (!any) {
+                if (!any) {  // lane-wise accumulators, reduced once per Gaussian (not per row)
                     std::fill(sc.gcol.begin(), sc.gcol.end(), 0.0f);
+                    std::fill(&sc.lanes[0][0], &sc.lanes[0][0] + kGradStride * kHalf, 0.0f);
                     any = true;
                 }
                 for (int ch = 0; ch < C; ++ch) {
                     const float cv = col[ch];
                     const float* g = sc.g.data() + static_cast<size_t>(ch) * kTilePixels + row;
                     float* buf = sc.buf.data() + static_cast<size_t>(ch) * kTilePixels + row;
-                    float gsum = 0.0f;
-#pragma omp simd reduction(+ : gsum)
+                    float* gl = sc.gcol.data() + static_cast<size_t>(ch) * kHalf;
+#pragma omp simd
                     for (int l = h; l < h + kHalf; ++l) {
-                        gsum += sc.w[l] * g[l];
+                        gl[l - h] += sc.w[l] * g[l];
                         sc.dA[l] += sc.valid[l] * g[l] * (cv * sc.Ti[l] - buf[l] * sc.ra[l]);
                         buf[l] += cv * sc.w[l];
                     }
-                    sc.gcol[ch] += gsum;
                 }
-#pragma omp simd reduction(+ : gmx, gmy, ga, gb, gc, gop, absx, absy)
+                float* L0 = sc.lanes[0];
+                float* L1 = sc.lanes[1];
+                float* L2 = sc.lanes[2];
+                float* L3 = sc.lanes[3];
+                float* L4 = sc.lanes[4];
+                float* L5 = sc.lanes[5];
+                float* L6 = sc.lanes[6];
+                float* L7 = sc.lanes[7];
+#pragma omp simd
                 for (int l = h; l < h + kHalf; ++l) {
+                    const int j = l - h;
                     const float dx = mx - px[l];
-                    const float sigma = 0.5f * (a * dx * dx + c * dy * dy) + b * dx * dy;
+                    const float sigma = sigma_at(ha, bdy, rowc, dx);
                     const float G = fast_exp(-sigma);
                     const float raw = op * G;
                     // Where the clamp was active alpha does not depend on opacity or sigma.
                     const bool live = (sc.valid[l] != 0.0f) & (raw <= amax);
                     const float dA = sc.dA[l];
                     const float dsig = live ? -raw * dA : 0.0f;
-                    gop += live ? G * dA : 0.0f;
+                    L5[j] += live ? G * dA : 0.0f;
                     const float gx = dsig * (a * dx + b * dy);
                     const float gy = dsig * (b * dx + c * dy);
-                    gmx += gx;
-                    gmy += gy;
-                    absx += std::fabs(gx);
-                    absy += std::fabs(gy);
-                    ga += 0.5f * dsig * dx * dx;
-                    gb += dsig * dx * dy;
-                    gc += 0.5f * dsig * dy * dy;
+                    L0[j] += gx;
+                    L1[j] += gy;
+                    L6[j] += std::fabs(gx);
+                    L7[j] += std::fabs(gy);
+                    L2[j] += 0.5f * dsig * dx * dx;
+                    L3[j] += dsig * dx * dy;
+                    L4[j] += 0.5f * dsig * dy * dy;
                     T[l] = sc.valid[l] != 0.0f ? sc.Ti[l] : T[l];
                 }
             }
         }
         if (!any) continue;
         float* gv = grads + static_cast<size_t>(v) * (kGradStride + C);
-        gv[0] += gmx;
-        gv[1] += gmy;
-        gv[2] += ga;
-        gv[3] += gb;
-        gv[4] += gc;
-        gv[5] += gop;
-        gv[6] += absx;
-        gv[7] += absy;
-        for (int ch = 0; ch < C; ++ch) gv[kGradStride + ch] += sc.gcol[ch];
+        for (int q = 0; q < kGradStride; ++q) {
+            float sum = 0.0f;
+            for (int j = 0; j < kHalf; ++j) sum += sc.lanes[q][j];
+            gv[q] += sum;
+        }
+        for (int ch = 0; ch < C; ++ch) {
+            float sum = 0.0f;
+            for (int j = 0; j < kHalf; ++j) sum += sc.gcol[static_cast<size_t>(ch) * kHalf + j];
+            gv[kGradStride + ch] += sum;
+        }
     }
 }
 
@@ -873,7 +890,7 @@ void rasterize_backward(int64_t n, const float* means2d, const float* conics, co
             BackwardScratch sc;
             sc.g.resize(static_cast<size_t>(C) * kTilePixels);
             sc.buf.resize(static_cast<size_t>(C) * kTilePixels);
-            sc.gcol.resize(C);
+            sc.gcol.resize(static_cast<size_t>(C) * kHalf);
 #pragma omp for schedule(dynamic, 1)
             for (int64_t t = 0; t < nt; ++t) {
                 if (offsets[t + 1] == offsets[t]) continue;
