@@ -121,7 +121,8 @@ inline bool project_one(int64_t i, const float* means, const float* quats, const
     const double q[4] = {quats[i * 4], quats[i * 4 + 1], quats[i * 4 + 2], quats[i * 4 + 3]};
     g.qnorm = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
     const double qden = std::max(g.qnorm, s.quat_norm_eps);
-    for (int k = 0; k < 4; ++k) g.qn[k] = q[k] / qden;
+    const double qinv = 1.0 / qden;
+    for (int k = 0; k < 4; ++k) g.qn[k] = q[k] * qinv;
     quat_to_rotmat(g.qn, g.Rq);
     const double sc[3] = {scales[i * 3], scales[i * 3 + 1], scales[i * 3 + 2]};
     for (int r = 0; r < 3; ++r)
@@ -144,18 +145,18 @@ inline bool project_one(int64_t i, const float* means, const float* quats, const
     const double lim_xn = cam.cx / cam.fx + s.frustum_margin * tan_x;
     const double lim_yp = (H - cam.cy) / cam.fy + s.frustum_margin * tan_y;
     const double lim_yn = cam.cy / cam.fy + s.frustum_margin * tan_y;
-    const double ux = g.p[0] / z, uy = g.p[1] / z;
+    const double rz = 1.0 / z;  // reciprocals: one division instead of many
+    const double ux = g.p[0] * rz, uy = g.p[1] * rz;
     g.clamp_x = !(ux >= -lim_xn && ux <= lim_xp);
     g.clamp_y = !(uy >= -lim_yn && uy <= lim_yp);
     g.tx = z * std::min(std::max(ux, -lim_xn), lim_xp);
     g.ty = z * std::min(std::max(uy, -lim_yn), lim_yp);
-    const double z2 = z * z;
-    g.J[0] = cam.fx / z;
+    g.J[0] = cam.fx * rz;
     g.J[1] = 0.0;
-    g.J[2] = -cam.fx * g.tx / z2;
+    g.J[2] = -cam.fx * g.tx * (rz * rz);
     g.J[3] = 0.0;
-    g.J[4] = cam.fy / z;
-    g.J[5] = -cam.fy * g.ty / z2;
+    g.J[4] = cam.fy * rz;
+    g.J[5] = -cam.fy * g.ty * (rz * rz);
     double JS[6];  // J cov_c
     for (int r = 0; r < 2; ++r)
         for (int k = 0; k < 3; ++k)
@@ -180,8 +181,8 @@ inline bool project_one(int64_t i, const float* means, const float* quats, const
     } else {
         g.comp = 1.0;
     }
-    g.mx = cam.fx * (g.p[0] / z) + cam.cx;
-    g.my = cam.fy * (g.p[1] / z) + cam.cy;
+    g.mx = cam.fx * ux + cam.cx;
+    g.my = cam.fy * uy + cam.cy;
     return true;
 }
 
@@ -223,9 +224,10 @@ void project_forward(int64_t n, const float* means, const float* quats, const fl
 
         means2d[i * 2] = static_cast<float>(g.mx);
         means2d[i * 2 + 1] = static_cast<float>(g.my);
-        conics[i * 3] = static_cast<float>(g.c1 / g.det1);
-        conics[i * 3 + 1] = static_cast<float>(-g.b / g.det1);
-        conics[i * 3 + 2] = static_cast<float>(g.a1 / g.det1);
+        const double inv_det = 1.0 / g.det1;
+        conics[i * 3] = static_cast<float>(g.c1 * inv_det);
+        conics[i * 3 + 1] = static_cast<float>(-g.b * inv_det);
+        conics[i * 3 + 2] = static_cast<float>(g.a1 * inv_det);
         depths[i] = static_cast<float>(g.p[2]);
         opac_eff[i] = static_cast<float>(o_eff);
         comp[i] = static_cast<float>(g.comp);
@@ -267,7 +269,8 @@ void project_backward(int64_t n, const float* means, const float* quats, const f
 
         // conic = inverse of the dilated covariance S = [[a1, b], [b, c1]]:
         // dL/dS = -S^-1 G S^-1 with G = [[gA, gB/2], [gB/2, gC]].
-        const double A = g.c1 / g.det1, B = -g.b / g.det1, C = g.a1 / g.det1;
+        const double inv_det = 1.0 / g.det1;
+        const double A = g.c1 * inv_det, B = -g.b * inv_det, C = g.a1 * inv_det;
         const double gA = g_conics[i * 3], gB = g_conics[i * 3 + 1], gC = g_conics[i * 3 + 2];
         const double G00 = gA, G01 = 0.5 * gB, G11 = gC;
         const double P00 = A * G00 + B * G01, P01 = A * G01 + B * G11;
@@ -305,17 +308,18 @@ void project_backward(int64_t n, const float* means, const float* quats, const f
         for (int r = 0; r < 3; ++r)
             for (int k = 0; k < 3; ++k) gcov_c[r * 3 + k] = g.J[r] * GJ[k] + g.J[3 + r] * GJ[3 + k];
 
-        const double z = g.p[2], z2 = z * z, z3 = z2 * z;
+        const double z = g.p[2];
         const double gmx = g_means2d[i * 2], gmy = g_means2d[i * 2 + 1];
         double gp[3];
-        gp[0] = gmx * cam.fx / z;
-        gp[1] = gmy * cam.fy / z;
-        gp[2] = -gmx * cam.fx * g.p[0] / z2 - gmy * cam.fy * g.p[1] / z2;
-        gp[2] += -gJ[0] * cam.fx / z2 - gJ[4] * cam.fy / z2 + gJ[2] * 2.0 * cam.fx * g.tx / z3 +
-                 gJ[5] * 2.0 * cam.fy * g.ty / z3;
-        const double g_tx = -gJ[2] * cam.fx / z2, g_ty = -gJ[5] * cam.fy / z2;
-        if (g.clamp_x) gp[2] += g_tx * (g.tx / z); else gp[0] += g_tx;
-        if (g.clamp_y) gp[2] += g_ty * (g.ty / z); else gp[1] += g_ty;
+        const double rz = 1.0 / z, rz2 = rz * rz, rz3 = rz2 * rz;
+        gp[0] = gmx * cam.fx * rz;
+        gp[1] = gmy * cam.fy * rz;
+        gp[2] = -gmx * cam.fx * g.p[0] * rz2 - gmy * cam.fy * g.p[1] * rz2;
+        gp[2] += -gJ[0] * cam.fx * rz2 - gJ[4] * cam.fy * rz2 + gJ[2] * 2.0 * cam.fx * g.tx * rz3 +
+                 gJ[5] * 2.0 * cam.fy * g.ty * rz3;
+        const double g_tx = -gJ[2] * cam.fx * rz2, g_ty = -gJ[5] * cam.fy * rz2;
+        if (g.clamp_x) gp[2] += g_tx * (g.tx * rz); else gp[0] += g_tx;
+        if (g.clamp_y) gp[2] += g_ty * (g.ty * rz); else gp[1] += g_ty;
         gp[2] += g_depths[i];
 
         // p = R m + t ; cov_c = R cov R^T
