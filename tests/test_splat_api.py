@@ -91,6 +91,14 @@ def test_wrong_types_sizes_and_camera_are_clear_errors():
         rasterize(*args, backend="cuda")
     with pytest.raises(ValueError, match="depth_mode must be one of"):
         _call(args, depth_mode="median")
+    with pytest.raises(ValueError, match="need 0 < near_plane < far_plane"):
+        _call(args, near_plane=0.0)
+    with pytest.raises(ValueError, match="need 0 < near_plane < far_plane"):
+        _call(args, near_plane=2.0, far_plane=1.0)
+    with pytest.raises(ValueError, match="eps2d and radius_clip must be >= 0"):
+        _call(args, eps2d=-0.1)
+    with pytest.raises(ValueError, match="max_intersections must be >= 1"):
+        _call(args, max_intersections=0)
 
 
 def test_info_carries_what_densification_needs():
@@ -125,6 +133,8 @@ def test_background_is_blended_by_transmittance():
     assert torch.allclose(image1, image0 + (1 - alpha) * bg, atol=1e-6)
     image2, _, _ = _call(args, background=0.5)
     assert torch.allclose(image2, image0 + (1 - alpha) * 0.5, atol=1e-6)
+    image3, _, _ = _call(args, background=[0.3, 0.6, 0.9])
+    assert torch.allclose(image3, image1)
 
 
 def test_any_number_of_channels():

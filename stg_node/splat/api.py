@@ -198,8 +198,16 @@ def rasterize(
     """
     if depth_mode not in DEPTH_MODES:
         raise ValueError(f"depth_mode must be one of {DEPTH_MODES}, got {depth_mode!r}")
+    if not 0 < near_plane < far_plane:
+        raise ValueError(
+            f"need 0 < near_plane < far_plane, got near_plane={near_plane}, far_plane={far_plane}"
+        )
+    if not eps2d >= 0 or not radius_clip >= 0:
+        raise ValueError(f"eps2d and radius_clip must be >= 0, got eps2d={eps2d}, radius_clip={radius_clip}")
+    if int(max_intersections) < 1:
+        raise ValueError(f"max_intersections must be >= 1, got {max_intersections}")
     if not isinstance(background, torch.Tensor) and background is not None:
-        background = torch.as_tensor(float(background), dtype=colors.dtype, device=colors.device)
+        background = torch.as_tensor(background, dtype=colors.dtype, device=colors.device)
     check_inputs(
         means,
         quats,

@@ -18,6 +18,7 @@ or an empty string for the portable baseline).
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import logging
 import os
@@ -25,6 +26,7 @@ import platform
 import shlex
 import shutil
 import subprocess
+import sys
 import threading
 from pathlib import Path
 
@@ -35,7 +37,8 @@ ENV_ARCH_FLAGS = "STG_SPLAT_ARCH_FLAGS"
 CSRC_DIR = Path(__file__).resolve().parent / "csrc"
 SOURCES = ("splat_kernels.cpp", "splat_bindings.cpp")
 HEADERS = ("splat_kernels.h",)
-# -ffp-contract=off: the forward and backward passes must compute alpha bit-identically.
+# -ffp-contract=off: the forward and backward passes must compute alpha bit-identically (the
+# kernels fuse multiply-adds explicitly, in helpers both passes share).
 # -fno-trapping-math: lets the compiler if-convert float selects, so the lane loops vectorise
 # (it assumes no FP exception is observed; results are unchanged).
 BASE_CFLAGS = ("-O3", "-fopenmp", "-ffp-contract=off", "-fno-math-errno", "-fno-trapping-math")
@@ -116,6 +119,25 @@ def build_key(source_dir: Path, cflags: list[str], compiler_version: str) -> str
     return h.hexdigest()[:16]
 
 
+@contextlib.contextmanager
+def _ninja_on_path():
+    """Put the pip `ninja` package's binary (or this Python's bin dir) on PATH for the build:
+    torch looks for a `ninja` executable, which an unactivated venv does not expose."""
+    old = os.environ.get("PATH", "")
+    extra = [str(Path(sys.executable).parent)]
+    try:
+        import ninja  # the PyPI package ships the binary
+
+        extra.insert(0, ninja.BIN_DIR)
+    except ImportError:
+        pass
+    os.environ["PATH"] = os.pathsep.join([*extra, old]) if old else os.pathsep.join(extra)
+    try:
+        yield
+    finally:
+        os.environ["PATH"] = old
+
+
 class CpuKernels:
     """The loaded operators (``torch.ops.<namespace>``) plus what they were built with."""
 
@@ -149,33 +171,8 @@ def build_extension(source_dir: Path = CSRC_DIR, cache_dir: Path | None = None) 
     log_path = build_dir / "build.log"
 
     if not library.exists():
-        if not cpp_extension.is_ninja_available():
-            raise ExtensionUnavailable(
-                "ninja is not installed (torch needs it to build C++ extensions; "
-                "`pip install ninja` or your system's ninja package)",
-                reason="no-compiler",
-            )
-        log.info(
-            "building the CPU splat kernels with %s %s (once; cached in %s)", cxx, " ".join(cflags), build_dir
-        )
-        try:
-            cpp_extension.load(
-                name=namespace,
-                sources=[str(source_dir / name) for name in SOURCES],
-                extra_cflags=[*cflags, f"-DSTG_SPLAT_NS={namespace}"],
-                extra_ldflags=list(BASE_LDFLAGS),
-                build_directory=str(build_dir),
-                is_python_module=False,
-                verbose=False,
-            )
-        except Exception as exc:  # cpp_extension raises RuntimeError with the compiler output
-            log_path.write_text(f"compiler: {cxx} ({version})\nflags: {' '.join(cflags)}\n\n{exc}\n")
-            raise ExtensionUnavailable(
-                f"building the CPU splat kernels failed; the compiler output is in {log_path}",
-                reason="build-failed",
-                log_path=log_path,
-            ) from exc
-        log_path.write_text(f"compiler: {cxx} ({version})\nflags: {' '.join(cflags)}\nbuilt OK\n")
+        with _ninja_on_path():
+            _compile(cpp_extension, namespace, source_dir, cflags, build_dir, log_path, cxx, version)
     else:
         try:
             torch.ops.load_library(str(library))
@@ -187,6 +184,37 @@ def build_extension(source_dir: Path = CSRC_DIR, cache_dir: Path | None = None) 
             ) from exc
     ops = getattr(torch.ops, namespace)
     return CpuKernels(ops, namespace, library, cflags)
+
+
+def _compile(cpp_extension, namespace, source_dir, cflags, build_dir, log_path, cxx, version) -> None:
+    """Run torch's extension builder; its failure becomes ExtensionUnavailable naming the log."""
+    if not cpp_extension.is_ninja_available():
+        raise ExtensionUnavailable(
+            "ninja is not installed (torch needs it to build C++ extensions; "
+            "`pip install ninja` or your system's ninja package)",
+            reason="no-compiler",
+        )
+    log.info(
+        "building the CPU splat kernels with %s %s (once; cached in %s)", cxx, " ".join(cflags), build_dir
+    )
+    try:
+        cpp_extension.load(
+            name=namespace,
+            sources=[str(source_dir / name) for name in SOURCES],
+            extra_cflags=[*cflags, f"-DSTG_SPLAT_NS={namespace}"],
+            extra_ldflags=list(BASE_LDFLAGS),
+            build_directory=str(build_dir),
+            is_python_module=False,
+            verbose=False,
+        )
+    except Exception as exc:  # cpp_extension raises RuntimeError with the compiler output
+        log_path.write_text(f"compiler: {cxx} ({version})\nflags: {' '.join(cflags)}\n\n{exc}\n")
+        raise ExtensionUnavailable(
+            f"building the CPU splat kernels failed; the compiler output is in {log_path}",
+            reason="build-failed",
+            log_path=log_path,
+        ) from exc
+    log_path.write_text(f"compiler: {cxx} ({version})\nflags: {' '.join(cflags)}\nbuilt OK\n")
 
 
 _lock = threading.Lock()

@@ -10,13 +10,18 @@
 //             per Gaussian), int64 prefix sums, and a fill in depth order, so every tile list
 //             comes out sorted without a key sort. Tiles are processed in chunks of at most
 //             `max_intersections_per_chunk` intersections: memory stays bounded.
-//   raster    parallel over tiles (dynamic schedule). Within a tile each Gaussian visits only
-//             the rows of its clipped box, 16 lanes per row with masks: branch-free loops that
-//             the compiler vectorises (the exp is a polynomial, not libm).
+//   raster    parallel over tiles (dynamic schedule); empty tiles are written directly. Within
+//             a tile each Gaussian visits only the rows of its clipped box and, per row, only
+//             the 8-lane halves (one AVX2 vector each) the box touches, skipping rows whose
+//             pixels are all finished. The lane loops are branch-free so the compiler
+//             vectorises them (the exp is a polynomial, not libm).
 //   backward  the same tiles back to front (transmittance recovered by division, as in 3DGS),
-//             per-thread gradient buffers indexed by depth rank (no atomics), then a reduction.
+//             skipping halves where no pixel blended the Gaussian; per-lane accumulators are
+//             reduced once per Gaussian into per-thread gradient buffers indexed by depth rank
+//             (no atomics), summed at the end.
 //
-// Floating-point contraction is disabled at build time (-ffp-contract=off) so the forward and
+// Floating-point contraction is disabled at build time (-ffp-contract=off); multiply-adds are
+// fused explicitly (STG_MADD) in inline helpers that both passes share, so the forward and
 // backward passes evaluate alpha bit-identically, which the backward relies on to know which
 // Gaussians were blended.
 #include "splat_kernels.h"
