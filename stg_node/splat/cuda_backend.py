@@ -43,24 +43,30 @@ def import_gsplat():
     return gsplat
 
 
-def _attach_means2d_grads(base: torch.Tensor) -> torch.Tensor:
-    """An [N, 2] view of gsplat's [1, N, 2] means2d whose .grad/.absgrad mirror the base's."""
-    view = base[0]
+def _attach_means2d_grads(base: torch.Tensor, visible: torch.Tensor) -> torch.Tensor:
+    """An [N, 2] tensor of gsplat's [1, N, 2] means2d (0 where culled) whose ``.grad`` is the
+    total dL/dmeans2d and ``.absgrad`` gsplat's AbsGS statistic, both accumulating.
+
+    ``view.grad`` gets, through retain_grad, the gradient of everything computed from `view`
+    itself; a hook on `base` then adds the part that reached `base` by other paths (gsplat's
+    rasterizer), i.e. the base gradient minus what `view` passed down to it.
+    """
+    mask = visible[:, None]
+    view = torch.where(mask, base[0], torch.zeros_like(base[0]))
     if not base.requires_grad:
         return view
     view.retain_grad()
-    partial: dict[str, torch.Tensor | None] = {"through_view": None}
+    passed_down: dict[str, torch.Tensor | None] = {"grad": None}
 
     def on_view(grad):
-        partial["through_view"] = grad
+        passed_down["grad"] = torch.where(mask, grad, torch.zeros_like(grad))
 
     def on_base(grad):
-        # retain_grad has already added the part that flowed through `view`; add the rest.
-        rest = grad[0]
-        if partial["through_view"] is not None:
-            rest = rest - partial["through_view"]
-            partial["through_view"] = None
-        view.grad = rest.detach().clone() if view.grad is None else view.grad + rest.detach()
+        rest = grad[0].detach()
+        if passed_down["grad"] is not None:
+            rest = rest - passed_down["grad"].detach()
+            passed_down["grad"] = None
+        view.grad = rest.clone() if view.grad is None else view.grad + rest
         absgrad = getattr(base, "absgrad", None)
         if absgrad is not None:
             prev = getattr(view, "absgrad", None)
@@ -93,21 +99,24 @@ def rasterize(
 ):
     """Render with gsplat; returns (image [H, W, C], alpha [H, W, 1], depth or None, info)."""
     gsplat = import_gsplat()
+    dtype = means.dtype  # gsplat's kernels are float32; autograd casts the gradients back
+    means, quats, scales, opacities, colors = (t.float() for t in (means, quats, scales, opacities, colors))
+    needs_grad = any(t.requires_grad for t in (means, quats, scales, opacities))
     if render_depth:
         render_mode = "RGB+ED" if depth_mode == "expected" else "RGB+D"
     else:
         render_mode = "RGB"
     backgrounds = None
     if background is not None:
-        backgrounds = background.expand(colors.shape[1])[None].to(colors.dtype)
+        backgrounds = background.expand(colors.shape[1])[None].float()
     renders, alphas, meta = gsplat.rasterization(
         means,
         quats,
         scales,
         opacities,
         colors,
-        viewmats=viewmat[None].to(means.dtype),
-        Ks=K[None].to(means.dtype),
+        viewmats=viewmat[None].float(),
+        Ks=K[None].float(),
         width=width,
         height=height,
         near_plane=near_plane,
@@ -118,10 +127,10 @@ def rasterize(
         tile_size=K_.TILE_SIZE,
         backgrounds=backgrounds,
         render_mode=render_mode,
-        absgrad=means.requires_grad,
+        absgrad=needs_grad,
         rasterize_mode="antialiased" if antialiased else "classic",
     )
-    renders, alpha = renders[0], alphas[0]
+    renders, alpha = renders[0].to(dtype), alphas[0].to(dtype)
     depth = None
     if render_depth:
         image, depth = renders[..., :-1], renders[..., -1:]
@@ -132,13 +141,15 @@ def rasterize(
         radii = torch.stack([radii, radii], dim=-1)
     radii = radii.to(torch.int32)
     visible = (radii > 0).all(dim=-1)
+    # gsplat may leave culled rows unwritten: zero them, as the other backends do.
+    vis = visible[:, None]
     info = {
-        "means2d": _attach_means2d_grads(meta["means2d"]),
+        "means2d": _attach_means2d_grads(meta["means2d"], visible),
         "radii": radii,
         "visible": visible,
-        "depths": meta["depths"][0],
-        "conics": meta["conics"][0],
-        "opacities": meta["opacities"][0],
+        "depths": torch.where(visible, meta["depths"][0], torch.zeros_like(meta["depths"][0])),
+        "conics": torch.where(vis, meta["conics"][0], torch.zeros_like(meta["conics"][0])),
+        "opacities": torch.where(visible, meta["opacities"][0], torch.zeros_like(meta["opacities"][0])),
         "n_intersections": int(meta["isect_ids"].numel()) if meta.get("isect_ids") is not None else -1,
     }
     return image, alpha, depth, info

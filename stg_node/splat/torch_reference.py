@@ -252,7 +252,9 @@ def _composite_block(
             stopped = (valid & (t_after < K_.TRANSMITTANCE_MIN)).any(dim=1)
         a_blend = torch.where(blend, alpha, torch.zeros_like(alpha))
         trans = torch.cumprod(torch.cat([T[:, None], 1 - a_blend], dim=1), dim=1)
-        acc = acc + (a_blend * trans[:, :-1]) @ colors[g]
+        # An explicit multiply-sum, not a matmul: tiny BLAS calls wake OpenBLAS's own thread
+        # pool, which on a busy small machine costs far more than the arithmetic.
+        acc = acc + ((a_blend * trans[:, :-1]).unsqueeze(-1) * colors[g].unsqueeze(0)).sum(dim=1)
         T = trans[:, -1]
         done = done | stopped
     return acc, T
