@@ -54,6 +54,7 @@ def _time(fn, repeats: int, warmup: int = 2, sync=None) -> dict:
 
 def _child(args) -> None:
     import torch
+    from tqdm import tqdm
 
     from stg_node.logs import configure_logging
     from stg_node.splat import cpu_backend, rasterize
@@ -63,7 +64,7 @@ def _child(args) -> None:
     configure_logging("WARNING")
     threads = configure_threads()
     results = []
-    for case in args.cases:
+    for case in tqdm(args.cases, desc=f"STG_THREADS={threads}", unit="case", file=sys.stderr):
         n, size = (int(x) for x in case.split("x"))
         scene = person_sized_scene(n, seed=0)
         viewmat, K = front_camera(size, size)
@@ -100,7 +101,7 @@ def _child(args) -> None:
         row["cpu_stages_ms"].update({k: statistics.median(v) for k, v in bstages.items()})
         if not args.no_torch:
             row["torch_fwd"] = _time(lambda: forward("torch"), args.torch_repeats, warmup=1)
-            row["torch_fwdbwd"] = _time(lambda: forward_backward("torch"), args.torch_repeats, warmup=0)
+            row["torch_fwdbwd"] = _time(lambda: forward_backward("torch"), args.torch_repeats, warmup=1)
         if torch.cuda.is_available():
             try:
                 cuda_scene = [t.cuda() for t in scene.params()]
@@ -181,7 +182,8 @@ def main() -> int:
             "--cases",
             *args.cases,
         ] + (["--no-torch"] if args.no_torch else [])
-        out = subprocess.run(cmd, env=env, check=True, capture_output=True, text=True).stdout
+        # stdout carries the JSON rows; stderr (progress) goes straight to the terminal.
+        out = subprocess.run(cmd, env=env, check=True, stdout=subprocess.PIPE, text=True).stdout
         rows += [json.loads(line) for line in out.splitlines() if line.startswith("{")]
 
     print(
