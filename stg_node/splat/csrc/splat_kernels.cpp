@@ -583,7 +583,9 @@ void forward_tile(const SortedGaussians& S, const TileRect& r, const int32_t* li
         const float* col = &S.col[static_cast<size_t>(v) * C];
         const int32_t kk = static_cast<int32_t>(k);
         const uint32_t span = span_bits(lx0, lx1);
-        const int h_first = lx0 < kHalf ? 0 : kHalf;
+        // The 8-lane halves the box touches, processed in one loop (one or two vectors).
+        const int h0 = lx0 < kHalf ? 0 : kHalf;
+        const int h1 = lx1 < kHalf ? kHalf : kTileSize;
         for (int ly = ly0; ly <= ly1; ++ly) {
             if ((sc.done_bits[ly] & span) == span) continue;  // every pixel it could touch is done
             const float dy = my - (static_cast<float>(r.Y0 + ly) + 0.5f);
@@ -592,37 +594,35 @@ void forward_tile(const SortedGaussians& S, const TileRect& r, const int32_t* li
             float* T = sc.T + row;
             float* thr = sc.thr + row;
             int32_t* last = sc.last + row;
-            for (int h = h_first; h <= lx1; h += kHalf) {
-                int stops = 0;
-                // Branch-free on purpose (bitwise &, selects): this loop must vectorise. A
-                // finished pixel has thr = 2, which no alpha reaches.
+            int stops = 0;
+            // Branch-free on purpose (bitwise &, selects): this loop must vectorise. A finished
+            // pixel has thr = 2, which no alpha reaches.
 #pragma omp simd reduction(+ : stops)
-                for (int l = h; l < h + kHalf; ++l) {
-                    const float sigma = sigma_at(ha, bdy, rowc, mx - px[l]);
-                    float alpha = op * fast_exp(-sigma);
-                    alpha = alpha > amax ? amax : alpha;
-                    const bool valid = (l >= lx0) & (l <= lx1) & (sigma >= 0.0f) & (alpha >= thr[l]);
-                    const float Tl = T[l];
-                    const float Tn = Tl * (1.0f - alpha);
-                    const bool stop = valid & (Tn < tmin);
-                    const bool blend = valid & (Tn >= tmin);
-                    sc.w[l] = blend ? alpha * Tl : 0.0f;
-                    T[l] = blend ? Tn : Tl;
-                    last[l] = blend ? kk : last[l];
-                    thr[l] = stop ? 2.0f : thr[l];
-                    stops += stop ? 1 : 0;
-                }
-                for (int ch = 0; ch < C; ++ch) {
-                    const float cv = col[ch];
-                    float* acc_row = acc + static_cast<size_t>(ch) * kTilePixels + row;
+            for (int l = h0; l < h1; ++l) {
+                const float sigma = sigma_at(ha, bdy, rowc, mx - px[l]);
+                float alpha = op * fast_exp(-sigma);
+                alpha = alpha > amax ? amax : alpha;
+                const bool valid = (l >= lx0) & (l <= lx1) & (sigma >= 0.0f) & (alpha >= thr[l]);
+                const float Tl = T[l];
+                const float Tn = Tl * (1.0f - alpha);
+                const bool stop = valid & (Tn < tmin);
+                const bool blend = valid & (Tn >= tmin);
+                sc.w[l] = blend ? alpha * Tl : 0.0f;
+                T[l] = blend ? Tn : Tl;
+                last[l] = blend ? kk : last[l];
+                thr[l] = stop ? 2.0f : thr[l];
+                stops += stop ? 1 : 0;
+            }
+            for (int ch = 0; ch < C; ++ch) {
+                const float cv = col[ch];
+                float* acc_row = acc + static_cast<size_t>(ch) * kTilePixels + row;
 #pragma omp simd
-                    for (int l = h; l < h + kHalf; ++l) acc_row[l] += sc.w[l] * cv;
-                }
-                if (stops) {
-                    finished += stops;
-                    for (int l = h; l < h + kHalf; ++l)
-                        if (thr[l] > 1.0f) sc.done_bits[ly] |= 1u << l;
-                }
+                for (int l = h0; l < h1; ++l) acc_row[l] += sc.w[l] * cv;
+            }
+            if (stops) {
+                finished += stops;
+                for (int l = h0; l < h1; ++l)
+                    if (thr[l] > 1.0f) sc.done_bits[ly] |= 1u << l;
             }
         }
     }
