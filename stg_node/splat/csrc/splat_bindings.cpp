@@ -1,0 +1,286 @@
+// torch operator wrappers for the CPU splat kernels (splat_kernels.h). Registered with
+// TORCH_LIBRARY (no pybind11), so the extension compiles quickly and is called through
+// torch.ops.<namespace>.*; the namespace is passed in as STG_SPLAT_NS by the build so that a
+// rebuilt extension (new sources or flags) never clashes with an older one in one process.
+#include <ATen/ATen.h>
+#include <torch/library.h>
+
+#include <string>
+#include <tuple>
+#include <vector>
+
+#include "splat_kernels.h"
+
+#ifndef STG_SPLAT_NS
+#error "STG_SPLAT_NS must name the operator namespace"
+#endif
+
+namespace {
+
+using stg_splat::Camera;
+using stg_splat::Settings;
+
+void check_cpu_float(const at::Tensor& t, const char* name, int64_t rows, int64_t cols) {
+    TORCH_CHECK(t.device().is_cpu(), name, " must be a CPU tensor");
+    TORCH_CHECK(t.scalar_type() == at::kFloat, name, " must be float32, got ", t.scalar_type());
+    TORCH_CHECK(t.is_contiguous(), name, " must be contiguous");
+    TORCH_CHECK(t.size(0) == rows, name, " must have ", rows, " rows, got ", t.size(0));
+    if (cols > 0) {
+        TORCH_CHECK(t.dim() == 2 && t.size(1) == cols, name, " must be [", rows, ", ", cols, "], got ",
+                    t.sizes());
+    }
+}
+
+Settings make_settings(c10::ArrayRef<double> v, int64_t threads) {
+    TORCH_CHECK(static_cast<int64_t>(v.size()) == stg_splat::kNumSettings, "settings must have ",
+                static_cast<int>(stg_splat::kNumSettings), " entries, got ", v.size());
+    Settings s;
+    s.near_plane = v[stg_splat::kNearPlane];
+    s.far_plane = v[stg_splat::kFarPlane];
+    s.eps2d = v[stg_splat::kEps2d];
+    s.radius_clip = v[stg_splat::kRadiusClip];
+    s.alpha_min = static_cast<float>(v[stg_splat::kAlphaMin]);
+    s.alpha_max = static_cast<float>(v[stg_splat::kAlphaMax]);
+    s.transmittance_min = static_cast<float>(v[stg_splat::kTransmittanceMin]);
+    s.sigma_extent_max = v[stg_splat::kSigmaExtentMax];
+    s.quat_norm_eps = v[stg_splat::kQuatNormEps];
+    s.compensation_grad_eps = v[stg_splat::kCompensationGradEps];
+    s.frustum_margin = v[stg_splat::kFrustumMargin];
+    s.antialiased = v[stg_splat::kAntialiased] != 0.0;
+    s.max_intersections_per_chunk = static_cast<int64_t>(v[stg_splat::kMaxIntersectionsPerChunk]);
+    s.radius_report_max = static_cast<int64_t>(v[stg_splat::kRadiusReportMax]);
+    TORCH_CHECK(threads >= 1, "threads must be >= 1");
+    s.threads = static_cast<int>(threads);
+    return s;
+}
+
+Camera make_camera(const at::Tensor& viewmat, const at::Tensor& K, int64_t width, int64_t height) {
+    TORCH_CHECK(viewmat.scalar_type() == at::kDouble && viewmat.device().is_cpu() &&
+                    viewmat.numel() == 16,
+                "viewmat must be a float64 CPU [4, 4] tensor");
+    TORCH_CHECK(K.scalar_type() == at::kDouble && K.device().is_cpu() && K.numel() == 9,
+                "K must be a float64 CPU [3, 3] tensor");
+    const at::Tensor vm = viewmat.contiguous(), kk = K.contiguous();
+    const double* v = vm.data_ptr<double>();
+    const double* k = kk.data_ptr<double>();
+    Camera cam;
+    for (int r = 0; r < 3; ++r) {
+        for (int c = 0; c < 3; ++c) cam.R[r * 3 + c] = v[r * 4 + c];
+        cam.t[r] = v[r * 4 + 3];
+    }
+    cam.fx = k[0];
+    cam.cx = k[2];
+    cam.fy = k[4];
+    cam.cy = k[5];
+    cam.width = static_cast<int>(width);
+    cam.height = static_cast<int>(height);
+    return cam;
+}
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor,
+           at::Tensor>
+project_fwd(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
+            const at::Tensor& opacities, const at::Tensor& viewmat, const at::Tensor& K,
+            int64_t width, int64_t height, c10::ArrayRef<double> settings, int64_t threads) {
+    const int64_t n = means.size(0);
+    check_cpu_float(means, "means", n, 3);
+    check_cpu_float(quats, "quats", n, 4);
+    check_cpu_float(scales, "scales", n, 3);
+    check_cpu_float(opacities, "opacities", n, 0);
+    const Settings s = make_settings(settings, threads);
+    const Camera cam = make_camera(viewmat, K, width, height);
+    const auto f32 = means.options();
+    at::Tensor means2d = at::empty({n, 2}, f32);
+    at::Tensor conics = at::empty({n, 3}, f32);
+    at::Tensor depths = at::empty({n}, f32);
+    at::Tensor opac_eff = at::empty({n}, f32);
+    at::Tensor comp = at::empty({n}, f32);
+    at::Tensor radii = at::empty({n, 2}, f32.dtype(at::kInt));
+    at::Tensor bbox = at::empty({n, 4}, f32.dtype(at::kInt));
+    at::Tensor visible = at::empty({n}, f32.dtype(at::kBool));
+    stg_splat::project_forward(n, means.data_ptr<float>(), quats.data_ptr<float>(),
+                               scales.data_ptr<float>(), opacities.data_ptr<float>(), cam, s,
+                               means2d.data_ptr<float>(), conics.data_ptr<float>(),
+                               depths.data_ptr<float>(), opac_eff.data_ptr<float>(),
+                               comp.data_ptr<float>(), radii.data_ptr<int32_t>(),
+                               bbox.data_ptr<int32_t>(),
+                               reinterpret_cast<uint8_t*>(visible.data_ptr<bool>()));
+    return {means2d, conics, depths, opac_eff, comp, radii, bbox, visible};
+}
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> project_bwd(
+    const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
+    const at::Tensor& opacities, const at::Tensor& viewmat, const at::Tensor& K, int64_t width,
+    int64_t height, c10::ArrayRef<double> settings, int64_t threads, const at::Tensor& visible,
+    const at::Tensor& g_means2d, const at::Tensor& g_conics, const at::Tensor& g_depths,
+    const at::Tensor& g_opac_eff) {
+    const int64_t n = means.size(0);
+    check_cpu_float(means, "means", n, 3);
+    check_cpu_float(quats, "quats", n, 4);
+    check_cpu_float(scales, "scales", n, 3);
+    check_cpu_float(opacities, "opacities", n, 0);
+    check_cpu_float(g_means2d, "grad means2d", n, 2);
+    check_cpu_float(g_conics, "grad conics", n, 3);
+    check_cpu_float(g_depths, "grad depths", n, 0);
+    check_cpu_float(g_opac_eff, "grad opacities", n, 0);
+    TORCH_CHECK(visible.scalar_type() == at::kBool && visible.is_contiguous() && visible.numel() == n,
+                "visible must be a contiguous bool [n] tensor");
+    const Settings s = make_settings(settings, threads);
+    const Camera cam = make_camera(viewmat, K, width, height);
+    at::Tensor g_means = at::empty_like(means);
+    at::Tensor g_quats = at::empty_like(quats);
+    at::Tensor g_scales = at::empty_like(scales);
+    at::Tensor g_opac = at::empty_like(opacities);
+    stg_splat::project_backward(
+        n, means.data_ptr<float>(), quats.data_ptr<float>(), scales.data_ptr<float>(),
+        opacities.data_ptr<float>(), cam, s, reinterpret_cast<const uint8_t*>(visible.data_ptr<bool>()),
+        g_means2d.data_ptr<float>(), g_conics.data_ptr<float>(), g_depths.data_ptr<float>(),
+        g_opac_eff.data_ptr<float>(), g_means.data_ptr<float>(), g_quats.data_ptr<float>(),
+        g_scales.data_ptr<float>(), g_opac.data_ptr<float>());
+    return {g_means, g_quats, g_scales, g_opac};
+}
+
+void check_raster_inputs(const at::Tensor& means2d, const at::Tensor& conics,
+                         const at::Tensor& opac_eff, const at::Tensor& colors,
+                         const at::Tensor& depths, const at::Tensor& bbox, const at::Tensor& visible,
+                         int64_t width, int64_t height) {
+    const int64_t n = means2d.size(0);
+    check_cpu_float(means2d, "means2d", n, 2);
+    check_cpu_float(conics, "conics", n, 3);
+    check_cpu_float(opac_eff, "opacities", n, 0);
+    check_cpu_float(depths, "depths", n, 0);
+    check_cpu_float(colors, "colors", n, colors.dim() == 2 ? colors.size(1) : -1);
+    TORCH_CHECK(colors.dim() == 2 && colors.size(1) >= 1, "colors must be [n, C] with C >= 1");
+    TORCH_CHECK(bbox.scalar_type() == at::kInt && bbox.is_contiguous() && bbox.numel() == n * 4,
+                "bbox must be a contiguous int32 [n, 4] tensor");
+    TORCH_CHECK(visible.scalar_type() == at::kBool && visible.is_contiguous() && visible.numel() == n,
+                "visible must be a contiguous bool [n] tensor");
+    TORCH_CHECK(width >= 1 && height >= 1, "image size must be positive, got ", width, "x", height);
+    TORCH_CHECK(n < (int64_t(1) << 31), "at most 2^31 - 1 Gaussians, got ", n);
+}
+
+at::Tensor stats_tensor(const stg_splat::RasterStats& st) {
+    at::Tensor out = at::empty({7}, at::TensorOptions().dtype(at::kDouble));
+    double* p = out.data_ptr<double>();
+    p[0] = st.ms_sort;
+    p[1] = st.ms_bin;
+    p[2] = st.ms_raster;
+    p[3] = st.ms_reduce;
+    p[4] = static_cast<double>(st.n_visible);
+    p[5] = static_cast<double>(st.n_intersections);
+    p[6] = static_cast<double>(st.n_chunks);
+    return out;
+}
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> raster_fwd(
+    const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opac_eff,
+    const at::Tensor& colors, const at::Tensor& depths, const at::Tensor& bbox,
+    const at::Tensor& visible, int64_t width, int64_t height, c10::ArrayRef<double> settings,
+    int64_t threads) {
+    check_raster_inputs(means2d, conics, opac_eff, colors, depths, bbox, visible, width, height);
+    const Settings s = make_settings(settings, threads);
+    const int64_t n = means2d.size(0), C = colors.size(1);
+    const auto f32 = means2d.options();
+    at::Tensor color = at::empty({height, width, C}, f32);
+    at::Tensor T = at::empty({height, width}, f32);
+    at::Tensor last = at::empty({height, width}, f32.dtype(at::kInt));
+    stg_splat::RasterStats st;
+    stg_splat::rasterize_forward(n, means2d.data_ptr<float>(), conics.data_ptr<float>(),
+                                 opac_eff.data_ptr<float>(), colors.data_ptr<float>(),
+                                 static_cast<int>(C), depths.data_ptr<float>(), bbox.data_ptr<int32_t>(),
+                                 reinterpret_cast<const uint8_t*>(visible.data_ptr<bool>()),
+                                 static_cast<int>(width), static_cast<int>(height), s,
+                                 color.data_ptr<float>(), T.data_ptr<float>(), last.data_ptr<int32_t>(),
+                                 &st);
+    return {color, T, last, stats_tensor(st)};
+}
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> raster_bwd(
+    const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opac_eff,
+    const at::Tensor& colors, const at::Tensor& depths, const at::Tensor& bbox,
+    const at::Tensor& visible, int64_t width, int64_t height, c10::ArrayRef<double> settings,
+    int64_t threads, const at::Tensor& T_final, const at::Tensor& last, const at::Tensor& g_color,
+    const at::Tensor& g_alpha) {
+    check_raster_inputs(means2d, conics, opac_eff, colors, depths, bbox, visible, width, height);
+    const Settings s = make_settings(settings, threads);
+    const int64_t n = means2d.size(0), C = colors.size(1);
+    TORCH_CHECK(T_final.scalar_type() == at::kFloat && T_final.is_contiguous() &&
+                    T_final.numel() == width * height,
+                "T_final must be a contiguous float32 [H, W] tensor");
+    TORCH_CHECK(last.scalar_type() == at::kInt && last.is_contiguous() && last.numel() == width * height,
+                "last must be a contiguous int32 [H, W] tensor");
+    TORCH_CHECK(g_color.scalar_type() == at::kFloat && g_color.is_contiguous() &&
+                    g_color.numel() == width * height * C,
+                "grad of the image must be a contiguous float32 [H, W, C] tensor");
+    TORCH_CHECK(g_alpha.scalar_type() == at::kFloat && g_alpha.is_contiguous() &&
+                    g_alpha.numel() == width * height,
+                "grad of alpha must be a contiguous float32 [H, W] tensor");
+    at::Tensor g_means2d = at::empty_like(means2d);
+    at::Tensor g_conics = at::empty_like(conics);
+    at::Tensor g_opac = at::empty_like(opac_eff);
+    at::Tensor g_colors = at::empty_like(colors);
+    at::Tensor g_abs = at::empty_like(means2d);
+    stg_splat::RasterStats st;
+    stg_splat::rasterize_backward(
+        n, means2d.data_ptr<float>(), conics.data_ptr<float>(), opac_eff.data_ptr<float>(),
+        colors.data_ptr<float>(), static_cast<int>(C), depths.data_ptr<float>(),
+        bbox.data_ptr<int32_t>(), reinterpret_cast<const uint8_t*>(visible.data_ptr<bool>()),
+        static_cast<int>(width), static_cast<int>(height), s, T_final.data_ptr<float>(),
+        last.data_ptr<int32_t>(), g_color.data_ptr<float>(), g_alpha.data_ptr<float>(),
+        g_means2d.data_ptr<float>(), g_conics.data_ptr<float>(), g_opac.data_ptr<float>(),
+        g_colors.data_ptr<float>(), g_abs.data_ptr<float>(), &st);
+    return {g_means2d, g_conics, g_opac, g_colors, g_abs, stats_tensor(st)};
+}
+
+at::Tensor count_isect(const at::Tensor& bbox, const at::Tensor& visible, int64_t width, int64_t height,
+                       int64_t max_per_chunk) {
+    const int64_t n = visible.numel();
+    TORCH_CHECK(bbox.scalar_type() == at::kInt && bbox.is_contiguous() && bbox.numel() == n * 4,
+                "bbox must be a contiguous int32 [n, 4] tensor");
+    TORCH_CHECK(visible.scalar_type() == at::kBool && visible.is_contiguous(), "visible must be contiguous bool");
+    TORCH_CHECK(width >= 1 && height >= 1 && max_per_chunk >= 1, "bad image size or chunk budget");
+    int64_t total = 0, chunks = 0;
+    stg_splat::count_intersections(n, bbox.data_ptr<int32_t>(),
+                                   reinterpret_cast<const uint8_t*>(visible.data_ptr<bool>()),
+                                   static_cast<int>(width), static_cast<int>(height), max_per_chunk, &total,
+                                   &chunks);
+    at::Tensor out = at::empty({2}, at::TensorOptions().dtype(at::kLong));
+    out[0] = total;
+    out[1] = chunks;
+    return out;
+}
+
+int64_t tile_size() { return stg_splat::kTileSize; }
+
+int64_t num_settings() { return stg_splat::kNumSettings; }
+
+}  // namespace
+
+TORCH_LIBRARY(STG_SPLAT_NS, m) {
+    m.def("tile_size() -> int", &tile_size);
+    m.def("num_settings() -> int", &num_settings);
+    m.def("count_intersections(Tensor bbox, Tensor visible, int width, int height, int max_per_chunk) -> Tensor",
+          &count_isect);
+    m.def(
+        "project_fwd(Tensor means, Tensor quats, Tensor scales, Tensor opacities, Tensor viewmat, "
+        "Tensor K, int width, int height, float[] settings, int threads) -> (Tensor, Tensor, Tensor, "
+        "Tensor, Tensor, Tensor, Tensor, Tensor)",
+        &project_fwd);
+    m.def(
+        "project_bwd(Tensor means, Tensor quats, Tensor scales, Tensor opacities, Tensor viewmat, "
+        "Tensor K, int width, int height, float[] settings, int threads, Tensor visible, "
+        "Tensor g_means2d, Tensor g_conics, Tensor g_depths, Tensor g_opacities) -> (Tensor, Tensor, "
+        "Tensor, Tensor)",
+        &project_bwd);
+    m.def(
+        "raster_fwd(Tensor means2d, Tensor conics, Tensor opacities, Tensor colors, Tensor depths, "
+        "Tensor bbox, Tensor visible, int width, int height, float[] settings, int threads) -> "
+        "(Tensor, Tensor, Tensor, Tensor)",
+        &raster_fwd);
+    m.def(
+        "raster_bwd(Tensor means2d, Tensor conics, Tensor opacities, Tensor colors, Tensor depths, "
+        "Tensor bbox, Tensor visible, int width, int height, float[] settings, int threads, "
+        "Tensor T_final, Tensor last, Tensor g_color, Tensor g_alpha) -> (Tensor, Tensor, Tensor, "
+        "Tensor, Tensor, Tensor)",
+        &raster_bwd);
+}
