@@ -1,0 +1,1 @@
+"""Console entry points: thin argument parsing around the library (see pyproject [project.scripts])."""

@@ -1,0 +1,43 @@
+"""Command-line options shared by the bus tools (stg-topic, stg-broker) and Ctrl-C/SIGTERM handling.
+
+The bus tools deliberately skip stg_node.threads.configure_threads(): they run no torch or
+OpenCV work, and must start fast on a robot that has no torch at all.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+
+from stg_node.bus.config import ENV_BUS, ENV_KEY_NAME, ENV_KEYS, ENV_NAMESPACE, BusConfig
+
+
+def add_bus_options(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("bus")
+    group.add_argument(
+        "--bus",
+        metavar="URL",
+        help=f"bus URL (ipc://PATH, tcp://HOST:PORT); default ${ENV_BUS} or ipc in the user's runtime dir",
+    )
+    group.add_argument(
+        "--namespace", metavar="NS", help=f"topic namespace, e.g. rig1 (default ${ENV_NAMESPACE})"
+    )
+    group.add_argument(
+        "--keys", metavar="DIR", help=f"CURVE key directory for tcp (default ${ENV_KEYS}); see stg-keys"
+    )
+    group.add_argument(
+        "--key-name", metavar="NAME", help=f"this client's key name in DIR/clients (default ${ENV_KEY_NAME})"
+    )
+
+
+def bus_config(args: argparse.Namespace) -> BusConfig:
+    return BusConfig.from_env(url=args.bus, namespace=args.namespace, keys=args.keys, key_name=args.key_name)
+
+
+def sigterm_as_interrupt() -> None:
+    """Let SIGTERM (e.g. from a launcher) end the program like Ctrl-C: cleanly, via KeyboardInterrupt."""
+
+    def handler(signum, frame):
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, handler)
