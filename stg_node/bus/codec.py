@@ -49,7 +49,7 @@ class Envelope:
     topic: str
     header: dict
     arrays: dict[str, np.ndarray]
-    nbytes: int
+    nbytes: int  # payload: header + buffers (what NodeStatus and stg-topic bw count)
 
     @property
     def type(self) -> str:
@@ -239,7 +239,9 @@ def _view(frame, dtype_name: str, shape: tuple[int, ...], nbytes: int, name: str
     buf = memoryview(frame)
     if buf.nbytes != nbytes:
         raise MessageError("bytes", f"array {name!r}: buffer has {buf.nbytes} bytes, header implies {nbytes}")
-    return np.frombuffer(buf, dtype=WIRE_DTYPES[dtype_name]).reshape(shape)
+    arr = np.frombuffer(buf, dtype=WIRE_DTYPES[dtype_name]).reshape(shape)
+    arr.flags.writeable = False
+    return arr
 
 
 def decode_envelope(frames) -> Envelope:
@@ -253,7 +255,8 @@ def decode_envelope(frames) -> Envelope:
             raise MessageError("field", f"array {name!r} appears twice")
         arrays[name] = _view(frame, dtype_name, shape, nbytes, name)
         total += nbytes
-    return Envelope(topic=topic, header=header, arrays=arrays, nbytes=total)
+    header_bytes = memoryview(frames[1]).nbytes
+    return Envelope(topic=topic, header=header, arrays=arrays, nbytes=header_bytes + total)
 
 
 _expected_cache: dict[str, type[Message] | None] = {}
@@ -324,6 +327,7 @@ def decode(frames) -> Message:
                 "bytes", f"array {name!r}: buffer has {buf.nbytes} bytes, header implies {nbytes}"
             )
         arr = np.frombuffer(buf, dtype=dtype).reshape(shape)
+        arr.flags.writeable = False  # shared with the frame (and, over inproc, the sender)
         if (aspec.check_finite if aspec is not None else spec.array_set.finite) and not all_finite(arr):
             raise MessageError("nonfinite", f"{type_name}.{name} holds NaN or Inf")
         target[name] = arr

@@ -62,7 +62,10 @@ def parse_url(url: str) -> tuple[str, str, int | None]:
         if not 1 <= port or last > 65535:
             raise ValueError(f"bus URL {url!r}: ports {port}..{last} must lie within 1..65535")
         return scheme, host, port
-    raise ValueError(f"bus URL {url!r}: transport {scheme!r} is not ipc, tcp or inproc")
+    raise ValueError(
+        f"bus URL {url!r}: transport {scheme!r} is not ipc, tcp or inproc "
+        "(ipc:///path, tcp://host:port or inproc://name)"
+    )
 
 
 def lane_endpoint(url: str, lane: str | Lane, side: str) -> str:

@@ -13,8 +13,9 @@ A Publisher opens one XPUB socket per lane (so it can see subscriptions:
 is, so do not modify an array until the message has left (publish a fresh array per
 message, as camera drivers naturally do).
 
-A Subscriber opens one SUB socket per lane its topics live on. On keep-last lanes it
-drains its queue at every read and hands out only the newest message per topic. It
+A Subscriber opens one SUB socket per lane its topics live on. On keep-last lanes a small
+thread drains the socket continuously and keeps only the newest message per topic
+(channels.LatestChannel explains why a thread). It
 checks every message (codec.decode) and tracks sequence numbers per (topic, src):
 malformed messages, gaps and skips are counted in :attr:`Subscriber.traffic` (published
 in NodeStatus by the heartbeat), logged once per source per 10 s, and never raised.
@@ -34,6 +35,7 @@ import msgpack
 import zmq
 
 from stg_node.bus import sockets
+from stg_node.bus.channels import DirectChannel, LatestChannel
 from stg_node.bus.codec import Envelope, decode, decode_envelope, encode_counted
 from stg_node.bus.config import BusConfig
 from stg_node.bus.messages import Message
@@ -49,7 +51,6 @@ _SNDMORE = int(zmq.SNDMORE)
 _NOBLOCK = int(zmq.NOBLOCK)
 _EVENTS = int(zmq.EVENTS)
 _POLLIN = int(zmq.POLLIN)
-_DRAIN_LIMIT = 1024  # messages read from a keep-last socket in one go
 
 
 def default_node_id() -> str:
@@ -219,8 +220,9 @@ class Subscriber:
     (``/rig2/camera/frame``), message classes (their standard topic), prefixes ending in
     '/' (``rig1/``) or a wildcard (``""``, ``"*"``: everything, on all lanes).
     ``typed=False`` yields :class:`Envelope` (any type, checked at envelope level) instead
-    of typed messages. ``keep_last`` overrides the lanes' policy (None: keep-last lanes
-    drain to the newest message; False: deliver every message; True: newest only everywhere).
+    of typed messages. ``keep_last`` overrides the lanes' policy: None follows the lane
+    (keep-last on ``latest``), False delivers every message in order, True keeps only the
+    newest message per topic on every lane.
     """
 
     def __init__(
@@ -238,9 +240,8 @@ class Subscriber:
         self.typed = typed
         self._context = context or zmq.Context.instance()
         self._keep_last_override = keep_last
-        self._sockets: dict[str, zmq.Socket] = {}
-        self._socket_list: list[zmq.Socket] = []
-        self._lane_of_socket: dict[zmq.Socket, Lane] = {}
+        self._channels: dict[str, DirectChannel | LatestChannel] = {}
+        self._channel_list: list = []
         self._exact: set[bytes] = set()
         self._prefixes: list[bytes] = []
         self._ready: deque = deque()
@@ -259,16 +260,24 @@ class Subscriber:
 
     # -- subscriptions ------------------------------------------------------------------------
 
-    def _socket(self, lane: Lane) -> zmq.Socket:
-        sock = self._sockets.get(lane.name)
-        if sock is None:
+    def _channel(self, lane: Lane):
+        channel = self._channels.get(lane.name)
+        if channel is None:
             sock = sockets.make_socket(self._context, zmq.SUB, lane)
-            sockets.connect(sock, self.config.endpoint(lane, "out"), self.config)
-            self._sockets[lane.name] = sock
-            self._socket_list.append(sock)
-            self._lane_of_socket[sock] = lane
-            self._poller.register(sock, zmq.POLLIN)
-        return sock
+            try:
+                sockets.connect(sock, self.config.endpoint(lane, "out"), self.config)
+            except BaseException:
+                sock.close(linger=0)
+                raise
+            keep_last = lane.keep_last if self._keep_last_override is None else self._keep_last_override
+            if keep_last:
+                channel = LatestChannel(self._context, sock, lane)
+            else:
+                channel = DirectChannel(sock, lane)
+            self._channels[lane.name] = channel
+            self._channel_list.append(channel)
+            self._poller.register(channel.pollable, zmq.POLLIN)
+        return channel
 
     def subscribe(self, *topics) -> None:
         """Add topics (same forms as the constructor's)."""
@@ -280,12 +289,12 @@ class Subscriber:
                 raw = prefix.encode()
                 self._prefixes.append(raw)
                 for lane in LANES.values():
-                    self._socket(lane).subscribe(raw)
+                    self._channel(lane).subscribe(raw)
                 continue
             full = self.config.topic(topic)
             raw = full.encode()
             self._exact.add(raw)
-            self._socket(self.config.lane_of(full)).subscribe(raw)
+            self._channel(self.config.lane_of(full)).subscribe(raw)
 
     @property
     def topics(self) -> list[str]:
@@ -293,58 +302,36 @@ class Subscriber:
 
     @property
     def sockets(self) -> list[zmq.Socket]:
-        """The SUB sockets, e.g. to register in a node's own zmq.Poller."""
-        return list(self._sockets.values())
+        """Sockets to register in a node's own zmq.Poller: POLLIN on any means call recv()."""
+        return [channel.pollable for channel in self._channel_list]
 
     # -- receiving ------------------------------------------------------------------------------
 
-    def _keep_last(self, lane: Lane) -> bool:
-        return lane.keep_last if self._keep_last_override is None else self._keep_last_override
-
-    def _fill(self, sock: zmq.Socket) -> bool:
-        """Move what ``sock`` has ready into the ready queue (newest per topic on keep-last)."""
-        try:
-            frames = _recv_multipart(sock, _NOBLOCK)
-        except zmq.Again:
-            return False
-        lane = self._lane_of_socket[sock]
-        if not self._keep_last(lane):
-            self._ready.append((lane, frames))
-            return True
-        newest = {frames[0].bytes: frames}
-        for _ in range(_DRAIN_LIMIT):
-            try:
-                frames = _recv_multipart(sock, _NOBLOCK)
-            except zmq.Again:
-                break
-            key = frames[0].bytes
-            newest.pop(key, None)  # re-insert: delivery order follows arrival of the newest
-            newest[key] = frames
-        self._ready.extend((lane, frames) for frames in newest.values())
-        return True
-
     def _next(self, deadline: float | None):
-        socks = self._socket_list
-        if not socks:
+        channels = self._channel_list
+        if not channels:
             raise RuntimeError("this subscriber has no topics: call subscribe() first")
+        count = len(channels)
         while True:
             if self._ready:
                 return self._ready.popleft()
-            if len(socks) == 1:
-                if self._fill(socks[0]):
-                    continue
+            start = next(self._rotation) if count > 1 else 0
+            for i in range(count):
+                channel = channels[(start + i) % count]
+                items = channel.take()
+                if items:
+                    lane = channel.lane
+                    self._ready.extend((lane, frames) for frames in items)
+                    break
             else:
-                start = next(self._rotation)
-                if any(self._fill(socks[(start + i) % len(socks)]) for i in range(len(socks))):
-                    continue
-            ms = _timeout_ms(deadline)
-            if ms == 0:
-                return None
-            if len(socks) == 1:
-                if not socks[0].poll(ms):
+                ms = _timeout_ms(deadline)
+                if ms == 0:
                     return None
-            elif not self._poller.poll(ms):
-                return None
+                if count == 1:
+                    if not channels[0].pollable.poll(ms):
+                        return None
+                elif not self._poller.poll(ms):
+                    return None
 
     def poll(self, timeout: float | None = None) -> bool:
         """Wait up to ``timeout`` s (None: forever) until something is ready to read.
@@ -411,7 +398,7 @@ class Subscriber:
             self.traffic.duplicates += 1
             return None
         if status == "gap":
-            if self._keep_last(lane):
+            if self._channels[lane.name].keep_last:
                 self.traffic.drop("superseded", missing)
             else:
                 self.traffic.drop("lost", missing)
@@ -429,8 +416,8 @@ class Subscriber:
         if self._closed:
             return
         self._closed = True
-        for sock in self._sockets.values():
-            sock.close(linger=0)
+        for channel in self._channel_list:
+            channel.close()
         self._ready.clear()
 
     def __enter__(self) -> Subscriber:
@@ -438,16 +425,6 @@ class Subscriber:
 
     def __exit__(self, *exc) -> None:
         self.close()
-
-
-def _recv_multipart(sock: zmq.Socket, flags: int) -> list:
-    """recv_multipart(copy=False) without a getsockopt(RCVMORE) per part."""
-    frame = sock.recv(flags, copy=False)
-    frames = [frame]
-    while frame.more:
-        frame = sock.recv(0, copy=False)
-        frames.append(frame)
-    return frames
 
 
 def _source_of(frames) -> str:

@@ -172,7 +172,7 @@ def ensure_authenticator(context: zmq.Context, directory: str | Path) -> ThreadA
             auth = ThreadAuthenticator(context, log=logging.getLogger("stg_node.bus.zap"))
             auth.start()
             _authenticators[context] = auth
-        auth.configure_curve(domain="*", location=str(authorized))
+        auth.configure_curve(domain=ZAP_DOMAIN, location=str(authorized))  # "*" only means "no domain"
         log.debug(
             "CURVE authenticator admits %d key(s) from %s", len(authorized_names(directory)), authorized
         )

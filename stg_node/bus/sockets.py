@@ -69,8 +69,8 @@ def bind(sock: zmq.Socket, endpoint: str, config: BusConfig, secure: bool | None
     """Bind ``sock``, as a CURVE server when the bus is secure for this transport."""
     secure = _secure_for(endpoint, config) if secure is None else secure
     if secure:
-        security.ensure_authenticator(sock.context, config.keys)
         security.configure_server(sock, config.keys)
+        security.ensure_authenticator(sock.context, config.keys)  # running before the bind
     else:
         security.clear_security(sock)
     ensure_ipc_dir(endpoint)

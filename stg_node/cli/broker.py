@@ -48,21 +48,26 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     configure_logging(args.log_level)
-    sigterm_as_interrupt()
     urls = args.urls or [BusConfig.from_env().url]
-    try:
-        broker = Broker(
-            urls,
-            keys=args.keys,
-            curve_on_ipc=args.curve_on_ipc,
-            namespace=args.namespace,
-            status_period_s=args.status_period,
-        )
-    except (BrokerRunning, OSError, ValueError) as exc:
-        print(f"stg-broker: {exc}", file=sys.stderr)
-        return 1
-    print(f"stg-broker: serving {' '.join(urls)} (Ctrl-C to stop)", flush=True)
-    broker.run()  # returns on Ctrl-C / SIGTERM, sockets closed
+    with sigterm_as_interrupt():
+        try:
+            broker = Broker(
+                urls,
+                keys=args.keys,
+                curve_on_ipc=args.curve_on_ipc,
+                namespace=args.namespace,
+                status_period_s=args.status_period,
+            )
+        except (BrokerRunning, OSError, ValueError) as exc:
+            print(f"stg-broker: {exc}", file=sys.stderr)
+            return 1
+        try:
+            print(f"stg-broker: serving {' '.join(urls)} (Ctrl-C to stop)", flush=True)
+            broker.run()  # returns on Ctrl-C / SIGTERM with every socket closed
+        except KeyboardInterrupt:  # one that arrived outside the loop
+            pass
+        finally:
+            broker.close()
     return 0
 
 

@@ -7,7 +7,9 @@ OpenCV work, and must start fast on a robot that has no torch at all.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import signal
+import threading
 
 from stg_node.bus.config import ENV_BUS, ENV_KEY_NAME, ENV_KEYS, ENV_NAMESPACE, BusConfig
 
@@ -34,10 +36,19 @@ def bus_config(args: argparse.Namespace) -> BusConfig:
     return BusConfig.from_env(url=args.bus, namespace=args.namespace, keys=args.keys, key_name=args.key_name)
 
 
-def sigterm_as_interrupt() -> None:
-    """Let SIGTERM (e.g. from a launcher) end the program like Ctrl-C: cleanly, via KeyboardInterrupt."""
+@contextlib.contextmanager
+def sigterm_as_interrupt():
+    """While active, SIGTERM (e.g. from a launcher) ends the program like Ctrl-C: cleanly, via
+    KeyboardInterrupt. Restores the previous handler on exit; a no-op outside the main thread."""
 
     def handler(signum, frame):
         raise KeyboardInterrupt
 
-    signal.signal(signal.SIGTERM, handler)
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)

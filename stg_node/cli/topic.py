@@ -224,18 +224,18 @@ def main(argv=None, out=None) -> int:
     out = out or sys.stdout
     args = build_parser().parse_args(argv)
     configure_logging()
-    sigterm_as_interrupt()
     try:
         config = bus_config(args)
     except ValueError as exc:
         print(f"stg-topic: {exc}", file=sys.stderr)
         return 2
     try:
-        if args.command == "list":
-            return cmd_list(config, args, out)
-        if args.command == "echo":
-            return cmd_echo(config, args, out)
-        return cmd_rate(config, args, out, args.command)
+        with sigterm_as_interrupt():
+            if args.command == "list":
+                return cmd_list(config, args, out)
+            if args.command == "echo":
+                return cmd_echo(config, args, out)
+            return cmd_rate(config, args, out, args.command)
     except KeyboardInterrupt:
         return 0
     except (OSError, ValueError) as exc:
