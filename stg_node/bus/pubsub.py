@@ -96,7 +96,7 @@ class Publisher:
         self._sockets: dict[str, zmq.Socket] = {}
         self._routes: dict[tuple[str, type], tuple[str, bytes, zmq.Socket]] = {}
         self._seq: dict[str, int] = {}
-        self._subscriptions: dict[bytes, int] = {}
+        self._subscriptions: dict[zmq.Socket, dict[bytes, int]] = {}  # per lane socket
         self._closed = False
         self._lock = threading.Lock()
         self._published = 0
@@ -161,27 +161,31 @@ class Publisher:
     # -- subscriptions seen (XPUB) ------------------------------------------------------------
 
     def _read_subscriptions(self, sock: zmq.Socket) -> None:
+        seen = self._subscriptions.setdefault(sock, {})
         while sock.get(_EVENTS) & _POLLIN:
             event = sock.recv()
             if not event:
                 continue
             prefix = event[1:]
             if event[0] == 1:
-                self._subscriptions[prefix] = self._subscriptions.get(prefix, 0) + 1
-            elif event[0] == 0 and prefix in self._subscriptions:
-                self._subscriptions[prefix] -= 1
-                if self._subscriptions[prefix] <= 0:
-                    del self._subscriptions[prefix]
+                seen[prefix] = seen.get(prefix, 0) + 1
+            elif event[0] == 0 and prefix in seen:
+                seen[prefix] -= 1
+                if seen[prefix] <= 0:
+                    del seen[prefix]
 
     def has_subscribers(self, topic: str | None = None) -> bool:
-        """Whether any subscription reaching this publisher matches ``topic`` (any, if None)."""
+        """Whether a subscription matching ``topic`` has reached this publisher on the lane the
+        topic travels on (with None: any subscription on any lane)."""
         with self._lock:
             for sock in self._sockets.values():
                 self._read_subscriptions(sock)
         if topic is None:
-            return bool(self._subscriptions)
-        full = self.config.topic(topic).encode()
-        return any(full.startswith(prefix) for prefix in self._subscriptions)
+            return any(self._subscriptions.values())
+        full = self.config.topic(topic)
+        sock = self._sockets.get(self.config.lane_of(full).name)
+        raw = full.encode()
+        return any(raw.startswith(prefix) for prefix in self._subscriptions.get(sock, ()))
 
     def wait_for_subscribers(self, topic: str | None = None, timeout: float = 5.0) -> bool:
         """Block until a subscription matching ``topic`` arrives (True) or ``timeout`` s pass (False).

@@ -75,6 +75,7 @@ def test_latched_topics_are_cached_per_namespace(ipc_url, ctx):
             Subscriber(BusConfig(url=ipc_url), ["rig1/", "rig2/"], context=ctx) as watcher,
         ):
             assert pub.wait_for_subscribers("avatar/snapshot")
+            assert pub.wait_for_subscribers("/rig2/avatar/snapshot")
             pub.publish(_snapshot(1))
             pub.publish(_snapshot(2), "/rig2/avatar/snapshot")
             assert len(list(watcher.messages(timeout=0.5))) == 2
