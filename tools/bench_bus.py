@@ -88,16 +88,23 @@ def _frame_arrays(size: str, fill: int = 7):
 # --- receiver process ----------------------------------------------------------------------------
 
 
+def _topic(impl: str) -> str:
+    """ours-latest goes through the keep-last lane (camera/frame) and its reader thread."""
+    return "camera/frame" if impl == "ours-latest" else TOPIC
+
+
 def _receiver(impl: str, url: str, endpoint: str, ctrl: str, n: int, lat_n: int) -> None:
+    topic_name = _topic(impl)
     ctx = zmq.Context()
     push = ctx.socket(zmq.PUSH)
     push.linger = 0
     push.connect(ctrl)
+    sub = None
     try:
         if impl.startswith("ours"):
             from stg_node.bus import BusConfig, Subscriber
 
-            sub = Subscriber(BusConfig(url=url), [TOPIC, WARM], context=ctx)
+            sub = Subscriber(BusConfig(url=url), [topic_name, WARM], context=ctx)
 
             def recv():
                 msg = sub.recv(timeout=20.0)
@@ -125,7 +132,7 @@ def _receiver(impl: str, url: str, endpoint: str, ctrl: str, n: int, lat_n: int)
         push.send_pyobj(("ready", 0))
         warm_sent = False
         got = 0
-        while got < n:
+        while not warm_sent or got < n:
             topic, image = recv()
             if topic == WARM:
                 if not warm_sent:
@@ -136,12 +143,14 @@ def _receiver(impl: str, url: str, endpoint: str, ctrl: str, n: int, lat_n: int)
         push.send_pyobj(("done", time.perf_counter_ns()))
         for _ in range(lat_n):
             topic, image = recv()
-            while topic != TOPIC:
+            while topic != topic_name:
                 topic, image = recv()
             push.send_pyobj(("lat", time.perf_counter_ns()))
     except Exception as exc:  # report, do not hang the parent
         push.send_pyobj(("error", repr(exc)))
     finally:
+        if sub is not None:
+            sub.close()
         push.close(0)
         ctx.destroy(0)
 
@@ -236,12 +245,14 @@ def trial(
 
     try:
         if impl.startswith("ours"):
-            pub = Publisher(
-                BusConfig(url=url), node="bench", context=ctx, bind=not via_broker, lanes=["reliable"]
-            )
+            lanes = ["reliable", "latest"] if impl == "ours-latest" else ["reliable"]
+            pub = Publisher(BusConfig(url=url), node="bench", context=ctx, bind=not via_broker, lanes=lanes)
+            data_topic = _topic(impl)
 
             def send(topic: str, img: np.ndarray, seq: int) -> None:
-                pub.publish(Frame(index=seq, image=img, K=K, R=R, t=t), topic)
+                pub.publish(
+                    Frame(index=seq, image=img, K=K, R=R, t=t), data_topic if topic == TOPIC else topic
+                )
         else:
             sock = ctx.socket(zmq.PUB)
             _socket_options(sock)
@@ -268,6 +279,8 @@ def trial(
                 sock.send_multipart([topics[topic], msgpack.packb(header), img, K, R, t], copy=False)
 
         expect("ready")
+        if impl.startswith("ours") and not pub.wait_for_subscribers(data_topic, timeout=20):
+            raise TimeoutError(f"no subscription to {data_topic}")
         deadline = time.monotonic() + 20
         while not pull.poll(10):  # warm up until the subscription has propagated
             send(WARM, warm_image, 0)
@@ -280,7 +293,7 @@ def trial(
         for i in range(n):
             send(TOPIC, image, i)
         end = expect("done", 120_000)
-        mb_s = n * image.nbytes / ((end - start) / 1e9) / 1e6
+        mb_s = n * image.nbytes / ((end - start) / 1e9) / 1e6 if n else float("nan")
         lat = []
         for i in range(lat_n):
             t0 = time.perf_counter_ns()
@@ -330,14 +343,16 @@ def main(argv=None) -> int:
     for rep in range(args.repeats):
         for transport in args.transports:
             for size in args.sizes:
-                order = ["raw", "ours"] if rep % 2 == 0 else ["ours", "raw"]
+                order = ["raw", "ours", "ours-latest"]
+                order = order[rep % 3 :] + order[: rep % 3]  # rotate: no side always goes first
                 for impl in order:
                     index += 1
-                    row = trial(impl, transport, size, counts[size], args.lat, workdir, index)
+                    n = 0 if impl == "ours-latest" else counts[size]  # keep-last: latency only
+                    row = trial(impl, transport, size, n, args.lat, workdir, index)
                     row["repeat"] = rep
                     rows.append(row)
                     print(
-                        f"  rep {rep} {transport} {size} {impl:5s} {row['MB_s']:8.0f} MB/s "
+                        f"  rep {rep} {transport} {size} {impl:11s} {row['MB_s']:8.0f} MB/s "
                         f"lat {row['lat_median_us']:7.0f} us",
                         flush=True,
                     )
@@ -378,26 +393,25 @@ def main(argv=None) -> int:
     print(f"\nload average after: {os.getloadavg()[0]:.2f} (of {os.cpu_count()} cores)")
     print(
         "\n| transport | size | raw MB/s | ours MB/s | ratio (median of paired) | raw lat ms | ours lat ms "
-        "| added ms |"
+        "| added ms | ours keep-last lat ms | added ms |"
     )
-    print("|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     summary = []
     for transport in args.transports:
         for size in args.sizes:
-            raw = [
-                r for r in rows if r["impl"] == "raw" and r["transport"] == transport and r["size"] == size
-            ]
-            ours = [
-                r for r in rows if r["impl"] == "ours" and r["transport"] == transport and r["size"] == size
-            ]
-            paired = statistics.median(
-                o["MB_s"] / r["MB_s"]
-                for r, o in zip(
-                    sorted(raw, key=lambda x: x["repeat"]),
-                    sorted(ours, key=lambda x: x["repeat"]),
-                    strict=True,
+
+            def pick(impl, transport=transport, size=size):
+                return sorted(
+                    (
+                        r
+                        for r in rows
+                        if r["impl"] == impl and r["transport"] == transport and r["size"] == size
+                    ),
+                    key=lambda r: r["repeat"],
                 )
-            )
+
+            raw, ours, latest = pick("raw"), pick("ours"), pick("ours-latest")
+            paired = statistics.median(o["MB_s"] / r["MB_s"] for r, o in zip(raw, ours, strict=True))
             entry = {
                 "transport": transport,
                 "size": size,
@@ -406,13 +420,15 @@ def main(argv=None) -> int:
                 "ratio": paired,
                 "raw_lat_ms": _median(raw, "lat_median_us") / 1e3,
                 "ours_lat_ms": _median(ours, "lat_median_us") / 1e3,
+                "latest_lat_ms": _median(latest, "lat_median_us") / 1e3,
             }
             entry["added_ms"] = entry["ours_lat_ms"] - entry["raw_lat_ms"]
+            entry["latest_added_ms"] = entry["latest_lat_ms"] - entry["raw_lat_ms"]
             summary.append(entry)
             print(
                 f"| {transport} | {size} | {entry['raw_MB_s']:.0f} | {entry['ours_MB_s']:.0f} | "
                 f"{entry['ratio']:.2f} | {entry['raw_lat_ms']:.3f} | {entry['ours_lat_ms']:.3f} | "
-                f"{entry['added_ms']:+.3f} |"
+                f"{entry['added_ms']:+.3f} | {entry['latest_lat_ms']:.3f} | {entry['latest_added_ms']:+.3f} |"
             )
     if args.broker:
         print(

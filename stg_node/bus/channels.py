@@ -130,8 +130,9 @@ class LatestChannel:
                             self._mailbox.pop(next(iter(self._mailbox)))
                     if was_empty:
                         ctl.send(b"n")
-        except zmq.ContextTerminated:
-            return
+        except zmq.ZMQError as exc:
+            if exc.errno not in (zmq.ETERM, zmq.ENOTSOCK):  # context torn down under us: just stop
+                log.exception("keep-last reader on lane %s failed", self.lane.name)
         except Exception:  # never die silently: the application would wait forever
             log.exception("keep-last reader on lane %s failed", self.lane.name)
         finally:
