@@ -27,6 +27,7 @@ import time
 import zmq
 
 from stg_node.bus import security, sockets
+from stg_node.bus.channels import recv_multipart
 from stg_node.bus.codec import decode_envelope, encode
 from stg_node.bus.config import BusConfig, default_url
 from stg_node.bus.messages import TOPIC_TYPES, NodeStatus
@@ -41,6 +42,8 @@ _STANDARD = frozenset(TOPIC_TYPES)
 _BATCH = 256  # messages forwarded per socket before looking at the others again
 _MAX_TOPICS_TRACKED = 1024
 NOOP = b""
+_NOBLOCK = int(zmq.NOBLOCK)
+_SNDMORE = int(zmq.SNDMORE)
 
 
 class BrokerRunning(RuntimeError):
@@ -85,6 +88,7 @@ class Broker:
         self._status_seq = 0
         self._started = time.monotonic()
         self._drop_log = DropLog(log)
+        self._topics: dict[bytes, tuple[str, bool]] = {}
         self._closed = False
         try:
             self._bind()
@@ -175,21 +179,32 @@ class Broker:
                     self._subscriptions(xsub, xpub)
 
     def _forward(self, xsub: zmq.Socket, xpub: zmq.Socket) -> None:
+        """Move up to a batch of messages downstream, zero-copy (the frames are re-sent as is)."""
         for _ in range(_BATCH):
-            frames = xsub.recv_multipart(copy=False)
-            topic = frames[0].bytes
-            self._count(topic, frames)
-            if self.latched and base_name(topic.decode("utf-8", "replace"), self.latched):
-                self._latch(topic, frames)
-            xpub.send_multipart(frames, copy=False)
-            if not xsub.get(zmq.EVENTS) & zmq.POLLIN:
+            try:
+                frames = recv_multipart(xsub, _NOBLOCK)
+            except zmq.Again:
                 return
+            topic = frames[0].bytes
+            info = self._topics.get(topic)
+            if info is None:
+                info = self._topic_info(topic)
+            name, latched = info
+            self.traffic.count(name, sum(map(len, frames)) - len(topic))
+            if latched:
+                self._latch(topic, frames)
+            last = len(frames) - 1
+            for i, frame in enumerate(frames):
+                xpub.send(frame, _SNDMORE if i < last else 0, copy=False)
 
-    def _count(self, topic: bytes, frames: list) -> None:
+    def _topic_info(self, topic: bytes) -> tuple[str, bool]:
+        """Stats name and whether latched, per topic; bounded against peers inventing topics."""
         name = topic.decode("utf-8", "replace")
-        if name not in self.traffic.messages and len(self.traffic.messages) >= _MAX_TOPICS_TRACKED:
-            name = "<other>"
-        self.traffic.count(name, sum(len(f) for f in frames[1:]))
+        latched = bool(self.latched) and base_name(name, self.latched) is not None
+        if len(self._topics) >= _MAX_TOPICS_TRACKED:
+            return "<other>", latched
+        info = self._topics[topic] = (name, latched)
+        return info
 
     def _latch(self, topic: bytes, frames: list) -> None:
         """Cache a latched topic's message, once its envelope has been checked."""

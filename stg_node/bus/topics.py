@@ -9,9 +9,11 @@ not to a topic, and ZMQ_CONFLATE cannot carry multipart messages. A 6 MB camera 
 queued behind a slow reader must not push a 500-byte pose out of the same queue. So
 each policy gets its own pair of sockets ("lane"), with HWMs sized for what it carries:
 
-- ``latest``   keep-last. HWM 2 at every hop, and a subscriber drains its queue at each
-               read and hands out only the newest message per topic (older ones are
-               counted as ``superseded``). Camera frames and rendered images.
+- ``latest``   keep-last. HWM 4 at every hop; a subscriber's reader thread drains its
+               socket continuously and hands out only the newest message per topic (older
+               ones are counted as ``superseded``). Camera frames and rendered images.
+               Not 2: libzmq's sender learns of reads through throttled commands, so with
+               HWM 2 two quick sends can meet a "full" queue that is in fact empty.
 - ``reliable`` lossless small messages. HWM 10000 at every hop (about 5 MB of poses, 5 min
                at 30 Hz); delivered in order; any sequence gap is counted as ``lost``.
 - ``bulk``     lossless large, rare messages: Gaussian snapshots. HWM 16 so that a stalled
@@ -39,7 +41,7 @@ class Lane:
 
 
 LANES: dict[str, Lane] = {
-    "latest": Lane("latest", 0, True, 2, "keep-last: large high-rate messages where only the newest matters"),
+    "latest": Lane("latest", 0, True, 4, "keep-last: large high-rate messages where only the newest matters"),
     "reliable": Lane("reliable", 1, False, 10_000, "lossless, in order: small messages"),
     "bulk": Lane("bulk", 2, False, 16, "lossless, large and rare; latched topics live here"),
 }
