@@ -1,21 +1,25 @@
 #!/usr/bin/env python3
-"""Our Publisher/Subscriber against raw pyzmq + msgpack, in one run: throughput and latency.
+"""Our Publisher/Subscriber against raw pyzmq + msgpack, paired in one run: throughput and latency.
 
-For each transport (ipc, tcp) and message size (1 MB, 6 MB = one 1080p RGB frame) it runs,
-interleaved and repeated (the order alternates every repeat, so load changes on a shared
-machine hit both sides alike):
+Implementations compared (all carrying the same frames: [topic, msgpack header, image, K, R, t]):
 
-- raw:   PUB -> SUB with the same socket options (LINGER 0, the reliable lane's HWMs,
-         MAXMSGSIZE), the same frames [topic, msgpack header, image, K, R, t] packed and
-         unpacked by hand (msgpack + np.frombuffer), as proto/README.md shows;
-- ours:  stg_node.bus Publisher(bind=True) -> Subscriber, a typed Frame, fully validated;
-- broker (with --broker): ours through a Broker process, and raw through zmq.proxy (C) for
-         reference.
+- raw:          pyzmq PUB -> SUB with the same socket options as ours (LINGER 0, the reliable
+                lane's HWMs, MAXMSGSIZE); the header packed and unpacked by hand (msgpack +
+                np.frombuffer), exactly as proto/README.md shows a robot doing it;
+- ours:         stg_node.bus Publisher(bind=True) -> Subscriber on the reliable lane: a typed
+                Frame, fully validated on both sides, counted, sequence-checked;
+- ours-latest:  the same on the keep-last lane (camera/frame), through the subscriber's
+                reader thread; latency only (keep-last skips messages by design);
+- with --broker: ours direct, ours through a Broker process, and raw through zmq.proxy (C).
 
-Throughput: the sender publishes N messages back to back; the receiver (another process)
-timestamps the last one; MB/s = N * size / (last receipt - first send) on the shared
-monotonic clock. Latency: ping-pong, one message in flight; one-way = receipt (after
-decoding) - send (before encoding); the median over L messages.
+Fairness on a loaded machine: for each transport and size, ONE sender process and ONE
+receiver process host every implementation side by side. Throughput bursts alternate
+between implementations (the order rotates every repeat), and latency pings alternate
+message by message, so a change in machine load hits all of them alike.
+
+Throughput: a burst of N messages back to back; MB/s = N * size / (receipt of the last -
+send of the first), on the monotonic clock both processes share. Latency: one message in
+flight; one-way = receipt after decoding - send before encoding; median over the pings.
 
     python tools/bench_bus.py [--repeats 5] [--broker] [--json out.json]
 """
@@ -31,6 +35,7 @@ import socket
 import statistics
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -43,7 +48,8 @@ import numpy as np  # noqa: E402
 import zmq  # noqa: E402
 
 SIZES = {"1MB": (512, 683), "6MB": (1080, 1920)}  # H, W of an RGB uint8 image
-TOPIC = "bench/frame"
+TOPIC = "bench/frame"  # a custom topic: the reliable lane
+LATEST_TOPIC = "camera/frame"  # the keep-last lane
 WARM = "bench/warm"
 
 
@@ -54,17 +60,25 @@ def _free_base_port(span: int = 6) -> int:
             base = probe.getsockname()[1]
         if base + span >= 65535:
             continue
-        ok = True
-        for port in range(base, base + span):
-            with socket.socket() as s:
-                try:
-                    s.bind(("127.0.0.1", port))
-                except OSError:
-                    ok = False
-                    break
-        if ok:
+        held = []
+        try:
+            for port in range(base, base + span):
+                s = socket.socket()
+                held.append(s)
+                s.bind(("127.0.0.1", port))
             return base
+        except OSError:
+            continue
+        finally:
+            for s in held:
+                s.close()
     raise RuntimeError("no free tcp port range")
+
+
+def _new_url(transport: str, workdir: str, name: str) -> str:
+    if transport == "ipc":
+        return f"ipc://{workdir}/{name}"
+    return f"tcp://127.0.0.1:{_free_base_port()}"
 
 
 def _socket_options(sock: zmq.Socket) -> None:
@@ -79,83 +93,247 @@ def _socket_options(sock: zmq.Socket) -> None:
         sock.maxmsgsize = MAX_MESSAGE_BYTES
 
 
-def _frame_arrays(size: str, fill: int = 7):
-    h, w = SIZES[size]
-    image = np.full((h, w, 3), fill, np.uint8)
-    return image, np.eye(3), np.eye(3), np.array([0.0, 0.0, 2.0])
+# --- the implementations, as (sender, receiver) pairs --------------------------------------------
 
 
-# --- receiver process ----------------------------------------------------------------------------
+def _impl_specs(names: list[str], transport: str, workdir: str, brokers: dict[str, str]) -> dict[str, dict]:
+    """Where each implementation's messages go. 'ours' and 'ours-latest' share one bus."""
+    from stg_node.bus.config import lane_endpoint
+
+    own = _new_url(transport, workdir, f"own-{transport}")
+    raw = _new_url(transport, workdir, f"raw-{transport}")
+    specs = {}
+    for name in names:
+        if name == "raw":
+            specs[name] = {
+                "kind": "raw",
+                "url": raw,
+                "bind": True,
+                "topic": TOPIC,
+                "pub": lane_endpoint(raw, "reliable", "out"),
+                "sub": lane_endpoint(raw, "reliable", "out"),
+            }
+        elif name in ("ours", "ours-latest"):
+            specs[name] = {
+                "kind": "ours",
+                "url": own,
+                "bind": True,
+                "topic": LATEST_TOPIC if name == "ours-latest" else TOPIC,
+            }
+        elif name == "ours+broker":
+            specs[name] = {"kind": "ours", "url": brokers["ours"], "bind": False, "topic": TOPIC}
+        elif name == "raw+proxy":
+            url = brokers["raw"]
+            specs[name] = {
+                "kind": "raw",
+                "url": url,
+                "bind": False,
+                "topic": TOPIC,
+                "pub": lane_endpoint(url, "reliable", "in"),
+                "sub": lane_endpoint(url, "reliable", "out"),
+            }
+    return specs
 
 
-def _topic(impl: str) -> str:
-    """ours-latest goes through the keep-last lane (camera/frame) and its reader thread."""
-    return "camera/frame" if impl == "ours-latest" else TOPIC
+def _raw_decode(frames):
+    header = msgpack.unpackb(frames[1].buffer)
+    arrays = {
+        d["name"]: np.frombuffer(f.buffer, dtype=d["dtype"]).reshape(d["shape"])
+        for d, f in zip(header["arrays"], frames[2:], strict=True)
+    }
+    return frames[0].bytes.decode(), arrays["image"]
 
 
-def _receiver(impl: str, url: str, endpoint: str, ctrl: str, n: int, lat_n: int) -> None:
-    topic_name = _topic(impl)
+def _receiver(specs: dict[str, dict], ctrl_in: str, ctrl_out: str) -> None:
+    """Child process: waits for commands, receives on the named implementation, reports."""
+    from stg_node.bus import BusConfig, Subscriber
+
     ctx = zmq.Context()
-    push = ctx.socket(zmq.PUSH)
-    push.linger = 0
-    push.connect(ctrl)
-    sub = None
+    commands = ctx.socket(zmq.PULL)
+    commands.linger = 0
+    commands.connect(ctrl_in)
+    replies = ctx.socket(zmq.PUSH)
+    replies.linger = 0
+    replies.connect(ctrl_out)
+    receivers, closers = {}, []
     try:
-        if impl.startswith("ours"):
-            from stg_node.bus import BusConfig, Subscriber
+        for name, spec in specs.items():
+            if spec["kind"] == "ours":
+                sub = Subscriber(BusConfig(url=spec["url"]), [spec["topic"], WARM], context=ctx)
+                closers.append(sub.close)
 
-            sub = Subscriber(BusConfig(url=url), [topic_name, WARM], context=ctx)
+                def recv(sub=sub):
+                    msg = sub.recv(timeout=20.0)
+                    if msg is None:
+                        raise TimeoutError("receiver timed out")
+                    return msg.header.topic, msg.image
 
-            def recv():
-                msg = sub.recv(timeout=20.0)
-                if msg is None:
-                    raise TimeoutError("receiver timed out")
-                return msg.header.topic, msg.image
-        else:
-            sock = ctx.socket(zmq.SUB)
-            _socket_options(sock)
-            sock.connect(endpoint)
-            sock.subscribe(TOPIC.encode())
-            sock.subscribe(WARM.encode())
+            else:
+                sock = ctx.socket(zmq.SUB)
+                _socket_options(sock)
+                sock.connect(spec["sub"])
+                sock.subscribe(TOPIC.encode())
+                sock.subscribe(WARM.encode())
 
-            def recv():
-                if not sock.poll(20_000):
-                    raise TimeoutError("receiver timed out")
-                frames = sock.recv_multipart(copy=False)
-                header = msgpack.unpackb(frames[1].buffer)
-                arrays = {
-                    d["name"]: np.frombuffer(f.buffer, dtype=d["dtype"]).reshape(d["shape"])
-                    for d, f in zip(header["arrays"], frames[2:], strict=True)
-                }
-                return frames[0].bytes.decode(), arrays["image"]
+                def recv(sock=sock):
+                    if not sock.poll(20_000):
+                        raise TimeoutError("receiver timed out")
+                    return _raw_decode(sock.recv_multipart(copy=False))
 
-        push.send_pyobj(("ready", 0))
-        warm_sent = False
-        got = 0
-        while not warm_sent or got < n:
-            topic, image = recv()
-            if topic == WARM:
-                if not warm_sent:
-                    push.send_pyobj(("warm", 0))
-                    warm_sent = True
+            receivers[name] = recv
+        replies.send_pyobj(("ready", 0))
+        while True:
+            if not commands.poll(60_000):
+                raise TimeoutError("no command for 60 s")
+            command, name, count = commands.recv_pyobj()
+            if command == "quit":
+                break
+            recv, topic = receivers[name], specs[name]["topic"]
+            if command == "warm":
+                while recv()[0] != WARM:
+                    pass
+                replies.send_pyobj(("warm", 0))
                 continue
-            got += 1
-        push.send_pyobj(("done", time.perf_counter_ns()))
-        for _ in range(lat_n):
-            topic, image = recv()
-            while topic != topic_name:
-                topic, image = recv()
-            push.send_pyobj(("lat", time.perf_counter_ns()))
-    except Exception as exc:  # report, do not hang the parent
-        push.send_pyobj(("error", repr(exc)))
+            got = 0
+            while got < count:
+                if recv()[0] == topic:  # warm-up stragglers are skipped
+                    got += 1
+            replies.send_pyobj((command, time.perf_counter_ns()))
+    except Exception as exc:  # report, do not leave the parent waiting
+        replies.send_pyobj(("error", repr(exc)))
     finally:
-        if sub is not None:
-            sub.close()
-        push.close(0)
-        ctx.destroy(0)
+        for close in closers:
+            close()
+        replies.close(0)
+        commands.close(0)
+        ctx.term()
 
 
-# --- broker processes ------------------------------------------------------------------------------
+class Session:
+    """One sender (this process) and one receiver process hosting every implementation."""
+
+    def __init__(self, specs: dict[str, dict], size: str, workdir: str, index: int):
+        from stg_node.bus import BusConfig, Frame, Publisher
+
+        self.specs = specs
+        self.ctx = zmq.Context()
+        self.commands = self.ctx.socket(zmq.PUSH)
+        self.commands.linger = 0
+        ctrl_in = f"ipc://{workdir}/cmd{index}"
+        self.commands.bind(ctrl_in)
+        self.replies = self.ctx.socket(zmq.PULL)
+        self.replies.linger = 0
+        ctrl_out = f"ipc://{workdir}/rep{index}"
+        self.replies.bind(ctrl_out)
+        self.child = mp.get_context("spawn").Process(
+            target=_receiver, args=(specs, ctrl_in, ctrl_out), daemon=True
+        )
+        self.child.start()
+        h, w = SIZES[size]
+        self.image = np.full((h, w, 3), 7, np.uint8)
+        self.nbytes = self.image.nbytes
+        K, R, t = np.eye(3), np.eye(3), np.array([0.0, 0.0, 2.0])
+        warm_image = np.zeros((4, 4, 3), np.uint8)
+        self.senders, self._publishers, self.warm = {}, {}, {}
+        for name, spec in specs.items():
+            if spec["kind"] == "ours":
+                key = (spec["url"], spec["bind"])
+                pub = self._publishers.get(key)
+                if pub is None:
+                    pub = self._publishers[key] = Publisher(
+                        BusConfig(url=spec["url"]), node="bench", context=self.ctx, bind=spec["bind"]
+                    )
+
+                def send(img, seq, topic, pub=pub):
+                    pub.publish(Frame(index=seq, image=img, K=K, R=R, t=t), topic)
+            else:
+                sock = self.ctx.socket(zmq.PUB)
+                _socket_options(sock)
+                (sock.bind if spec["bind"] else sock.connect)(spec["pub"])
+                names = {TOPIC: TOPIC.encode(), WARM: WARM.encode()}
+
+                def send(img, seq, topic, sock=sock, names=names):
+                    header = {
+                        "type": "Frame",
+                        "v": 1,
+                        "seq": seq,
+                        "stamp_ns": time.time_ns(),
+                        "src": "bench",
+                        "index": seq,
+                        "time": 0.0,
+                        "camera_id": "",
+                        "arrays": [
+                            {"name": "image", "dtype": "uint8", "shape": list(img.shape)},
+                            {"name": "K", "dtype": "float64", "shape": [3, 3]},
+                            {"name": "R", "dtype": "float64", "shape": [3, 3]},
+                            {"name": "t", "dtype": "float64", "shape": [3]},
+                        ],
+                    }
+                    sock.send_multipart([names[topic], msgpack.packb(header), img, K, R, t], copy=False)
+
+            self.senders[name] = send
+            self.warm[name] = warm_image
+        self._expect("ready", 60_000)
+        for name in specs:
+            self._warm_up(name)
+        self.seq = 0
+
+    def _expect(self, kind: str, timeout_ms: int = 60_000):
+        if not self.replies.poll(timeout_ms):
+            raise TimeoutError(f"no {kind!r} from the receiver")
+        what, value = self.replies.recv_pyobj()
+        if what == "error":
+            raise RuntimeError(f"receiver failed: {value}")
+        if what != kind:
+            raise RuntimeError(f"expected {kind!r} from the receiver, got {what!r}")
+        return value
+
+    def _warm_up(self, name: str) -> None:
+        """Until the receiver has seen this implementation's warm-up topic: subscriptions are in."""
+        self.commands.send_pyobj(("warm", name, 0))
+        deadline = time.monotonic() + 30
+        while not self.replies.poll(10):
+            self.senders[name](self.warm[name], 0, WARM)
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"{name}: the subscription never arrived")
+        self._expect("warm")
+        if self.specs[name]["topic"] != TOPIC:  # its data topic is on another lane: wait for it too
+            pub = next(iter(self._publishers.values()))
+            if not pub.wait_for_subscribers(self.specs[name]["topic"], timeout=30):
+                raise TimeoutError(f"{name}: no subscription to {self.specs[name]['topic']}")
+
+    def burst(self, name: str, n: int) -> float:
+        """MB/s of ``n`` back-to-back messages."""
+        send, topic = self.senders[name], self.specs[name]["topic"]
+        self.commands.send_pyobj(("burst", name, n))
+        start = time.perf_counter_ns()
+        for _ in range(n):
+            send(self.image, self.seq, topic)
+            self.seq += 1
+        end = self._expect("burst", 120_000)
+        return n * self.nbytes / ((end - start) / 1e9) / 1e6
+
+    def ping(self, name: str) -> float:
+        """One-way latency of one message, microseconds."""
+        send, topic = self.senders[name], self.specs[name]["topic"]
+        self.commands.send_pyobj(("ping", name, 1))
+        time.sleep(0.0005)  # let the receiver pick the command up first
+        start = time.perf_counter_ns()
+        send(self.image, self.seq, topic)
+        self.seq += 1
+        return (self._expect("ping") - start) / 1e3
+
+    def close(self) -> None:
+        try:
+            self.commands.send_pyobj(("quit", "", 0))
+        except zmq.ZMQError:
+            pass
+        self.child.join(10)
+        if self.child.is_alive():
+            self.child.kill()
+        for pub in self._publishers.values():
+            pub.close()
+        self.ctx.destroy(0)
 
 
 def _broker_process(kind: str, url: str, stop_path: str) -> None:
@@ -165,169 +343,115 @@ def _broker_process(kind: str, url: str, stop_path: str) -> None:
         with Broker(url, status_period_s=0):
             while not os.path.exists(stop_path):
                 time.sleep(0.05)
-    else:  # C proxy on the reliable lane, same options
-        from stg_node.bus.config import lane_endpoint
-
-        ctx = zmq.Context()
-        xsub, xpub = ctx.socket(zmq.XSUB), ctx.socket(zmq.XPUB)
-        _socket_options(xsub)
-        _socket_options(xpub)
-        xsub.bind(lane_endpoint(url, "reliable", "in"))
-        xpub.bind(lane_endpoint(url, "reliable", "out"))
-        ctl_pub = ctx.socket(zmq.PAIR)
-        ctl_pub.bind("inproc://ctl")
-        ctl_sub = ctx.socket(zmq.PAIR)
-        ctl_sub.connect("inproc://ctl")
-
-        import threading
-
-        def watch():
-            while not os.path.exists(stop_path):
-                time.sleep(0.05)
-            ctl_pub.send(b"TERMINATE")
-
-        threading.Thread(target=watch, daemon=True).start()
-        zmq.proxy_steerable(xsub, xpub, None, ctl_sub)
-        for s in (xsub, xpub, ctl_pub, ctl_sub):
-            s.close(0)
-        ctx.term()
-
-
-# --- one trial -------------------------------------------------------------------------------------
-
-
-def trial(
-    impl: str,
-    transport: str,
-    size: str,
-    n: int,
-    lat_n: int,
-    workdir: str,
-    index: int,
-    broker_url: str | None = None,
-) -> dict:
-    from stg_node.bus import BusConfig, Frame, Publisher
-    from stg_node.bus.config import lane_endpoint
-
-    if broker_url is not None:
-        url = broker_url
-    elif transport == "ipc":
-        url = f"ipc://{workdir}/t{index}"
-    else:
-        url = f"tcp://127.0.0.1:{_free_base_port()}"
-    via_broker = broker_url is not None
-    sub_endpoint = lane_endpoint(url, "reliable", "out")
-    pub_endpoint = lane_endpoint(url, "reliable", "in" if via_broker else "out")
-    ctrl = f"ipc://{workdir}/ctrl{index}"
+        return
+    from stg_node.bus.config import lane_endpoint  # raw: zmq's C proxy on the reliable lane
 
     ctx = zmq.Context()
-    pull = ctx.socket(zmq.PULL)
-    pull.linger = 0
-    pull.bind(ctrl)
-    child = mp.get_context("spawn").Process(
-        target=_receiver, args=(impl, url, sub_endpoint, ctrl, n, lat_n), daemon=True
-    )
-    child.start()
+    xsub, xpub = ctx.socket(zmq.XSUB), ctx.socket(zmq.XPUB)
+    _socket_options(xsub)
+    _socket_options(xpub)
+    xsub.bind(lane_endpoint(url, "reliable", "in"))
+    xpub.bind(lane_endpoint(url, "reliable", "out"))
+    control, steer = ctx.socket(zmq.PAIR), ctx.socket(zmq.PAIR)
+    control.bind("inproc://ctl")
+    steer.connect("inproc://ctl")
 
-    image, K, R, t = _frame_arrays(size)
-    warm_image, *_ = _frame_arrays("1MB")
-    warm_image = warm_image[:4, :4].copy()
+    def watch():
+        while not os.path.exists(stop_path):
+            time.sleep(0.05)
+        control.send(b"TERMINATE")
 
-    def expect(kind: str, timeout_ms: int = 30_000):
-        if not pull.poll(timeout_ms):
-            raise TimeoutError(f"no {kind!r} from the receiver")
-        what, value = pull.recv_pyobj()
-        if what == "error":
-            raise RuntimeError(f"receiver failed: {value}")
-        if what != kind:
-            raise RuntimeError(f"expected {kind!r} from the receiver, got {what!r}")
-        return value
+    threading.Thread(target=watch, daemon=True).start()
+    zmq.proxy_steerable(xsub, xpub, None, steer)
+    for s in (xsub, xpub, control, steer):
+        s.close(0)
+    ctx.term()
 
+
+def run_session(names, transport, size, args, workdir, index, brokers=None) -> list[dict]:
+    """Every implementation in ``names`` measured side by side; rows tagged with the session."""
+    session_name = "broker" if brokers else "direct"
+    specs = _impl_specs(names, transport, workdir, brokers or {})
+    session = Session(specs, size, workdir, index)
+    rows = []
+    n = args.n1 if size == "1MB" else args.n6
     try:
-        if impl.startswith("ours"):
-            lanes = ["reliable", "latest"] if impl == "ours-latest" else ["reliable"]
-            pub = Publisher(BusConfig(url=url), node="bench", context=ctx, bind=not via_broker, lanes=lanes)
-            data_topic = _topic(impl)
-
-            def send(topic: str, img: np.ndarray, seq: int) -> None:
-                pub.publish(
-                    Frame(index=seq, image=img, K=K, R=R, t=t), data_topic if topic == TOPIC else topic
+        timed = [name for name in names if name != "ours-latest"]
+        for name in timed:  # untimed: first-touch costs (buffers, page faults) hit nobody's figures
+            session.burst(name, n)
+        for rep in range(args.repeats):
+            order = timed[rep % len(timed) :] + timed[: rep % len(timed)]
+            for name in order:
+                rows.append(
+                    {
+                        "session": session_name,
+                        "impl": name,
+                        "transport": transport,
+                        "size": size,
+                        "repeat": rep,
+                        "MB_s": session.burst(name, n),
+                    }
                 )
-        else:
-            sock = ctx.socket(zmq.PUB)
-            _socket_options(sock)
-            (sock.connect if via_broker else sock.bind)(pub_endpoint)
-            topics = {TOPIC: TOPIC.encode(), WARM: WARM.encode()}
-
-            def send(topic: str, img: np.ndarray, seq: int) -> None:
-                header = {
-                    "type": "Frame",
-                    "v": 1,
-                    "seq": seq,
-                    "stamp_ns": time.time_ns(),
-                    "src": "bench",
-                    "index": seq,
-                    "time": 0.0,
-                    "camera_id": "",
-                    "arrays": [
-                        {"name": "image", "dtype": "uint8", "shape": list(img.shape)},
-                        {"name": "K", "dtype": "float64", "shape": [3, 3]},
-                        {"name": "R", "dtype": "float64", "shape": [3, 3]},
-                        {"name": "t", "dtype": "float64", "shape": [3]},
-                    ],
+        pings: dict[str, list[float]] = {name: [] for name in names}
+        for i in range(args.lat):
+            for name in names[i % len(names) :] + names[: i % len(names)]:
+                pings[name].append(session.ping(name))
+        for name, values in pings.items():
+            rows.append(
+                {
+                    "session": session_name,
+                    "impl": name,
+                    "transport": transport,
+                    "size": size,
+                    "lat_us": values,
                 }
-                sock.send_multipart([topics[topic], msgpack.packb(header), img, K, R, t], copy=False)
-
-        expect("ready")
-        if impl.startswith("ours") and not pub.wait_for_subscribers(data_topic, timeout=20):
-            raise TimeoutError(f"no subscription to {data_topic}")
-        deadline = time.monotonic() + 20
-        while not pull.poll(10):  # warm up until the subscription has propagated
-            send(WARM, warm_image, 0)
-            if time.monotonic() > deadline:
-                raise TimeoutError("subscription never arrived")
-        expect("warm")
-        # Fresh arrays per message would measure numpy allocation; the camera's buffers are
-        # reused the same way by both sides here.
-        start = time.perf_counter_ns()
-        for i in range(n):
-            send(TOPIC, image, i)
-        end = expect("done", 120_000)
-        mb_s = n * image.nbytes / ((end - start) / 1e9) / 1e6 if n else float("nan")
-        lat = []
-        for i in range(lat_n):
-            t0 = time.perf_counter_ns()
-            send(TOPIC, image, n + i)
-            lat.append((expect("lat") - t0) / 1e3)
-        return {
-            "impl": impl,
-            "transport": transport,
-            "size": size,
-            "MB_s": mb_s,
-            "lat_median_us": statistics.median(lat),
-            "lat_p90_us": float(np.percentile(lat, 90)),
-        }
+            )
     finally:
-        child.join(5)
-        if child.is_alive():
-            child.kill()
-        ctx.destroy(0)
+        session.close()
+    return rows
 
 
-def _median(rows, key):
-    return statistics.median(r[key] for r in rows)
+def _throughputs(rows, impl, transport, size) -> list[float]:
+    picked = [
+        r
+        for r in rows
+        if r["impl"] == impl and r["transport"] == transport and r["size"] == size and "MB_s" in r
+    ]
+    return [r["MB_s"] for r in sorted(picked, key=lambda r: r["repeat"])]
+
+
+def _latency_ms(rows, impl, transport, size) -> float:
+    for r in rows:
+        if r["impl"] == impl and r["transport"] == transport and r["size"] == size and "lat_us" in r:
+            return statistics.median(r["lat_us"]) / 1e3
+    return float("nan")
+
+
+def _paired_added_ms(rows, impl, base, transport, size) -> float:
+    """Median of per-ping differences: pings alternate, so neighbours saw the same load."""
+    a = next(
+        r["lat_us"]
+        for r in rows
+        if r["impl"] == impl and r["transport"] == transport and r["size"] == size and "lat_us" in r
+    )
+    b = next(
+        r["lat_us"]
+        for r in rows
+        if r["impl"] == base and r["transport"] == transport and r["size"] == size and "lat_us" in r
+    )
+    return statistics.median(x - y for x, y in zip(a, b, strict=True)) / 1e3
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--n1", type=int, default=300, help="messages per throughput trial at 1 MB")
-    parser.add_argument("--n6", type=int, default=80, help="messages per throughput trial at 6 MB")
-    parser.add_argument("--lat", type=int, default=200, help="ping-pong messages per latency trial")
+    parser.add_argument("--repeats", type=int, default=7, help="throughput bursts per implementation")
+    parser.add_argument("--n1", type=int, default=200, help="messages per burst at 1 MB")
+    parser.add_argument("--n6", type=int, default=40, help="messages per burst at 6 MB")
+    parser.add_argument("--lat", type=int, default=300, help="latency pings per implementation")
     parser.add_argument("--transports", nargs="+", default=["ipc", "tcp"])
     parser.add_argument("--sizes", nargs="+", default=list(SIZES))
     parser.add_argument("--broker", action="store_true", help="also measure through a broker")
-    parser.add_argument("--json", type=Path, help="write all trials here")
+    parser.add_argument("--json", type=Path, help="write every measurement here")
     args = parser.parse_args(argv)
 
     from stg_node.logs import configure_logging
@@ -336,94 +460,71 @@ def main(argv=None) -> int:
     workdir = tempfile.mkdtemp(prefix="stgbench-")
     rows: list[dict] = []
     index = 0
-    counts = {"1MB": args.n1, "6MB": args.n6}
-    print(
-        f"# bench_bus: {platform.node()}, {os.cpu_count()} cores, load {os.getloadavg()[0]:.2f}", flush=True
-    )
-    for rep in range(args.repeats):
-        for transport in args.transports:
-            for size in args.sizes:
-                order = ["raw", "ours", "ours-latest"]
-                order = order[rep % 3 :] + order[: rep % 3]  # rotate: no side always goes first
-                for impl in order:
-                    index += 1
-                    n = 0 if impl == "ours-latest" else counts[size]  # keep-last: latency only
-                    row = trial(impl, transport, size, n, args.lat, workdir, index)
-                    row["repeat"] = rep
-                    rows.append(row)
-                    print(
-                        f"  rep {rep} {transport} {size} {impl:11s} {row['MB_s']:8.0f} MB/s "
-                        f"lat {row['lat_median_us']:7.0f} us",
-                        flush=True,
-                    )
+    load_before = os.getloadavg()[0]
+    print(f"# bench_bus: {platform.node()}, {os.cpu_count()} cores, load {load_before:.2f}", flush=True)
+    for transport in args.transports:
+        for size in args.sizes:
+            index += 1
+            rows += run_session(["raw", "ours", "ours-latest"], transport, size, args, workdir, index)
+            raw_mb = statistics.median(_throughputs(rows, "raw", transport, size))
+            ours_mb = statistics.median(_throughputs(rows, "ours", transport, size))
+            print(f"  {transport} {size}: raw {raw_mb:.0f} ours {ours_mb:.0f} MB/s", flush=True)
     if args.broker:
         for transport in args.transports:
-            for kind in ("ours", "raw"):
-                if transport == "ipc":
-                    url = f"ipc://{workdir}/broker-{kind}"
-                else:
-                    url = f"tcp://127.0.0.1:{_free_base_port()}"
-                stop = f"{workdir}/stop-{kind}-{transport}"
-                proc = mp.get_context("spawn").Process(
-                    target=_broker_process, args=(kind, url, stop), daemon=True
-                )
+            urls = {kind: _new_url(transport, workdir, f"broker-{kind}") for kind in ("ours", "raw")}
+            stop = f"{workdir}/stop-{transport}"
+            procs = [
+                mp.get_context("spawn").Process(target=_broker_process, args=(kind, url, stop), daemon=True)
+                for kind, url in urls.items()
+            ]
+            for proc in procs:
                 proc.start()
-                time.sleep(1.0)
-                try:
-                    for rep in range(max(1, args.repeats // 2 + 1)):
-                        for size in args.sizes:
-                            index += 1
-                            impl = "ours+broker" if kind == "ours" else "raw+proxy"
-                            row = trial(
-                                impl, transport, size, counts[size], args.lat, workdir, index, broker_url=url
-                            )
-                            row["repeat"] = rep
-                            rows.append(row)
-                            print(
-                                f"  rep {rep} {transport} {size} {impl:11s} {row['MB_s']:8.0f} MB/s "
-                                f"lat {row['lat_median_us']:7.0f} us",
-                                flush=True,
-                            )
-                finally:
-                    Path(stop).touch()
+            time.sleep(1.5)
+            try:
+                for size in args.sizes:
+                    index += 1
+                    rows += run_session(
+                        ["ours", "ours+broker", "raw+proxy"],
+                        transport,
+                        size,
+                        args,
+                        workdir,
+                        index,
+                        brokers=urls,
+                    )
+                    print(f"  {transport} {size}: broker session done", flush=True)
+            finally:
+                Path(stop).touch()
+                for proc in procs:
                     proc.join(5)
                     if proc.is_alive():
                         proc.kill()
 
-    print(f"\nload average after: {os.getloadavg()[0]:.2f} (of {os.cpu_count()} cores)")
+    load_after = os.getloadavg()[0]
+    print(f"\nload average: {load_before:.2f} before, {load_after:.2f} after (of {os.cpu_count()} cores)")
     print(
-        "\n| transport | size | raw MB/s | ours MB/s | ratio (median of paired) | raw lat ms | ours lat ms "
-        "| added ms | ours keep-last lat ms | added ms |"
+        "\n| transport | size | raw MB/s | ours MB/s | ratio (median of paired bursts) | raw latency ms "
+        "| ours latency ms | added ms (median of paired pings) | ours keep-last latency ms | added ms |"
     )
     print("|---|---|---|---|---|---|---|---|---|---|")
     summary = []
+    direct = [r for r in rows if r["session"] == "direct"]
     for transport in args.transports:
         for size in args.sizes:
-
-            def pick(impl, transport=transport, size=size):
-                return sorted(
-                    (
-                        r
-                        for r in rows
-                        if r["impl"] == impl and r["transport"] == transport and r["size"] == size
-                    ),
-                    key=lambda r: r["repeat"],
-                )
-
-            raw, ours, latest = pick("raw"), pick("ours"), pick("ours-latest")
-            paired = statistics.median(o["MB_s"] / r["MB_s"] for r, o in zip(raw, ours, strict=True))
+            raw = _throughputs(direct, "raw", transport, size)
+            ours = _throughputs(direct, "ours", transport, size)
             entry = {
                 "transport": transport,
                 "size": size,
-                "raw_MB_s": _median(raw, "MB_s"),
-                "ours_MB_s": _median(ours, "MB_s"),
-                "ratio": paired,
-                "raw_lat_ms": _median(raw, "lat_median_us") / 1e3,
-                "ours_lat_ms": _median(ours, "lat_median_us") / 1e3,
-                "latest_lat_ms": _median(latest, "lat_median_us") / 1e3,
+                "raw_MB_s": statistics.median(raw),
+                "ours_MB_s": statistics.median(ours),
+                "ratio": statistics.median(o / r for o, r in zip(ours, raw, strict=True)),
+                "raw_lat_ms": _latency_ms(direct, "raw", transport, size),
+                "ours_lat_ms": _latency_ms(direct, "ours", transport, size),
+                "added_ms": _paired_added_ms(direct, "ours", "raw", transport, size),
+                "latest_lat_ms": _latency_ms(direct, "ours-latest", transport, size),
+                "latest_added_ms": _paired_added_ms(direct, "ours-latest", "raw", transport, size),
             }
-            entry["added_ms"] = entry["ours_lat_ms"] - entry["raw_lat_ms"]
-            entry["latest_added_ms"] = entry["latest_lat_ms"] - entry["raw_lat_ms"]
             summary.append(entry)
             print(
                 f"| {transport} | {size} | {entry['raw_MB_s']:.0f} | {entry['ours_MB_s']:.0f} | "
@@ -431,29 +532,29 @@ def main(argv=None) -> int:
                 f"{entry['added_ms']:+.3f} | {entry['latest_lat_ms']:.3f} | {entry['latest_added_ms']:+.3f} |"
             )
     if args.broker:
+        block = [r for r in rows if r["session"] == "broker"]
         print(
-            "\n| transport | size | ours direct MB/s | ours+broker MB/s | raw+C proxy MB/s | "
-            "ours direct lat ms | ours+broker lat ms | raw+C proxy lat ms |"
+            "\n| transport | size | ours direct MB/s | ours + broker MB/s | raw + C proxy MB/s "
+            "| ours direct latency ms | ours + broker ms | raw + C proxy ms | broker adds ms (paired) |"
         )
-        print("|---|---|---|---|---|---|---|---|")
+        print("|---|---|---|---|---|---|---|---|---|")
         for transport in args.transports:
             for size in args.sizes:
 
-                def pick(impl, transport=transport, size=size):
-                    return [
-                        r
-                        for r in rows
-                        if r["impl"] == impl and r["transport"] == transport and r["size"] == size
-                    ]
+                def mb(impl, transport=transport, size=size):
+                    return statistics.median(_throughputs(block, impl, transport, size))
 
-                d, b, p = pick("ours"), pick("ours+broker"), pick("raw+proxy")
+                def ms(impl, transport=transport, size=size):
+                    return _latency_ms(block, impl, transport, size)
+
+                added = _paired_added_ms(block, "ours+broker", "ours", transport, size)
                 print(
-                    f"| {transport} | {size} | {_median(d, 'MB_s'):.0f} | {_median(b, 'MB_s'):.0f} | "
-                    f"{_median(p, 'MB_s'):.0f} | {_median(d, 'lat_median_us') / 1e3:.3f} | "
-                    f"{_median(b, 'lat_median_us') / 1e3:.3f} | {_median(p, 'lat_median_us') / 1e3:.3f} |"
+                    f"| {transport} | {size} | {mb('ours'):.0f} | {mb('ours+broker'):.0f} | "
+                    f"{mb('raw+proxy'):.0f} | {ms('ours'):.3f} | {ms('ours+broker'):.3f} | "
+                    f"{ms('raw+proxy'):.3f} | {added:+.3f} |"
                 )
     if args.json:
-        args.json.write_text(json.dumps({"trials": rows, "summary": summary}, indent=1))
+        args.json.write_text(json.dumps({"rows": rows, "summary": summary}, indent=1))
     return 0
 
 

@@ -24,6 +24,8 @@ from stg_node.bus.topics import Lane
 log = logging.getLogger(__name__)
 
 _NOBLOCK = int(zmq.NOBLOCK)
+_EVENTS = int(zmq.EVENTS)
+_POLLIN = int(zmq.POLLIN)
 _MAX_MAILBOX_TOPICS = 1024
 _ids = itertools.count()
 
@@ -52,10 +54,11 @@ class DirectChannel:
         self.sock.subscribe(prefix)
 
     def take(self) -> list:
-        try:
-            return [recv_multipart(self.sock, _NOBLOCK)]
-        except zmq.Again:
+        # EVENTS (~1 us) rather than a NOBLOCK recv raising zmq.Again (~5 us) when empty;
+        # POLLIN means a whole multipart message is there, so the recv cannot block.
+        if not self.sock.get(_EVENTS) & _POLLIN:
             return []
+        return [recv_multipart(self.sock)]
 
     def close(self) -> None:
         self.sock.close(linger=0)

@@ -329,12 +329,7 @@ class Subscriber:
                     break
             else:
                 ms = _timeout_ms(deadline)
-                if ms == 0:
-                    return None
-                if count == 1:
-                    if not channels[0].pollable.poll(ms):
-                        return None
-                elif not self._poller.poll(ms):
+                if ms == 0 or not self._poller.poll(ms):
                     return None
 
     def poll(self, timeout: float | None = None) -> bool:

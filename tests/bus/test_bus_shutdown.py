@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import select
 import signal
 import subprocess
 import sys
@@ -20,27 +21,24 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def _spawn(args: list[str], ready: str) -> subprocess.Popen:
-    """Start a Python program from this checkout and wait until it prints ``ready``."""
+    """Start a Python program from this checkout and wait (at most 30 s) until it prints ``ready``."""
     env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONUNBUFFERED": "1"}
     proc = subprocess.Popen(
-        [sys.executable, *args],
-        cwd=ROOT,
-        env=env,
-        text=True,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
+        [sys.executable, *args], cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT
     )
     deadline = time.monotonic() + 30
-    seen = []
-    while time.monotonic() < deadline:
-        line = proc.stdout.readline()
-        if not line:
+    seen = b""
+    while (remaining := deadline - time.monotonic()) > 0:
+        readable, _, _ = select.select([proc.stdout], [], [], remaining)  # never block past the deadline
+        chunk = os.read(proc.stdout.fileno(), 65536) if readable else b""
+        if not chunk:
             break
-        seen.append(line)
-        if ready in line:
+        seen += chunk
+        if ready.encode() in seen:
             return proc
     proc.kill()
-    raise AssertionError(f"never printed {ready!r}: {''.join(seen)}")
+    proc.communicate()
+    raise AssertionError(f"never printed {ready!r}: {seen.decode(errors='replace')}")
 
 
 def _stop(proc: subprocess.Popen, sig: int, within: float = 5.0) -> tuple[int, str, float]:
@@ -51,8 +49,8 @@ def _stop(proc: subprocess.Popen, sig: int, within: float = 5.0) -> tuple[int, s
     except subprocess.TimeoutExpired:
         proc.kill()
         out, _ = proc.communicate()
-        raise AssertionError(f"did not stop within {within} s after signal {sig}: {out}") from None
-    return proc.returncode, out, time.monotonic() - start
+        raise AssertionError(f"did not stop within {within} s after signal {sig}: {out!r}") from None
+    return proc.returncode, out.decode(errors="replace"), time.monotonic() - start
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
