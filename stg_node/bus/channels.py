@@ -89,11 +89,9 @@ class LatestChannel:
         self.pollable.send(b"S" + prefix)
 
     def take(self) -> list:
-        while True:  # consume wake-ups; the mailbox is the truth
-            try:
-                self.pollable.recv(_NOBLOCK)
-            except zmq.Again:
-                break
+        pollable = self.pollable
+        while pollable.get(_EVENTS) & _POLLIN:  # consume wake-ups; the mailbox is the truth
+            pollable.recv()
         with self._lock:
             if not self._mailbox:
                 return []
@@ -116,11 +114,8 @@ class LatestChannel:
                         sock.subscribe(command[1:])
                 if sock in events:
                     newest: dict[bytes, list] = {}
-                    while True:
-                        try:
-                            frames = recv_multipart(sock, _NOBLOCK)
-                        except zmq.Again:
-                            break
+                    while sock.get(_EVENTS) & _POLLIN:  # everything queued, without an exception at the end
+                        frames = recv_multipart(sock)
                         key = frames[0].bytes
                         newest.pop(key, None)  # re-insert: order follows the newest arrivals
                         newest[key] = frames
