@@ -15,6 +15,7 @@ of the received frames (zero-copy). Every failure is a :class:`MessageError` who
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import msgpack
@@ -103,7 +104,9 @@ def encode_counted(msg: Message, *, topic: str, seq: int, src: str, stamp_ns: in
         shape = arr.shape
         if shape != a.fixed:
             spec.check_array(a.name, a.dtype, shape, bound)
-        if a.check_finite and not all_finite(arr):
+        if a.check_finite and not (
+            (arr.nbytes <= 2048 and math.isfinite(sum(arr.reshape(-1).tolist()))) or all_finite(arr)
+        ):
             raise MessageError("nonfinite", f"{where}.{a.name} holds NaN or Inf")
         total += arr.nbytes
         descs.append(a.descriptor(shape))
@@ -239,9 +242,7 @@ def _view(frame, dtype_name: str, shape: tuple[int, ...], nbytes: int, name: str
     buf = memoryview(frame)
     if buf.nbytes != nbytes:
         raise MessageError("bytes", f"array {name!r}: buffer has {buf.nbytes} bytes, header implies {nbytes}")
-    arr = np.frombuffer(buf, dtype=WIRE_DTYPES[dtype_name]).reshape(shape)
-    arr.flags.writeable = False
-    return arr
+    return np.frombuffer(buf.toreadonly(), dtype=WIRE_DTYPES[dtype_name]).reshape(shape)
 
 
 def decode_envelope(frames) -> Envelope:
@@ -276,6 +277,63 @@ def expected_type(topic: str) -> type[Message] | None:
     return cls
 
 
+_layouts: dict[str, list] = {}  # type -> [(descriptors, layout)], the few layouts streams repeat
+_MAX_LAYOUTS = 8
+
+
+def _layout(spec: MessageSpec, descs: list) -> tuple[tuple, tuple]:
+    """The checked layout of a message's arrays: ((name, dtype, shape, nbytes, check_finite,
+    fixed_field), ...) and the optional arrays it lacks.
+
+    A stream repeats the same descriptors message after message, so a layout that passed
+    once is cached per type and found again by comparing descriptor lists (one C-level ==).
+    == alone would let 6.0 or True stand in for the dim 6 or 1, so a hit also requires every
+    dim to be a real int: the cache never admits what the checks would refuse.
+    """
+    cache = _layouts.setdefault(spec.type, [])
+    for known, layout in cache:
+        if known == descs:
+            for desc in descs:
+                for dim in desc["shape"]:
+                    if dim.__class__ is not int:
+                        return _check_layout(spec, descs)  # raises: a dim that is not an int
+            return layout
+    layout = _check_layout(spec, descs)
+    cache.append((descs, layout))
+    if len(cache) > _MAX_LAYOUTS:
+        cache.pop(0)
+    return layout
+
+
+def _check_layout(spec: MessageSpec, descs: list) -> tuple[tuple, tuple]:
+    entries = []
+    bound: dict[str, int] = {}
+    fields: set[str] = set()
+    members: set[str] = set()
+    total = 0
+    for index, desc in enumerate(descs):
+        name, dtype_name, shape, nbytes = _descriptor(desc, index)
+        aspec = spec.check_array(name, dtype_name, shape, bound)
+        total += nbytes
+        if total > spec.max_bytes:
+            raise MessageError("oversize", f"{spec.type} arrays exceed {spec.max_bytes} bytes")
+        seen = fields if aspec is not None else members
+        if name in seen:
+            raise MessageError("field", f"{spec.type}.{name} appears twice")
+        seen.add(name)
+        finite = aspec.check_finite if aspec is not None else spec.array_set.finite
+        entries.append((name, WIRE_DTYPES[dtype_name], shape, nbytes, finite, aspec is not None))
+    for a in spec.arrays:
+        if a.required and a.name not in fields:
+            raise MessageError("field", f"{spec.type}.{a.name} is required but missing")
+    if spec.array_set is not None and len(members) > spec.array_set.max_count:
+        raise MessageError(
+            "oversize", f"{spec.type} has {len(members)} arrays, limit {spec.array_set.max_count}"
+        )
+    absent = tuple(a.name for a in spec.arrays if a.name not in fields)
+    return tuple(entries), absent
+
+
 def decode(frames) -> Message:
     """Validate and decode ``[topic, header, *buffers]`` into its typed message (zero-copy arrays)."""
     topic, header = _header(frames)
@@ -292,55 +350,25 @@ def decode(frames) -> Message:
     if want is not None and want is not cls:
         raise MessageError("type_mismatch", f"{type_name} on topic {topic!r}, which carries {want.SPEC.type}")
 
+    entries, absent = _layout(spec, header["arrays"])
     kwargs: dict = {}
-    bound: dict[str, int] = {}
     members: dict[str, np.ndarray] = {}
-    total = 0
-    layouts = spec.array_by_name
-    for index, desc in enumerate(header["arrays"]):
-        # Fast path: a known array with a fixed shape is checked by two comparisons.
-        aspec = None
-        if desc.__class__ is dict:
-            name = desc.get("name")
-            if name.__class__ is str:
-                aspec = layouts.get(name)
-        if (
-            aspec is not None
-            and aspec.fixed is not None
-            and desc.get("dtype") == aspec.dtype
-            and desc.get("shape") == aspec.fixed_list
-        ):
-            shape, nbytes, dtype = aspec.fixed, aspec.fixed_nbytes, aspec.np_dtype
-        else:
-            name, dtype_name, shape, nbytes = _descriptor(desc, index)
-            aspec = spec.check_array(name, dtype_name, shape, bound)
-            dtype = WIRE_DTYPES[dtype_name]
-        total += nbytes
-        if total > spec.max_bytes:
-            raise MessageError("oversize", f"{type_name} arrays exceed {spec.max_bytes} bytes")
-        target = kwargs if aspec is not None else members
-        if name in target:
-            raise MessageError("field", f"{type_name}.{name} appears twice")
-        buf = memoryview(frames[index + 2])
+    for index, (name, dtype, shape, nbytes, finite, fixed) in enumerate(entries):
+        # Read-only view of the frame: shared with it (and, over inproc, with the sender).
+        buf = memoryview(frames[index + 2]).toreadonly()
         if buf.nbytes != nbytes:
             raise MessageError(
                 "bytes", f"array {name!r}: buffer has {buf.nbytes} bytes, header implies {nbytes}"
             )
-        arr = np.frombuffer(buf, dtype=dtype).reshape(shape)
-        arr.flags.writeable = False  # shared with the frame (and, over inproc, the sender)
-        if (aspec.check_finite if aspec is not None else spec.array_set.finite) and not all_finite(arr):
+        flat = np.frombuffer(buf, dtype=dtype)
+        # Small float arrays (K, R, t, poses): a Python sum of the values is finite iff they all
+        # are (an overflowing sum of huge finite values falls through to the exact check).
+        if finite and not ((nbytes <= 2048 and math.isfinite(sum(flat.tolist()))) or all_finite(flat)):
             raise MessageError("nonfinite", f"{type_name}.{name} holds NaN or Inf")
-        target[name] = arr
-    for a in spec.arrays:
-        if a.name not in kwargs:
-            if a.required:
-                raise MessageError("field", f"{type_name}.{a.name} is required but missing")
-            kwargs[a.name] = None
+        (kwargs if fixed else members)[name] = flat.reshape(shape)
+    for name in absent:
+        kwargs[name] = None
     if spec.array_set is not None:
-        if len(members) > spec.array_set.max_count:
-            raise MessageError(
-                "oversize", f"{type_name} has {len(members)} arrays, limit {spec.array_set.max_count}"
-            )
         kwargs[spec.array_set.name] = members
     for s in spec.scalars:
         value = header.get(s.name, _MISSING)

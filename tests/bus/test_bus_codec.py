@@ -375,3 +375,17 @@ def test_messages_of_each_type_are_registered_once():
     }
     assert REGISTRY["Frame"] is Frame and REGISTRY["GaussianSnapshot"] is GaussianSnapshot
     assert ViewRequest.SPEC.lane == "reliable"
+
+
+def test_layout_cache_never_admits_what_the_checks_refuse():
+    """Once a layout is cached, descriptors equal to it under == (6.0 == 6, True == 1) must
+    still be refused: validation may not depend on what arrived before."""
+    good = _encode(_frame_msg())
+    decode(good)  # caches the layout
+    for bad_dim in (6.0, True):
+        header = msgpack.unpackb(good[1])
+        header["arrays"][0]["shape"][0] = bad_dim
+        with pytest.raises(MessageError) as info:
+            decode([good[0], msgpack.packb(header), *good[2:]])
+        assert info.value.reason == "shape"
+    assert isinstance(decode(good), Frame)
