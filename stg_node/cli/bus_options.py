@@ -14,21 +14,31 @@ import threading
 from stg_node.bus.config import ENV_BUS, ENV_KEY_NAME, ENV_KEYS, ENV_NAMESPACE, BusConfig
 
 
-def add_bus_options(parser: argparse.ArgumentParser) -> None:
+def add_bus_options(parser: argparse.ArgumentParser, *, in_subcommand: bool = False) -> None:
+    """--bus/--namespace/--keys/--key-name. Added to the subcommands too (``in_subcommand``),
+    they may follow the subcommand as well (``stg-topic echo x --bus URL``)."""
+    extra = {"default": argparse.SUPPRESS} if in_subcommand else {}
     group = parser.add_argument_group("bus")
     group.add_argument(
         "--bus",
         metavar="URL",
+        **extra,
         help=f"bus URL (ipc://PATH, tcp://HOST:PORT); default ${ENV_BUS} or ipc in the user's runtime dir",
     )
     group.add_argument(
-        "--namespace", metavar="NS", help=f"topic namespace, e.g. rig1 (default ${ENV_NAMESPACE})"
+        "--namespace", metavar="NS", **extra, help=f"topic namespace, e.g. rig1 (default ${ENV_NAMESPACE})"
     )
     group.add_argument(
-        "--keys", metavar="DIR", help=f"CURVE key directory for tcp (default ${ENV_KEYS}); see stg-keys"
+        "--keys",
+        metavar="DIR",
+        **extra,
+        help=f"CURVE key directory for tcp (default ${ENV_KEYS}); see stg-keys",
     )
     group.add_argument(
-        "--key-name", metavar="NAME", help=f"this client's key name in DIR/clients (default ${ENV_KEY_NAME})"
+        "--key-name",
+        metavar="NAME",
+        **extra,
+        help=f"this client's key name in DIR/clients (default ${ENV_KEY_NAME})",
     )
 
 

@@ -37,11 +37,13 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("list", help="topics seen on the bus")
+    add_bus_options(p, in_subcommand=True)
     p.add_argument(
         "--duration", type=float, default=2.0, metavar="S", help="how long to listen (default 2 s)"
     )
 
     p = sub.add_parser("echo", help="print messages of a topic")
+    add_bus_options(p, in_subcommand=True)
     p.add_argument("topic")
     p.add_argument("-n", "--count", type=int, help="stop after this many messages")
     p.add_argument("--duration", type=float, metavar="S", help="stop after this many seconds")
@@ -49,6 +51,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     for name, what in (("hz", "message rate"), ("bw", "bandwidth")):
         p = sub.add_parser(name, help=f"{what} of a topic")
+        add_bus_options(p, in_subcommand=True)
         p.add_argument("topic")
         p.add_argument("--window", type=int, default=100, help="messages in the sliding window (default 100)")
         p.add_argument("-n", "--count", type=int, help="stop after this many messages")

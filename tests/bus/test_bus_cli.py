@@ -116,3 +116,10 @@ def test_nothing_on_the_bus(ipc_url):
     with Broker(ipc_url, status_period_s=0):
         assert "no messages" in _run("--bus", ipc_url, "list", "--duration", "0.3")
         assert "no messages on body/pose" in _run("--bus", ipc_url, "hz", "body/pose", "--duration", "0.3")
+
+
+def test_bus_options_work_before_and_after_the_subcommand(running):
+    url, _ = running
+    before = _run("--bus", url, "echo", "body/pose", "-n", "1")
+    after = _run("echo", "body/pose", "-n", "1", "--bus", url)
+    assert before.startswith("--- body/pose") and after.startswith("--- body/pose")
