@@ -1,1 +1,1 @@
-"""Console entry points: thin wrappers that parse arguments and call the library."""
+"""Console entry points: thin argument parsing around the library (see pyproject [project.scripts])."""

@@ -1,0 +1,250 @@
+"""stg-topic: look at a running bus, like `ros2 topic`.
+
+    stg-topic list                      topics seen (for --duration s), type, lane, rate, size, sources
+    stg-topic echo avatar/image -n 1    print messages: header, fields, array summaries
+    stg-topic hz camera/frame           message rate over a sliding window, every second
+    stg-topic bw camera/frame           bandwidth and message sizes, every second
+
+Topics are relative to --namespace unless they start with '/'. Every command stops on
+Ctrl-C (exit 0), after -n messages or after --duration seconds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import statistics
+import sys
+import time
+from collections import deque
+
+import numpy as np
+
+from stg_node.bus.codec import Envelope
+from stg_node.bus.pubsub import Subscriber
+from stg_node.cli.bus_options import add_bus_options, bus_config, sigterm_as_interrupt
+from stg_node.logs import configure_logging
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="stg-topic",
+        description=__doc__.split("\n")[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=__doc__,
+    )
+    add_bus_options(parser)
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("list", help="topics seen on the bus")
+    add_bus_options(p, in_subcommand=True)
+    p.add_argument(
+        "--duration", type=float, default=2.0, metavar="S", help="how long to listen (default 2 s)"
+    )
+
+    p = sub.add_parser("echo", help="print messages of a topic")
+    add_bus_options(p, in_subcommand=True)
+    p.add_argument("topic")
+    p.add_argument("-n", "--count", type=int, help="stop after this many messages")
+    p.add_argument("--duration", type=float, metavar="S", help="stop after this many seconds")
+    p.add_argument("--full", action="store_true", help="print array values (numpy's summarised form)")
+
+    for name, what in (("hz", "message rate"), ("bw", "bandwidth")):
+        p = sub.add_parser(name, help=f"{what} of a topic")
+        add_bus_options(p, in_subcommand=True)
+        p.add_argument("topic")
+        p.add_argument("--window", type=int, default=100, help="messages in the sliding window (default 100)")
+        p.add_argument("-n", "--count", type=int, help="stop after this many messages")
+        p.add_argument("--duration", type=float, metavar="S", help="stop after this many seconds")
+    return parser
+
+
+# --- formatting --------------------------------------------------------------------------------
+
+
+def _size(nbytes: float) -> str:
+    for unit in ("B", "KB", "MB", "GB"):
+        if abs(nbytes) < 1000 or unit == "GB":
+            return f"{nbytes:.2f}{unit}" if unit != "B" else f"{nbytes:.0f}B"
+        nbytes /= 1000
+    return f"{nbytes:.2f}GB"
+
+
+def _stamp(stamp_ns: int) -> str:
+    when = datetime.datetime.fromtimestamp(stamp_ns / 1e9)
+    age_ms = (time.time_ns() - stamp_ns) / 1e6
+    return f"{when:%H:%M:%S}.{stamp_ns % 1_000_000_000:09d} (age {age_ms:.1f} ms)"
+
+
+def _array_line(name: str, arr: np.ndarray, full: bool) -> str:
+    text = f"{name}: {arr.dtype}{list(arr.shape)}"
+    if arr.size and arr.dtype.kind in "uif":
+        finite = arr[np.isfinite(arr)] if arr.dtype.kind == "f" else arr
+        if finite.size:
+            text += f"  min {finite.min():.4g}  max {finite.max():.4g}  mean {finite.mean():.4g}"
+        if arr.dtype.kind == "f" and finite.size != arr.size:
+            text += f"  ({arr.size - finite.size} non-finite)"
+    if full:
+        text += "\n  " + np.array2string(arr, threshold=64, edgeitems=3).replace("\n", "\n  ")
+    return text
+
+
+def format_envelope(env: Envelope, full: bool = False) -> str:
+    h = env.header
+    lines = [
+        f"--- {env.topic}  {h['type']} v{h['v']}  seq {h['seq']}  src {h['src']}  {_stamp(h['stamp_ns'])}"
+    ]
+    for key, value in h.items():
+        if key not in ("type", "v", "seq", "stamp_ns", "src", "arrays"):
+            lines.append(f"{key}: {value!r}")
+    lines.extend(_array_line(name, arr, full) for name, arr in env.arrays.items())
+    return "\n".join(lines)
+
+
+# --- commands ------------------------------------------------------------------------------------
+
+
+def _deadline(duration: float | None) -> float | None:
+    return None if duration is None else time.monotonic() + duration
+
+
+def _remaining(deadline: float | None, tick: float = 1.0) -> float:
+    if deadline is None:
+        return tick
+    return max(0.0, min(tick, deadline - time.monotonic()))
+
+
+def cmd_list(config, args, out) -> int:
+    seen: dict[str, dict] = {}
+    with Subscriber(config, [""], typed=False, keep_last=False) as sub:
+        deadline = _deadline(args.duration)
+        start = time.monotonic()
+        while time.monotonic() < deadline:
+            env = sub.recv(timeout=_remaining(deadline, 0.2))
+            if env is None:
+                continue
+            entry = seen.setdefault(env.topic, {"type": env.type, "count": 0, "bytes": 0, "src": set()})
+            entry["count"] += 1
+            entry["bytes"] += env.nbytes
+            entry["src"].add(env.header["src"])
+        elapsed = max(time.monotonic() - start, 1e-9)
+        drops = dict(sub.traffic.drops)
+    if not seen:
+        print(f"no messages on {config.url} in {args.duration:g} s", file=out)
+        return 0
+    rows = [("TOPIC", "TYPE", "LANE", "MSGS", "HZ", "AVG SIZE", "SOURCES")]
+    for topic in sorted(seen):
+        e = seen[topic]
+        rows.append(
+            (
+                topic,
+                e["type"],
+                config.lane_of(topic).name,
+                str(e["count"]),
+                f"{e['count'] / elapsed:.1f}",
+                _size(e["bytes"] / e["count"]),
+                ",".join(sorted(e["src"])),
+            )
+        )
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    for row in rows:
+        print("  ".join(cell.ljust(w) for cell, w in zip(row, widths, strict=True)).rstrip(), file=out)
+    if drops:
+        print(f"dropped: {drops}", file=out)
+    return 0
+
+
+def cmd_echo(config, args, out) -> int:
+    printed = 0
+    with Subscriber(config, [args.topic], typed=False) as sub:
+        deadline = _deadline(args.duration)
+        while args.count is None or printed < args.count:
+            if deadline is not None and time.monotonic() >= deadline:
+                break
+            env = sub.recv(timeout=_remaining(deadline))
+            if env is None:
+                continue
+            print(format_envelope(env, args.full), file=out, flush=True)
+            printed += 1
+    return 0
+
+
+def cmd_rate(config, args, out, mode: str) -> int:
+    """hz and bw: a sliding window of arrival times (and sizes), reported every second."""
+    arrivals: deque[float] = deque(maxlen=args.window + 1)
+    sizes: deque[int] = deque(maxlen=args.window)
+    received = 0
+    next_report = time.monotonic() + 1.0
+    with Subscriber(config, [args.topic], typed=False, keep_last=False) as sub:
+        deadline = _deadline(args.duration)
+        print(f"subscribed to {sub.topics[0]}", file=out, flush=True)
+        while (args.count is None or received < args.count) and (
+            deadline is None or time.monotonic() < deadline
+        ):
+            env = sub.recv(timeout=_remaining(deadline, max(0.0, next_report - time.monotonic())))
+            now = time.monotonic()
+            if env is not None:
+                arrivals.append(now)
+                sizes.append(env.nbytes)
+                received += 1
+            if now >= next_report:
+                _report(mode, arrivals, sizes, out)
+                next_report = now + 1.0
+        if received:
+            _report(mode, arrivals, sizes, out)
+    if not received:
+        print(f"no messages on {args.topic}", file=out)
+    return 0
+
+
+def _report(mode: str, arrivals: deque, sizes: deque, out) -> None:
+    if len(arrivals) < 2:
+        print("no new messages" if not arrivals else "1 message so far", file=out, flush=True)
+        return
+    gaps = [b - a for a, b in zip(list(arrivals)[:-1], list(arrivals)[1:], strict=True)]
+    span = arrivals[-1] - arrivals[0]
+    if mode == "hz":
+        rate = len(gaps) / span if span > 0 else float("inf")
+        std = statistics.pstdev(gaps) if len(gaps) > 1 else 0.0
+        print(
+            f"average rate: {rate:.3f} Hz\n\tmin: {min(gaps):.4f}s max: {max(gaps):.4f}s "
+            f"std dev: {std:.5f}s window: {len(gaps)}",
+            file=out,
+            flush=True,
+        )
+    else:
+        recent = list(sizes)[1:]  # sizes of the messages that close each gap
+        bandwidth = sum(recent) / span if span > 0 else float("inf")
+        print(
+            f"average: {_size(bandwidth)}/s\n\tmean: {_size(statistics.fmean(sizes))} "
+            f"min: {_size(min(sizes))} max: {_size(max(sizes))} window: {len(sizes)}",
+            file=out,
+            flush=True,
+        )
+
+
+def main(argv=None, out=None) -> int:
+    out = out or sys.stdout
+    args = build_parser().parse_args(argv)
+    configure_logging()
+    try:
+        config = bus_config(args)
+    except ValueError as exc:
+        print(f"stg-topic: {exc}", file=sys.stderr)
+        return 2
+    try:
+        with sigterm_as_interrupt():
+            if args.command == "list":
+                return cmd_list(config, args, out)
+            if args.command == "echo":
+                return cmd_echo(config, args, out)
+            return cmd_rate(config, args, out, args.command)
+    except KeyboardInterrupt:
+        return 0
+    except (OSError, ValueError) as exc:
+        print(f"stg-topic: {exc}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,146 @@
+"""Helpers shared by the bus tests (fixtures are in conftest.py)."""
+
+from __future__ import annotations
+
+import socket
+import time
+
+import numpy as np
+import zmq
+
+from stg_node.bus import BodyPose, Frame, GaussianSnapshot, RenderedImage, ViewRequest
+from stg_node.bus.messages import NodeStatus, TrainerMetrics
+from stg_node.bus.topics import LANES
+
+
+def free_base_port(span: int = 2 * len(LANES)) -> int:
+    """A base port with ``span`` consecutive free ports on 127.0.0.1."""
+    for _ in range(200):
+        with socket.socket() as probe:
+            probe.bind(("127.0.0.1", 0))
+            base = probe.getsockname()[1]
+        if base + span >= 65535:
+            continue
+        held = []
+        try:
+            for port in range(base, base + span):
+                s = socket.socket()
+                held.append(s)
+                s.bind(("127.0.0.1", port))
+            return base
+        except OSError:
+            continue
+        finally:
+            for s in held:
+                s.close()
+    raise RuntimeError("no free tcp port range")
+
+
+def wait_until(predicate, timeout: float = 5.0, step: float = 0.01) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(step)
+    return predicate()
+
+
+def recv_raw(sock: zmq.Socket, timeout_ms: int = 5000) -> list:
+    assert sock.poll(timeout_ms), "nothing received in time"
+    return sock.recv_multipart(copy=False)
+
+
+# --- sample messages, one per type, deterministic -------------------------------------------------
+
+
+def sample_messages(seed: int = 0) -> dict[str, object]:
+    rng = np.random.default_rng(seed)
+    h, w = 6, 8
+    K = np.array([[500.0, 0, w / 2], [0, 500.0, h / 2], [0, 0, 1]])
+    R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    t = rng.normal(size=3)
+    return {
+        "Frame": Frame(
+            index=7,
+            time=0.25,
+            camera_id="cam0",
+            image=rng.integers(0, 256, (h, w, 3), dtype=np.uint8),
+            mask=(rng.random((h, w)) > 0.5).astype(np.uint8) * 255,
+            depth=rng.random((h, w)).astype(np.float32),
+            K=K,
+            R=R,
+            t=t,
+        ),
+        "BodyPose": BodyPose(
+            frame_seq=3,
+            frame_index=7,
+            time=0.25,
+            confidence=0.9,
+            poses=rng.normal(size=(24, 3)).astype(np.float32),
+            Rh=rng.normal(size=3).astype(np.float32),
+            Th=rng.normal(size=3).astype(np.float32),
+            betas=rng.normal(size=10).astype(np.float32),
+        ),
+        "GaussianSnapshot": GaussianSnapshot(
+            format="stg-avatar/1",
+            model_version=4,
+            iteration=1200,
+            num_gaussians=50,
+            meta={"sh_degree": 0.0, "t_max": 2.5},
+            arrays={
+                "xyz": rng.normal(size=(50, 3)).astype(np.float32),
+                "rotation": rng.normal(size=(50, 4)).astype(np.float32),
+                "mlp.0.weight": rng.normal(size=(16, 8)).astype(np.float16),
+            },
+        ),
+        "ViewRequest": ViewRequest(
+            request_id=5,
+            width=w,
+            height=h,
+            follow_live=False,
+            poses=np.zeros((24, 3), np.float32),
+            K=K,
+            R=R,
+            t=t,
+        ),
+        "RenderedImage": RenderedImage(
+            request_id=5,
+            request_src="robot",
+            pose_seq=-1,
+            snapshot_version=4,
+            source_stamp_ns=123,
+            render_ms=3.5,
+            latency_ms=9.0,
+            image=rng.integers(0, 256, (h, w, 3), dtype=np.uint8),
+            alpha=rng.integers(0, 256, (h, w), dtype=np.uint8),
+            K=K,
+            R=R,
+            t=t,
+        ),
+        "TrainerMetrics": TrainerMetrics(
+            iteration=100, loss=float("nan"), losses={"l1": 0.1, "ssim": 0.2}, psnr=24.5, it_per_s=3.0
+        ),
+        "NodeStatus": NodeStatus(node="tracker", published={"body/pose": 10}, drops={"lost": 2}),
+    }
+
+
+def assert_same_message(a, b) -> None:
+    """Field-by-field equality of two messages (arrays exactly, NaN equal to NaN)."""
+    assert type(a) is type(b)
+    for s in a.SPEC.scalars:
+        va, vb = getattr(a, s.name), getattr(b, s.name)
+        if isinstance(va, float) and va != va:
+            assert vb != vb, s.name
+        else:
+            assert va == vb, s.name
+    for spec in a.SPEC.arrays:
+        va, vb = getattr(a, spec.name), getattr(b, spec.name)
+        if va is None:
+            assert vb is None, spec.name
+        else:
+            np.testing.assert_array_equal(np.asarray(va, dtype=spec.np_dtype), vb, err_msg=spec.name)
+    if a.SPEC.array_set is not None:
+        ma, mb = getattr(a, a.SPEC.array_set.name), getattr(b, b.SPEC.array_set.name)
+        assert ma.keys() == mb.keys()
+        for name in ma:
+            np.testing.assert_array_equal(ma[name], mb[name], err_msg=name)

@@ -1,0 +1,177 @@
+"""The broker: forwarding, the last-value cache for latched topics, status, and its pitfalls."""
+
+from __future__ import annotations
+
+import os
+import time
+
+import msgpack
+import numpy as np
+import pytest
+import zmq
+from bushelpers import recv_raw, sample_messages, wait_until
+
+from stg_node.bus import BodyPose, Broker, BrokerRunning, BusConfig, GaussianSnapshot, Publisher, Subscriber
+from stg_node.bus.codec import encode
+
+
+def _snapshot(version: int) -> GaussianSnapshot:
+    snap = sample_messages()["GaussianSnapshot"]
+    snap.model_version = version
+    return snap
+
+
+def test_late_joiner_gets_the_latest_snapshot_at_once_and_only_once(url, broker, ctx):
+    config = BusConfig(url=url)
+    with (
+        Publisher(config, node="trainer", context=ctx) as pub,
+        Subscriber(config, [GaussianSnapshot], context=ctx) as early,
+    ):
+        assert pub.wait_for_subscribers("avatar/snapshot")
+        pub.publish(_snapshot(1))
+        pub.publish(_snapshot(2))
+        assert [m.model_version for m in early.messages(timeout=0.5)] == [1, 2]
+        start = time.monotonic()
+        with Subscriber(config, [GaussianSnapshot], context=ctx) as late:
+            first = late.recv(timeout=5)
+            waited = time.monotonic() - start
+            assert first.model_version == 2 and first.header.seq == 1
+            np.testing.assert_array_equal(first.arrays["xyz"], _snapshot(2).arrays["xyz"])
+            assert late.recv(timeout=0.3) is None  # exactly one cached model
+            assert early.recv(timeout=0.3) is None  # nobody else saw it again
+            pub.publish(_snapshot(3))
+            assert late.recv(timeout=5).model_version == 3
+            assert early.recv(timeout=5).model_version == 3
+    assert waited < 2.0
+    assert early.traffic.duplicates == 0 and late.traffic.drops == {}
+
+
+def test_raw_late_joiner_gets_the_latched_snapshot(ipc_url, ctx):
+    config = BusConfig(url=ipc_url)
+    with Broker(ipc_url, status_period_s=0), Publisher(config, context=ctx) as pub:
+        probe = ctx.socket(zmq.SUB)  # something must subscribe for the broker to forward
+        probe.connect(config.endpoint("bulk", "out"))
+        probe.subscribe(b"avatar/snapshot")
+        assert pub.wait_for_subscribers("avatar/snapshot")
+        pub.publish(_snapshot(7))
+        recv_raw(probe)
+        raw = ctx.socket(zmq.SUB)
+        raw.connect(config.endpoint("bulk", "out"))
+        raw.subscribe(b"avatar/snapshot")
+        frames = recv_raw(raw)
+    header = msgpack.unpackb(frames[1].buffer)
+    assert frames[0].bytes == b"avatar/snapshot"
+    assert (header["type"], header["model_version"], header["num_gaussians"]) == ("GaussianSnapshot", 7, 50)
+    names = [d["name"] for d in header["arrays"]]
+    xyz = frames[2 + names.index("xyz")]
+    np.testing.assert_array_equal(np.frombuffer(xyz.buffer, "<f4").reshape(50, 3), _snapshot(7).arrays["xyz"])
+
+
+def test_latched_topics_are_cached_per_namespace(ipc_url, ctx):
+    with Broker(ipc_url, status_period_s=0) as broker:
+        rig1 = BusConfig(url=ipc_url, namespace="rig1")
+        with (
+            Publisher(rig1, context=ctx) as pub,
+            Subscriber(BusConfig(url=ipc_url), ["rig1/", "rig2/"], context=ctx) as watcher,
+        ):
+            assert pub.wait_for_subscribers("avatar/snapshot")
+            assert pub.wait_for_subscribers("/rig2/avatar/snapshot")
+            pub.publish(_snapshot(1))
+            pub.publish(_snapshot(2), "/rig2/avatar/snapshot")
+            assert len(list(watcher.messages(timeout=0.5))) == 2
+            assert set(broker.cache) == {b"rig1/avatar/snapshot", b"rig2/avatar/snapshot"}
+            with Subscriber(
+                BusConfig(url=ipc_url, namespace="rig2"), [GaussianSnapshot], context=ctx
+            ) as late:
+                got = list(late.messages(timeout=0.5))
+    assert [(m.header.topic, m.model_version) for m in got] == [("rig2/avatar/snapshot", 2)]
+
+
+def test_a_broken_snapshot_is_forwarded_but_never_cached(ipc_url, ctx):
+    config = BusConfig(url=ipc_url)
+    with (
+        Broker(ipc_url, status_period_s=0) as broker,
+        Publisher(config, context=ctx) as pub,
+        Subscriber(config, [GaussianSnapshot], context=ctx) as early,
+    ):
+        assert pub.wait_for_subscribers("avatar/snapshot")
+        pub.publish(_snapshot(1))
+        raw = ctx.socket(zmq.PUB)
+        raw.connect(config.endpoint("bulk", "in"))
+        time.sleep(0.3)  # the raw publisher's connection and the forwarded subscription
+        broken = encode(_snapshot(2), topic="avatar/snapshot", seq=1, src="trainer", stamp_ns=1)
+        raw.send_multipart([*broken[:2], b"short"] + broken[3:], copy=False)
+        assert early.recv(timeout=1).model_version == 1
+        assert early.recv(timeout=1) is None  # the broken one was dropped by the subscriber
+        assert early.traffic.drops == {"bytes": 1}
+        assert wait_until(lambda: broker.traffic.drops.get("bytes") == 1)
+        with Subscriber(config, [GaussianSnapshot], context=ctx) as late:
+            assert late.recv(timeout=2).model_version == 1
+
+
+def test_subscribers_coming_and_going_never_cost_others_a_message(url, broker, ctx):
+    """XPUB_MANUAL_LAST_VALUE aims the next send after any (un)subscription at that one
+    subscriber; the broker must settle that every time, or live messages go astray."""
+    config = BusConfig(url=url)
+    with Publisher(config, context=ctx) as pub, Subscriber(config, [BodyPose], context=ctx) as steady:
+        assert pub.wait_for_subscribers("body/pose")
+        sent = 0
+        for _round in range(5):
+            with Subscriber(config, ["trainer/metrics", BodyPose], context=ctx) as visitor:
+                time.sleep(0.05)  # its subscriptions reach the broker
+                for _ in range(3):
+                    pub.publish(sample_messages()["BodyPose"])
+                    sent += 1
+                assert len(list(visitor.messages(timeout=0.3))) >= 1
+            time.sleep(0.05)  # its unsubscriptions reach the broker
+            pub.publish(sample_messages()["BodyPose"])
+            sent += 1
+        got = list(steady.messages(timeout=0.5))
+    assert len(got) == sent == 20
+    assert steady.traffic.drops == {}
+
+
+def test_broker_publishes_its_status(ipc_url, ctx):
+    config = BusConfig(url=ipc_url)
+    with (
+        Broker(ipc_url, status_period_s=0.1),
+        Publisher(config, context=ctx) as pub,
+        Subscriber(config, ["node/status", BodyPose], context=ctx) as sub,
+    ):
+        assert pub.wait_for_subscribers("body/pose")
+        for _ in range(4):
+            pub.publish(sample_messages()["BodyPose"])
+        deadline = time.monotonic() + 5
+        status = None
+        while time.monotonic() < deadline:
+            msg = sub.recv(timeout=0.5)
+            if getattr(msg, "node", None) == "broker" and msg.received.get("body/pose") == 4:
+                status = msg
+                break
+    assert status is not None
+    assert status.state == "running" and status.period_s == pytest.approx(0.1)
+    assert status.header.src == "broker"
+
+
+def test_a_second_broker_on_the_same_ipc_path_is_refused(ipc_url):
+    with Broker(ipc_url, status_period_s=0):
+        with pytest.raises(BrokerRunning, match="already serves"):
+            Broker(ipc_url, status_period_s=0)
+
+
+def test_one_broker_serves_ipc_and_tcp_together(ipc_url, tcp_url, ctx):
+    with Broker([ipc_url, tcp_url], status_period_s=0):
+        with (
+            Publisher(BusConfig(url=ipc_url), context=ctx) as pub,
+            Subscriber(BusConfig(url=tcp_url), [BodyPose], context=ctx) as sub,
+        ):
+            assert pub.wait_for_subscribers("body/pose")
+            pub.publish(sample_messages()["BodyPose"])
+            assert isinstance(sub.recv(timeout=5), BodyPose)
+
+
+def test_broker_removes_its_ipc_files(ipc_dir):
+    url = f"ipc://{ipc_dir}/bus"
+    with Broker(url, status_period_s=0):
+        assert len(os.listdir(ipc_dir)) == 6  # 3 lanes x (in, out)
+    assert os.listdir(ipc_dir) == []

@@ -1,0 +1,122 @@
+"""Clean shutdown: Ctrl-C / SIGTERM end every bus program promptly; closing never waits on peers."""
+
+from __future__ import annotations
+
+import os
+import select
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from bushelpers import free_base_port
+
+from stg_node.bus import Bus, BusConfig, Frame, Subscriber
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _spawn(args: list[str], ready: str) -> subprocess.Popen:
+    """Start a Python program from this checkout and wait (at most 30 s) until it prints ``ready``."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen(
+        [sys.executable, *args], cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT
+    )
+    deadline = time.monotonic() + 30
+    seen = b""
+    while (remaining := deadline - time.monotonic()) > 0:
+        readable, _, _ = select.select([proc.stdout], [], [], remaining)  # never block past the deadline
+        chunk = os.read(proc.stdout.fileno(), 65536) if readable else b""
+        if not chunk:
+            break
+        seen += chunk
+        if ready.encode() in seen:
+            return proc
+    proc.kill()
+    proc.communicate()
+    raise AssertionError(f"never printed {ready!r}: {seen.decode(errors='replace')}")
+
+
+def _stop(proc: subprocess.Popen, sig: int, within: float = 5.0) -> tuple[int, str, float]:
+    start = time.monotonic()
+    proc.send_signal(sig)
+    try:
+        out, _ = proc.communicate(timeout=within)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        out, _ = proc.communicate()
+        raise AssertionError(f"did not stop within {within} s after signal {sig}: {out!r}") from None
+    return proc.returncode, out.decode(errors="replace"), time.monotonic() - start
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_broker_cli_stops_cleanly(ipc_dir, sig):
+    url = f"ipc://{ipc_dir}/bus"
+    proc = _spawn(["-m", "stg_node.cli.broker", url, "--status-period", "0.1"], "serving")
+    code, out, took = _stop(proc, sig)
+    assert code == 0, out
+    assert "Traceback" not in out
+    assert os.listdir(ipc_dir) == []  # no stale socket files
+
+
+def test_topic_echo_stops_on_ctrl_c(ipc_url):
+    from stg_node.bus import Broker
+
+    with Broker(ipc_url, status_period_s=0):
+        proc = _spawn(["-m", "stg_node.cli.topic", "--bus", ipc_url, "hz", "body/pose"], "subscribed")
+        code, out, _ = _stop(proc, signal.SIGINT)
+    assert code == 0 and "Traceback" not in out
+
+
+NODE = textwrap.dedent(
+    """
+    import sys
+    from stg_node.bus import Bus
+    with Bus(sys.argv[1], node="looping", heartbeat_s=0.1) as bus:
+        frames = bus.subscribe("camera/frame", "body/pose")
+        print("ready", flush=True)
+        try:
+            for msg in frames:      # blocks: only Ctrl-C gets us out
+                pass
+        except KeyboardInterrupt:
+            pass
+    print("closed", flush=True)
+    """
+)
+
+
+def test_a_node_blocked_in_its_message_loop_stops_on_ctrl_c(ipc_url, tmp_path):
+    script = tmp_path / "node.py"
+    script.write_text(NODE)
+    proc = _spawn([str(script), ipc_url], "ready")  # no broker at all: connects, waits
+    time.sleep(0.3)
+    code, out, took = _stop(proc, signal.SIGINT)
+    assert code == 0 and "closed" in out, out
+    assert took < 5.0
+
+
+def test_closing_with_undeliverable_messages_does_not_wait():
+    """1 MB frames queued for a tcp peer that never answers: LINGER 0 drops them at once."""
+    config = BusConfig(url=f"tcp://127.0.0.1:{free_base_port()}")  # nothing listens there
+    frame = Frame(index=0, image=np.zeros((512, 683, 3), np.uint8), K=np.eye(3), R=np.eye(3), t=np.zeros(3))
+    bus = Bus(config, node="lonely", heartbeat_s=0.05)
+    sub = bus.subscribe("camera/frame")
+    for i in range(20):
+        frame.index = i
+        bus.publish(frame, "bench/frames")
+    assert sub.recv(timeout=0.1) is None
+    start = time.monotonic()
+    bus.close()
+    assert time.monotonic() - start < 1.0
+
+
+def test_subscriber_close_is_prompt_and_idempotent(ipc_url):
+    sub = Subscriber(BusConfig(url=ipc_url), ["camera/frame", "body/pose"])  # a keep-last thread and a socket
+    start = time.monotonic()
+    sub.close()
+    sub.close()
+    assert time.monotonic() - start < 1.0
