@@ -64,8 +64,8 @@ def main(argv: list[str] | None = None) -> int:
     configure_logging("WARNING")
     threads = configure_threads()
     import torch
-    from stg_node.body import load_body_model
 
+    from stg_node.body import load_body_model
     from stg_node.data.synth.generate import SynthConfig, generate
 
     body = load_body_model()
