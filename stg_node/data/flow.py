@@ -36,7 +36,7 @@ PRESETS = {
     "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
     "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM,
 }
-CACHE_VERSION = 1  # bump when the computation changes, so old cache files are not reused
+CACHE_VERSION = 2  # bump when the computation changes, so old cache files are not reused
 
 
 @dataclass(frozen=True)
@@ -81,32 +81,33 @@ def _consistency(
 ) -> np.ndarray:
     """Where flow a->b is confirmed by flow b->a and lands on the person in b (so inside the image)."""
     h, w = flow_ab.shape[:2]
-    map_x = flow_ab[..., 0] + np.arange(w, dtype=np.float32)
-    map_y = flow_ab[..., 1] + np.arange(h, dtype=np.float32)[:, None]
+    fx, fy = cv2.split(flow_ab)  # contiguous planes: arithmetic on them is several times faster
+    map_x = fx + np.arange(w, dtype=np.float32)
+    map_y = fy + np.arange(h, dtype=np.float32)[:, None]
     back = cv2.remap(flow_ba, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
     # nearest sampling with a zero border: False off the image as well as off the person
     landed = cv2.remap(mask_b, map_x, map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    total = flow_ab + back
-    err = np.einsum("hwc,hwc->hw", total, total)
-    bound = np.einsum("hwc,hwc->hw", flow_ab, flow_ab)
-    bound += np.einsum("hwc,hwc->hw", back, back)
+    bx, by = cv2.split(back)
+    ex, ey = fx + bx, fy + by
+    err = ex * ex + ey * ey
+    bound = fx * fx + fy * fy + bx * bx + by * by
     bound *= settings.consistency_alpha
     bound += settings.consistency_beta
     return (landed > 0) & (err < bound)
 
 
+def _as_mask(mask: np.ndarray) -> np.ndarray:
+    """uint8 mask (non-zero = person), as OpenCV's remap and boundingRect need."""
+    mask = np.asarray(mask)
+    return mask if mask.dtype == np.uint8 else (mask > 0).astype(np.uint8) * np.uint8(255)
+
+
 def _crop_box(mask_a: np.ndarray, mask_b: np.ndarray, margin: int) -> tuple[int, int, int, int]:
-    union = (mask_a > 0) | (mask_b > 0)
-    h, w = union.shape
-    if not union.any():
+    h, w = mask_a.shape
+    x, y, bw, bh = cv2.boundingRect(cv2.bitwise_or(mask_a, mask_b))
+    if bw == 0 or bh == 0:
         return 0, 0, 0, 0
-    ys, xs = np.nonzero(union)
-    return (
-        max(int(xs.min()) - margin, 0),
-        max(int(ys.min()) - margin, 0),
-        min(int(xs.max()) + margin + 1, w),
-        min(int(ys.max()) + margin + 1, h),
-    )
+    return max(x - margin, 0), max(y - margin, 0), min(x + bw + margin, w), min(y + bh + margin, h)
 
 
 def compute_flow_pair(
@@ -126,6 +127,7 @@ def compute_flow_pair(
     mask_b = full if mask_b is None else mask_b
     if mask_a.shape != (h, w) or mask_b.shape != (h, w):
         raise ValueError(f"masks must be {(h, w)}, got {mask_a.shape} and {mask_b.shape}")
+    mask_a, mask_b = _as_mask(mask_a), _as_mask(mask_b)
     forward = np.zeros((h, w, 2), np.float32)
     backward = np.zeros((h, w, 2), np.float32)
     valid_f = np.zeros((h, w), bool)
@@ -139,8 +141,10 @@ def compute_flow_pair(
         b = dis_flow(gb, ga, settings.preset)
         vf = _consistency(f, b, mb, settings) & (ma > 0)
         vb = _consistency(b, f, ma, settings) & (mb > 0)
-        forward[crop] = np.where(vf[..., None], f, 0.0)
-        backward[crop] = np.where(vb[..., None], b, 0.0)
+        f *= vf[..., None]  # zero where untrusted (a multiply is ~10x cheaper than masked writes)
+        b *= vb[..., None]
+        forward[crop] = f
+        backward[crop] = b
         valid_f[crop] = vf
         valid_b[crop] = vb
     return FlowPair(forward, backward, valid_f, valid_b)
