@@ -54,9 +54,9 @@ def _time(fn, repeats: int, warmup: int = 2, sync=None) -> dict:
 
 def _child(args) -> None:
     import torch
-    from tqdm import tqdm
 
     from stg_node.logs import configure_logging
+    from stg_node.progress import progress
     from stg_node.splat import cpu_backend, rasterize
     from stg_node.splat.scenes import front_camera, person_sized_scene
     from stg_node.threads import configure_threads
@@ -64,7 +64,7 @@ def _child(args) -> None:
     configure_logging("WARNING")
     threads = configure_threads()
     results = []
-    for case in tqdm(args.cases, desc=f"STG_THREADS={threads}", unit="case", file=sys.stderr):
+    for case in progress(args.cases, desc=f"STG_THREADS={threads}", unit="case"):
         n, size = (int(x) for x in case.split("x"))
         scene = person_sized_scene(n, seed=0)
         viewmat, K = front_camera(size, size)

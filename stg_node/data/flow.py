@@ -232,13 +232,13 @@ def consecutive_pairs(dataset, camera: str | None = None) -> list[tuple[int, int
 
 def sequence_flows(dataset, cache: FlowCache, camera: str | None = None, progress: bool = True) -> dict:
     """``{(frame_a, frame_b): FlowPair}`` for consecutive frames of one camera."""
-    from tqdm import tqdm
+    from stg_node.progress import progress as progress_bar
 
     camera = camera or dataset.camera_names[0]
     pairs: Sequence[tuple[int, int]] = consecutive_pairs(dataset, camera)
     out = {}
     previous = None
-    for a, b in tqdm(pairs, desc="optical flow", unit="pair", disable=not progress):
+    for a, b in progress_bar(pairs, desc="optical flow", unit="pair", enabled=progress):
         sample_a = previous if previous is not None and previous.index == a else dataset.load(a, camera)
         sample_b = dataset.load(b, camera)
         out[(a, b)] = cache.get(sample_a.image, sample_b.image, sample_a.mask, sample_b.mask)

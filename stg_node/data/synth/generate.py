@@ -16,7 +16,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 import stg_node
 from stg_node.data.synth import writer
@@ -25,6 +24,7 @@ from stg_node.data.synth.garment import GarmentParams, garment_regions, simulate
 from stg_node.data.synth.mesh_raster import TexturedMesh, render_mesh, vertex_normals
 from stg_node.data.synth.motions import DEFAULT_MOTION, MOTIONS, make_motion
 from stg_node.data.synth.rotations import axis_angle_to_matrix
+from stg_node.progress import progress as progress_bar
 
 log = logging.getLogger(__name__)
 
@@ -236,7 +236,7 @@ def generate(config: SynthConfig, body=None, progress: bool = True) -> SynthResu
     render_time = 0.0
     t_loop = time.perf_counter()
     pending: list[Future] = []
-    bar = tqdm(total=num_views, unit="view", desc="stg-synth", disable=not progress, dynamic_ncols=True)
+    bar = progress_bar(total=num_views, unit="view", desc="stg-synth", enabled=progress)
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="synth-writer") as pool:
         try:
             for frame, cams in enumerate(schedule):
