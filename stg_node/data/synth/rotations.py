@@ -2,7 +2,8 @@
 
 The generator builds poses from anatomical Euler angles and writes SMPL axis-angle vectors;
 these helpers do the conversions in float64 so that the written parameters are exact to
-float32. They are small on purpose: the body package owns the differentiable torch versions.
+float32. The conversions themselves are the body package's (stg_node.body.lbs), run in
+float64 on numpy arrays; only the Euler helpers are the benchmark's own.
 
 Euler convention used throughout the synthetic benchmark: intrinsic Z-Y-X, i.e.
 ``R = Rz(z) @ Ry(y) @ Rx(x)`` for angles ``(x, y, z)`` (scipy: ``from_euler("ZYX", [z, y, x])``).
@@ -11,6 +12,9 @@ Euler convention used throughout the synthetic benchmark: intrinsic Z-Y-X, i.e.
 from __future__ import annotations
 
 import numpy as np
+import torch
+
+from stg_node.body import lbs
 
 
 def axis_rotation(axis: str, angle: np.ndarray) -> np.ndarray:
@@ -39,90 +43,21 @@ def euler_zyx_to_matrix(euler: np.ndarray) -> np.ndarray:
     )
 
 
+def _via_body(fn, array: np.ndarray) -> np.ndarray:
+    """Run one of stg_node.body's torch rotation conversions in float64 on a numpy array."""
+    return fn(torch.from_numpy(np.asarray(array, dtype=np.float64))).numpy()
+
+
 def axis_angle_to_matrix(rotvec: np.ndarray) -> np.ndarray:
-    """Rodrigues: (..., 3) axis-angle -> (..., 3, 3) rotation matrices."""
-    rotvec = np.asarray(rotvec, dtype=np.float64)
-    angle = np.linalg.norm(rotvec, axis=-1, keepdims=True)
-    small = angle < 1e-12
-    axis = rotvec / np.where(small, 1.0, angle)
-    x, y, z = axis[..., 0], axis[..., 1], axis[..., 2]
-    zero = np.zeros_like(x)
-    cross = np.stack(
-        [np.stack([zero, -z, y], -1), np.stack([z, zero, -x], -1), np.stack([-y, x, zero], -1)], axis=-2
-    )
-    s = np.sin(angle)[..., None]
-    c = np.cos(angle)[..., None]
-    eye = np.broadcast_to(np.eye(3), cross.shape)
-    return eye + s * cross + (1.0 - c) * (cross @ cross)
+    """Rodrigues: (..., 3) axis-angle -> (..., 3, 3) rotation matrices (float64)."""
+    return _via_body(lbs.axis_angle_to_matrix, rotvec)
 
 
 def matrix_to_quaternion(matrix: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) rotation matrices -> (..., 4) unit quaternions (w, x, y, z) with w >= 0.
-
-    Shepperd's method: picks the numerically largest of w, x, y, z as the pivot, so it is
-    stable for every rotation including angles near pi.
-    """
-    m = np.asarray(matrix, dtype=np.float64)
-    trace = m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]
-    candidates = np.stack([trace, m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]], axis=-1)
-    pivot = np.argmax(candidates, axis=-1)
-    q = np.empty(m.shape[:-2] + (4,))
-    # w pivot
-    r = np.sqrt(np.maximum(1.0 + trace, 1e-300))
-    qw = np.stack(
-        [
-            0.5 * r,
-            (m[..., 2, 1] - m[..., 1, 2]) / (2 * r),
-            (m[..., 0, 2] - m[..., 2, 0]) / (2 * r),
-            (m[..., 1, 0] - m[..., 0, 1]) / (2 * r),
-        ],
-        axis=-1,
-    )
-    # x pivot
-    r = np.sqrt(np.maximum(1.0 + m[..., 0, 0] - m[..., 1, 1] - m[..., 2, 2], 1e-300))
-    qx = np.stack(
-        [
-            (m[..., 2, 1] - m[..., 1, 2]) / (2 * r),
-            0.5 * r,
-            (m[..., 0, 1] + m[..., 1, 0]) / (2 * r),
-            (m[..., 0, 2] + m[..., 2, 0]) / (2 * r),
-        ],
-        axis=-1,
-    )
-    # y pivot
-    r = np.sqrt(np.maximum(1.0 - m[..., 0, 0] + m[..., 1, 1] - m[..., 2, 2], 1e-300))
-    qy = np.stack(
-        [
-            (m[..., 0, 2] - m[..., 2, 0]) / (2 * r),
-            (m[..., 0, 1] + m[..., 1, 0]) / (2 * r),
-            0.5 * r,
-            (m[..., 1, 2] + m[..., 2, 1]) / (2 * r),
-        ],
-        axis=-1,
-    )
-    # z pivot
-    r = np.sqrt(np.maximum(1.0 - m[..., 0, 0] - m[..., 1, 1] + m[..., 2, 2], 1e-300))
-    qz = np.stack(
-        [
-            (m[..., 1, 0] - m[..., 0, 1]) / (2 * r),
-            (m[..., 0, 2] + m[..., 2, 0]) / (2 * r),
-            (m[..., 1, 2] + m[..., 2, 1]) / (2 * r),
-            0.5 * r,
-        ],
-        axis=-1,
-    )
-    for index, value in enumerate((qw, qx, qy, qz)):
-        q = np.where((pivot == index)[..., None], value, q)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    return np.where(q[..., :1] < 0, -q, q)
+    """(..., 3, 3) rotation matrices -> (..., 4) unit quaternions (w, x, y, z) with w >= 0."""
+    return _via_body(lbs.matrix_to_quaternion, matrix)
 
 
 def matrix_to_axis_angle(matrix: np.ndarray) -> np.ndarray:
     """(..., 3, 3) rotation matrices -> (..., 3) axis-angle with angle in [0, pi]."""
-    q = matrix_to_quaternion(matrix)
-    vec = q[..., 1:]
-    sin_half = np.linalg.norm(vec, axis=-1, keepdims=True)
-    angle = 2.0 * np.arctan2(sin_half, q[..., :1])
-    # angle / sin(angle/2) -> 2 as the angle -> 0
-    scale = np.where(sin_half > 1e-12, angle / np.where(sin_half > 1e-12, sin_half, 1.0), 2.0)
-    return vec * scale
+    return _via_body(lbs.matrix_to_axis_angle, matrix)
