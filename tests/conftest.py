@@ -25,3 +25,13 @@ def pytest_collection_modifyitems(config, items):
     skip = pytest.mark.skip(reason=f"gpu test: {reason}")
     for item in gpu_items:
         item.add_marker(skip)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _project_thread_default():
+    """Run every test with the thread count the project applies by default (STG_THREADS, else 1;
+    docs/BENCHMARKS.md#thread-count): on a busy 2-core machine two torch threads make the torch
+    reference many times slower. Tests that need another count set and restore it themselves."""
+    from stg_node.threads import configure_threads
+
+    configure_threads()

@@ -12,16 +12,6 @@ from stg_node.splat import api, rasterize, torch_reference
 from stg_node.splat.scenes import random_scene
 
 
-@pytest.fixture(autouse=True)
-def _one_torch_thread():
-    """Run as the project does by default (STG_THREADS=1, docs/BENCHMARKS.md#thread-count):
-    on a busy 2-core machine two torch threads make the reference many times slower."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 def _args(n=4, channels=3):
     scene, viewmat, K = random_scene(n, 24, 16, seed=1, channels=channels)
     return list(scene.params()) + [viewmat, K, 24, 16]

@@ -15,16 +15,6 @@ from stg_node.splat.api import available_backends
 BACKENDS = [b for b in available_backends() if b != "cuda"]
 
 
-@pytest.fixture(autouse=True)
-def _one_torch_thread():
-    """Run as the project does by default (STG_THREADS=1, docs/BENCHMARKS.md#thread-count):
-    on a busy 2-core machine two torch threads make the reference many times slower."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 def _one_gaussian(scale: float, depth: float, opacity: float, dtype=torch.float64):
     means = torch.tensor([[0.0, 0.0, depth]], dtype=dtype)
     quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]], dtype=dtype)

@@ -18,16 +18,6 @@ pytestmark = pytest.mark.skipif(cpu_backend_status() is not None, reason="C++ sp
 PARAM_NAMES = ("means", "quats", "scales", "opacities", "colors")
 
 
-@pytest.fixture(autouse=True)
-def _one_torch_thread():
-    """Run as the project does by default (STG_THREADS=1, docs/BENCHMARKS.md#thread-count):
-    on a busy 2-core machine two torch threads make the reference many times slower."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 def _render(backend, scene, viewmat, K, width, height, seed=0, dtype=torch.float32, **options):
     """Render, backpropagate a random linear loss; return outputs and gradients."""
     params = [t.to(dtype).clone().requires_grad_(True) for t in scene.params()]

@@ -15,16 +15,6 @@ from stg_node.splat.api import cpu_backend_status, cuda_backend_status
 from stg_node.splat.scenes import front_camera, person_sized_scene
 
 
-@pytest.fixture(autouse=True)
-def _one_torch_thread():
-    """Run as the project does by default (STG_THREADS=1, docs/BENCHMARKS.md#thread-count):
-    on a busy 2-core machine two torch threads make the reference many times slower."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 def _backend_params():
     params = [pytest.param(("torch", "cpu"), id="torch")]
     if cpu_backend_status() is None:
