@@ -8,11 +8,22 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def test_ci_runs_the_readme_test_command():
+def _readme_command(marker: str) -> str:
     readme = (ROOT / "README.md").read_text()
-    match = re.search(r"<!-- test-command -->\s*```(?:sh|bash)?\n(.+?)\n```", readme, re.S)
-    assert match, "README.md must mark its test command with <!-- test-command -->"
-    command = match.group(1).strip()
+    match = re.search(rf"<!-- {marker} -->\s*```(?:sh|bash)?\n(.+?)\n```", readme, re.S)
+    assert match, f"README.md must mark a command with <!-- {marker} -->"
+    return match.group(1).strip()
+
+
+def test_readme_main_command_is_a_make_target():
+    command = _readme_command("main-command")
+    assert command.startswith("make ")
+    target = command.split()[1]
+    assert re.search(rf"^{target}:", (ROOT / "Makefile").read_text(), re.M), f"Makefile has no {target} target"
+
+
+def test_ci_runs_the_readme_test_command():
+    command = _readme_command("test-command")
     ci_lines = [line.strip() for line in (ROOT / ".ci" / "run").read_text().splitlines()]
     assert command in ci_lines
 
