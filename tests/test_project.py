@@ -19,7 +19,9 @@ def test_readme_main_command_is_a_make_target():
     command = _readme_command("main-command")
     assert command.startswith("make ")
     target = command.split()[1]
-    assert re.search(rf"^{target}:", (ROOT / "Makefile").read_text(), re.M), f"Makefile has no {target} target"
+    assert re.search(rf"^{target}:", (ROOT / "Makefile").read_text(), re.M), (
+        f"Makefile has no {target} target"
+    )
 
 
 def test_ci_runs_the_readme_test_command():
