@@ -47,7 +47,7 @@ if torch_version=$("$py" -c 'import torch; print(torch.__version__)' 2>/dev/null
 else
   want="torch==${STG_TORCH_VERSION:-2.13.0}"
   echo "==> installing $want${STG_TORCH_INDEX:+ from $STG_TORCH_INDEX}"
-  "${pip[@]}" install -q "$want" ${STG_TORCH_INDEX:+--index-url "$STG_TORCH_INDEX"}
+  "${pip[@]}" install -q "$want" numpy ${STG_TORCH_INDEX:+--index-url "$STG_TORCH_INDEX"}
   torch_version=$("$py" -c 'import torch; print(torch.__version__)')
 fi
 
