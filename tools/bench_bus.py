@@ -31,7 +31,6 @@ import json
 import multiprocessing as mp
 import os
 import platform
-import socket
 import statistics
 import sys
 import tempfile
@@ -53,32 +52,12 @@ LATEST_TOPIC = "camera/frame"  # the keep-last lane
 WARM = "bench/warm"
 
 
-def _free_base_port(span: int = 6) -> int:
-    for _ in range(200):
-        with socket.socket() as probe:
-            probe.bind(("127.0.0.1", 0))
-            base = probe.getsockname()[1]
-        if base + span >= 65535:
-            continue
-        held = []
-        try:
-            for port in range(base, base + span):
-                s = socket.socket()
-                held.append(s)
-                s.bind(("127.0.0.1", port))
-            return base
-        except OSError:
-            continue
-        finally:
-            for s in held:
-                s.close()
-    raise RuntimeError("no free tcp port range")
-
-
 def _new_url(transport: str, workdir: str, name: str) -> str:
+    from stg_node.bus.config import free_tcp_base_port
+
     if transport == "ipc":
         return f"ipc://{workdir}/{name}"
-    return f"tcp://127.0.0.1:{_free_base_port()}"
+    return f"tcp://127.0.0.1:{free_tcp_base_port()}"
 
 
 def _socket_options(sock: zmq.Socket) -> None:

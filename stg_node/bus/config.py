@@ -18,6 +18,7 @@ STG_BUS_KEYS (CURVE key directory), STG_BUS_KEY_NAME (this client's key name).
 from __future__ import annotations
 
 import os
+import socket
 import tempfile
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -147,3 +148,30 @@ class BusConfig:
         return LANES[DEFAULT_LANE]
 
     expected_type = staticmethod(expected_type)
+
+
+def free_tcp_base_port(host: str = "127.0.0.1", span: int = 2 * len(LANES)) -> int:
+    """A base port with ``span`` consecutive free ports on ``host``, for a tcp:// bus URL.
+
+    A tcp bus uses two ports per lane from its base port up; this finds a run of them that
+    nothing holds right now (tests, benchmarks, a launch on a busy machine).
+    """
+    for _ in range(200):
+        with socket.socket() as probe:
+            probe.bind((host, 0))
+            base = probe.getsockname()[1]
+        if base + span >= 65535:
+            continue
+        held = []
+        try:
+            for port in range(base, base + span):
+                sock = socket.socket()
+                held.append(sock)
+                sock.bind((host, port))
+            return base
+        except OSError:
+            continue
+        finally:
+            for sock in held:
+                sock.close()
+    raise RuntimeError(f"no run of {span} free tcp ports on {host}")

@@ -2,38 +2,16 @@
 
 from __future__ import annotations
 
-import socket
 import time
 
 import numpy as np
 import zmq
 
 from stg_node.bus import BodyPose, Frame, GaussianSnapshot, RenderedImage, ViewRequest
+from stg_node.bus.config import free_tcp_base_port
 from stg_node.bus.messages import NodeStatus, TrainerMetrics
-from stg_node.bus.topics import LANES
 
-
-def free_base_port(span: int = 2 * len(LANES)) -> int:
-    """A base port with ``span`` consecutive free ports on 127.0.0.1."""
-    for _ in range(200):
-        with socket.socket() as probe:
-            probe.bind(("127.0.0.1", 0))
-            base = probe.getsockname()[1]
-        if base + span >= 65535:
-            continue
-        held = []
-        try:
-            for port in range(base, base + span):
-                s = socket.socket()
-                held.append(s)
-                s.bind(("127.0.0.1", port))
-            return base
-        except OSError:
-            continue
-        finally:
-            for s in held:
-                s.close()
-    raise RuntimeError("no free tcp port range")
+free_base_port = free_tcp_base_port  # the library helper, under the tests' short name
 
 
 def wait_until(predicate, timeout: float = 5.0, step: float = 0.01) -> bool:
