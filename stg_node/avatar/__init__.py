@@ -1,0 +1,1 @@
+"""STG-Avatar: animatable Gaussian avatars (SMPL + LBS + Spacetime Gaussians + flow-guided densification)."""
