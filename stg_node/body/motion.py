@@ -3,7 +3,7 @@
 Formats read by :func:`load_smpl_params`:
 
 - ZJU-MoCap / EasyMocap ``new_params/{i}.npy``: a pickled dict with ``poses (1, 72)``,
-  ``Rh (1, 3)``, ``Th (1, 3)``, ``shapes (1, 10)`` (read with a numpy-only unpickler); a
+  ``Rh (1, 3)``, ``Th (1, 3)``, ``shapes (1, 10)`` (read by :func:`stg_node.safe_load.load_npy`); a
   directory of them is a sequence, ordered by frame number.
 - ``.npz`` with ``poses (T, 72)``, ``Rh (T, 3)``, ``Th (T, 3)`` and ``shapes`` or ``betas``
   (the layout :func:`save_smpl_params` writes).
@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from stg_node.body.safe_pickle import load_npy
+from stg_node.safe_load import load_npy, load_npz
 
 NUM_POSE = 72
 
@@ -116,8 +116,7 @@ def load_smpl_params(path: str | Path) -> SmplMotion:
     if path.suffix == ".npy":
         data = load_npy(path)
     elif path.suffix == ".npz":
-        with np.load(path, allow_pickle=False) as archive:
-            data = {k: archive[k] for k in archive.files}
+        data = load_npz(path)
     else:
         raise ValueError(f"{path}: SMPL parameters must be .npy (ZJU-MoCap new_params) or .npz")
     return _from_dict(data, str(path))
