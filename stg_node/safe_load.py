@@ -33,7 +33,7 @@ import functools
 import io
 import pickle
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import msgpack
 import numpy as np
@@ -170,14 +170,17 @@ def load_npz(path: str | Path, unpickler: type[pickle.Unpickler] | None = None) 
     return out
 
 
-def load_torch(path: str | Path, map_location: str = "cpu"):
-    """``torch.load(path, weights_only=True)``: tensors and plain containers, no pickled code.
+def load_torch(source: str | Path | BinaryIO, map_location: str = "cpu"):
+    """``torch.load(source, weights_only=True)``: tensors and plain containers, no pickled code.
 
-    torch is imported here, not at module import, so readers of other formats stay torch-free.
+    ``source`` is a path or a binary file object. torch is imported here, not at module import,
+    so readers of other formats stay torch-free.
     """
     import torch
 
-    return torch.load(Path(path), map_location=map_location, weights_only=True)
+    if isinstance(source, str | Path):
+        source = Path(source)
+    return torch.load(source, map_location=map_location, weights_only=True)
 
 
 def load_yaml(path: str | Path) -> Any:
