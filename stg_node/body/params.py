@@ -40,8 +40,9 @@ def _float32(value, name: str, shape: tuple, owner: str) -> np.ndarray:
         want is None or got == want for got, want in zip(array.shape, shape, strict=True)
     )
     if not fits:
-        wanted = tuple("N" if d is None else d for d in shape)
-        raise ValueError(f"{owner}.{name} has shape {array.shape}, expected {wanted}".replace("'N'", "N"))
+        dims = ["N" if d is None else str(d) for d in shape]
+        wanted = f"({dims[0]},)" if len(dims) == 1 else f"({', '.join(dims)})"
+        raise ValueError(f"{owner}.{name} has shape {array.shape}, expected {wanted}")
     if not np.isfinite(array).all():
         raise ValueError(f"{owner}.{name} contains NaN or infinite values")
     return array

@@ -247,7 +247,10 @@ class BodyPose(Message):
         return cls(poses=params.poses, Rh=params.Rh, Th=params.Th, betas=params.betas, **fields)
 
     def to_smpl(self) -> SmplParams:
-        """This pose as :class:`~stg_node.body.params.SmplParams` (``model="smpl"``), checked on the way."""
+        """This pose as :class:`~stg_node.body.params.SmplParams` (``model="smpl"``), checked on the way.
+
+        The arrays are the message's own (read-only views of the received frames): copy one
+        before writing to it."""
         from stg_node.body.params import SmplParams
 
         return SmplParams(poses=self.poses, Rh=self.Rh, Th=self.Th, betas=self.betas)
