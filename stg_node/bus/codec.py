@@ -37,6 +37,7 @@ from stg_node.bus.spec import (
     all_finite,
 )
 from stg_node.bus.topics import base_name
+from stg_node.safe_load import unpack_msgpack
 
 _WIRE_NAME = {dt.str: name for name, dt in WIRE_DTYPES.items()}
 _STANDARD_TOPICS = frozenset(TOPIC_TYPES)
@@ -148,7 +149,7 @@ def encode_counted(msg: Message, *, topic: str, seq: int, src: str, stamp_ns: in
 # --- decode ------------------------------------------------------------------------------------
 
 
-_unpackb = msgpack.unpackb
+_unpackb = unpack_msgpack  # msgpack.unpackb refusing extension types
 _topic_cache: dict[bytes, str] = {}
 
 
