@@ -101,7 +101,9 @@ class DensifyConfig:
     start_iter: int = 300
     stop_fraction: float = 0.75  # no densification after this fraction of the iterations
     interval: int = 200
-    grad_threshold: float = 2e-4  # mean |dL/dmeans2d| (pixels, AbsGS-style) that triggers clone/split
+    # Mean |dL/dmeans2d| x rendered pixels (AbsGS-style, made independent of the crop's size) that
+    # triggers clone/split: about the top 5 % of Gaussians early in training.
+    grad_threshold: float = 0.3
     percent_dense: float = 0.01  # scale separating clone (small) from split (large), x body extent
     prune_opacity: float = 0.02  # harder than 3DGS's 0.005
     prune_score: float = 0.02  # C_i (1 + gamma W_i) below this is pruned
@@ -111,7 +113,13 @@ class DensifyConfig:
     flow_guided: bool = True
     region_px: int = 16  # regions are square image tiles of this size
     error_threshold: float = 0.06  # tau: mean |render - gt| of a region that counts as badly explained
-    motion_threshold_px: float = 1.0  # delta: time-integrated flow (EMA of |flow| per frame, px)
+    # delta: a Gaussian moves fast when its time-integrated flow (running mean of |flow| under it,
+    # px per frame) exceeds max(motion_floor_px, motion_relative x the median flow of the frames):
+    # relative, so a turning subject does not make everything "fast"; floored, so a still one
+    # does not make its breathing "fast".
+    motion_floor_px: float = 1.0
+    motion_relative: float = 1.5
+    motion_min_m: float = 5e-4  # at each density step, motion terms smaller than this (m) are zeroed
     flow_step: float = 0.5  # Delta: new centre = seed + Delta * (metric flow residual) along v/|v|
     flow_noise_m: float = 0.005  # sigma of N(0, sigma^2) added to new centres
     flow_consistency_px: float = 1.5  # reject new Gaussians whose projected motion disagrees with the flow

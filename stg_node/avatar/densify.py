@@ -150,7 +150,8 @@ class DensifyStrategy:
             grad = means2d.grad
         if grad is None:
             return
-        self.grad_sum.index_add_(0, table_rows, grad[rows].norm(dim=-1))
+        pixels = float(ctx.crop[2] * ctx.crop[3])
+        self.grad_sum.index_add_(0, table_rows, grad[rows].norm(dim=-1) * pixels)
         self.vis_count.index_add_(0, table_rows, torch.ones_like(table_rows, dtype=self.vis_count.dtype))
         self.steps_seen += 1
         if ctx.flow is None:
@@ -191,7 +192,8 @@ class DensifyStrategy:
         inside = (px >= 0) & (px < w) & (py >= 0) & (py < h)
         px, py, rows, table_rows = px[inside], py[inside], rows[inside], table_rows[inside]
         tile_err = tiles[py // r, px // r]
-        seeds = (tile_err > c.error_threshold) & (self.flow_w[table_rows] > c.motion_threshold_px)
+        delta = self.motion_threshold(ctx.trainer)
+        seeds = (tile_err > c.error_threshold) & (self.flow_w[table_rows] > delta)
         if not bool(seeds.any()):
             return 0
         fwd = torch.from_numpy(ctx.flow.forward[y0 : y0 + h, x0 : x0 + w]).to(xy.device)
@@ -296,7 +298,8 @@ class DensifyStrategy:
         prune[split] = True
         opacity = model.table.opacities()
         seen = self.vis_count / max(self.steps_seen, 1)
-        score = opacity * seen * (1.0 + c.motion_protect_gamma * self.flow_w / max(c.motion_threshold_px, 1e-6))
+        delta = self.motion_threshold(ctx.trainer)
+        score = opacity * seen * (1.0 + c.motion_protect_gamma * self.flow_w / delta)
         old = torch.arange(n, device=model.device) < n_before  # new rows have no statistics yet
         prune |= old & (opacity < c.prune_opacity)
         prune |= old & (score < c.prune_score) & (self.steps_seen >= c.interval)
@@ -308,6 +311,7 @@ class DensifyStrategy:
             self._resize(keep=~prune)
             report["pruned"] = int(prune.sum()) - int(split.numel())
         report["resampled"] = self._resample(ctx)
+        report["motion_zeroed"] = self._zero_small_motion(ctx)
         self.grad_sum.zero_()
         self.vis_count.zero_()
         self.steps_seen = 0
@@ -343,6 +347,29 @@ class DensifyStrategy:
             self._append(ctx, {k: v.to(model.device) for k, v in rows.items()})
             added += want
         return added
+
+    @torch.no_grad()
+    def _zero_small_motion(self, ctx: StepContext) -> int:
+        """Rows whose motion terms move the centre less than ``motion_min_m`` lose them entirely
+        (exact zeros, Adam moments reset), so static regions cost nothing at render time."""
+        table = ctx.model.table
+        if "motion" not in table:
+            return 0
+        amplitude = table["motion"].norm(dim=-1).sum(dim=1)  # max offset over |tau| <= 1
+        small = (amplitude < self.config.motion_min_m) & table.motion_active()
+        if not bool(small.any()):
+            return 0
+        for name in ("motion", "rot_motion"):
+            if name in table:
+                ctx.optimizer.zero_rows(name, small)
+        return int(small.sum())
+
+    def motion_threshold(self, trainer) -> float:
+        """delta (px per frame): see DensifyConfig.motion_floor_px / motion_relative."""
+        c = self.config
+        mags = [f.flow_magnitude for f in trainer.store.frames if f.flow is not None]
+        median = float(sorted(mags)[len(mags) // 2]) if mags else 0.0
+        return max(c.motion_floor_px, c.motion_relative * median)
 
     # --- helpers ---------------------------------------------------------------------------------
     def _room(self, model) -> int:

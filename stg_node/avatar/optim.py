@@ -124,6 +124,17 @@ class TableOptimizer:
         thr = self.lr(name) * strength
         param.copy_(torch.sign(param) * (param.abs() - thr).clamp_min(0.0))
 
+    @torch.no_grad()
+    def zero_rows(self, name: str, rows: torch.Tensor) -> None:
+        """Set ``rows`` of a column and its Adam moments to zero."""
+        param = self.table[name]
+        param[rows] = 0
+        state = self.adam.state.get(param)
+        if state:
+            for key in ("exp_avg", "exp_avg_sq"):
+                if key in state:
+                    state[key][rows] = 0
+
     # --- state for checkpoints -----------------------------------------------------------------
     def table_state(self) -> dict[str, dict[str, torch.Tensor]]:
         out = {}
