@@ -108,7 +108,8 @@ class BusConfig:
         object.__setattr__(self, "lanes", MappingProxyType(lanes))
 
     def __hash__(self) -> int:
-        return hash((self.url, self.namespace, self.keys, self.key_name, self.curve_on_ipc, *self.lanes.items()))
+        lanes = tuple(self.lanes.items())
+        return hash((self.url, self.namespace, self.keys, self.key_name, self.curve_on_ipc, lanes))
 
     def __getstate__(self) -> dict:  # a mappingproxy does not pickle; its dict does
         return {**self.__dict__, "lanes": dict(self.lanes)}
