@@ -99,7 +99,8 @@ class BusConfig:
     lanes: Mapping[str, str] = field(default_factory=dict)  # topic (standard name) -> lane override
 
     def __post_init__(self):
-        parse_url(self.url)
+        for lane in LANES.values():  # the URL, and every endpoint derived from it (ipc path length)
+            lane_endpoint(self.url, lane, "out")
         check_namespace(self.namespace)
         lanes = dict(self.lanes)  # a private copy: the caller's dict cannot change us later
         for topic, lane in lanes.items():
