@@ -99,7 +99,9 @@ def test_a_bad_log_level_is_usage_from_the_option_or_the_environment(monkeypatch
     assert "STG_LOG_LEVEL" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("sig, code", [(signal.SIGINT, EXIT_INTERRUPTED), (signal.SIGTERM, 128 + signal.SIGTERM)])
+@pytest.mark.parametrize(
+    "sig, code", [(signal.SIGINT, EXIT_INTERRUPTED), (signal.SIGTERM, 128 + signal.SIGTERM)]
+)
 def test_a_stop_signal_interrupts_a_job_with_128_plus_its_number(sig, code, capsys):
     def job(args):
         os.kill(os.getpid(), sig)
