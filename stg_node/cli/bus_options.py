@@ -14,11 +14,10 @@ import argparse
 import logging
 
 from stg_node.bus.config import ENV_BUS, ENV_KEY_NAME, ENV_KEYS, ENV_NAMESPACE, BusConfig
-from stg_node.cli.runner import UsageError, sigterm_as_interrupt
+from stg_node.cli.runner import UsageError
+from stg_node.signals import interrupt_on_signals
 
 log = logging.getLogger(__name__)
-
-__all__ = ["add_bus_options", "bus_config", "served_configs", "sigterm_as_interrupt"]
 
 
 def add_bus_options(
@@ -85,3 +84,7 @@ def served_configs(args: argparse.Namespace, urls: list[str] | None = None) -> l
         return [BusConfig.from_env(url=url, namespace=args.namespace, keys=args.keys) for url in urls]
     except ValueError as exc:
         raise UsageError(str(exc)) from exc
+
+
+# Its former name here, kept for code that imports it: SIGINT and SIGTERM both raise KeyboardInterrupt.
+sigterm_as_interrupt = interrupt_on_signals

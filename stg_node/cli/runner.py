@@ -15,8 +15,7 @@ Exit codes:
       address in use, a broker already running, a missing key
 2     bad usage, found before any work starts: argparse errors, an invalid option value or
       combination (raise :class:`UsageError`), a bad log level
-130   a job that ends by itself was interrupted by Ctrl-C (SIGINT) before it finished;
-      143 for SIGTERM (128 + the signal number, as a shell reports a killed job)
+130   a job that ends by itself was interrupted (Ctrl-C or SIGTERM) before it finished
 ====  ====================================================================================
 
 Expected failures (``OSError``, ``ValueError``, :class:`CommandFailed`, and what a command
@@ -28,23 +27,20 @@ the form argparse uses for usage errors; their traceback is logged at DEBUG
 from __future__ import annotations
 
 import argparse
-import contextlib
 import logging
-import signal
 import sys
-import threading
 import traceback
 from collections.abc import Callable, Sequence
 
 from stg_node.logs import configure_logging
+from stg_node.signals import interrupt_on_signals
 
 log = logging.getLogger(__name__)
 
 EXIT_OK = 0
 EXIT_FAILED = 1
 EXIT_USAGE = 2
-EXIT_SIGNAL_BASE = 128  # + the signal number: 130 for SIGINT, 143 for SIGTERM
-EXIT_INTERRUPTED = EXIT_SIGNAL_BASE + signal.SIGINT
+EXIT_INTERRUPTED = 130  # 128 + SIGINT, as a shell reports a job ended by Ctrl-C
 
 
 class UsageError(Exception):
@@ -57,42 +53,6 @@ class CommandFailed(Exception):
 
 #: Failures that are the user's situation rather than our bug: one line, exit 1.
 EXPECTED_ERRORS: tuple[type[BaseException], ...] = (CommandFailed, OSError, ValueError)
-
-
-class StopSignal:
-    """Which stop signal arrived last (None: none yet); see :func:`stop_signals`."""
-
-    def __init__(self):
-        self.signum: int | None = None
-
-
-@contextlib.contextmanager
-def stop_signals():
-    """While active, SIGINT and SIGTERM raise KeyboardInterrupt in the main thread, so ``with``
-    blocks and ``finally`` clauses clean up on either. SIGINT is set explicitly because a
-    process started in the background inherits it ignored. Yields a :class:`StopSignal`
-    saying which one came; restores the previous handlers on exit. A no-op (yielding a
-    StopSignal that stays empty) outside the main thread."""
-    stop = StopSignal()
-    if threading.current_thread() is not threading.main_thread():
-        yield stop
-        return
-
-    def handler(signum, frame):
-        stop.signum = signum
-        raise KeyboardInterrupt
-
-    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        yield stop
-    finally:
-        for sig, old in previous.items():
-            signal.signal(sig, old)
-
-
-def sigterm_as_interrupt():
-    """Former name of :func:`stop_signals` (which also covers an inherited-ignored SIGINT)."""
-    return stop_signals()
 
 
 def add_log_level_option(parser: argparse.ArgumentParser) -> None:
@@ -123,12 +83,12 @@ def run_main(
     """Parse ``argv``, set up logging, run ``command(args)`` and map its end to an exit code.
 
     ``stop_is_success``: the command runs until stopped, so Ctrl-C / SIGTERM is its normal
-    end (exit 0) rather than an interruption (130 / 143). ``expected``: further exception
+    end (exit 0) rather than an interruption (130). ``expected``: further exception
     types that are failures to report in one line rather than bugs. See the module
     docstring for the codes.
     """
     prog = parser.prog
-    with stop_signals() as stop:
+    with interrupt_on_signals():  # SIGINT too: a background start inherits it ignored
         try:
             args = parser.parse_args(argv)
             try:
@@ -146,9 +106,8 @@ def run_main(
         except KeyboardInterrupt:
             if stop_is_success:
                 return EXIT_OK
-            signum = stop.signum or signal.SIGINT
-            print(f"{prog}: interrupted ({signal.Signals(signum).name})", file=sys.stderr)
-            return EXIT_SIGNAL_BASE + signum
+            print(f"{prog}: interrupted", file=sys.stderr)
+            return EXIT_INTERRUPTED
         except (*EXPECTED_ERRORS, *expected) as exc:
             log.debug("%s failed", prog, exc_info=True)
             print(f"{prog}: error: {exc}", file=sys.stderr)
