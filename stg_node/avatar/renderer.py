@@ -64,13 +64,12 @@ class AvatarRenderer:
         background=(0.0, 0.0, 0.0),
         follow: bool = False,
         depth: bool = False,
-        body: BodyState | None = None,
     ) -> RenderOutput:
         """Render ``smpl`` (SmplParams) seen by ``camera`` (stg_node.data.types.Camera) at ``time`` (s)."""
         started = _now()
         u = self.time_for(smpl, time, follow=follow)
         cam = Camera3.from_camera(camera, device=self.device)
-        body = body or BodyState.from_smpl(smpl, self.device)
+        body = BodyState.from_smpl(smpl, self.device)
         posed = self.model.pose(body, u, cam.center, skip_inactive=True)
         bg = torch.as_tensor(background, dtype=torch.float32, device=self.device)
         image, alpha, info = render(posed, cam, background=bg, backend=self.backend, render_depth=depth)

@@ -14,15 +14,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import logging
 import sys
 from pathlib import Path
 
-from stg_node.logs import configure_logging
+from stg_node.cli.runner import add_log_level_option, run_main
 from stg_node.threads import configure_threads
-
-log = logging.getLogger("stg_node.cli.evaluate")
-
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="stg-eval", description="Score a trained STG-Avatar run on a test split.")
@@ -35,25 +31,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="cpu")
     p.add_argument("--threads", default=None, help="CPU threads (default: STG_THREADS or 1)")
     p.add_argument("--no-progress", action="store_true")
-    p.add_argument("--log-level", default=None)
+    add_log_level_option(p)
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    configure_logging(args.log_level)
-    configure_threads(args.threads)
-    try:
-        result = evaluate_run(args)
-    except Exception as exc:
-        from stg_node.avatar.snapshot import SnapshotError
-        from stg_node.data.errors import DatasetError
+    from stg_node.avatar.snapshot import SnapshotError
+    from stg_node.data.errors import DatasetError
 
-        if isinstance(exc, (DatasetError, SnapshotError, FileNotFoundError, ValueError)):
-            log.error("%s", exc)
-        else:
-            log.exception("evaluation failed")
-        return 1
+    return run_main(build_parser(), run, argv, expected=(DatasetError, SnapshotError))
+
+
+def run(args: argparse.Namespace) -> int:
+    configure_threads(args.threads)
+    result = evaluate_run(args)
     if args.json:
         print(json.dumps(result))
     else:
@@ -72,7 +63,7 @@ def evaluate_run(args) -> dict:
     from stg_node.avatar.evaluate import evaluate_split, save_comparison
     from stg_node.avatar.loading import load_run_renderer
 
-    run, renderer, body_states, summary = load_run_renderer(Path(args.run), device=args.device, backend=args.backend)
+    run, renderer, corrections, summary = load_run_renderer(Path(args.run), device=args.device, backend=args.backend)
     spec = run.data_spec()
     if args.data:
         spec = spec.with_root(Path(args.data).resolve())
@@ -83,7 +74,7 @@ def evaluate_run(args) -> dict:
         dataset,
         split=args.split,
         lpips_nets=nets,
-        body_states=body_states if args.split == "novel_view" else None,
+        pose_corrections=corrections if args.split == "novel_view" else None,
         show_progress=not args.no_progress,
         keep_images=6,
     )

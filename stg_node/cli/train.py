@@ -5,7 +5,8 @@
               [--backend auto|cpu|cuda|torch] [--threads T] [--seed S] [--resume]
 
 The run folder layout is in stg_node/avatar/run.py; docs/AVATAR.md explains the method and
-every preset. Exit codes: 0 trained, 1 the training failed (bad data, a diverged model), 2 bad usage.
+every preset. Exit codes (docs/CLI.md): 0 trained, 1 the training failed (bad data), 2 bad usage, 130 stopped by
+Ctrl-C/SIGTERM after a final checkpoint (continue with --resume).
 """
 
 from __future__ import annotations
@@ -13,11 +14,12 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import signal
 import sys
 import time
+from pathlib import Path
 
-from stg_node.logs import configure_logging
+from stg_node.cli.runner import CommandFailed, UsageError, add_log_level_option, run_main
+from stg_node.signals import StopSignals
 from stg_node.threads import configure_threads
 
 log = logging.getLogger("stg_node.cli.train")
@@ -47,54 +49,32 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="random seed (default %(default)s)")
     p.add_argument("--resume", action="store_true", help="continue from RUN_DIR's last checkpoint")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.add_argument("--log-level", default=None, help="log level (default: STG_LOG_LEVEL or INFO)")
+    add_log_level_option(p)
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    configure_logging(args.log_level)
-    if args.iters is not None and args.iters < 1:
-        parser.error("--iters must be >= 1")
-    try:
-        from stg_node.avatar.data_spec import parse_frame_range
+    from stg_node.avatar.snapshot import SnapshotError
+    from stg_node.body import BodyModelError
+    from stg_node.data.errors import DatasetError
 
+    return run_main(build_parser(), run, argv, expected=(DatasetError, BodyModelError, SnapshotError))
+
+
+def run(args: argparse.Namespace) -> int:
+    from stg_node.avatar.data_spec import parse_frame_range
+
+    if args.iters is not None and args.iters < 1:
+        raise UsageError("--iters must be >= 1")
+    try:
         frames = parse_frame_range(args.train_frames)
     except ValueError as exc:
-        parser.error(str(exc))
+        raise UsageError(str(exc)) from exc
+    if args.format != "video" and not Path(args.data).is_dir():
+        raise CommandFailed(f"--data {args.data}: no such folder")
     configure_threads(args.threads)
-    stop = _install_stop_handlers()
-    try:
+    with StopSignals() as stop:
         return _train(args, frames, stop)
-    except KeyboardInterrupt:
-        log.warning("interrupted")
-        return 130
-    except Exception as exc:  # reported once, without a traceback for the expected kinds
-        from stg_node.avatar.snapshot import SnapshotError
-        from stg_node.body import BodyModelError
-        from stg_node.data.errors import DatasetError
-
-        if isinstance(exc, (DatasetError, BodyModelError, SnapshotError, FileNotFoundError, ValueError)):
-            log.error("%s", exc)
-        else:
-            log.exception("training failed")
-        return 1
-
-
-def _install_stop_handlers():
-    """SIGINT/SIGTERM end the run after the current step, with a final checkpoint."""
-    state = {"stop": False}
-
-    def handler(signum, _frame):
-        if state["stop"]:  # second signal: leave now
-            raise KeyboardInterrupt
-        state["stop"] = True
-        log.warning("%s received: stopping after this step (checkpoint kept); again to abort", signal.Signals(signum).name)
-
-    signal.signal(signal.SIGINT, handler)
-    signal.signal(signal.SIGTERM, handler)
-    return state
 
 
 def _device(args) -> str:
@@ -107,9 +87,7 @@ def _device(args) -> str:
     return "cpu"
 
 
-def _train(args, frames, stop) -> int:
-    from pathlib import Path
-
+def _train(args, frames, stop: StopSignals) -> int:
     from stg_node.avatar.data_spec import DataSpec
     from stg_node.avatar.presets import preset
     from stg_node.avatar.run import RunDir, write_json
@@ -162,7 +140,7 @@ def _train(args, frames, stop) -> int:
     bar = progress(desc="training", unit="it", total=config.iterations, enabled=not args.no_progress)
     bar.update(trainer.iteration)
     last_save = trainer.iteration
-    while trainer.iteration < config.iterations and not stop["stop"]:
+    while trainer.iteration < config.iterations and not stop.requested:
         result = trainer.step()
         bar.update(1)
         if result.iteration % config.log_every == 0 or result.skipped:
@@ -197,6 +175,7 @@ def _train(args, frames, stop) -> int:
     print(json.dumps(summary))
     if not finished:
         log.warning("stopped at iteration %d of %d; continue with --resume", trainer.iteration, config.iterations)
+        return 130
     return 0
 
 
