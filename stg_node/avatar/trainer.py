@@ -135,7 +135,12 @@ class Trainer:
         pad = 0.05
         bounds = torch.stack([vertices.min(0).values - pad, vertices.max(0).values + pad])
         axis = TimeAxis(origin_s=float(frame.time), unit_s=cfg.time_unit_s)
-        self.attach_model(AvatarModel(cfg, table, skeleton, bounds, axis), betas)
+        # nn.Linear draws its initial weights from torch's global generator: seed it for this run
+        # (without touching the caller's random state) so the same seed gives the same model.
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(int(torch.randint(1 << 62, (1,), generator=gen)))
+            model = AvatarModel(cfg, table, skeleton, bounds, axis)
+        self.attach_model(model, betas)
         self._build_optimizer()
         self.densifier.reset(self.model)
         log.info(
