@@ -57,7 +57,7 @@ def _child(args) -> None:
 
     from stg_node.logs import configure_logging
     from stg_node.progress import progress
-    from stg_node.splat import cpu_backend, rasterize
+    from stg_node.splat import rasterize
     from stg_node.splat.scenes import front_camera, person_sized_scene
     from stg_node.threads import configure_threads
 
@@ -78,26 +78,27 @@ def _child(args) -> None:
         def forward_backward(backend, params=params, viewmat=viewmat, K=K, size=size, weights=weights):
             for p in params:
                 p.grad = None
-            image, alpha, _ = rasterize(*params, viewmat, K, size, size, backend=backend)
+            image, alpha, info = rasterize(*params, viewmat, K, size, size, backend=backend)
             ((image * weights).sum() + alpha.sum()).backward()
+            return info
 
         row = {"n": n, "size": size, "threads": threads, "load_before": os.getloadavg()[0]}
         row["cpu_fwd"] = _time(lambda: forward("cpu"), args.repeats)
         stages = {"project": [], "sort": [], "bin": [], "raster": []}
         for _ in range(5):
-            forward("cpu")
-            stages["project"].append(cpu_backend.last_stats["project"]["ms"])
+            info = forward("cpu")[2]
+            stages["project"].append(info["stats"]["project"]["ms"])
             for key in ("sort", "bin", "raster"):
-                stages[key].append(cpu_backend.last_stats["forward"][f"ms_{key}"])
+                stages[key].append(info["stats"]["forward"][f"ms_{key}"])
         row["cpu_stages_ms"] = {k: statistics.median(v) for k, v in stages.items()}
-        row["n_intersections"] = cpu_backend.last_stats["forward"]["n_intersections"]
+        row["n_intersections"] = info["n_intersections"]
         row["cpu_fwdbwd"] = _time(lambda: forward_backward("cpu"), max(5, args.repeats // 2))
         bstages = {"raster_bwd": [], "reduce": [], "project_bwd": []}
         for _ in range(3):
-            forward_backward("cpu")
-            bstages["raster_bwd"].append(cpu_backend.last_stats["backward"]["ms_raster"])
-            bstages["reduce"].append(cpu_backend.last_stats["backward"]["ms_reduce"])
-            bstages["project_bwd"].append(cpu_backend.last_stats["project_backward"]["ms"])
+            stats = forward_backward("cpu")["stats"]  # the backward stages arrive with backward()
+            bstages["raster_bwd"].append(stats["backward"]["ms_raster"])
+            bstages["reduce"].append(stats["backward"]["ms_reduce"])
+            bstages["project_bwd"].append(stats["project_backward"]["ms"])
         row["cpu_stages_ms"].update({k: statistics.median(v) for k, v in bstages.items()})
         if not args.no_torch:
             row["torch_fwd"] = _time(lambda: forward("torch"), args.torch_repeats, warmup=1)
