@@ -56,8 +56,8 @@ def test_wrong_types_sizes_and_camera_are_clear_errors():
     with pytest.raises(TypeError, match="means must be a torch.Tensor"):
         _call(bad)
     for w, h, msg in [
-        (0, 16, "width must be >= 1"),
-        (24, -1, "height must be >= 1"),
+        (-1, 16, "width must be >= 0"),
+        (24, -1, "height must be >= 0"),
         (24.0, 16, "width must be an int"),
     ]:
         bad = list(args)
