@@ -144,14 +144,21 @@ def test_a_gaussian_less_than_half_a_pixel_inside_is_visible_but_draws_nothing(b
 
 
 def test_zero_quaternions_become_the_identity_before_any_backend():
-    q = torch.tensor(
-        [[0.0, 0.0, 0.0, 0.0], [1e-13, 0.0, 0.0, 0.0], [1e-11, 0.0, 0.0, 0.0], [0.0, 2.0, 0.0, 0.0]],
-        dtype=torch.float64,
-    )
-    q.requires_grad_(True)
+    """Every component below 1e-12 in magnitude -> (1, 0, 0, 0), zero gradient; the rest untouched."""
+    eps = 1e-12
+    rows = [
+        [0.0] * 4,
+        [-0.9 * eps, 0.0, 0.0, 0.0],
+        [0.6 * eps] * 4,
+        [1.1 * eps, 0.0, 0.0, 0.0],
+        [0.0, 2.0, 0.0, 0.0],
+    ]
+    q = torch.tensor(rows, dtype=torch.float64, requires_grad=True)
     out = sanitize_quats(q)
-    assert out.tolist() == [[1.0, 0, 0, 0], [1.0, 0, 0, 0], [1e-11, 0, 0, 0], [0, 2.0, 0, 0]]
+    assert out.tolist() == [[1.0, 0, 0, 0]] * 3 + rows[3:]
     out.sum().backward()
-    assert q.grad.tolist() == [[0.0] * 4, [0.0] * 4, [1.0] * 4, [1.0] * 4]
-    assert sanitize_quats(q.float()).dtype == torch.float32
-    assert sanitize_quats(q.float())[1].tolist() == [1.0, 0, 0, 0]
+    assert q.grad.tolist() == [[0.0] * 4] * 3 + [[1.0] * 4] * 2
+    assert sanitize_quats(q.float())[2].tolist() == [1.0, 0, 0, 0]
+    unit = torch.tensor([[1.0, 0.0, 0.0, 0.0], [0.5, 0.5, 0.5, 0.5]])
+    assert sanitize_quats(unit) is unit  # the common case costs one reduction, no copy
+    assert sanitize_quats(torch.zeros(0, 4)).shape == (0, 4)

@@ -113,14 +113,20 @@ def resolve_backend(backend: str, device: torch.device) -> str:
 
 
 def sanitize_quats(quats: torch.Tensor) -> torch.Tensor:
-    """Quaternions of norm below QUAT_NORM_EPS (a zero one) -> the identity (1, 0, 0, 0).
+    """Quaternions whose every component is below QUAT_NORM_EPS in magnitude (a zero one) ->
+    the identity (1, 0, 0, 0); the others are returned untouched.
 
-    Applied before any backend sees them: gsplat would turn them into NaN covariances, ours into
-    the identity, so one documented behaviour needs one place. Branch-free (no device sync);
-    the replaced rows get a zero gradient."""
-    small = (quats * quats).sum(dim=-1, keepdim=True) < K_.QUAT_NORM_EPS**2
+    Applied before any backend sees them: gsplat would turn them into NaN covariances (its
+    squared norm underflows), ours into a degenerate matrix, so one documented behaviour needs
+    one place. The replaced rows get a zero gradient. One cheap reduction in the common case
+    where nothing needs replacing (one device sync on CUDA)."""
+    if quats.numel() == 0:
+        return quats
+    largest = quats.detach().abs().amax(dim=-1)
+    if not bool(largest.amin() < K_.QUAT_NORM_EPS):
+        return quats
     identity = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=quats.dtype, device=quats.device)
-    return torch.where(small, identity, quats)
+    return torch.where((largest < K_.QUAT_NORM_EPS)[:, None], identity, quats)
 
 
 def _empty_render(request: RenderRequest) -> BackendOutput:
@@ -188,8 +194,8 @@ def rasterize(
 
     Args:
         means: [N, 3] centres in world space (metres).
-        quats: [N, 4] rotations, wxyz, any norm (normalised inside; one of norm < 1e-12, e.g.
-            zero, is the identity rotation, with a zero gradient).
+        quats: [N, 4] rotations, wxyz, any norm (normalised inside; one whose components are
+            all below 1e-12 in magnitude, e.g. zero, is the identity, with a zero gradient).
         scales: [N, 3] standard deviations along the rotated axes, activated (>= 0).
         opacities: [N] activated opacities (in [0, 1]).
         colors: [N, C] any number of channels (RGB, features ...), blended as given.

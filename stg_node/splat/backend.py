@@ -9,8 +9,8 @@ A backend is one file (cpu_backend.py, cuda_backend.py, torch_reference.py) hold
 Backends that split the work into a projection and a rasterization, as the cpu kernels and
 the torch reference do, subclass `TwoStageBackend` and write only those two stages; the
 driver here adds the depth channel, wires ``means2d.grad``/``.absgrad`` and skips the
-rasterizer when no Gaussian covers a pixel centre. A fused backend (gsplat) implements
-`render` itself and must give the same guarantees.
+rasterizer when every Gaussian is culled. A fused backend (gsplat) implements `render`
+itself and must give the same guarantees.
 """
 
 from __future__ import annotations
@@ -130,7 +130,7 @@ class TwoStageBackend:
         stats = RenderStats()
         proj = self.project(request, (means, quats, scales, opacities), stats)
         holder = track_means2d(proj.means2d)
-        if not bool(proj.drawn().any()):
+        if not bool(proj.visible.any()):  # (visible ones that draw nothing are cheap either way)
             image, alpha, depth = blank_images(request, proj, holder, dtype)
             stats.n_intersections = 0
             return BackendOutput(image, alpha, depth, proj, stats)

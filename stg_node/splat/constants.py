@@ -52,9 +52,10 @@ SIGMA_EXTENT_MAX = 3.33
 # 3DGS/gsplat, so Gaussians far off-screen do not get absurd 2D covariances.
 FRUSTUM_MARGIN = 0.3
 
-# Quaternions: rasterize() replaces any of norm below QUAT_NORM_EPS by the identity (1, 0, 0, 0)
-# before a backend sees it (gsplat would turn it into NaN); every backend then normalises
-# q / |q| (the C++ kernels as q / max(|q|, QUAT_NORM_EPS)).
+# Quaternions: rasterize() replaces any whose every component is below QUAT_NORM_EPS in
+# magnitude (a zero one) by the identity (1, 0, 0, 0) before a backend sees it (gsplat would
+# turn it into NaN); every backend then normalises q / |q| (the C++ kernels as
+# q / max(|q|, QUAT_NORM_EPS)).
 QUAT_NORM_EPS = 1e-12
 
 # Anti-aliased mode multiplies opacity by sqrt(det(S) / det(S + eps2d I)); its gradient uses

@@ -62,7 +62,7 @@ class RenderRequest:
     """One camera's render: Gaussians (validated, quaternions sanitised) and options."""
 
     means: torch.Tensor  # [N, 3]
-    quats: torch.Tensor  # [N, 4] wxyz, none of norm < QUAT_NORM_EPS
+    quats: torch.Tensor  # [N, 4] wxyz, none with every |component| < QUAT_NORM_EPS
     scales: torch.Tensor  # [N, 3] activated
     opacities: torch.Tensor  # [N] activated
     colors: torch.Tensor  # [N, C]

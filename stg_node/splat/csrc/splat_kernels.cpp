@@ -221,18 +221,17 @@ void project_forward(int64_t n, const float* means, const float* quats, const fl
         // gsplat's image test (ProjectionEWA3DGSFused.cu): culled when [mean - radius,
         // mean + radius] misses (0, W) x (0, H). Written so that a NaN centre is culled too.
         const double W = cam.width, H = cam.height;
-        if (!(g.mx + rx > 0.0 && g.mx - rx < W && g.my + ry > 0.0 && g.my - ry < H)) continue;
+        const bool on_image = (g.mx + rx > 0.0) & (g.mx - rx < W) & (g.my + ry > 0.0) & (g.my - ry < H);
+        if (!on_image) continue;
         // Pixel j (centre j + 0.5) is covered when |mx - (j + 0.5)| <= rx. Clip in double
         // before converting to int, so huge radii or far-off centres cannot overflow. The box
-        // is empty for a visible Gaussian that reaches less than half a pixel into the image.
-        double x0 = std::max(std::ceil(g.mx - rx - 0.5), 0.0);
-        double x1 = std::min(std::floor(g.mx + rx - 0.5), W - 1.0);
-        double y0 = std::max(std::ceil(g.my - ry - 0.5), 0.0);
-        double y1 = std::min(std::floor(g.my + ry - 0.5), H - 1.0);
-        if (!(x0 <= x1 && y0 <= y1)) {
-            x0 = y0 = 0.0;
-            x1 = y1 = -1.0;
-        }
+        // is empty (0, -1, 0, -1) for a visible Gaussian that reaches less than half a pixel
+        // into the image.
+        const double x0 = std::max(std::ceil(g.mx - rx - 0.5), 0.0);
+        const double x1 = std::min(std::floor(g.mx + rx - 0.5), W - 1.0);
+        const double y0 = std::max(std::ceil(g.my - ry - 0.5), 0.0);
+        const double y1 = std::min(std::floor(g.my + ry - 0.5), H - 1.0);
+        const bool covers = (x0 <= x1) & (y0 <= y1);
 
         means2d[i * 2] = static_cast<float>(g.mx);
         means2d[i * 2 + 1] = static_cast<float>(g.my);
@@ -246,10 +245,10 @@ void project_forward(int64_t n, const float* means, const float* quats, const fl
         const double rmax = static_cast<double>(s.radius_report_max);
         radii[i * 2] = static_cast<int32_t>(std::min(rx, rmax));
         radii[i * 2 + 1] = static_cast<int32_t>(std::min(ry, rmax));
-        bbox[i * 4] = static_cast<int32_t>(x0);
-        bbox[i * 4 + 1] = static_cast<int32_t>(x1);
-        bbox[i * 4 + 2] = static_cast<int32_t>(y0);
-        bbox[i * 4 + 3] = static_cast<int32_t>(y1);
+        bbox[i * 4] = covers ? static_cast<int32_t>(x0) : 0;
+        bbox[i * 4 + 1] = covers ? static_cast<int32_t>(x1) : -1;
+        bbox[i * 4 + 2] = covers ? static_cast<int32_t>(y0) : 0;
+        bbox[i * 4 + 3] = covers ? static_cast<int32_t>(y1) : -1;
         visible[i] = 1;
     }
 }
