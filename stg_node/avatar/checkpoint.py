@@ -3,7 +3,7 @@
 What the model needs is the published snapshot (snapshot.py); a checkpoint adds, as ``train.*``
 arrays and meta: the Adam moments of every column and dense module, the densification
 statistics, the per-frame pose corrections, the adaptive-weight averages, the counters, and
-the TrainConfig (JSON bytes), plus ``body.betas`` to rebuild the canonical mesh. Frames are not
+the TrainConfig (JSON bytes) and the subject's betas (to rebuild the canonical mesh). Frames are not
 saved: ``stg-train --resume`` re-reads them from the dataset, the online trainer from the
 stream. Because every random choice of step k is a function of (seed, k), a run resumed at
 checkpoint k is the uninterrupted run.
@@ -45,7 +45,7 @@ def training_state(trainer) -> tuple[dict, dict]:
     arrays["train.config_json"] = json_to_array(
         {"config": trainer.config.to_dict(), "body_model": trainer.body_reference}
     )
-    arrays["body.betas"] = _np(trainer.betas)
+    arrays["train.betas"] = _np(trainer.betas).reshape(-1)
     for name, state in trainer.optimizer.table_state().items():
         for key in STATE_KEYS:
             arrays[f"train.adam.{name}.{key}"] = _np(state[key])
@@ -106,7 +106,7 @@ def load(path: str | Path, *, body_model=None, device="cpu", backend="auto", flo
         return torch.as_tensor(np.array(arrays[name], np.float32), device=dev)
 
     model = model_from_snapshot(msg, device=dev)
-    trainer.attach_model(model, t("body.betas")[None])
+    trainer.attach_model(model, t("train.betas")[None])
     if "train.pose_deltas" in arrays:
         frames = [int(f) for f in np.asarray(arrays["train.pose_frames"])]
         trainer.pose_slots = {f: i for i, f in enumerate(frames)}

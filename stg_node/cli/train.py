@@ -42,6 +42,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--train-frames", default=None, help="training frame range A:B (default: the dataset's protocol)")
     p.add_argument("--train-camera", default=None, help="training camera name (default: the protocol's, camera 1)")
     p.add_argument("--iters", type=int, default=None, help="training iterations (default: the preset's)")
+    p.add_argument("--checkpoint-every", type=int, default=None, help="iterations between checkpoints (default: the preset's)")
     p.add_argument("--backend", default="auto", choices=("auto", "cpu", "cuda", "torch"), help="splatting backend")
     p.add_argument("--device", default=None, help="torch device (default: cuda when --backend cuda/auto finds one, else cpu)")
     p.add_argument("--size", type=int, default=512, help="image size the frames are loaded at (default %(default)s)")
@@ -66,6 +67,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.iters is not None and args.iters < 1:
         raise UsageError("--iters must be >= 1")
+    if args.checkpoint_every is not None and args.checkpoint_every < 1:
+        raise UsageError("--checkpoint-every must be >= 1")
     try:
         frames = parse_frame_range(args.train_frames)
     except ValueError as exc:
@@ -122,6 +125,8 @@ def _train(args, frames, stop: StopSignals) -> int:
             config = config.replace(iterations=args.iters)
         trainer = Trainer(config, args.smpl_model, device=device, backend=args.backend, seed=args.seed,
                           flow_cache=flow_cache)
+    if args.checkpoint_every is not None:
+        trainer.config = trainer.config.replace(checkpoint_every=args.checkpoint_every)
     config = trainer.config
     run.write_config({
         "config": config.to_dict(),
