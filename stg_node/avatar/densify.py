@@ -43,6 +43,8 @@ import torch.nn.functional as F
 
 from stg_node.avatar.config import DensifyConfig
 from stg_node.avatar.gaussians import new_columns, sample_surface, surface_skin_weights
+from stg_node.avatar.model import conjugate, rotate
+from stg_node.avatar.rigid import blend, blend_rotation
 from stg_node.body import lbs
 
 log = logging.getLogger(__name__)
@@ -220,16 +222,13 @@ class DensifyStrategy:
         d_world = d_cam @ ctx.camera.viewmat[:3, :3]  # R^T d
         # Into the canonical frame of each seed: inverse of its blended rotation.
         weights = model.skin_weights()[srow]
-        blended = (weights @ ctx.bones.transforms[0].reshape(24, 16)).reshape(-1, 4, 4)[:, :3, :3]
-        rot = lbs.closest_rotation(blended)
-        d_canon = (rot.transpose(1, 2) @ d_world[..., None]).squeeze(-1)
+        blended = blend(weights, ctx.bones)
+        d_canon = rotate(conjugate(blend_rotation(weights, ctx.bones)), d_world)
         noise = torch.randn(d_canon.shape, generator=ctx.generator, device=d_canon.device)
         new_means = model.table["means"][srow] + c.flow_step * d_canon + c.flow_noise_m * noise
         # Temporal consistency with the flow: where the new centre projects, the observed flow must
         # be valid, on the person, and close to the seed's.
-        posed_new = (blended @ new_means[..., None]).squeeze(-1) + (
-            weights @ ctx.bones.transforms[0].reshape(24, 16)
-        ).reshape(-1, 4, 4)[:, :3, 3]
+        posed_new = (blended[:, :3, :3] @ new_means[..., None]).squeeze(-1) + blended[:, :3, 3]
         p_new = ctx.camera.project(posed_new)
         nx, ny = p_new[:, 0].round().long(), p_new[:, 1].round().long()
         ok = (nx >= 0) & (nx < w) & (ny >= 0) & (ny < h)

@@ -110,6 +110,17 @@ def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     )
 
 
+def conjugate(q: torch.Tensor) -> torch.Tensor:
+    return q * torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=q.dtype, device=q.device)
+
+
+def rotate(q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """Rotate vectors ``v (N, 3)`` by unit quaternions ``q (N, 4)``: ``v + 2 w (u x v) + 2 u x (u x v)``."""
+    w, u = q[:, :1], q[:, 1:]
+    uv = torch.linalg.cross(u, v)
+    return v + 2.0 * (w * uv + torch.linalg.cross(u, uv))
+
+
 def _normalise(q: torch.Tensor) -> torch.Tensor:
     norm = q.norm(dim=-1, keepdim=True)
     identity = torch.zeros_like(q)
@@ -157,7 +168,7 @@ class AvatarModel(nn.Module):
         """World centres only (cheap: the flow loss and densification need the next frame's)."""
         st = spacetime.evaluate(self.table, u, self.config.time_horizon, temporal_opacity=False)
         means = self.table["means"] if st.offsets is None else self.table["means"] + st.offsets
-        return skin(means, self.skin_weights(), bones, polar_iterations=0).means
+        return skin(means, self.skin_weights(), bones, rotations=False).means
 
     def pose(
         self,
@@ -169,6 +180,7 @@ class AvatarModel(nn.Module):
         skip_inactive: bool = False,
         cull_transparent: bool = True,
         bones: PosedBones | None = None,
+        key: torch.Tensor | None = None,
     ) -> PosedGaussians:
         """World-space Gaussians for one body pose at normalised time ``u``, seen from ``camera_center``."""
         cfg = self.config
@@ -192,18 +204,18 @@ class AvatarModel(nn.Module):
         canonical = table["means"] if st.offsets is None else table["means"] + st.offsets
         canonical = rows(canonical)
         skinned = skin(canonical, rows(self.skin_weights()), bones)
-        q_blend = lbs.matrix_to_quaternion(skinned.rotation)
-        quats = quat_multiply(q_blend, _normalise(rows(st.quats)))
+        quats = quat_multiply(skinned.quats, _normalise(rows(st.quats)))
         scales = rows(table.scales())
         degree = cfg.sh_degree if sh_degree is None else min(sh_degree, cfg.sh_degree)
-        view = skinned.means.detach() - camera_center
-        view = view / view.norm(dim=1, keepdim=True).clamp_min(1e-9)
-        view_canonical = (skinned.rotation.transpose(1, 2) @ view[..., None]).squeeze(-1)
+        with torch.no_grad():  # the viewing direction in each Gaussian's canonical frame
+            view = skinned.means - camera_center
+            view = view / view.norm(dim=1, keepdim=True).clamp_min(1e-9)
+            view_canonical = rotate(conjugate(skinned.quats), view)
         if self.color_mlp is not None:
-            key = torch.as_tensor(pose_key(body.poses.detach().cpu().numpy()), device=self.device)
-            if body.poses.requires_grad:  # pose refinement: keep the pose differentiable
-                mats = lbs.axis_angle_to_matrix(body.poses[0, 1:])
-                key = mats.reshape(1, 23 * 9)
+            if body.poses.requires_grad:  # pose refinement: keep the pose code differentiable
+                key = lbs.axis_angle_to_matrix(body.poses[0, 1:]).reshape(1, 23 * 9)
+            elif key is None:
+                key = torch.as_tensor(pose_key(body.poses.detach().cpu().numpy()), device=self.device)
             colors = self.color_mlp(canonical, rows(table["features"]), key, view_canonical, degree)
         else:
             colors = sh_color(rows(table["sh"]), view_canonical, degree)

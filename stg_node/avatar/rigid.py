@@ -1,8 +1,12 @@
 """The rigid part of the deformation: linear blend skinning of the Gaussians by the body's bones.
 
 ``X_L = sum_b w_b B_b x_c``: each Gaussian's canonical (big-pose) centre is carried to the posed
-world by the blend of its bones' transforms; its rotation by the nearest rotation to the
-blend's linear part (the polar factor, as stg_node.body.skin_rotations does).
+world by the blend of its bones' transforms. Its orientation turns with the normalised blend of
+its bones' rotation quaternions (``normalise(sum_b w_b q_b)``, the rotational part of dual
+quaternion skinning, with the 24 joint quaternions put in one hemisphere along the kinematic
+chain): one (N, 24) x (24, 4) product, where the polar factor of the blended matrix
+(stg_node.body.skin_rotations) costs several Newton iterations per Gaussian and its gradient.
+The two agree to first order and exactly for a Gaussian bound to one bone.
 
 :class:`Skeleton` holds only what forward kinematics needs (the subject's rest joints, the
 parent table and the inverse big-pose transforms), not the mesh, so a renderer rebuilds it from
@@ -21,9 +25,23 @@ from stg_node.body.canonical import big_pose_output
 
 @dataclass
 class PosedBones:
-    """Per-frame bone transforms, canonical big pose -> world: (B, 24, 4, 4)."""
+    """One frame's bones, canonical big pose -> world."""
 
-    transforms: torch.Tensor
+    transforms: torch.Tensor  # (1, 24, 4, 4)
+    quats: torch.Tensor  # (1, 24, 4) wxyz rotations of the transforms, one hemisphere along the chain
+
+    @classmethod
+    def from_transforms(cls, transforms: torch.Tensor, parents: list[int]) -> PosedBones:
+        quats = lbs.matrix_to_quaternion(transforms[..., :3, :3])
+        aligned = [quats[:, 0]]
+        for j in range(1, quats.shape[1]):
+            q = quats[:, j]
+            sign = torch.where((q * aligned[parents[j]]).sum(-1, keepdim=True) < 0, -1.0, 1.0)
+            aligned.append(q * sign)
+        return cls(transforms, torch.stack(aligned, dim=1))
+
+    def detach(self) -> PosedBones:
+        return PosedBones(self.transforms.detach(), self.quats.detach())
 
 
 class Skeleton(torch.nn.Module):
@@ -39,6 +57,7 @@ class Skeleton(torch.nn.Module):
         self.register_buffer("rest_joints", rest_joints.float())
         self.register_buffer("parents", parents.long())
         self.register_buffer("big_pose_inverse", big_pose_inverse.float())
+        self.parent_list = [int(p) for p in parents.tolist()]
 
     @classmethod
     def from_body(cls, body, betas) -> Skeleton:
@@ -58,7 +77,7 @@ class Skeleton(torch.nn.Module):
         rest = self.rest_joints.expand(batch, 24, 3)
         _, local = lbs.rigid_chain(rotations, rest, self.parents)
         world = lbs.make_rigid(lbs.axis_angle_to_matrix(Rh), Th)
-        return PosedBones(world[:, None] @ local @ self.big_pose_inverse)
+        return PosedBones.from_transforms(world[:, None] @ local @ self.big_pose_inverse, self.parent_list)
 
 
 def blend_weights(skin_weights: torch.Tensor, skin_delta: torch.Tensor | None) -> torch.Tensor:
@@ -78,7 +97,7 @@ class Skinned:
     """One frame's skinning of N canonical points."""
 
     means: torch.Tensor  # (N, 3) world centres
-    rotation: torch.Tensor  # (N, 3, 3) nearest rotation to the blended linear part
+    quats: torch.Tensor  # (N, 4) unit wxyz: the blended bone rotation of each point
     blended: torch.Tensor  # (N, 4, 4) the blended transform itself
 
 
@@ -89,12 +108,15 @@ def blend(weights: torch.Tensor, bones: PosedBones) -> torch.Tensor:
     return (weights @ bones.transforms[0].reshape(24, 16)).reshape(-1, 4, 4)
 
 
-def skin(
-    means: torch.Tensor, weights: torch.Tensor, bones: PosedBones, polar_iterations: int = 3
-) -> Skinned:
-    """Centres and rotations of canonical points under one frame's bones."""
+def blend_rotation(weights: torch.Tensor, bones: PosedBones) -> torch.Tensor:
+    """Per-point rotation ``(N, 4)``: the normalised weighted sum of the bones' quaternions."""
+    q = weights @ bones.quats[0]
+    return q / q.norm(dim=1, keepdim=True).clamp_min(1e-12)
+
+
+def skin(means: torch.Tensor, weights: torch.Tensor, bones: PosedBones, rotations: bool = True) -> Skinned:
+    """Centres (and, with ``rotations``, orientations) of canonical points under one frame's bones."""
     blended = blend(weights, bones)
-    linear = blended[:, :3, :3]
-    world = (linear @ means[..., None]).squeeze(-1) + blended[:, :3, 3]
-    rotation = lbs.closest_rotation(linear, iterations=polar_iterations)
-    return Skinned(world, rotation, blended)
+    world = (blended[:, :3, :3] @ means[..., None]).squeeze(-1) + blended[:, :3, 3]
+    quats = blend_rotation(weights, bones) if rotations else None
+    return Skinned(world, quats, blended)

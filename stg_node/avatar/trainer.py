@@ -239,8 +239,8 @@ class Trainer:
 
         body = self.body_state(stored.frame)
         u = self.model.time_axis(stored.frame.time)
-        bones = self.model.bones(body)
-        posed = self.model.pose(body, u, camera.center, sh_degree=sh_degree, bones=bones)
+        bones, key = self._frame_bones(stored, body, "now")
+        posed = self.model.pose(body, u, camera.center, sh_degree=sh_degree, bones=bones, key=key)
 
         terms: dict[str, torch.Tensor] = {}
         extra = None
@@ -249,7 +249,7 @@ class Trainer:
         if use_flow:
             u_next = self.model.time_axis(stored.next_time)
             next_body = self.body_state(stored.frame, smpl=stored.next_smpl)
-            means_next = self.model.posed_means(self.model.bones(next_body), u_next)
+            means_next = self.model.posed_means(self._frame_bones(stored, next_body, "next")[0], u_next)
             if posed.index is not None:
                 means_next = means_next[posed.index]
             extra = camera.project(means_next) - camera.project(posed.means)
@@ -332,6 +332,20 @@ class Trainer:
             weights=applied,
             densify=report,
         )
+
+    def _frame_bones(self, stored: StoredFrame, body: BodyState, which: str):
+        """A frame's bones and pose code; cached on the frame unless its pose is being refined."""
+        if body.poses.requires_grad:
+            return self.model.bones(body), None
+        cache = stored.extras.get(which)
+        if cache is None:
+            from stg_node.avatar.timecode import pose_key
+
+            with torch.no_grad():
+                bones = self.model.bones(body).detach()
+            key = torch.as_tensor(pose_key(body.poses.cpu().numpy()), device=self.device)
+            cache = stored.extras[which] = (bones, key)
+        return cache
 
     def _temporal_term(self, u: float, u_next: float) -> torch.Tensor:
         table = self.model.table

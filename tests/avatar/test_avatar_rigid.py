@@ -48,11 +48,26 @@ def test_skinning_the_canonical_mesh_reproduces_the_posed_body(body, seed):
     assert int(rigid.sum()) > 1000
     assert torch.allclose(skinned.means[rigid], truth[rigid], atol=1e-6)  # the Skeleton stores float32
     assert float((skinned.means - truth).norm(dim=1).max()) < 0.05  # metres
-    # Rotations are proper rotations.
-    R = skinned.rotation
-    eye = torch.eye(3, dtype=R.dtype).expand_as(R)
-    assert torch.allclose(R @ R.transpose(1, 2), eye, atol=1e-6)
-    assert torch.allclose(torch.linalg.det(R), torch.ones(R.shape[0], dtype=R.dtype), atol=1e-6)
+
+
+@pytest.mark.parametrize("seed", [5, 6])
+def test_blended_rotation_is_the_bone_rotation_when_bound_to_one_bone_and_near_the_polar_factor(body, seed):
+    from stg_node.body import lbs
+
+    poses, Rh, Th, betas = _random_pose(seed)
+    skeleton = Skeleton.from_body(body, betas).double()
+    bones = skeleton.bones(poses, Rh, Th)
+    skinned = skin(big_pose_output(body, betas).vertices[0], body.weights, bones)
+    q = skinned.quats
+    assert torch.allclose(q.norm(dim=1), torch.ones(q.shape[0], dtype=q.dtype), atol=1e-9)
+    R = lbs.quaternion_to_matrix(q)
+    rigid = body.weights.max(dim=1).values > 1.0 - 1e-9
+    linear = skinned.blended[:, :3, :3]
+    assert torch.allclose(R[rigid], linear[rigid], atol=1e-6)
+    # Elsewhere: within a few degrees of the nearest rotation to the blended matrix.
+    polar = lbs.closest_rotation(linear, iterations=8)
+    cos = ((torch.einsum("nij,nij->n", R, polar) - 1) / 2).clamp(-1, 1)
+    assert float(torch.rad2deg(torch.acos(cos)).max()) < 10.0
 
 
 def test_learned_weight_correction_is_identity_at_zero_and_rows_sum_to_one():
