@@ -133,7 +133,7 @@ def load(path: str | Path, *, body_model=None, device="cpu", backend="auto", flo
     d = trainer.densifier
     d.reset(model)
     d.load_state_arrays(
-        {n: t(f"train.densify.{n}") for n in ("grad_sum", "vis_count", "flow_w")},
+        {n: t(f"train.densify.{n}") for n in d.STATE if f"train.densify.{n}" in arrays},
         int(meta.get("train.densify.steps_seen", 0)),
     )
     if "train.densify.initial_parts" in arrays:

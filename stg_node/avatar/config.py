@@ -111,8 +111,9 @@ class DensifyConfig:
     motion_protect_gamma: float = 4.0  # gamma in C_i (1 + gamma W_i)
     # Flow-guided densification (STG-Avatar).
     flow_guided: bool = True
+    flow_interval: int = 50  # steps between flow-guided densification rounds
     region_px: int = 16  # regions are square image tiles of this size
-    error_threshold: float = 0.06  # tau: mean |render - gt| of a region that counts as badly explained
+    error_threshold: float = 0.08  # tau: mean |render - gt| of a region that counts as badly explained
     # delta: a Gaussian moves fast when its time-integrated flow (running mean of |flow| under it,
     # px per frame) exceeds max(motion_floor_px, motion_relative x the median flow of the frames):
     # relative, so a turning subject does not make everything "fast"; floored, so a still one
@@ -123,7 +124,7 @@ class DensifyConfig:
     flow_step: float = 0.5  # Delta: new centre = seed + Delta * (metric flow residual) along v/|v|
     flow_noise_m: float = 0.005  # sigma of N(0, sigma^2) added to new centres
     flow_consistency_px: float = 1.5  # reject new Gaussians whose projected motion disagrees with the flow
-    flow_max_new: int = 2000  # per densification round
+    flow_max_new: int = 500  # per flow-guided round
     new_time_scale: float = 0.25  # temporal scale (units) of Gaussians added along the flow
     resample_fraction: float = 0.3  # re-sample body parts whose density fell below this x initial
 

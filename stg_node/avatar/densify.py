@@ -49,7 +49,6 @@ from stg_node.body import lbs
 
 log = logging.getLogger(__name__)
 
-FLOW_INTERVAL = 25
 W_DECAY = 0.9
 
 
@@ -91,20 +90,24 @@ class DensifyStrategy:
         self.vis_count = torch.zeros(n, device=dev)
         self.steps_seen = 0
         self.flow_w = torch.zeros(n, device=dev)  # W_i, px per frame
+        gate = model.table.motion_gate()
+        self.was_dynamic = torch.zeros(n, device=dev) if gate is None else gate.float()  # at the last density step
         if self.initial_part_counts is None:
             self.initial_part_counts = self._part_counts(model)
 
+    STATE = ("grad_sum", "vis_count", "flow_w", "was_dynamic")
+
     def state_arrays(self) -> dict[str, torch.Tensor]:
-        return {"grad_sum": self.grad_sum, "vis_count": self.vis_count, "flow_w": self.flow_w}
+        return {name: getattr(self, name) for name in self.STATE}
 
     def load_state_arrays(self, arrays: dict[str, torch.Tensor], steps_seen: int) -> None:
-        self.grad_sum = arrays["grad_sum"]
-        self.vis_count = arrays["vis_count"]
-        self.flow_w = arrays["flow_w"]
+        for name in self.STATE:
+            if name in arrays:
+                setattr(self, name, arrays[name])
         self.steps_seen = int(steps_seen)
 
     def _resize(self, keep: torch.Tensor | None = None, added: int = 0) -> None:
-        for name in ("grad_sum", "vis_count", "flow_w"):
+        for name in self.STATE:
             t = getattr(self, name)
             if keep is not None:
                 t = t[keep]
@@ -131,7 +134,7 @@ class DensifyStrategy:
         it = ctx.iteration
         if not self.active(it):
             return report
-        if c.flow_guided and ctx.flow is not None and (it - c.start_iter) % FLOW_INTERVAL == 0:
+        if c.flow_guided and ctx.flow is not None and (it - c.start_iter) % c.flow_interval == 0:
             report["flow_added"] = self._flow_guided(ctx)
         if (it - c.start_iter) % c.interval == 0 and it > c.start_iter:
             report.update(self._adaptive_density(ctx))
@@ -249,6 +252,8 @@ class DensifyStrategy:
         for name in ("motion", "rot_motion"):
             if name in rows_new:
                 rows_new[name] = torch.zeros_like(rows_new[name])
+        if "motion_gate" in rows_new:
+            rows_new["motion_gate"] = torch.ones_like(rows_new["motion_gate"])  # non-rigid detail: may move
         if "t_center" in rows_new:
             rows_new["t_center"] = torch.full_like(rows_new["t_center"], ctx.u)
             rows_new["t_log_scale"] = torch.full_like(
@@ -265,6 +270,7 @@ class DensifyStrategy:
         table = model.table
         report = {"cloned": 0, "split": 0, "pruned": 0, "resampled": 0}
         grads = self.grad_sum / self.vis_count.clamp_min(1)
+        report.update(self._gate_motion(ctx, grads))
         scales = table.scales().max(dim=1).values
         small = scales <= c.percent_dense * model.extent
         hot = (grads > c.grad_threshold) & (self.vis_count > 0)
@@ -310,7 +316,6 @@ class DensifyStrategy:
             self._resize(keep=~prune)
             report["pruned"] = int(prune.sum()) - int(split.numel())
         report["resampled"] = self._resample(ctx)
-        report["motion_zeroed"] = self._zero_small_motion(ctx)
         self.grad_sum.zero_()
         self.vis_count.zero_()
         self.steps_seen = 0
@@ -348,20 +353,33 @@ class DensifyStrategy:
         return added
 
     @torch.no_grad()
-    def _zero_small_motion(self, ctx: StepContext) -> int:
-        """Rows whose motion terms move the centre less than ``motion_min_m`` lose them entirely
-        (exact zeros, Adam moments reset), so static regions cost nothing at render time."""
+    def _gate_motion(self, ctx: StepContext, grads: torch.Tensor) -> dict[str, int]:
+        """Decide which Gaussians may move, so motion terms exist only where the scene needs them.
+
+        A static Gaussian becomes dynamic when it sits on sustained motion (``W_i > delta``) and the
+        image still pulls on it (mean screen gradient above half the clone threshold). A dynamic one
+        whose motion terms stayed below ``motion_min_m`` (metres at |tau| = 1) since the last density
+        step goes back to static: its terms and their Adam moments become exact zeros.
+        """
         table = ctx.model.table
-        if "motion" not in table:
-            return 0
-        amplitude = table["motion"].norm(dim=-1).sum(dim=1)  # max offset over |tau| <= 1
-        small = (amplitude < self.config.motion_min_m) & table.motion_active()
-        if not bool(small.any()):
-            return 0
+        gate = table.motion_gate()
+        if gate is None:
+            return {}
+        delta = self.motion_threshold(ctx.trainer)
+        activate = ~gate & (self.flow_w > delta) & (grads > 0.5 * self.config.grad_threshold)
+        amplitude = torch.zeros(table.num, device=gate.device)
+        if "motion" in table:
+            amplitude = amplitude + table["motion"].norm(dim=-1).sum(dim=1)
+        if "rot_motion" in table:
+            amplitude = amplitude + 0.1 * table["rot_motion"].norm(dim=-1).sum(dim=1)  # ~0.1 m per radian
+        settle = gate & (self.was_dynamic > 0.5) & (amplitude < self.config.motion_min_m)
         for name in ("motion", "rot_motion"):
             if name in table:
-                ctx.optimizer.zero_rows(name, small)
-        return int(small.sum())
+                ctx.optimizer.zero_rows(name, settle)
+        table["motion_gate"].data[activate] = 1.0
+        table["motion_gate"].data[settle] = 0.0
+        self.was_dynamic = table["motion_gate"].detach().clone()
+        return {"motion_on": int(activate.sum()), "motion_off": int(settle.sum())}
 
     def motion_threshold(self, trainer) -> float:
         """delta (px per frame): see DensifyConfig.motion_floor_px / motion_relative."""

@@ -19,6 +19,7 @@ sh                  (N, K, 3)        SH colour coefficients (colour mode "sh"; K
 features            (N, F)           appearance feature fed to the colour MLP (colour mode "mlp")
 skin_weights        (N, 24)          skinning weights from the body (fixed; rows sum to 1)
 skin_delta          (N, 24)          learned log-space correction of skin_weights (optional)
+motion_gate         (N,)             1 where the Gaussian may move (its motion terms learn), else 0
 motion              (N, n_p, 3)      b_ik: centre offset polynomial, canonical frame (optional)
 rot_motion          (N, n_q, 4)      c_ik, k >= 1: rotation polynomial (optional)
 t_center            (N,)             mu_i^tau: temporal centre, normalised time units
@@ -36,7 +37,7 @@ from torch import nn
 from stg_node.avatar.config import ModelConfig
 
 # Columns the optimiser never updates (carried along by row operations only).
-FIXED_COLUMNS = frozenset({"skin_weights"})
+FIXED_COLUMNS = frozenset({"skin_weights", "motion_gate"})
 
 
 def logit(p: float) -> float:
@@ -83,6 +84,11 @@ class GaussianTable(nn.Module):
 
     def opacities(self) -> torch.Tensor:
         return torch.sigmoid(self.params["opacity_logits"])
+
+    def motion_gate(self) -> torch.Tensor | None:
+        """(N,) bool: Gaussians allowed to move (None when the model has no motion terms)."""
+        gate = self.params.get("motion_gate") if "motion_gate" in self.params else None
+        return None if gate is None else gate.detach() > 0.5
 
     def motion_active(self) -> torch.Tensor:
         """(N,) bool: rows with any non-zero motion or rotation-motion coefficient."""
@@ -138,6 +144,7 @@ def new_columns(
     t_scale: torch.Tensor | float | None = None,
     rgb: torch.Tensor | None = None,
     generator: torch.Generator | None = None,
+    dynamic: bool = False,
 ) -> dict[str, torch.Tensor]:
     """Fresh rows for every column the config asks for (used at init, by re-sampling and by tests)."""
     n = means.shape[0]
@@ -163,6 +170,8 @@ def new_columns(
         cols["features"] = feats
     if config.learn_skin_weights:
         cols["skin_delta"] = torch.zeros(n, skin_weights.shape[1], dtype=dtype, device=device)
+    if config.n_p > 0 or config.n_q > 0:
+        cols["motion_gate"] = torch.full((n,), float(dynamic), dtype=dtype, device=device)
     if config.n_p > 0:
         cols["motion"] = torch.zeros(n, config.n_p, 3, dtype=dtype, device=device)
     if config.n_q > 0:

@@ -109,6 +109,12 @@ class TableOptimizer:
             else:
                 self.table.set_column(name, cur.detach()[mask])
 
+    @torch.no_grad()
+    def freeze_rows(self, name: str, rows: torch.Tensor) -> None:
+        """Zero this step's gradient of ``rows`` of a column: with zero moments they stay exactly put."""
+        if name in self.table and self.table[name].grad is not None:
+            self.table[name].grad[rows] = 0
+
     # --- proximal L1 ---------------------------------------------------------------------------
     @torch.no_grad()
     def soft_threshold(self, name: str, strength: float) -> None:

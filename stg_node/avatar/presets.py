@@ -20,7 +20,7 @@ def preset(name: str) -> TrainConfig:
             preset="fast",
             model=ModelConfig(num_gaussians=12_000, max_gaussians=30_000, feature_dim=12, mlp_width=48),
             loss=LossConfig(),
-            densify=DensifyConfig(interval=150, flow_max_new=800),
+            densify=DensifyConfig(interval=150, flow_max_new=300),
             iterations=1500,
         )
     if name == "balanced":
@@ -34,7 +34,7 @@ def preset(name: str) -> TrainConfig:
         return TrainConfig(
             preset="quality",
             model=ModelConfig(num_gaussians=30_000, max_gaussians=100_000, sh_degree=2, feature_dim=24, mlp_width=96),
-            densify=DensifyConfig(interval=200, flow_max_new=3000),
+            densify=DensifyConfig(interval=200, flow_max_new=1000),
             iterations=8000,
             lr_pose=5e-5,
         )

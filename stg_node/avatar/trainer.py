@@ -38,6 +38,35 @@ from stg_node.body.canonical import big_pose_output
 log = logging.getLogger(__name__)
 
 _SEED_MIX = 0x9E3779B97F4A7C15
+PHASES = ("data", "pose", "flow_target", "render", "loss", "backward", "update", "densify")
+
+
+class StepProfile:
+    """Wall time of each phase of a step, summed over steps (``Trainer.profile = StepProfile()``)."""
+
+    def __init__(self):
+        self.seconds = dict.fromkeys(PHASES, 0.0)
+        self.steps = 0
+        self._last = 0.0
+
+    def start(self) -> None:
+        self._last = time.perf_counter()
+
+    def mark(self, phase: str) -> None:
+        now = time.perf_counter()
+        self.seconds[phase] += now - self._last
+        self._last = now
+
+    def per_step_ms(self) -> dict[str, float]:
+        return {k: 1e3 * v / max(self.steps, 1) for k, v in self.seconds.items()}
+
+
+class _NoProfile:
+    def start(self) -> None:
+        pass
+
+    def mark(self, phase: str) -> None:
+        pass
 
 
 @dataclass
@@ -104,7 +133,7 @@ class Trainer:
         self.model_version = 0
         self.pose_deltas: torch.nn.Parameter | None = None  # (slots, 75) per-frame pose (72) and Th (3) correction
         self.pose_slots: dict[int, int] = {}
-        self._pending_state: dict | None = None
+        self.profile: StepProfile | None = None  # set to a StepProfile to time the phases of each step
 
     # --- frames ----------------------------------------------------------------------------------
     def add_frame(self, frame: TrainFrame) -> None:
@@ -219,6 +248,8 @@ class Trainer:
         if self.model is None or len(self.store) == 0:
             raise RuntimeError("Trainer.step() needs at least one frame: call add_frame() first")
         started = time.perf_counter()
+        timer = self.profile or _NoProfile()
+        timer.start()
         c = self.config
         it = self.iteration
         gen = step_generator(self.seed, it)
@@ -240,7 +271,9 @@ class Trainer:
         body = self.body_state(stored.frame)
         u = self.model.time_axis(stored.frame.time)
         bones, key = self._frame_bones(stored, body, "now")
+        timer.mark("data")
         posed = self.model.pose(body, u, camera.center, sh_degree=sh_degree, bones=bones, key=key)
+        timer.mark("pose")
 
         terms: dict[str, torch.Tensor] = {}
         extra = None
@@ -253,8 +286,10 @@ class Trainer:
             if posed.index is not None:
                 means_next = means_next[posed.index]
             extra = camera.project(means_next) - camera.project(posed.means)
+        timer.mark("flow_target")
 
         image, alpha, info = render(posed, camera, background=0.0, backend=self.backend, extra_channels=extra)
+        timer.mark("render")
         rgb = image[..., :3]
         l1, dssim = L.photometric(rgb, target, c.loss.ssim)
         terms["photo"] = (1 - c.loss.ssim) * l1 + c.loss.ssim * dssim
@@ -279,21 +314,28 @@ class Trainer:
             "pose": c.loss.pose_refine,
         }
         total, applied = self.weights.combine(terms, weights, it)
+        timer.mark("loss")
 
         self.optimizer.zero_grad()
         skipped = not bool(torch.isfinite(total))
         if not skipped:
             total.backward()
             skipped = not self._grads_finite()
+        timer.mark("backward")
         report: dict[str, int] = {}
         if skipped:
             self.skipped_steps += 1
             log.warning("step %d: non-finite loss or gradients (frame %d); step skipped", it, stored.frame.index)
             self.optimizer.zero_grad()
         else:
+            gate = self.model.table.motion_gate()
+            if gate is not None:  # static Gaussians keep exactly zero motion terms
+                for name in ("motion", "rot_motion"):
+                    self.optimizer.freeze_rows(name, ~gate)
             self.optimizer.step()
             self.optimizer.soft_threshold("motion", c.loss.motion_sparsity)
             self.optimizer.soft_threshold("rot_motion", c.loss.motion_sparsity)
+            timer.mark("update")
             ctx = StepContext(
                 iteration=it,
                 model=self.model,
@@ -314,6 +356,9 @@ class Trainer:
                 rendered_flow=(image[..., 3:5] / alpha.clamp_min(0.5)).detach() if use_flow else None,
             )
             report = self.densifier.step_post_backward(ctx)
+            timer.mark("densify")
+        if self.profile is not None:
+            self.profile.steps += 1
         self.iteration += 1
         elapsed = time.perf_counter() - started
         self.train_seconds += elapsed
