@@ -53,8 +53,14 @@ def bench_step(data: Path, steps: int, gaussians: int) -> dict:
     from stg_node.avatar.model import render
     from stg_node.avatar.trainer import StepProfile
 
-    config = preset("balanced").replace(**{"model.num_gaussians": gaussians, "model.max_gaussians": gaussians,
-                                           "densify.start_iter": 10, "densify.interval": 20})
+    config = preset("balanced").replace(
+        **{
+            "model.num_gaussians": gaussians,
+            "model.max_gaussians": gaussians,
+            "densify.start_iter": 10,
+            "densify.interval": 20,
+        }
+    )
     trainer = Trainer(config, seed=0)
     t0 = time.perf_counter()
     trainer.add_frames(DataSpec(str(data), "synthetic").open("train"))
@@ -74,8 +80,10 @@ def bench_step(data: Path, steps: int, gaussians: int) -> dict:
     cam = Camera3.from_camera(stored.frame.camera, stored.crop)
     with torch.no_grad():
         posed = trainer.model.pose(BodyState.from_smpl(stored.frame.smpl), 0.0, cam.center)
-    leaves = [t.detach().clone().requires_grad_(True) for t in (posed.means, posed.quats, posed.scales,
-                                                              posed.opacities, posed.colors)]
+    leaves = [
+        t.detach().clone().requires_grad_(True)
+        for t in (posed.means, posed.quats, posed.scales, posed.opacities, posed.colors)
+    ]
     times = []
     for _ in range(max(steps // 2, 5)):
         posed.means, posed.quats, posed.scales, posed.opacities, posed.colors = leaves
@@ -84,8 +92,14 @@ def bench_step(data: Path, steps: int, gaussians: int) -> dict:
         (image.sum() + alpha.sum()).backward()
         times.append(time.perf_counter() - t)
     raster_ms = 1e3 * statistics.median(times)
-    return {"gaussians": trainer.model.table.num, "load_s": load_s, "step_ms": step_ms, "phases_ms": phases,
-            "raster_fwd_bwd_ms": raster_ms, "step_over_raster": step_ms / raster_ms}
+    return {
+        "gaussians": trainer.model.table.num,
+        "load_s": load_s,
+        "step_ms": step_ms,
+        "phases_ms": phases,
+        "raster_fwd_bwd_ms": raster_ms,
+        "step_over_raster": step_ms / raster_ms,
+    }
 
 
 def bench_ssim(repeats: int) -> dict:
@@ -100,7 +114,9 @@ def bench_ssim(repeats: int) -> dict:
         (1 - ssim(a, b)).backward()
 
     def theirs():
-        kornia.losses.ssim_loss(a.permute(2, 0, 1)[None], b.permute(2, 0, 1)[None], 11, padding="valid").backward()
+        kornia.losses.ssim_loss(
+            a.permute(2, 0, 1)[None], b.permute(2, 0, 1)[None], 11, padding="valid"
+        ).backward()
 
     out = {}
     for name, fn in (("ours", ours), ("kornia", theirs)):
@@ -113,8 +129,11 @@ def bench_ssim(repeats: int) -> dict:
             runs.append(time.perf_counter() - t)
         out[name] = 1e3 * statistics.median(runs)
     value_ours = float(ssim(a.detach(), b))
-    value_kornia = 1 - 2 * float(kornia.losses.ssim_loss(a.detach().permute(2, 0, 1)[None], b.permute(2, 0, 1)[None],
-                                                         11, padding="valid"))
+    value_kornia = 1 - 2 * float(
+        kornia.losses.ssim_loss(
+            a.detach().permute(2, 0, 1)[None], b.permute(2, 0, 1)[None], 11, padding="valid"
+        )
+    )
     out["agree"] = abs(value_ours - value_kornia)
     out["kornia_over_ours"] = out["kornia"] / out["ours"]
     return out
@@ -128,7 +147,9 @@ def bench_render(data: Path, gaussians: int, repeats: int) -> list[dict]:
 
     train = DataSpec(str(data), "synthetic").open("train")
     sample = train[0]
-    config = preset("balanced").replace(**{"model.num_gaussians": gaussians, "model.max_gaussians": gaussians})
+    config = preset("balanced").replace(
+        **{"model.num_gaussians": gaussians, "model.max_gaussians": gaussians}
+    )
     trainer = Trainer(config, seed=0)
     trainer.add_frame(__import__("stg_node.avatar", fromlist=["TrainFrame"]).TrainFrame.from_sample(sample))
     model = trainer.model
@@ -182,21 +203,28 @@ def main(argv=None) -> int:
     print(f"# machine: {_machine()}")
     if "ssim" not in args.skip:
         s = bench_ssim(args.repeats)
-        print(f"ssim fwd+bwd 420x200: ours {s['ours']:.1f} ms, kornia {s['kornia']:.1f} ms "
-              f"(kornia / ours = {s['kornia_over_ours']:.2f}x; values agree to {s['agree']:.1e})")
+        print(
+            f"ssim fwd+bwd 420x200: ours {s['ours']:.1f} ms, kornia {s['kornia']:.1f} ms "
+            f"(kornia / ours = {s['kornia_over_ours']:.2f}x; values agree to {s['agree']:.1e})"
+        )
     for n in args.gaussians:
         if "step" not in args.skip:
             r = bench_step(data, args.steps, n)
             phases = ", ".join(f"{k} {v:.1f}" for k, v in r["phases_ms"].items())
-            print(f"step {r['gaussians']} Gaussians: {r['step_ms']:.1f} ms ({1e3 / r['step_ms']:.1f} it/s); "
-                  f"rasterizer fwd+bwd alone {r['raster_fwd_bwd_ms']:.1f} ms (step / raster = {r['step_over_raster']:.2f}x); "
-                  f"phases ms: {phases}; loading 100 frames + flow {r['load_s']:.1f} s")
+            print(
+                f"step {r['gaussians']} Gaussians: {r['step_ms']:.1f} ms ({1e3 / r['step_ms']:.1f} it/s); "
+                f"rasterizer fwd+bwd alone {r['raster_fwd_bwd_ms']:.1f} ms "
+                f"(step / raster = {r['step_over_raster']:.2f}x); "
+                f"phases ms: {phases}; loading 100 frames + flow {r['load_s']:.1f} s"
+            )
         if "render" not in args.skip:
             for r in bench_render(data, n, args.repeats):
-                print(f"render 512x512 {r['gaussians']} Gaussians, {100 * r['active_fraction']:.0f}% moving: "
-                      f"{r['ms_skip']:.1f} ms ({r['fps_skip']:.1f} FPS) with the zero-motion skip, "
-                      f"{r['ms_all']:.1f} ms evaluating every row (x{r['ms_all'] / r['ms_skip']:.2f}); "
-                      f"rasterizer alone {r['ms_raster_only']:.1f} ms")
+                print(
+                    f"render 512x512 {r['gaussians']} Gaussians, {100 * r['active_fraction']:.0f}% moving: "
+                    f"{r['ms_skip']:.1f} ms ({r['fps_skip']:.1f} FPS) with the zero-motion skip, "
+                    f"{r['ms_all']:.1f} ms evaluating every row (x{r['ms_all'] / r['ms_skip']:.2f}); "
+                    f"rasterizer alone {r['ms_raster_only']:.1f} ms"
+                )
     return 0
 
 

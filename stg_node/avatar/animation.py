@@ -40,7 +40,9 @@ class FrameWriter:
         if self.out.suffix.lower() == ".mp4":
             if self._video is None:
                 h, w = rgb.shape[:2]
-                self._video = cv2.VideoWriter(str(self.out), cv2.VideoWriter_fourcc(*"mp4v"), self.fps, (w, h))
+                self._video = cv2.VideoWriter(
+                    str(self.out), cv2.VideoWriter_fourcc(*"mp4v"), self.fps, (w, h)
+                )
                 if not self._video.isOpened():
                     raise OSError(f"cannot open {self.out} for writing an MP4 (OpenCV VideoWriter)")
             self._video.write(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
@@ -55,7 +57,8 @@ class FrameWriter:
 
 
 def load_pose_file(path: str | Path):
-    """An SmplSequence from a .npz / .npy file, a folder of per-frame .npy, or a subject folder with new_params/."""
+    """An SmplSequence from a .npz / .npy file, a folder of per-frame .npy files, or a subject
+    folder holding new_params/."""
     from stg_node.body.motion import load_smpl_params
 
     path = Path(path)
@@ -117,7 +120,11 @@ def render_run(
     writer = FrameWriter(out, fps)
     try:
         for i in progress(range(count), desc="rendering", unit="frame", enabled=show_progress):
-            k = i % len(smpls) if poses is not None or views != "orbit" else min(i * len(smpls) // count, len(smpls) - 1)
+            k = (
+                i % len(smpls)
+                if poses is not None or views != "orbit"
+                else min(i * len(smpls) // count, len(smpls) - 1)
+            )
             smpl, t = smpls[k], times[k]
             if views == "orbit":
                 out_img = renderer.render(cams[i], smpl, t, follow=True).image

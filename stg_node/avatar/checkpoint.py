@@ -99,7 +99,9 @@ def load(path: str | Path, *, body_model=None, device="cpu", backend="auto", flo
     stored = array_to_json(arrays["train.config_json"])
     cfg = config or TrainConfig.from_dict(stored["config"])
     body = body_model if body_model is not None else stored.get("body_model")
-    trainer = Trainer(cfg, body, device=device, backend=backend, seed=int(meta["train.seed"]), flow_cache=flow_cache)
+    trainer = Trainer(
+        cfg, body, device=device, backend=backend, seed=int(meta["train.seed"]), flow_cache=flow_cache
+    )
     dev = trainer.device
 
     def t(name):
@@ -138,8 +140,14 @@ def load(path: str | Path, *, body_model=None, device="cpu", backend="auto", flo
     )
     if "train.densify.initial_parts" in arrays:
         d.initial_part_counts = t("train.densify.initial_parts")
-    d.counts = {k[len("train.densify.count."):]: int(v) for k, v in meta.items() if k.startswith("train.densify.count.")}
-    trainer.weights.ema = {k[len("train.ema."):]: float(v) for k, v in meta.items() if k.startswith("train.ema.")}
+    d.counts = {
+        k[len("train.densify.count.") :]: int(v)
+        for k, v in meta.items()
+        if k.startswith("train.densify.count.")
+    }
+    trainer.weights.ema = {
+        k[len("train.ema.") :]: float(v) for k, v in meta.items() if k.startswith("train.ema.")
+    }
     trainer.iteration = int(meta["train.iteration"])
     trainer.train_seconds = float(meta["train.seconds"])
     trainer.skipped_steps = int(meta["train.skipped"])

@@ -63,7 +63,9 @@ class DataSpec:
     @classmethod
     def from_dict(cls, d: dict) -> DataSpec:
         tf = d.get("train_frames")
-        return cls(d["root"], d["format"], tuple(tf) if tf else None, d.get("train_camera"), int(d.get("size", 512)))
+        return cls(
+            d["root"], d["format"], tuple(tf) if tf else None, d.get("train_camera"), int(d.get("size", 512))
+        )
 
     def with_root(self, root: str | Path) -> DataSpec:
         return DataSpec(str(root), self.format, self.train_frames, self.train_camera, self.size)

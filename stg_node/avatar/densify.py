@@ -91,7 +91,9 @@ class DensifyStrategy:
         self.steps_seen = 0
         self.flow_w = torch.zeros(n, device=dev)  # W_i, px per frame
         gate = model.table.motion_gate()
-        self.was_dynamic = torch.zeros(n, device=dev) if gate is None else gate.float()  # at the last density step
+        self.was_dynamic = (
+            torch.zeros(n, device=dev) if gate is None else gate.float()
+        )  # at the last density step
         if self.initial_part_counts is None:
             self.initial_part_counts = self._part_counts(model)
 
@@ -343,10 +345,14 @@ class DensifyStrategy:
             if want <= 0 or sel.numel() == 0:
                 continue
             points, face, bary = sample_surface(vertices, faces[sel], want, ctx.generator)
-            weights = surface_skin_weights(faces[sel], trainer.body.weights, face, bary, model.config.skin_init)
-            scale = float(model.table.scales()[model.table["skin_weights"].argmax(1) == part].mean()) if (
-                counts[part] > 0
-            ) else 0.01
+            weights = surface_skin_weights(
+                faces[sel], trainer.body.weights, face, bary, model.config.skin_init
+            )
+            scale = (
+                float(model.table.scales()[model.table["skin_weights"].argmax(1) == part].mean())
+                if (counts[part] > 0)
+                else 0.01
+            )
             rows = new_columns(model.config, points, weights, scale, t_center=ctx.u, generator=ctx.generator)
             self._append(ctx, {k: v.to(model.device) for k, v in rows.items()})
             added += want

@@ -32,7 +32,9 @@ def canonical_colors(model: AvatarModel, poses=None) -> torch.Tensor:
         return (table["sh"][:, 0] * SH_C0 + 0.5).clamp(0, 1)
     from stg_node.avatar.timecode import pose_key
 
-    key = torch.as_tensor(pose_key(torch.zeros(24, 3).numpy() if poses is None else poses), device=model.device)
+    key = torch.as_tensor(
+        pose_key(torch.zeros(24, 3).numpy() if poses is None else poses), device=model.device
+    )
     out = torch.zeros(n, 3, device=model.device)
     for d in _DIRECTIONS.to(model.device):
         out += model.color_mlp(table["means"], table["features"], key, d.expand(n, 3), model.config.sh_degree)
@@ -44,8 +46,15 @@ def export_canonical(model: AvatarModel, path: Path) -> Path:
     table = model.table
     q = table["quats"] / table["quats"].norm(dim=1, keepdim=True).clamp_min(1e-12)
     if model.color_mlp is None and table["sh"].shape[1] > 1:
-        return save_ply(path, table["means"], q, table.scales(), table.opacities(), sh_dc=table["sh"][:, 0],
-                        sh_rest=table["sh"][:, 1:])
+        return save_ply(
+            path,
+            table["means"],
+            q,
+            table.scales(),
+            table.opacities(),
+            sh_dc=table["sh"][:, 0],
+            sh_rest=table["sh"][:, 1:],
+        )
     return save_ply(path, table["means"], q, table.scales(), table.opacities(), canonical_colors(model))
 
 
@@ -54,5 +63,11 @@ def export_posed(model: AvatarModel, smpl, time_s: float, camera, path: Path) ->
     cam = Camera3.from_camera(camera, device=model.device)
     posed = model.pose(BodyState.from_smpl(smpl, model.device), model.time_axis(time_s), cam.center)
     keep = posed.opacities >= ALPHA_MIN
-    return save_ply(path, posed.means[keep], posed.quats[keep], posed.scales[keep], posed.opacities[keep],
-                    posed.colors[keep].clamp(0, 1))
+    return save_ply(
+        path,
+        posed.means[keep],
+        posed.quats[keep],
+        posed.scales[keep],
+        posed.opacities[keep],
+        posed.colors[keep].clamp(0, 1),
+    )

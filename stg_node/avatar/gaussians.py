@@ -200,7 +200,5 @@ def init_table(
     tri = vertices[faces]
     area = float(0.5 * torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]).norm(dim=1).sum())
     scale = config.init_scale_factor * mean_spacing(area, config.num_gaussians)
-    cols = new_columns(
-        config, points, weights, scale, opacity=0.5, t_center=t_center, generator=generator
-    )
+    cols = new_columns(config, points, weights, scale, opacity=0.5, t_center=t_center, generator=generator)
     return GaussianTable(cols)

@@ -13,7 +13,8 @@ Terms (each reported by name in StepResult.losses and on trainer/metrics):
 - ``temporal``: non-rigid offsets and temporal opacities agree between consecutive frames
   (offset change in cm plus opacity change), so nothing jitters or pops between frames.
 - sparsity of the motion coefficients is not a loss term but a proximal L1 step after each
-  update (optim.TableOptimizer.soft_threshold), which yields exact zeros; ``motion_smooth`` (higher-order coefficients cost more: the motion stays smooth), ``scale``,
+  update (optim.TableOptimizer.soft_threshold), which yields exact zeros; ``motion_smooth``
+  (higher-order coefficients cost more: the motion stays smooth), ``scale``,
   ``opacity``, ``skin``, ``pose``: regularisers.
 
 **Adaptive weighting.** Auxiliary terms ramp in linearly over ``warmup_iters`` (the geometry

@@ -187,7 +187,11 @@ class AvatarModel(nn.Module):
         table = self.table
         bones = bones or self.bones(body)
         st = spacetime.evaluate(
-            table, u, cfg.time_horizon, temporal_opacity=cfg.uses_temporal_opacity, skip_inactive=skip_inactive
+            table,
+            u,
+            cfg.time_horizon,
+            temporal_opacity=cfg.uses_temporal_opacity,
+            skip_inactive=skip_inactive,
         )
         opacity = table.opacities()
         if st.temporal is not None:

@@ -51,7 +51,8 @@ class TableOptimizer:
             self.dense.step()
 
     def set_schedule(self, progress: float, means_final: float, others_final: float) -> None:
-        """Exponential decay of the means' rate to ``means_final`` x, cosine of the rest to ``others_final`` x."""
+        """Exponential decay of the means' rate to ``means_final`` x; cosine of the rest to
+        ``others_final`` x."""
         p = min(max(progress, 0.0), 1.0)
         cosine = others_final + (1 - others_final) * 0.5 * (1 + math.cos(math.pi * p))
         for group in self.groups():
@@ -75,7 +76,8 @@ class TableOptimizer:
                 group["params"][0] = param
                 if state:
                     self.adam.state[param] = {
-                        k: (state_fn(v) if torch.is_tensor(v) and v.dim() > 0 else v) for k, v in state.items()
+                        k: (state_fn(v) if torch.is_tensor(v) and v.dim() > 0 else v)
+                        for k, v in state.items()
                     }
                 break
         self.table.params[name] = param

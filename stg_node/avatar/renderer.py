@@ -76,7 +76,9 @@ class AvatarRenderer:
         out_depth = None
         if depth:
             d = info["depth"][..., 0]
-            out_depth = torch.where(alpha[..., 0] > 0, d, torch.zeros_like(d)).cpu().numpy().astype(np.float32)
+            out_depth = (
+                torch.where(alpha[..., 0] > 0, d, torch.zeros_like(d)).cpu().numpy().astype(np.float32)
+            )
         img = (image.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
         a = (alpha[..., 0].clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
         return RenderOutput(img, a, out_depth, (_now() - started) * 1e3, u, int(posed.means.shape[0]))

@@ -1,12 +1,12 @@
 """A training run's folder: what ``stg-train`` writes and the other commands read.
 
-    RUN_DIR/config.json        the TrainConfig, the data spec, body model, seed, backend, versions
-    RUN_DIR/checkpoint.stgsnap the latest checkpoint (a GaussianSnapshot file, atomic; --resume reads it)
-    RUN_DIR/avatar.stgsnap     the final published model (no training state)
-    RUN_DIR/train_log.jsonl    one line per logged step (loss terms, PSNR, Gaussians, it/s, time)
-    RUN_DIR/summary.json       the end of training: time, iterations, Gaussians, motion, size
-    RUN_DIR/training_curves.png loss and PSNR against iteration
-    RUN_DIR/cache/flow/        optical flow cache (content-keyed)
+RUN_DIR/config.json        the TrainConfig, the data spec, body model, seed, backend, versions
+RUN_DIR/checkpoint.stgsnap the latest checkpoint (a GaussianSnapshot file, atomic; --resume reads it)
+RUN_DIR/avatar.stgsnap     the final published model (no training state)
+RUN_DIR/train_log.jsonl    one line per logged step (loss terms, PSNR, Gaussians, it/s, time)
+RUN_DIR/summary.json       the end of training: time, iterations, Gaussians, motion, size
+RUN_DIR/training_curves.png loss and PSNR against iteration
+RUN_DIR/cache/flow/        optical flow cache (content-keyed)
 """
 
 from __future__ import annotations
@@ -58,7 +58,9 @@ class RunDir:
 
     def read_config(self) -> dict:
         if not self.config.is_file():
-            raise FileNotFoundError(f"{self.path} is not a training run (no config.json); run stg-train first")
+            raise FileNotFoundError(
+                f"{self.path} is not a training run (no config.json); run stg-train first"
+            )
         return json.loads(self.config.read_text())
 
     def data_spec(self) -> DataSpec:

@@ -100,7 +100,9 @@ def model_nbytes(model: AvatarModel) -> int:
     return sum(a.nbytes for a in model_arrays(model).values())
 
 
-def to_snapshot(model: AvatarModel, *, iteration: int = 0, model_version: int = 0, extra_arrays=None, extra_meta=None):
+def to_snapshot(
+    model: AvatarModel, *, iteration: int = 0, model_version: int = 0, extra_arrays=None, extra_meta=None
+):
     """The GaussianSnapshot message of ``model`` (plus training state when given)."""
     from stg_node.bus.messages import GaussianSnapshot
 
@@ -162,8 +164,10 @@ def model_from_snapshot(msg, device="cpu") -> AvatarModel:
         raise SnapshotError(str(exc)) from exc
     axis = TimeAxis(float(meta.get("time.origin_s", 0.0)), float(meta.get("time.unit_s", config.time_unit_s)))
     index = PoseTimeIndex()
-    index.set(np.array(arrays.get("time.pose_keys", np.zeros((0, 207), np.float32))),
-              np.array(arrays.get("time.times", np.zeros((0,), np.float32))))
+    index.set(
+        np.array(arrays.get("time.pose_keys", np.zeros((0, 207), np.float32))),
+        np.array(arrays.get("time.times", np.zeros((0,), np.float32))),
+    )
     model = AvatarModel(config, table, skeleton, get("body.bounds"), axis, index).to(device)
     if model.color_mlp is not None:
         state = {k[4:]: get(k) for k in arrays if k.startswith("mlp.")}
@@ -176,7 +180,9 @@ def model_from_snapshot(msg, device="cpu") -> AvatarModel:
 
 
 # --- files ---------------------------------------------------------------------------------------
-def write_snapshot_file(path: str | Path, msg, *, src: str = "stg-train", stamp_ns: int | None = None) -> Path:
+def write_snapshot_file(
+    path: str | Path, msg, *, src: str = "stg-train", stamp_ns: int | None = None
+) -> Path:
     """Write ``msg`` atomically as a snapshot file (see module docstring for the container)."""
     import time
 
@@ -184,7 +190,10 @@ def write_snapshot_file(path: str | Path, msg, *, src: str = "stg-train", stamp_
 
     path = Path(path)
     frames = encode(
-        msg, topic="avatar/snapshot", seq=int(msg.model_version), src=src,
+        msg,
+        topic="avatar/snapshot",
+        seq=int(msg.model_version),
+        src=src,
         stamp_ns=int(time.time_ns() if stamp_ns is None else stamp_ns),
     )
     parts = [bytes(f) if not isinstance(f, (bytes, bytearray)) else f for f in frames]
@@ -218,7 +227,9 @@ def read_snapshot_frames(path: str | Path) -> list[bytes]:
     sizes = struct.unpack_from(f"<{count}Q", data, pos)
     pos += 8 * count
     if pos + sum(sizes) != len(data):
-        raise SnapshotError(f"{path}: truncated or padded ({len(data)} bytes, header says {pos + sum(sizes)})")
+        raise SnapshotError(
+            f"{path}: truncated or padded ({len(data)} bytes, header says {pos + sum(sizes)})"
+        )
     frames = []
     for size in sizes:
         frames.append(data[pos : pos + size])

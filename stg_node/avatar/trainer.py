@@ -131,7 +131,9 @@ class Trainer:
         self.train_seconds = 0.0
         self.skipped_steps = 0
         self.model_version = 0
-        self.pose_deltas: torch.nn.Parameter | None = None  # (slots, 75) per-frame pose (72) and Th (3) correction
+        self.pose_deltas: torch.nn.Parameter | None = (
+            None  # (slots, 75) per-frame pose (72) and Th (3) correction
+        )
         self.pose_slots: dict[int, int] = {}
         self.profile: StepProfile | None = None  # set to a StepProfile to time the phases of each step
 
@@ -240,7 +242,9 @@ class Trainer:
         body = BodyState.from_smpl(smpl if smpl is not None else stored_frame.smpl, self.device)
         if refine and self.pose_deltas is not None and smpl is None and stored_frame.index in self.pose_slots:
             delta = self.pose_deltas[self.pose_slots[stored_frame.index]]
-            body = BodyState(body.poses + delta[:24 * 3].reshape(1, 24, 3), body.Rh, body.Th + delta[72:75][None])
+            body = BodyState(
+                body.poses + delta[: 24 * 3].reshape(1, 24, 3), body.Rh, body.Th + delta[72:75][None]
+            )
         return body
 
     # --- one step --------------------------------------------------------------------------------
@@ -325,7 +329,9 @@ class Trainer:
         report: dict[str, int] = {}
         if skipped:
             self.skipped_steps += 1
-            log.warning("step %d: non-finite loss or gradients (frame %d); step skipped", it, stored.frame.index)
+            log.warning(
+                "step %d: non-finite loss or gradients (frame %d); step skipped", it, stored.frame.index
+            )
             self.optimizer.zero_grad()
         else:
             gate = self.model.table.motion_gate()
@@ -447,11 +453,15 @@ class Trainer:
         return checkpoint.save(self, path)
 
     @classmethod
-    def load(cls, path: str | Path, *, body_model=None, device="cpu", backend="auto", flow_cache=None) -> Trainer:
+    def load(
+        cls, path: str | Path, *, body_model=None, device="cpu", backend="auto", flow_cache=None
+    ) -> Trainer:
         """Resume from a checkpoint written by :meth:`save`; frames must be added again."""
         from stg_node.avatar import checkpoint
 
-        return checkpoint.load(path, body_model=body_model, device=device, backend=backend, flow_cache=flow_cache)
+        return checkpoint.load(
+            path, body_model=body_model, device=device, backend=backend, flow_cache=flow_cache
+        )
 
     # --- reporting -------------------------------------------------------------------------------
     def stats(self) -> dict:

@@ -16,7 +16,9 @@ class TrainingLog:
 
     def write(self, result) -> None:
         record = asdict(result)
-        record = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in record.items()}
+        record = {
+            k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in record.items()
+        }
         self._fh.write(json.dumps(record) + "\n")
         self._fh.flush()
 

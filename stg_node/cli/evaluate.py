@@ -20,13 +20,18 @@ from pathlib import Path
 from stg_node.cli.runner import add_log_level_option, run_main
 from stg_node.threads import configure_threads
 
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="stg-eval", description="Score a trained STG-Avatar run on a test split.")
+    p = argparse.ArgumentParser(
+        prog="stg-eval", description="Score a trained STG-Avatar run on a test split."
+    )
     p.add_argument("run", help="run folder written by stg-train")
     p.add_argument("--split", required=True, choices=("novel_view", "novel_pose"), help="test split")
     p.add_argument("--data", default=None, help="dataset folder (default: the one the run trained on)")
     p.add_argument("--json", action="store_true", help="print one JSON object as the last line of stdout")
-    p.add_argument("--lpips", default="alex", help="LPIPS networks, comma-separated, or 'none' (default alex)")
+    p.add_argument(
+        "--lpips", default="alex", help="LPIPS networks, comma-separated, or 'none' (default alex)"
+    )
     p.add_argument("--backend", default="auto", choices=("auto", "cpu", "cuda", "torch"))
     p.add_argument("--device", default="cpu")
     p.add_argument("--threads", default=None, help="CPU threads (default: STG_THREADS or 1)")
@@ -49,7 +54,8 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(result))
     else:
         print(
-            f"{args.split}: PSNR {result['psnr']:.2f} dB, SSIM {result['ssim']:.4f}, LPIPS {result['lpips']:.4f} "
+            f"{args.split}: PSNR {result['psnr']:.2f} dB, SSIM {result['ssim']:.4f}, "
+            f"LPIPS {result['lpips']:.4f} "
             f"over {result['images']} views; {result['gaussians']} Gaussians, "
             f"{100 * result['active_motion_fraction']:.1f}% with motion, {result['model_mb']:.1f} MB\n"
             f"[protocol: {result['protocol']}]"
@@ -63,7 +69,9 @@ def evaluate_run(args) -> dict:
     from stg_node.avatar.evaluate import evaluate_split, save_comparison
     from stg_node.avatar.loading import load_run_renderer
 
-    run, renderer, corrections, summary = load_run_renderer(Path(args.run), device=args.device, backend=args.backend)
+    run, renderer, corrections, summary = load_run_renderer(
+        Path(args.run), device=args.device, backend=args.backend
+    )
     spec = run.data_spec()
     if args.data:
         spec = spec.with_root(Path(args.data).resolve())

@@ -53,7 +53,9 @@ def run(args: argparse.Namespace) -> int:
         spec = spec.with_root(Path(args.data).resolve())
     train = spec.open("train")
     if args.frame not in train.frames:
-        raise UsageError(f"--frame {args.frame} is not a training frame ({train.frames[0]}..{train.frames[-1]})")
+        raise UsageError(
+            f"--frame {args.frame} is not a training frame ({train.frames[0]}..{train.frames[-1]})"
+        )
     smpl = corrected(train.smpl(args.frame), corrections.get(args.frame))
     export_posed(model, smpl, train.time(args.frame), train.camera(train.camera_names[0]), out)
     print(f"wrote the avatar at frame {args.frame} to {out}")

@@ -17,8 +17,6 @@ import logging
 import sys
 from pathlib import Path
 
-import numpy as np
-
 from stg_node.cli.runner import UsageError, add_log_level_option, run_main
 from stg_node.threads import configure_threads
 
@@ -29,9 +27,13 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="stg-render", description="Render a trained STG-Avatar run.")
     p.add_argument("run", help="run folder written by stg-train")
     p.add_argument("-o", "--out", required=True, help="output .mp4 file or folder for PNGs")
-    p.add_argument("--views", default="orbit", choices=("orbit", "dataset"), help="cameras (default %(default)s)")
+    p.add_argument(
+        "--views", default="orbit", choices=("orbit", "dataset"), help="cameras (default %(default)s)"
+    )
     p.add_argument("--poses", default=None, help="SMPL pose file (.npz) or ZJU-style folder to animate")
-    p.add_argument("--frames", type=int, default=None, help="number of frames (default: all poses; orbit 120)")
+    p.add_argument(
+        "--frames", type=int, default=None, help="number of frames (default: all poses; orbit 120)"
+    )
     p.add_argument("--size", type=int, default=None, help="image size (default: the dataset's)")
     p.add_argument("--fps", type=float, default=30.0, help="MP4 frame rate (default %(default)s)")
     p.add_argument("--data", default=None, help="dataset folder (default: the one the run trained on)")

@@ -5,8 +5,8 @@
               [--backend auto|cpu|cuda|torch] [--threads T] [--seed S] [--resume]
 
 The run folder layout is in stg_node/avatar/run.py; docs/AVATAR.md explains the method and
-every preset. Exit codes (docs/CLI.md): 0 trained, 1 the training failed (bad data), 2 bad usage, 130 stopped by
-Ctrl-C/SIGTERM after a final checkpoint (continue with --resume).
+every preset. Exit codes (docs/CLI.md): 0 trained, 1 the training failed (bad data), 2 bad usage,
+130 stopped by Ctrl-C/SIGTERM after a final checkpoint (continue with --resume).
 """
 
 from __future__ import annotations
@@ -37,15 +37,38 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data", required=True, help="dataset folder (or, with --format video, a video file)")
     p.add_argument("--format", required=True, choices=FORMATS, help="dataset layout")
     p.add_argument("--out", required=True, help="run folder (created); holds checkpoints, logs, the model")
-    p.add_argument("--preset", default="balanced", choices=PRESETS, help="speed/quality preset (default %(default)s)")
-    p.add_argument("--smpl-model", default=None, help="SMPL-format body file the parameters refer to (default: the open body)")
-    p.add_argument("--train-frames", default=None, help="training frame range A:B (default: the dataset's protocol)")
-    p.add_argument("--train-camera", default=None, help="training camera name (default: the protocol's, camera 1)")
+    p.add_argument(
+        "--preset", default="balanced", choices=PRESETS, help="speed/quality preset (default %(default)s)"
+    )
+    p.add_argument(
+        "--smpl-model",
+        default=None,
+        help="SMPL-format body file the parameters refer to (default: the open body)",
+    )
+    p.add_argument(
+        "--train-frames", default=None, help="training frame range A:B (default: the dataset's protocol)"
+    )
+    p.add_argument(
+        "--train-camera", default=None, help="training camera name (default: the protocol's, camera 1)"
+    )
     p.add_argument("--iters", type=int, default=None, help="training iterations (default: the preset's)")
-    p.add_argument("--checkpoint-every", type=int, default=None, help="iterations between checkpoints (default: the preset's)")
-    p.add_argument("--backend", default="auto", choices=("auto", "cpu", "cuda", "torch"), help="splatting backend")
-    p.add_argument("--device", default=None, help="torch device (default: cuda when --backend cuda/auto finds one, else cpu)")
-    p.add_argument("--size", type=int, default=512, help="image size the frames are loaded at (default %(default)s)")
+    p.add_argument(
+        "--checkpoint-every",
+        type=int,
+        default=None,
+        help="iterations between checkpoints (default: the preset's)",
+    )
+    p.add_argument(
+        "--backend", default="auto", choices=("auto", "cpu", "cuda", "torch"), help="splatting backend"
+    )
+    p.add_argument(
+        "--device",
+        default=None,
+        help="torch device (default: cuda when --backend cuda/auto finds one, else cpu)",
+    )
+    p.add_argument(
+        "--size", type=int, default=512, help="image size the frames are loaded at (default %(default)s)"
+    )
     p.add_argument("--threads", default=None, help="CPU threads (default: STG_THREADS or 1)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default %(default)s)")
     p.add_argument("--resume", action="store_true", help="continue from RUN_DIR's last checkpoint")
@@ -111,8 +134,13 @@ def _train(args, frames, stop: StopSignals) -> int:
     flow_cache = FlowCache(run.flow_cache)
     resumed = False
     if args.resume and run.checkpoint.is_file():
-        trainer = Trainer.load(run.checkpoint, body_model=args.smpl_model, device=device, backend=args.backend,
-                               flow_cache=flow_cache)
+        trainer = Trainer.load(
+            run.checkpoint,
+            body_model=args.smpl_model,
+            device=device,
+            backend=args.backend,
+            flow_cache=flow_cache,
+        )
         if args.iters is not None and args.iters != trainer.config.iterations:
             trainer.config = trainer.config.replace(iterations=args.iters)
         resumed = True
@@ -123,24 +151,36 @@ def _train(args, frames, stop: StopSignals) -> int:
         config = preset(args.preset)
         if args.iters is not None:
             config = config.replace(iterations=args.iters)
-        trainer = Trainer(config, args.smpl_model, device=device, backend=args.backend, seed=args.seed,
-                          flow_cache=flow_cache)
+        trainer = Trainer(
+            config,
+            args.smpl_model,
+            device=device,
+            backend=args.backend,
+            seed=args.seed,
+            flow_cache=flow_cache,
+        )
     if args.checkpoint_every is not None:
         trainer.config = trainer.config.replace(checkpoint_every=args.checkpoint_every)
     config = trainer.config
-    run.write_config({
-        "config": config.to_dict(),
-        "data": spec.to_dict(),
-        "body_model": args.smpl_model or "open",
-        "seed": trainer.seed,
-        "backend": args.backend,
-        "device": device,
-        "versions": _versions(),
-    })
+    run.write_config(
+        {
+            "config": config.to_dict(),
+            "data": spec.to_dict(),
+            "body_model": args.smpl_model or "open",
+            "seed": trainer.seed,
+            "backend": args.backend,
+            "device": device,
+            "versions": _versions(),
+        }
+    )
     dataset = spec.open("train")
     trainer.add_frames(progress(dataset, desc="loading frames", unit="frame", enabled=not args.no_progress))
-    log.info("%d training frames (%s), %d with optical flow", len(trainer.store), spec.format,
-             sum(1 for f in trainer.store.frames if f.flow is not None))
+    log.info(
+        "%d training frames (%s), %d with optical flow",
+        len(trainer.store),
+        spec.format,
+        sum(1 for f in trainer.store.frames if f.flow is not None),
+    )
     tlog = TrainingLog(run.log, append=resumed)
     bar = progress(desc="training", unit="it", total=config.iterations, enabled=not args.no_progress)
     bar.update(trainer.iteration)
@@ -150,8 +190,12 @@ def _train(args, frames, stop: StopSignals) -> int:
         bar.update(1)
         if result.iteration % config.log_every == 0 or result.skipped:
             tlog.write(result)
-            bar.set_postfix(loss=f"{result.loss:.4f}", psnr=f"{result.psnr:.2f}", gaussians=result.num_gaussians,
-                            refresh=False)
+            bar.set_postfix(
+                loss=f"{result.loss:.4f}",
+                psnr=f"{result.psnr:.2f}",
+                gaussians=result.num_gaussians,
+                refresh=False,
+            )
         if result.iteration - last_save >= config.checkpoint_every:
             trainer.save(run.checkpoint)
             last_save = result.iteration
@@ -179,7 +223,9 @@ def _train(args, frames, stop: StopSignals) -> int:
     tlog.plot(run.curves)
     print(json.dumps(summary))
     if not finished:
-        log.warning("stopped at iteration %d of %d; continue with --resume", trainer.iteration, config.iterations)
+        log.warning(
+            "stopped at iteration %d of %d; continue with --resume", trainer.iteration, config.iterations
+        )
         return 130
     return 0
 

@@ -14,7 +14,9 @@ def tiny_synth(tmp_path_factory):
 
     out = Path(tmp_path_factory.mktemp("synth")) / "tiny"
     generate(
-        SynthConfig(out=out, num_frames=12, size=128, num_novel_views=2, view_every=4, supersample=1, motion="dance"),
+        SynthConfig(
+            out=out, num_frames=12, size=128, num_novel_views=2, view_every=4, supersample=1, motion="dance"
+        ),
         progress=False,
     )
     return out

@@ -33,8 +33,14 @@ def run_dir(tiny_synth, tmp_path_factory):
 
 
 def test_train_writes_a_complete_run_folder(run_dir, capsys):
-    for name in ("config.json", "checkpoint.stgsnap", "avatar.stgsnap", "summary.json", "train_log.jsonl",
-                 "training_curves.png"):
+    for name in (
+        "config.json",
+        "checkpoint.stgsnap",
+        "avatar.stgsnap",
+        "summary.json",
+        "train_log.jsonl",
+        "training_curves.png",
+    ):
         assert (run_dir / name).is_file(), name
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["finished"] and summary["iterations"] == 12 and summary["gaussians"] > 0
@@ -43,13 +49,28 @@ def test_train_writes_a_complete_run_folder(run_dir, capsys):
 
 
 def test_eval_json_is_the_last_line_with_the_contract_keys(run_dir, capsys):
-    assert eval_cli.main([str(run_dir), "--split", "novel_view", "--json", "--no-progress", "--lpips", "none"]) == 0
+    assert (
+        eval_cli.main([str(run_dir), "--split", "novel_view", "--json", "--no-progress", "--lpips", "none"])
+        == 0
+    )
     result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    for key in ("psnr", "ssim", "lpips", "images", "gaussians", "active_motion_fraction", "model_mb", "train_seconds"):
+    for key in (
+        "psnr",
+        "ssim",
+        "lpips",
+        "images",
+        "gaussians",
+        "active_motion_fraction",
+        "model_mb",
+        "train_seconds",
+    ):
         assert key in result, key
     assert result["images"] == 2 * 3  # 2 held-out cameras x frames 0, 4, 8
     assert 5.0 < result["psnr"] < 60.0
-    assert eval_cli.main([str(run_dir), "--split", "novel_pose", "--json", "--no-progress", "--lpips", "none"]) == 0
+    assert (
+        eval_cli.main([str(run_dir), "--split", "novel_pose", "--json", "--no-progress", "--lpips", "none"])
+        == 0
+    )
 
 
 def test_render_orbit_to_mp4_and_a_pose_file_to_pngs(run_dir, tmp_path, tiny_synth):
@@ -64,8 +85,13 @@ def test_render_orbit_to_mp4_and_a_pose_file_to_pngs(run_dir, tmp_path, tiny_syn
     poses = np.zeros((2, 72), np.float32)
     poses[1, 3 * 16 + 2] = -1.0  # raise an arm
     pose_file = tmp_path / "poses.npz"
-    np.savez(pose_file, poses=poses, Rh=np.array([[np.pi / 2, 0, 0]] * 2, np.float32),
-             Th=np.zeros((2, 3), np.float32), shapes=np.zeros((2, 10), np.float32))
+    np.savez(
+        pose_file,
+        poses=poses,
+        Rh=np.array([[np.pi / 2, 0, 0]] * 2, np.float32),
+        Th=np.zeros((2, 3), np.float32),
+        shapes=np.zeros((2, 10), np.float32),
+    )
     out = tmp_path / "anim"
     assert render_cli.main([str(run_dir), "-o", str(out), "--poses", str(pose_file), "--no-progress"]) == 0
     images = sorted(out.glob("*.png"))
@@ -92,7 +118,9 @@ def test_exit_codes(tiny_synth, tmp_path):
     assert train_cli.main([*data, "--train-frames", "5:2", *TRAIN_ARGS]) == 2
     assert train_cli.main([*data, "--iters", "0", *TRAIN_ARGS]) == 2
     assert train_cli.main([*data, "--format", "nope"]) == 2
-    assert train_cli.main(["--data", str(tmp_path / "missing"), "--out", str(tmp_path / "r2"), *TRAIN_ARGS]) == 1
+    assert (
+        train_cli.main(["--data", str(tmp_path / "missing"), "--out", str(tmp_path / "r2"), *TRAIN_ARGS]) == 1
+    )
     # A synthetic range past the generator's training frames is bad data, said clearly.
     assert train_cli.main([*data, "--train-frames", "0:50", "--iters", "1", *TRAIN_ARGS]) == 1
     assert eval_cli.main([str(tmp_path), "--split", "novel_view"]) == 1  # not a run folder
@@ -117,11 +145,26 @@ def test_kill_9_then_resume_gives_the_uninterrupted_result(tiny_synth, tmp_path)
     equals that of a run that was never interrupted (same seed, data, backend, one thread)."""
     from stg_node.avatar.snapshot import read_snapshot_file
 
-    common = ["--data", str(tiny_synth), *TRAIN_ARGS, "--iters", "30", "--checkpoint-every", "10", "--seed", "3"]
+    common = [
+        "--data",
+        str(tiny_synth),
+        *TRAIN_ARGS,
+        "--iters",
+        "30",
+        "--checkpoint-every",
+        "10",
+        "--seed",
+        "3",
+    ]
     env = {**os.environ, "STG_THREADS": "1", "PYTHONPATH": str(ROOT)}
     killed = tmp_path / "killed"
-    proc = subprocess.Popen([sys.executable, "-m", "stg_node.cli.train", "--out", str(killed), *common],
-                            cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "stg_node.cli.train", "--out", str(killed), *common],
+        cwd=ROOT,
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     try:
         checkpoint = killed / "checkpoint.stgsnap"
         _wait_for(checkpoint, lambda: read_snapshot_file(checkpoint).iteration >= 10, timeout=120)

@@ -14,8 +14,15 @@ from stg_node.avatar.gaussians import GaussianTable, new_columns
 def _table(n=5, seed=0, **model):
     cfg = ModelConfig(num_gaussians=n, max_gaussians=max(n, 10), **model)
     gen = torch.Generator().manual_seed(seed)
-    cols = new_columns(cfg, torch.randn(n, 3, generator=gen), torch.softmax(torch.randn(n, 24, generator=gen), 1), 0.01,
-                       t_center=0.0, t_scale=0.3, generator=gen)
+    cols = new_columns(
+        cfg,
+        torch.randn(n, 3, generator=gen),
+        torch.softmax(torch.randn(n, 24, generator=gen), 1),
+        0.01,
+        t_center=0.0,
+        t_scale=0.3,
+        generator=gen,
+    )
     cols["motion"] = torch.randn(cols["motion"].shape, generator=gen) * 0.01
     cols["rot_motion"] = torch.randn(cols["rot_motion"].shape, generator=gen) * 0.1
     cols["t_center"] = torch.rand(n, generator=gen)
@@ -47,7 +54,11 @@ def test_ten_thousand_frames_stay_bounded_and_finite():
     for frame in (0, 1, 9_999, 10_000, 1_000_000):
         u = frame / 30.0
         st = spacetime.evaluate(table, u, cfg.time_horizon, temporal_opacity=True)
-        assert torch.isfinite(st.offsets).all() and torch.isfinite(st.quats).all() and torch.isfinite(st.temporal).all()
+        assert (
+            torch.isfinite(st.offsets).all()
+            and torch.isfinite(st.quats).all()
+            and torch.isfinite(st.temporal).all()
+        )
         assert float(st.offsets.abs().max()) <= bound + 1e-6
     # Before the first frame too (negative local time).
     st = spacetime.evaluate(table, -1e4, cfg.time_horizon, temporal_opacity=True)

@@ -40,7 +40,9 @@ def test_full_model_overfits_a_tiny_sequence(tiny_frames):
     trainer = Trainer(config, seed=0)
     trainer.add_frames(tiny_frames)
     renderer = AvatarRenderer(trainer.model)
-    before = np.mean([_psnr(renderer.render(f.camera, f.smpl, f.time).image, _masked(f)) for f in tiny_frames])
+    before = np.mean(
+        [_psnr(renderer.render(f.camera, f.smpl, f.time).image, _masked(f)) for f in tiny_frames]
+    )
     for _ in range(config.iterations):
         result = trainer.step()
         assert not result.skipped
@@ -115,7 +117,9 @@ def test_resumed_checkpoint_continues_exactly_like_the_uninterrupted_run(tiny_fr
     for name in straight.model.table.names():
         assert torch.equal(straight.model.table[name], resumed.model.table[name]), name
     for (k, v), (k2, v2) in zip(
-        straight.model.color_mlp.state_dict().items(), resumed.model.color_mlp.state_dict().items(), strict=True
+        straight.model.color_mlp.state_dict().items(),
+        resumed.model.color_mlp.state_dict().items(),
+        strict=True,
     ):
         assert k == k2 and torch.equal(v, v2), k
     assert torch.equal(straight.pose_deltas, resumed.pose_deltas)
