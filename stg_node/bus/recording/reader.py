@@ -335,7 +335,7 @@ class BagReader:
         with open(bag.path, "rb") as f:
             reader = SeekingReader(f)
             for _schema, channel, message in reader.iter_messages(
-                topics=topics, log_time_order=True, start_time=start_ns
+                topics=topics, log_time_order=True, starting_at=start_ns
             ):
                 yield _recorded(channel, message)
 
