@@ -15,7 +15,7 @@ import msgpack
 import numpy as np
 import pytest
 import zmq
-from baghelpers import ROOT, encoded_stream, mcap_messages, raw_frames, wait_written
+from baghelpers import ROOT, encoded_stream, mcap_messages, wait_written
 from bushelpers import sample_messages
 from mcap.reader import make_reader
 from mcap.stream_reader import StreamReader
