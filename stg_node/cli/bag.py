@@ -74,7 +74,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--split-size", type=float, metavar="MB", help="start a new file after MB megabytes")
     p.add_argument("--split-duration", type=float, metavar="S", help="start a new file every S seconds")
-    p.add_argument("--compression", choices=sorted(COMPRESSIONS), default="none", help="chunk compression")
+    p.add_argument("--compression", choices=COMPRESSIONS, default="none", help="chunk compression")
     p.add_argument("--chunk-size", type=float, default=4.0, metavar="MB", help="chunk size (default 4 MB)")
     p.add_argument(
         "--flush-interval",
@@ -174,6 +174,9 @@ def player_controls(player: Player, stop: threading.Event):
     finally:
         for sig, old in previous.items():
             signal.signal(sig, old)
+        if keys is not None:
+            stop.set()
+            keys.join(1.0)  # it restores the terminal's mode
 
 
 def _read_keys(player: Player, stop: threading.Event) -> None:

@@ -181,3 +181,36 @@ def test_bad_writer_options_are_refused(tmp_path):
         BagWriter(tmp_path / "x.mcap", compression="gzip")
     with pytest.raises(RecordingError, match="split size"):
         BagWriter(tmp_path / "x.mcap", split_size=0)
+
+
+@pytest.mark.parametrize("compression", ["none", "zstd", "lz4"])
+def test_files_pass_the_mcap_readers_checks(tmp_path, compression):
+    """Streamed with every CRC checked, indexed by topic both ways, summary CRC and statistics."""
+    import struct
+    import zlib
+
+    from mcap.records import Footer, Header, Message
+    from mcap.stream_reader import StreamReader
+
+    stream = encoded_stream(6)
+    path = tmp_path / "s.mcap"
+    _write(path, stream, compression=compression, chunk_size=3000)
+    records = list(StreamReader(str(path), validate_crcs=True).records)
+    assert isinstance(records[0], Header) and records[0].profile == "stg" and isinstance(records[-1], Footer)
+    assert sum(isinstance(r, Message) for r in records) == len(stream)
+    with open(path, "rb") as f:
+        reader = make_reader(f, validate_crcs=True)
+        summary = reader.get_summary()
+        poses = [m for _s, _c, m in reader.iter_messages(topics=["body/pose"])]
+        backwards = [m for _s, _c, m in reader.iter_messages(topics=["body/pose"], reverse=True)]
+    want = [b"".join(f[1:]) for _t, f in stream if f[0] == b"body/pose"]
+    assert [m.data for m in poses] == want and [m.data for m in backwards] == want[::-1]
+    stats = summary.statistics
+    assert stats.message_count == len(stream) and sum(stats.channel_message_counts.values()) == len(stream)
+    assert stats.chunk_count == len(summary.chunk_indexes) > 1
+    assert (stats.message_start_time, stats.message_end_time) == (stream[0][0], stream[-1][0])
+    data = path.read_bytes()
+    footer = records[-1]
+    summary_bytes = data[footer.summary_start : len(data) - 8 - 29]
+    prefix = struct.pack("<BQQQ", 0x02, 20, footer.summary_start, footer.summary_offset_start)
+    assert zlib.crc32(prefix, zlib.crc32(summary_bytes)) == footer.summary_crc

@@ -36,8 +36,8 @@ import numpy as np
 
 from stg_node.bus import REGISTRY
 from stg_node.bus.recording.format import RecordingError
+from stg_node.bus.recording.mcapfile import COMPRESSIONS, McapFile
 from stg_node.bus.recording.reader import BagReader
-from stg_node.bus.recording.writer import COMPRESSIONS
 from stg_node.progress import progress
 
 IMAGE_FORMATS = ("jpeg", "png", "raw")
@@ -245,15 +245,13 @@ def export_foxglove(
     show_progress: bool = True,
 ) -> FoxgloveStats:
     """Write ``out``: the recording's messages (``keep_original``) plus Foxglove view channels."""
-    from mcap.writer import Writer  # noqa: PLC0415
-
     from stg_node.bus.recording.format import MESSAGE_ENCODING, SCHEMA_ENCODING  # noqa: PLC0415
     from stg_node.bus.recording.schemas import schema_data  # noqa: PLC0415
 
     if image_format not in IMAGE_FORMATS:
         raise RecordingError(f"image format {image_format!r} is not one of {IMAGE_FORMATS}")
     if compression not in COMPRESSIONS:
-        raise RecordingError(f"compression {compression!r} is not one of {sorted(COMPRESSIONS)}")
+        raise RecordingError(f"compression {compression!r} is not one of {list(COMPRESSIONS)}")
     try:
         views = _Views(image_format, jpeg_quality)
     except ImportError as exc:
@@ -266,7 +264,7 @@ def export_foxglove(
     types = reader.types()
     total = reader.message_count
     with open(out, "wb") as f:
-        writer = Writer(f, compression=COMPRESSIONS[compression])
+        writer = McapFile(f, compression=compression)
         writer.start(profile="", library="stg_node stg-bag export --foxglove")
         schemas: dict[str, int] = {}
         channels: dict[str, int] = {}
@@ -293,7 +291,7 @@ def export_foxglove(
                     yaml_schema = schema_data(type_name)
                     sid = schema_id(type_name, SCHEMA_ENCODING, yaml_schema) if yaml_schema is not None else 0
                     cid = channel(msg.topic, MESSAGE_ENCODING, sid, {"type": type_name})
-                    writer.add_message(cid, msg.log_time_ns, msg.data, msg.publish_time_ns, msg.sequence)
+                    writer.add_message(cid, msg.log_time_ns, msg.publish_time_ns, msg.sequence, [msg.data])
                     stats.messages += 1
                 for view_topic, view in views.build(env.topic, env.header, env.arrays):
                     if isinstance(view, bytes):
@@ -310,7 +308,7 @@ def export_foxglove(
                         )
                         cid = channel(view_topic, "protobuf", sid)
                         data = view.SerializeToString()
-                    writer.add_message(cid, msg.log_time_ns, data, msg.publish_time_ns, msg.sequence)
+                    writer.add_message(cid, msg.log_time_ns, msg.publish_time_ns, msg.sequence, [data])
                     stats.views[view_topic] = stats.views.get(view_topic, 0) + 1
         writer.finish()
     return stats

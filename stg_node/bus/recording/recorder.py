@@ -21,6 +21,7 @@ They are in :meth:`stats` and in the recording's ``stg.recording.end`` metadata.
 
 from __future__ import annotations
 
+import itertools
 import json
 import logging
 import re
@@ -41,7 +42,8 @@ log = logging.getLogger(__name__)
 MiB = 1 << 20
 DEFAULT_MAX_QUEUE_BYTES = 512 * MiB
 OVERFLOW = "recorder_overflow"
-_POLL_S = 0.1  # the reader thread's recv timeout: how quickly it notices stop()
+_POLL_MS = 1000  # the reader thread's longest wait; stop() wakes it earlier
+_ids = itertools.count()
 _WRITE_SLICE_S = 0.5  # poll() returns after this long even with more queued, so callers stay responsive
 
 
@@ -131,6 +133,7 @@ class Recorder:
         self._queue: deque = deque()
         self._queued_bytes = 0
         self._stop = threading.Event()
+        self._wake_endpoint = f"inproc://stg-bag-recorder-{id(self)}-{next(_ids)}"
         self._ready = threading.Event()
         self._error: BaseException | None = None
         self._stats = RecorderStats()
@@ -190,6 +193,16 @@ class Recorder:
             return self.stats()
         self._stopped = True
         self._stop.set()
+        if self._thread is not None and self._ready.is_set() and self._error is None:
+            waker = self._context.socket(zmq.PAIR)
+            waker.linger = 0
+            try:
+                waker.connect(self._wake_endpoint)
+                waker.send(b"stop", zmq.NOBLOCK)
+            except zmq.ZMQError:
+                pass  # the thread notices the stop flag within _POLL_MS anyway
+            finally:
+                waker.close(linger=0)
         if self._thread is not None:
             self._thread.join(timeout=10.0)
             if self._thread.is_alive():
@@ -223,37 +236,47 @@ class Recorder:
     def _read(self) -> None:
         try:
             sub = Subscriber(self.config, [""], context=self._context, typed=False, keep_last=False)
+            wake = self._context.socket(zmq.PAIR)
+            wake.linger = 0
+            wake.bind(self._wake_endpoint)
         except BaseException as exc:  # reported by start()
             self._error = exc
             self._ready.set()
             return
         self._subscriber = sub
+        poller = zmq.Poller()
+        for sock in sub.sockets:
+            poller.register(sock, zmq.POLLIN)
+        poller.register(wake, zmq.POLLIN)
         self._ready.set()
         match = self._match
         stats = self._stats
         try:
             while not self._stop.is_set():
-                env = sub.recv(timeout=_POLL_S)
-                if env is None:
-                    continue
-                received_ns = time.time_ns()
-                if match is not None and not match(env.topic):
-                    stats.filtered += 1
-                    continue
-                stats.received += 1
-                size = env.nbytes
-                with self._cond:
-                    if self._queue and self._queued_bytes + size > self.max_queue_bytes:
-                        self._overflow += 1
+                poller.poll(_POLL_MS)  # stop() wakes it at once through the PAIR
+                while not self._stop.is_set():
+                    env = sub.recv(timeout=0)
+                    if env is None:
+                        break
+                    received_ns = time.time_ns()
+                    if match is not None and not match(env.topic):
+                        stats.filtered += 1
                         continue
-                    self._queue.append((received_ns, env))
-                    self._queued_bytes += size
-                    self._cond.notify()
+                    stats.received += 1
+                    size = env.nbytes
+                    with self._cond:
+                        if self._queue and self._queued_bytes + size > self.max_queue_bytes:
+                            self._overflow += 1
+                            continue
+                        self._queue.append((received_ns, env))
+                        self._queued_bytes += size
+                        self._cond.notify()
         except Exception as exc:
             self._error = exc
             log.exception("recorder reader thread failed")
         finally:
             sub.close()
+            wake.close(linger=0)
             with self._cond:
                 self._cond.notify_all()
 

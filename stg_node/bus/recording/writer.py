@@ -27,8 +27,6 @@ from dataclasses import dataclass, field
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
-from mcap.writer import CompressionType, Writer
-
 import stg_node
 from stg_node.bus import BusConfig, Envelope, decode_envelope
 from stg_node.bus.recording.format import (
@@ -43,12 +41,12 @@ from stg_node.bus.recording.format import (
     payload_parts,
     split_path,
 )
+from stg_node.bus.recording.mcapfile import COMPRESSIONS, McapFile
 from stg_node.bus.recording.schemas import schema_data
 
 log = logging.getLogger(__name__)
 
 MiB = 1 << 20
-COMPRESSIONS = {"none": CompressionType.NONE, "zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4}
 DEFAULT_CHUNK_SIZE = 4 * MiB
 DEFAULT_FLUSH_INTERVAL_S = 1.0
 
@@ -102,7 +100,7 @@ class BagWriter:
         bus_config: BusConfig | None = None,
     ):
         if compression not in COMPRESSIONS:
-            raise RecordingError(f"compression {compression!r} is not one of {sorted(COMPRESSIONS)}")
+            raise RecordingError(f"compression {compression!r} is not one of {list(COMPRESSIONS)}")
         if chunk_size <= 0:
             raise RecordingError(f"chunk size must be > 0 bytes, got {chunk_size}")
         if split_size is not None and split_size <= 0:
@@ -121,7 +119,7 @@ class BagWriter:
         self._extra_metadata = {str(k): str(v) for k, v in (metadata or {}).items()}
         self._launch = self._read_launch(launch_file)
         self._file = None
-        self._mcap: Writer | None = None
+        self._mcap: McapFile | None = None
         self._closed = False
         self._open_next()
 
@@ -151,9 +149,7 @@ class BagWriter:
         except OSError as exc:
             raise RecordingError(f"cannot write {path}: {exc.strerror}") from exc
         self.files.append(path)
-        self._mcap = Writer(
-            self._file, chunk_size=self.chunk_size, compression=COMPRESSIONS[self.compression]
-        )
+        self._mcap = McapFile(self._file, chunk_size=self.chunk_size, compression=self.compression)
         library = f"stg_node/{stg_node.__version__} mcap-python/{_package_version('mcap')}"
         self._mcap.start(profile=PROFILE, library=library)
         self._channels: dict[str, int] = {}
@@ -244,11 +240,9 @@ class BagWriter:
         if channel_id is None:
             channel_id = self._channel(env)
         header = env.header
-        data = b"".join(parts)
-        self._mcap.add_message(
-            channel_id, log_time_ns, data, header["stamp_ns"], header["seq"] & SEQUENCE_MASK
+        nbytes = self._mcap.add_message(
+            channel_id, log_time_ns, header["stamp_ns"], header["seq"] & SEQUENCE_MASK, parts
         )
-        nbytes = len(data)
         self._file_counts.add(env.topic, nbytes)
         self.counts.add(env.topic, nbytes)
         if self._file_first_ns is None:
