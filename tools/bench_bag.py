@@ -300,7 +300,8 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     workdir = Path(tempfile.mkdtemp(prefix="stgbag-", dir=args.dir))
     report = {
-        "machine": f"{platform.node()} {platform.machine()}, {os.cpu_count()} cpus, python {platform.python_version()}",
+        "machine": f"{platform.node()} {platform.machine()}, {os.cpu_count()} cpus, "
+        f"python {platform.python_version()}",
         "load_before": os.getloadavg(),
         "dir": str(workdir),
     }
