@@ -37,9 +37,13 @@ class ExportStats:
 
 
 def _topic_rate(reader: BagReader, topic: str) -> float:
-    """Messages per second on ``topic`` over the recording's span (30 when it cannot tell)."""
+    """Messages per second on ``topic`` over its own span (30 when it cannot tell)."""
     count = sum(f.topic_messages.get(topic, 0) for f in reader.files)
-    start, end = reader.start_ns, reader.end_ns
+    spans = [f.topic_times[topic] for f in reader.files if f.topic_times and topic in f.topic_times]
+    if spans:
+        start, end = min(s[0] for s in spans), max(s[1] for s in spans)
+    else:
+        start, end = reader.start_ns, reader.end_ns
     if count < 2 or start is None or end is None or end <= start:
         return 30.0
     return (count - 1) / ((end - start) / 1e9)

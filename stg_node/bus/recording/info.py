@@ -21,7 +21,7 @@ class TopicInfo:
     type: str
     messages: int
     bytes: int | None  # payload bytes; None when unknown
-    rate_hz: float
+    rate_hz: float  # (messages - 1) / (last - first receive time) of this topic
 
     @property
     def avg_bytes(self) -> float | None:
@@ -72,16 +72,20 @@ def bag_info(reader: BagReader) -> BagInfo:
     types = reader.types()
     counts: dict[str, int] = {}
     sizes: dict[str, int] = {}
+    spans: dict[str, tuple[int, int]] = {}
     drops: dict[str, int] = {}
     files = []
     for bag in reader.files:
-        if bag.topic_bytes is None:
+        if bag.topic_bytes is None or bag.topic_times is None:
             for _ in scan_records(bag, collect=True):
                 pass
         for topic, n in bag.topic_messages.items():
             counts[topic] = counts.get(topic, 0) + n
         for topic, n in (bag.topic_bytes or {}).items():
             sizes[topic] = sizes.get(topic, 0) + n
+        for topic, (first, last) in (bag.topic_times or {}).items():
+            known = spans.get(topic, (first, last))
+            spans[topic] = (min(known[0], first), max(known[1], last))
         end = bag.metadata.get(META_END, {})
         if "drops" in end:
             try:
@@ -101,15 +105,15 @@ def bag_info(reader: BagReader) -> BagInfo:
             )
         )
     start, end_ns = reader.start_ns, reader.end_ns
-    span = (end_ns - start) / 1e9 if start is not None and end_ns is not None else 0.0
+
+    def rate(topic: str, n: int) -> float:
+        first, last = spans.get(topic, (start, end_ns))
+        if first is None or last is None or last <= first or n < 2:
+            return 0.0
+        return (n - 1) / ((last - first) / 1e9)
+
     topics = [
-        TopicInfo(
-            topic=topic,
-            type=types.get(topic, "?"),
-            messages=n,
-            bytes=sizes.get(topic),
-            rate_hz=(n - 1) / span if span > 0 and n > 1 else 0.0,
-        )
+        TopicInfo(topic=topic, type=types.get(topic, "?"), messages=n, bytes=sizes.get(topic), rate_hz=rate(topic, n))
         for topic, n in sorted(counts.items())
     ]
     first = reader.files[0]
@@ -150,10 +154,8 @@ def format_info(info: BagInfo) -> str:
         state = "TRUNCATED" if f.truncated else ("complete" if f.clean_stop else "complete (no end record)")
         lines.append(f"File:         {f.path}  ({human_size(f.size)}, {f.messages} messages, {state})")
         if f.truncated:
-            lines.append(
-                f"  truncated:  the recorder did not finish this file (killed?): {f.problem}; "
-                f"{f.messages} messages recovered from its complete chunks"
-            )
+            lines.append(f"  truncated:  the recorder did not finish this file (killed?): {f.problem}")
+            lines.append(f"              {f.messages} messages recovered from its complete chunks")
     lines += [
         f"Duration:     {info.duration_s:.3f} s",
         f"Start:        {_when(info.start_ns)}",

@@ -69,6 +69,7 @@ class BagFile:
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
     topic_messages: dict[str, int] = field(default_factory=dict)
     topic_bytes: dict[str, int] | None = None  # None until known (META_END or a scan)
+    topic_times: dict[str, tuple[int, int]] | None = None  # first and last receive time per topic
     chunks: int = 0
     compressions: set[str] = field(default_factory=set)
     start_ns: int | None = None
@@ -123,11 +124,15 @@ def _read_metadata(record: Metadata, into: dict[str, dict[str, str]]) -> None:
 
 def _apply_end_metadata(bag: BagFile) -> None:
     end = bag.metadata.get(META_END)
-    if end and "topic_bytes" in end:
-        try:
+    if not end:
+        return
+    try:
+        if "topic_bytes" in end:
             bag.topic_bytes = {str(k): int(v) for k, v in json.loads(end["topic_bytes"]).items()}
-        except (ValueError, TypeError, AttributeError):
-            bag.topic_bytes = None
+        if "topic_times" in end:
+            bag.topic_times = {str(k): (int(a), int(b)) for k, (a, b) in json.loads(end["topic_times"]).items()}
+    except (ValueError, TypeError, AttributeError):  # another writer's metadata: measure instead
+        bag.topic_bytes = bag.topic_times = None
 
 
 def open_bag_file(path: str | Path) -> BagFile:
@@ -185,6 +190,7 @@ def scan_records(bag: BagFile, *, collect: bool = False) -> Iterator[tuple[Chann
     """Every message of the file in file order, read record by record up to the first incomplete or
     damaged one. With ``collect``, fills ``bag`` (channels, schemas, metadata, counts, truncation)."""
     topic_bytes: dict[str, int] = {}
+    topic_times: dict[str, tuple[int, int]] = {}
     channels: dict[int, Channel] = {}
     offset = 8
     clean_end = False
@@ -196,6 +202,8 @@ def scan_records(bag: BagFile, *, collect: bool = False) -> Iterator[tuple[Chann
             bag.topic_messages[topic] = bag.topic_messages.get(topic, 0) + 1
             topic_bytes[topic] = topic_bytes.get(topic, 0) + len(message.data)
             t = message.log_time
+            first, last = topic_times.get(topic, (t, t))
+            topic_times[topic] = (min(first, t), max(last, t))
             bag.start_ns = t if bag.start_ns is None else min(bag.start_ns, t)
             bag.end_ns = t if bag.end_ns is None else max(bag.end_ns, t)
         return channel, message
@@ -270,6 +278,7 @@ def scan_records(bag: BagFile, *, collect: bool = False) -> Iterator[tuple[Chann
         bag.truncated = not clean_end
         bag.problem = "" if clean_end else problem
         bag.topic_bytes = topic_bytes
+        bag.topic_times = topic_times
 
 
 # --- reading -------------------------------------------------------------------------------------

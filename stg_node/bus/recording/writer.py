@@ -64,10 +64,17 @@ class TopicCounts:
 
     messages: dict[str, int] = field(default_factory=dict)
     bytes: dict[str, int] = field(default_factory=dict)
+    times: dict[str, list[int]] = field(default_factory=dict)  # [first, last] receive time, ns
 
-    def add(self, topic: str, nbytes: int) -> None:
+    def add(self, topic: str, nbytes: int, log_time_ns: int) -> None:
         self.messages[topic] = self.messages.get(topic, 0) + 1
         self.bytes[topic] = self.bytes.get(topic, 0) + nbytes
+        span = self.times.get(topic)
+        if span is None:
+            self.times[topic] = [log_time_ns, log_time_ns]
+        else:
+            span[0] = min(span[0], log_time_ns)
+            span[1] = max(span[1], log_time_ns)
 
     @property
     def total_messages(self) -> int:
@@ -187,6 +194,7 @@ class BagWriter:
             "messages": str(self._file_counts.total_messages),
             "topic_messages": json.dumps(self._file_counts.messages, sort_keys=True),
             "topic_bytes": json.dumps(self._file_counts.bytes, sort_keys=True),
+            "topic_times": json.dumps(self._file_counts.times, sort_keys=True),
             "finished_ns": str(time.time_ns()),
         }
         meta.update(end)
@@ -243,8 +251,8 @@ class BagWriter:
         nbytes = self._mcap.add_message(
             channel_id, log_time_ns, header["stamp_ns"], header["seq"] & SEQUENCE_MASK, parts
         )
-        self._file_counts.add(env.topic, nbytes)
-        self.counts.add(env.topic, nbytes)
+        self._file_counts.add(env.topic, nbytes, log_time_ns)
+        self.counts.add(env.topic, nbytes, log_time_ns)
         if self._file_first_ns is None:
             self._file_first_ns = log_time_ns
         self._file_last_ns = log_time_ns
