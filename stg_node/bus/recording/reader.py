@@ -331,7 +331,7 @@ class BagReader:
         return sorted(t for t in self.types() if match is None or match(t))
 
     def _file_messages(self, bag: BagFile, match, start_ns: int | None) -> Iterator[RecordedMessage]:
-        if bag.truncated or not bag.chunks and bag.message_count:
+        if bag.truncated:
             for channel, message in scan_records(bag):
                 if (match is None or match(channel.topic)) and (
                     start_ns is None or message.log_time >= start_ns
