@@ -9,6 +9,7 @@ import msgpack
 import numpy as np
 import pytest
 from baghelpers import ROOT, encoded_stream, mcap_messages, raw_frames
+from bushelpers import sample_messages
 from mcap.reader import make_reader
 
 from stg_node.bus.recording import BagReader, BagWriter, RecordingError, bag_info
@@ -39,7 +40,9 @@ def test_mcap_reader_sees_one_channel_per_topic_and_the_exact_bytes(tmp_path, co
         assert message.sequence == header["seq"]
     with open(path, "rb") as f:
         summary = make_reader(f).get_summary()
-    assert len({c.topic for c in summary.channels.values()}) == len(summary.channels) == 7
+    assert (
+        len({c.topic for c in summary.channels.values()}) == len(summary.channels) == len(sample_messages())
+    )
     assert {i.compression for i in summary.chunk_indexes} == {"" if compression == "none" else compression}
     assert len(summary.chunk_indexes) > 1
 
@@ -49,7 +52,7 @@ def test_each_type_has_its_proto_yaml_as_schema(tmp_path):
     _write(path, encoded_stream(1))
     with open(path, "rb") as f:
         summary = make_reader(f).get_summary()
-    assert len(summary.schemas) == 7
+    assert len(summary.schemas) == len(sample_messages())
     for schema in summary.schemas.values():
         assert schema.encoding == SCHEMA_ENCODING
         assert schema.data == (ROOT / "proto" / f"{schema.name.lower()}.yaml").read_bytes()
@@ -113,14 +116,14 @@ def test_split_by_size_gives_complete_files_that_read_back_as_one(tmp_path):
 
 
 def test_split_by_duration(tmp_path):
-    stream = encoded_stream(10, step_ns=10**8)  # 70 messages, 0.1 s apart
+    stream = encoded_stream(10, step_ns=10**8)  # 0.1 s apart
     bag = _write(tmp_path / "d.mcap", stream, split_duration_s=2.0)
     assert len(bag.files) == 4
     for path in bag.files:
         times = [m.log_time for _t, _c, m in mcap_messages(path)]
         assert times[-1] - times[0] < 2e9
     info = bag_info(BagReader(bag.files))
-    assert info.messages == 70 and len(info.files) == 4
+    assert info.messages == len(stream) and len(info.files) == 4
 
 
 def test_topic_filter_and_start_time_when_reading(tmp_path):

@@ -184,7 +184,7 @@ def test_lockstep_fails_clearly_without_a_consumer_or_an_acknowledgement(broker,
 
 
 def test_topics_start_offset_and_loop(broker, ipc_url, tmp_path, ctx):
-    stream = encoded_stream(6, step_ns=2_000_000)  # 42 messages, 2 ms apart
+    stream = encoded_stream(6, step_ns=2_000_000)  # 2 ms apart
     reader = _bag(tmp_path / "s.mcap", stream)
     with Subscriber(ipc_url, [""], context=ctx, keep_last=False) as sub:
         time.sleep(0.2)
@@ -194,7 +194,7 @@ def test_topics_start_offset_and_loop(broker, ipc_url, tmp_path, ctx):
 
     offset_s = (stream[21][0] - stream[0][0]) / 1e9
     stats = Player(reader, config=ipc_url, rate=0, start_offset_s=offset_s, drain_s=0, context=ctx).run()
-    assert stats.published == 21
+    assert stats.published == len(stream) - 21
 
     player = Player(
         reader,

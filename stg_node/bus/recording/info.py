@@ -113,7 +113,13 @@ def bag_info(reader: BagReader) -> BagInfo:
         return (n - 1) / ((last - first) / 1e9)
 
     topics = [
-        TopicInfo(topic=topic, type=types.get(topic, "?"), messages=n, bytes=sizes.get(topic), rate_hz=rate(topic, n))
+        TopicInfo(
+            topic=topic,
+            type=types.get(topic, "?"),
+            messages=n,
+            bytes=sizes.get(topic),
+            rate_hz=rate(topic, n),
+        )
         for topic, n in sorted(counts.items())
     ]
     first = reader.files[0]

@@ -130,7 +130,9 @@ def _apply_end_metadata(bag: BagFile) -> None:
         if "topic_bytes" in end:
             bag.topic_bytes = {str(k): int(v) for k, v in json.loads(end["topic_bytes"]).items()}
         if "topic_times" in end:
-            bag.topic_times = {str(k): (int(a), int(b)) for k, (a, b) in json.loads(end["topic_times"]).items()}
+            bag.topic_times = {
+                str(k): (int(a), int(b)) for k, (a, b) in json.loads(end["topic_times"]).items()
+            }
     except (ValueError, TypeError, AttributeError):  # another writer's metadata: measure instead
         bag.topic_bytes = bag.topic_times = None
 
