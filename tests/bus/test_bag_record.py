@@ -325,3 +325,13 @@ def test_recorder_reports_an_unreachable_output(ipc_url, tmp_path):
         recorder = Recorder(blocker / "sub" / "x.mcap", config=BusConfig(url=ipc_url))
         with pytest.raises(Exception, match="x.mcap|File exists|Not a directory"):
             recorder.start()
+
+
+def test_a_bus_it_cannot_join_fails_start_and_leaves_no_file(tmp_path, tcp_url):
+    from stg_node.bus.recording import RecordingError
+
+    config = BusConfig(url=tcp_url, keys=tmp_path / "no-keys", key_name="robot")
+    recorder = Recorder(tmp_path / "x.mcap", config=config)
+    with pytest.raises(RecordingError, match="cannot subscribe"):
+        recorder.start()
+    assert not (tmp_path / "x.mcap").exists()

@@ -143,10 +143,10 @@ class Recorder:
     # -- life cycle -------------------------------------------------------------------------------
 
     def start(self, timeout: float = 10.0) -> Recorder:
-        """Open the file and subscribe to the whole bus; returns once subscribed."""
+        """Subscribe to the whole bus, then open the file; returns once both are done. Nothing is
+        written when the bus cannot be reached (e.g. bad CURVE keys): no empty file is left behind."""
         if self._thread is not None:
             raise RuntimeError("Recorder.start() called twice")
-        self._writer = BagWriter(self.path, **self._writer_options)
         if self._context is None:
             self._context = zmq.Context()
         self._thread = threading.Thread(target=self._read, name="stg-bag-reader", daemon=True)
@@ -158,6 +158,11 @@ class Recorder:
             error = self._error
             self.stop()
             raise RecordingError(f"recorder cannot subscribe to {self.config.url}: {error}") from error
+        try:
+            self._writer = BagWriter(self.path, **self._writer_options)
+        except BaseException:
+            self.stop()
+            raise
         log.info("recording %s to %s", self.config.url, self._writer.files[-1])
         return self
 
