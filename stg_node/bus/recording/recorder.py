@@ -117,6 +117,7 @@ class Recorder:
             flush_interval_s=flush_interval_s,
             launch_file=launch_file,
             bus_config=config,
+            end_info=self._end_info,
             metadata={
                 "bus": config.url,
                 "namespace": config.namespace,
@@ -192,6 +193,15 @@ class Recorder:
             files=files,
         )
 
+    def _end_info(self) -> dict[str, str]:
+        """What each finished file records about the session so far (format.META_END)."""
+        stats = self.stats()
+        return {
+            "drops": json.dumps(stats.drops, sort_keys=True),
+            "received": str(stats.received),
+            "duplicates": str(stats.duplicates),
+        }
+
     def stop(self) -> RecorderStats:
         """Stop receiving, write what is queued, finish the file(s). Idempotent."""
         if self._stopped:
@@ -219,13 +229,7 @@ class Recorder:
         finally:
             stats = self.stats()
             if self._writer is not None:
-                self._writer.close(
-                    {
-                        "drops": json.dumps(stats.drops, sort_keys=True),
-                        "received": str(stats.received),
-                        "duplicates": str(stats.duplicates),
-                    }
-                )
+                self._writer.close()
             if self._own_context and self._context is not None:
                 self._context.term()
         return stats

@@ -23,6 +23,7 @@ import os
 import platform
 import socket
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
@@ -91,6 +92,8 @@ class BagWriter:
     ``metadata``: extra key/value strings for the :data:`META_RECORDING` record (bus URL,
     command line, ...). ``launch_file``: a launch file stored whole in :data:`META_LAUNCH`.
     ``bus_config``: the bus the messages came from (its lane overrides name each channel's lane).
+    ``end_info``: called when a file is finished (each split too); its entries (the recorder's
+    drops so far) go into that file's :data:`META_END` record.
     """
 
     def __init__(
@@ -105,6 +108,7 @@ class BagWriter:
         metadata: dict[str, str] | None = None,
         launch_file: str | Path | None = None,
         bus_config: BusConfig | None = None,
+        end_info: Callable[[], dict[str, str]] | None = None,
     ):
         if compression not in COMPRESSIONS:
             raise RecordingError(f"compression {compression!r} is not one of {list(COMPRESSIONS)}")
@@ -125,6 +129,7 @@ class BagWriter:
         self.counts = TopicCounts()  # the whole recording
         self._extra_metadata = {str(k): str(v) for k, v in (metadata or {}).items()}
         self._launch = self._read_launch(launch_file)
+        self._end_info = end_info
         self._file = None
         self._mcap: McapFile | None = None
         self._closed = False
@@ -163,7 +168,6 @@ class BagWriter:
         self._schemas: dict[str, int] = {}
         self._file_counts = TopicCounts()
         self._file_first_ns: int | None = None
-        self._file_last_ns: int | None = None
         self._last_flush = time.monotonic()
         self._mcap.add_metadata(META_RECORDING, self._recording_metadata(index))
         if self._launch is not None:
@@ -197,6 +201,8 @@ class BagWriter:
             "topic_times": json.dumps(self._file_counts.times, sort_keys=True),
             "finished_ns": str(time.time_ns()),
         }
+        if self._end_info is not None:
+            meta.update(self._end_info())
         meta.update(end)
         try:
             self._mcap.add_metadata(META_END, meta)
@@ -255,7 +261,6 @@ class BagWriter:
         self.counts.add(env.topic, nbytes, log_time_ns)
         if self._file_first_ns is None:
             self._file_first_ns = log_time_ns
-        self._file_last_ns = log_time_ns
 
     def write_frames(self, frames, log_time_ns: int) -> Envelope:
         """Check and write one message given as ``[topic, header, *buffers]``; returns its envelope."""
