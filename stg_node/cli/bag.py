@@ -70,11 +70,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--topics",
         nargs="+",
         metavar="REGEX",
-        help="record only topics matching one of these regexes (searched, e.g. 'camera/|body/pose')",
+        help="record only topics matching one of these regexes (searched in the full topic, namespace "
+        "included, e.g. 'camera/|body/pose'); default: every topic",
     )
     p.add_argument("--split-size", type=float, metavar="MB", help="start a new file after MB megabytes")
     p.add_argument("--split-duration", type=float, metavar="S", help="start a new file every S seconds")
-    p.add_argument("--compression", choices=COMPRESSIONS, default="none", help="chunk compression")
+    p.add_argument("--compression", choices=COMPRESSIONS, default="none", help="(default none)")
     p.add_argument("--chunk-size", type=float, default=4.0, metavar="MB", help="chunk size (default 4 MB)")
     p.add_argument(
         "--flush-interval",
@@ -84,7 +85,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="write the chunk in progress at least every S s (what a kill -9 can lose; default 1)",
     )
     p.add_argument(
-        "--max-queue", type=float, default=512, metavar="MB", help="memory for messages not yet on disk"
+        "--max-queue", type=float, default=512, metavar="MB", help="memory for messages not yet on disk (512)"
     )
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
     p.add_argument("--launch", metavar="FILE", help="launch file to store in the recording")
@@ -96,7 +97,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--rate", type=float, default=1.0, help="speed factor; 0 = as fast as possible")
     p.add_argument("--loop", action="store_true", help="start over at the end")
-    p.add_argument("--topics", nargs="+", metavar="REGEX", help="play only topics matching these regexes")
+    p.add_argument(
+        "--topics", nargs="+", metavar="REGEX", help="play only topics matching these regexes (full topics)"
+    )
     p.add_argument("--start-offset", type=float, default=0.0, metavar="S", help="skip the first S seconds")
     p.add_argument("--paused", action="store_true", help="start paused (space / SIGUSR1 resumes)")
     p.add_argument(
