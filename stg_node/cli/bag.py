@@ -317,7 +317,8 @@ def cmd_play(args, out) -> int:
     print(
         f"stg-bag: published {stats.published} messages ({human_size(stats.bytes)})"
         + (f", {stats.loops} loops" if args.loop else "")
-        + (f", {stats.acks} acknowledgements" if lockstep else ""),
+        + (f", {stats.acks} acknowledgements" if lockstep else "")
+        + (f"; skipped {stats.skipped} invalid recorded message(s)" if stats.skipped else ""),
         file=out,
     )
     return EXIT_OK

@@ -274,3 +274,25 @@ def test_forward_refuses_a_broken_or_misplaced_message(ipc_url, ctx):
         with pytest.raises(ValueError, match="type_mismatch"):
             pub.forward([b"camera/frame", *good[1:]])
         assert pub.forward(good).topic == "body/pose"
+
+
+def test_invalid_recorded_messages_are_skipped_and_counted(broker, ipc_url, tmp_path, ctx):
+    import msgpack
+    from mcap.writer import Writer
+
+    good = encoded_stream(1)[1][1]  # a body/pose
+    path = tmp_path / "mixed.mcap"
+    with open(path, "wb") as f:
+        w = Writer(f)
+        w.start()
+        channel = w.register_channel("body/pose", "stg-bus", 0)
+        w.add_message(channel, 1, b"".join(good[1:]), 1, 0)
+        w.add_message(channel, 2, msgpack.packb({"type": "BodyPose", "arrays": []}), 2, 1)  # no seq, src...
+        w.add_message(channel, 3, b"\xc1", 3, 2)  # not msgpack at all
+        w.add_message(channel, 4, b"".join(good[1:]), 4, 0)
+        w.finish()
+    with Subscriber(ipc_url, ["body/pose"], context=ctx, keep_last=False) as sub:
+        stats = Player(BagReader(path), config=ipc_url, rate=0, context=ctx).run()
+        got = list(sub.messages(timeout=1.0))
+    assert (stats.published, stats.skipped) == (2, 2)
+    assert len(got) == 1 and sub.traffic.duplicates == 1  # the same message twice: a duplicate to receivers

@@ -19,6 +19,9 @@ consumer's own output can serve (``ack_topic="trainer/metrics"``: one training s
 frame). A missing acknowledgement fails after ``timeout_s``: a regression run never
 hangs. Before the first message, it waits for a subscriber of every topic it will play.
 
+A recorded message that is not a valid bus message (a damaged or foreign file) is skipped,
+logged and counted in :attr:`PlayStats.skipped`; playback goes on.
+
 Pause: :meth:`pause`, :meth:`resume`, :meth:`step` (one message while paused); ``paused=True``
 starts paused. Pauses do not count as recording time.
 """
@@ -44,7 +47,7 @@ _TICK_S = 0.05  # longest uninterrupted sleep: stop/pause/step react within this
 
 
 class PlaybackError(RuntimeError):
-    """Playback could not go on (no subscriber, no acknowledgement in time, a bad message)."""
+    """Playback could not go on (an empty recording, no subscriber or no acknowledgement in lockstep)."""
 
 
 @dataclass
@@ -71,6 +74,7 @@ class PlayStats:
     loops: int = 0
     acks: int = 0
     stray_acks: int = 0  # Acks naming another message than the one awaited (ignored)
+    skipped: int = 0  # recorded messages that are not valid bus messages (logged, not sent)
     topics: dict[str, int] = field(default_factory=dict)
 
 
@@ -269,10 +273,10 @@ class Player:
             origin_wall += paused_for
             try:
                 env = pub.forward(msg.frames())
-            except (ValueError, RecordingError) as exc:
-                raise PlaybackError(
-                    f"recorded message {self.stats.published} on {msg.topic!r}: {exc}"
-                ) from exc
+            except (ValueError, RecordingError) as exc:  # a damaged or foreign message: skip it, say so
+                self.stats.skipped += 1
+                log.warning("skipped recorded message at %d ns on %s: %s", msg.log_time_ns, msg.topic, exc)
+                continue
             self.stats.published += 1
             self.stats.bytes += env.nbytes
             self.stats.topics[env.topic] = self.stats.topics.get(env.topic, 0) + 1
