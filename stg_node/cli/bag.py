@@ -9,7 +9,8 @@
     stg-bag export session.mcap --foxglove -o session.view.mcap
 
 record and play take the bus options (--bus URL, --namespace, --keys, --key-name). Ctrl-C
-or SIGTERM stops them cleanly (a recording is finished, never left half-written). --rate 0
+or SIGTERM stops them cleanly and they exit 0 (a recording is finished, never left
+half-written); info and export exit 1 when interrupted (their output is incomplete). --rate 0
 plays as fast as possible. While playing on a terminal: space pauses/resumes, s steps one
 message, q quits; SIGUSR1 toggles pause and SIGUSR2 steps (for scripts).
 Exit codes: 0 done, 1 the work failed, 2 bad usage. Guide: docs/RECORDING.md.
@@ -152,6 +153,25 @@ def stop_on_signals(stop: threading.Event):
 
     def handler(signum, frame):
         stop.set()
+
+    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, old in previous.items():
+            signal.signal(sig, old)
+
+
+@contextlib.contextmanager
+def interrupt_on_signals():
+    """SIGINT and SIGTERM raise KeyboardInterrupt (info, export: work that is simply abandoned),
+    installed explicitly for the same reason as :func:`stop_on_signals`."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        raise KeyboardInterrupt
 
     previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
@@ -369,7 +389,10 @@ def main(argv=None, out=None) -> int:
     args = build_parser().parse_args(argv)  # exits 2 on bad usage
     configure_logging(args.log_level)
     try:
-        return COMMANDS[args.command](args, out)
+        if args.command in ("record", "play"):  # they stop cleanly on a signal themselves
+            return COMMANDS[args.command](args, out)
+        with interrupt_on_signals():
+            return COMMANDS[args.command](args, out)
     except UsageError as exc:
         print(f"stg-bag {args.command}: {exc}", file=sys.stderr)
         return EXIT_USAGE
@@ -380,7 +403,8 @@ def main(argv=None, out=None) -> int:
         print(f"stg-bag {args.command}: {exc}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
-        return EXIT_OK
+        print(f"stg-bag {args.command}: interrupted", file=sys.stderr)
+        return EXIT_FAILED
 
 
 if __name__ == "__main__":

@@ -155,11 +155,11 @@ class BagWriter:
     def _open_next(self) -> None:
         index = len(self.files)
         path = split_path(self.path, index) if self.splitting else self.path
-        path.parent.mkdir(parents=True, exist_ok=True)
         try:
+            path.parent.mkdir(parents=True, exist_ok=True)
             self._file = open(path, "wb")  # noqa: SIM115 (closed in _close_file)
         except OSError as exc:
-            raise RecordingError(f"cannot write {path}: {exc.strerror}") from exc
+            raise RecordingError(f"cannot write {path}: {exc.strerror or exc}") from exc
         self.files.append(path)
         self._mcap = McapFile(self._file, chunk_size=self.chunk_size, compression=self.compression)
         library = f"stg_node/{stg_node.__version__} mcap-python/{_package_version('mcap')}"
