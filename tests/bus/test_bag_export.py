@@ -16,7 +16,7 @@ from mcap_protobuf.decoder import DecoderFactory
 from scipy.spatial.transform import Rotation
 
 from stg_node.bus import BodyPose, Frame, encode
-from stg_node.bus.recording import BagReader, BagWriter
+from stg_node.bus.recording import BagReader, BagWriter, bag_info
 from stg_node.bus.recording.foxglove import quaternion_xyzw
 from stg_node.cli import bag as bag_cli
 
@@ -181,6 +181,10 @@ def test_foxglove_view_channels_decode_with_the_schemas_in_the_file(tmp_path, im
                 assert channel.message_encoding == "json" and schema.encoding == "jsonschema"
                 decoded.setdefault(channel.topic, []).append((schema.name, json.loads(message.data)))
     assert originals == [m.data for m in BagReader([tmp_path / "f.mcap", extra]).messages()]
+    info = bag_info(BagReader(view))  # stg-bag info measures the view file itself
+    counts = {t.topic: t.messages for t in info.topics}
+    assert counts["camera/frame"] == 4 and counts["view/camera/frame/image"] == 4
+    assert counts["view/trainer/metrics/fields"] == 1 and info.messages == sum(counts.values())
 
     names = {topic: {n for n, _ in items} for topic, items in decoded.items()}
     assert names["view/camera/frame/image"] == {

@@ -245,7 +245,7 @@ def export_foxglove(
     show_progress: bool = True,
 ) -> FoxgloveStats:
     """Write ``out``: the recording's messages (``keep_original``) plus Foxglove view channels."""
-    from stg_node.bus.recording.format import MESSAGE_ENCODING, SCHEMA_ENCODING  # noqa: PLC0415
+    from stg_node.bus.recording.format import MESSAGE_ENCODING, META_END, SCHEMA_ENCODING  # noqa: PLC0415
     from stg_node.bus.recording.schemas import schema_data  # noqa: PLC0415
 
     if image_format not in IMAGE_FORMATS:
@@ -281,7 +281,8 @@ def export_foxglove(
 
         for bag in reader.files:
             for name, meta in bag.metadata.items():
-                writer.add_metadata(name, meta)
+                if name != META_END:  # its counts describe the source file, not this one
+                    writer.add_metadata(name, meta)
         with progress(total=total, desc="foxglove views", unit="msg", enabled=show_progress) as bar:
             for msg in reader.messages(topics):
                 bar.update(1)
