@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import json
 import logging
 import os
@@ -42,16 +43,12 @@ from stg_node.bus.recording import (
 )
 from stg_node.bus.recording.info import human_size, info_dict
 from stg_node.cli.bus_options import add_bus_options, bus_config
-from stg_node.logs import configure_logging
+from stg_node.cli.runner import EXIT_INTERRUPTED, EXIT_OK, UsageError, add_log_level_option, run_main
+from stg_node.signals import StopSignals
 
 log = logging.getLogger("stg_node.cli.bag")
 
-EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
 MB = 1_000_000
-
-
-class UsageError(ValueError):
-    """Arguments that cannot work together; exit code 2."""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -61,7 +58,7 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog=__doc__,
     )
-    parser.add_argument("--log-level", help="DEBUG, INFO, ... (default $STG_LOG_LEVEL or INFO)")
+    add_log_level_option(parser)
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("record", help="record the bus to an MCAP file")
@@ -144,53 +141,16 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 @contextlib.contextmanager
-def stop_on_signals(stop: threading.Event):
-    """SIGINT and SIGTERM set ``stop`` (installed explicitly: a background process inherits SIGINT
-    ignored). The loop checks ``stop`` between writes, so a file is never cut mid-record."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def handler(signum, frame):
-        stop.set()
-
-    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        yield
-    finally:
-        for sig, old in previous.items():
-            signal.signal(sig, old)
-
-
-@contextlib.contextmanager
-def interrupt_on_signals():
-    """SIGINT and SIGTERM raise KeyboardInterrupt (info, export: work that is simply abandoned),
-    installed explicitly for the same reason as :func:`stop_on_signals`."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def handler(signum, frame):
-        raise KeyboardInterrupt
-
-    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        yield
-    finally:
-        for sig, old in previous.items():
-            signal.signal(sig, old)
-
-
-@contextlib.contextmanager
-def player_controls(player: Player, stop: threading.Event):
+def player_controls(player: Player, stop: StopSignals):
     """SIGUSR1 toggles pause, SIGUSR2 steps; on a terminal, keys: space, s, q."""
     previous = {
         signal.SIGUSR1: signal.signal(signal.SIGUSR1, lambda *_: player.toggle_pause()),
         signal.SIGUSR2: signal.signal(signal.SIGUSR2, lambda *_: player.step()),
     }
     keys = None
+    done = threading.Event()
     if sys.stdin is not None and sys.stdin.isatty():
-        keys = threading.Thread(target=_read_keys, args=(player, stop), daemon=True)
+        keys = threading.Thread(target=_read_keys, args=(player, stop, done), daemon=True)
         keys.start()
     try:
         yield
@@ -198,11 +158,11 @@ def player_controls(player: Player, stop: threading.Event):
         for sig, old in previous.items():
             signal.signal(sig, old)
         if keys is not None:
-            stop.set()
+            done.set()
             keys.join(1.0)  # it restores the terminal's mode
 
 
-def _read_keys(player: Player, stop: threading.Event) -> None:
+def _read_keys(player: Player, stop: StopSignals, done: threading.Event) -> None:
     import termios  # noqa: PLC0415 (POSIX terminals only)
     import tty  # noqa: PLC0415
 
@@ -211,7 +171,7 @@ def _read_keys(player: Player, stop: threading.Event) -> None:
     try:
         tty.setcbreak(fd)
         print("keys: space pause/resume, s step, q quit", file=sys.stderr)
-        while not stop.is_set():
+        while not done.is_set():
             if not select.select([fd], [], [], 0.1)[0]:
                 continue
             key = os.read(fd, 1)
@@ -220,8 +180,7 @@ def _read_keys(player: Player, stop: threading.Event) -> None:
             elif key == b"s":
                 player.step()
             elif key in (b"q", b"\x03"):
-                stop.set()
-                player.stop()
+                stop.request("q")  # stops the player (on_stop)
     finally:
         termios.tcsetattr(fd, termios.TCSADRAIN, saved)
 
@@ -261,14 +220,13 @@ def cmd_record(args, out) -> int:
         )
     except RecordingError as exc:
         raise UsageError(str(exc)) from None
-    stop = threading.Event()
-    with stop_on_signals(stop):
+    with StopSignals() as stop:  # the first Ctrl-C/SIGTERM stops cleanly; a second one interrupts
         recorder.start()
         print(f"stg-bag: recording {config.url} to {args.output} (Ctrl-C to stop)", file=out, flush=True)
         deadline = None if args.duration is None else time.monotonic() + args.duration
         next_report = time.monotonic() + 10.0
         try:
-            while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
+            while not stop.requested and (deadline is None or time.monotonic() < deadline):
                 recorder.poll(0.1)
                 if time.monotonic() >= next_report:
                     s = recorder.stats()
@@ -313,7 +271,6 @@ def cmd_play(args, out) -> int:
     for bag in reader.files:
         if bag.truncated:
             print(f"stg-bag: {bag.path} is truncated ({bag.problem}); playing what was recovered", file=out)
-    stop = threading.Event()
     player = Player(
         reader,
         config=config,
@@ -325,15 +282,10 @@ def cmd_play(args, out) -> int:
         lockstep=lockstep,
         wait_for_subscribers_s=args.wait,
     )
-    watcher = threading.Thread(target=lambda: (stop.wait(), player.stop()), daemon=True)
-    watcher.start()
-    with stop_on_signals(stop), player_controls(player, stop):
+    with StopSignals(on_stop=player.stop) as stop, player_controls(player, stop):
         if args.paused:
             print("stg-bag: paused (space or SIGUSR1 resumes, s or SIGUSR2 steps)", file=out, flush=True)
-        try:
-            stats = player.run()
-        finally:
-            stop.set()
+        stats = player.run()
     print(
         f"stg-bag: published {stats.published} messages ({human_size(stats.bytes)})"
         + (f", {stats.loops} loops" if args.loop else "")
@@ -341,6 +293,9 @@ def cmd_play(args, out) -> int:
         + (f"; skipped {stats.skipped} invalid recorded message(s)" if stats.skipped else ""),
         file=out,
     )
+    if stop.requested and stop.signal_name != "q" and not args.loop:
+        print("stg-bag: interrupted before the end of the recording", file=sys.stderr)
+        return EXIT_INTERRUPTED
     return EXIT_OK
 
 
@@ -384,27 +339,14 @@ def cmd_export(args, out) -> int:
 COMMANDS = {"record": cmd_record, "play": cmd_play, "info": cmd_info, "export": cmd_export}
 
 
+def run(args: argparse.Namespace, out=None) -> int:
+    return COMMANDS[args.command](args, out or sys.stdout)
+
+
 def main(argv=None, out=None) -> int:
-    out = out or sys.stdout
-    args = build_parser().parse_args(argv)  # exits 2 on bad usage
-    configure_logging(args.log_level)
-    try:
-        if args.command in ("record", "play"):  # they stop cleanly on a signal themselves
-            return COMMANDS[args.command](args, out)
-        with interrupt_on_signals():
-            return COMMANDS[args.command](args, out)
-    except UsageError as exc:
-        print(f"stg-bag {args.command}: {exc}", file=sys.stderr)
-        return EXIT_USAGE
-    except (RecordingError, PlaybackError, OSError) as exc:
-        print(f"stg-bag {args.command}: {exc}", file=sys.stderr)
-        return EXIT_FAILED
-    except ValueError as exc:  # e.g. a bad bus URL or key directory
-        print(f"stg-bag {args.command}: {exc}", file=sys.stderr)
-        return EXIT_USAGE
-    except KeyboardInterrupt:
-        print(f"stg-bag {args.command}: interrupted", file=sys.stderr)
-        return EXIT_FAILED
+    """Exit codes (docs/CLI.md): 0 done, and for record (and play --loop) also a stop by Ctrl-C or
+    SIGTERM; 1 the work failed; 2 bad usage; 130 play, info or export interrupted."""
+    return run_main(build_parser(), functools.partial(run, out=out), argv, expected=(PlaybackError,))
 
 
 if __name__ == "__main__":

@@ -37,6 +37,7 @@ from dataclasses import dataclass, field
 import zmq
 
 from stg_node.bus import BusConfig, Publisher, Subscriber
+from stg_node.bus.config import as_config
 from stg_node.bus.recording.format import RecordingError
 from stg_node.bus.recording.reader import BagReader
 
@@ -100,9 +101,7 @@ class Player:
             raise ValueError(f"rate must be >= 0 (0 = as fast as possible), got {rate}")
         if start_offset_s < 0:
             raise ValueError(f"start offset must be >= 0 s, got {start_offset_s}")
-        if isinstance(config, str) or config is None:
-            config = BusConfig.from_env(url=config)
-        self.config = config
+        self.config = config = as_config(config)
         self.reader = reader
         self.rate = rate
         self.loop = loop

@@ -34,6 +34,7 @@ from pathlib import Path
 import zmq
 
 from stg_node.bus import BusConfig, Subscriber
+from stg_node.bus.config import as_config
 from stg_node.bus.recording.format import RecordingError
 from stg_node.bus.recording.writer import DEFAULT_CHUNK_SIZE, DEFAULT_FLUSH_INTERVAL_S, BagWriter
 
@@ -102,9 +103,7 @@ class Recorder:
         metadata: dict[str, str] | None = None,
         context: zmq.Context | None = None,
     ):
-        if isinstance(config, str) or config is None:
-            config = BusConfig.from_env(url=config)
-        self.config = config
+        self.config = config = as_config(config)
         self.path = Path(path)
         self.topics = list(topics or [])
         self._match = topic_matcher(self.topics)
