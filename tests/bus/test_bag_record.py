@@ -306,9 +306,7 @@ def test_record_cli_rejects_bad_usage(tmp_path, capsys):
     assert bag_cli.main(["record", "-o", str(tmp_path / "x.mcap"), "--topics", "("]) == 2
     assert "bad topic pattern" in capsys.readouterr().err
     assert bag_cli.main(["record", "-o", str(tmp_path / "x.mcap"), "--bus", "udp://x"]) == 2
-    with pytest.raises(SystemExit) as exit_info:
-        bag_cli.main(["record", "-o", str(tmp_path / "x.mcap"), "--compression", "gzip"])
-    assert exit_info.value.code == 2
+    assert bag_cli.main(["record", "-o", str(tmp_path / "x.mcap"), "--compression", "gzip"]) == 2
 
 
 def test_info_on_a_bad_file_fails_with_exit_1(tmp_path, capsys):
