@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from stg_node.logs import configure_logging
+from stg_node.cli.runner import add_log_level_option, run_main
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -26,13 +26,15 @@ def build_parser() -> argparse.ArgumentParser:
         default="all",
         help="which kernels (default %(default)s; 'all' skips cuda where torch has no CUDA)",
     )
-    parser.add_argument("--log-level", default=None, help="log level (default: STG_LOG_LEVEL or INFO)")
+    add_log_level_option(parser)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    configure_logging(args.log_level)
+    return run_main(build_parser(), run, argv)
+
+
+def run(args: argparse.Namespace) -> int:
     from stg_node.splat.prebuild import PREBUILD_BACKENDS, prebuild
 
     backends = PREBUILD_BACKENDS if args.backend == "all" else (args.backend,)
