@@ -41,7 +41,8 @@ from stg_node.bus.recording import (
     bag_info,
     format_info,
 )
-from stg_node.bus.recording.info import human_size, info_dict
+from stg_node.bus.recording.info import info_dict
+from stg_node.bus.stats import format_bytes
 from stg_node.cli.bus_options import add_bus_options, bus_config
 from stg_node.cli.runner import EXIT_INTERRUPTED, EXIT_OK, UsageError, add_log_level_option, run_main
 from stg_node.signals import StopSignals
@@ -233,7 +234,7 @@ def cmd_record(args, out) -> int:
                     log.info(
                         "%d messages, %s written, %d queued, drops %s",
                         s.written,
-                        human_size(s.bytes_written),
+                        format_bytes(s.bytes_written),
                         s.queued,
                         s.drops or 0,
                     )
@@ -242,7 +243,7 @@ def cmd_record(args, out) -> int:
             stats = recorder.stop()
     files = ", ".join(stats.files)
     print(
-        f"stg-bag: recorded {stats.written} messages ({human_size(stats.bytes_written)}) to {files}",
+        f"stg-bag: recorded {stats.written} messages ({format_bytes(stats.bytes_written)}) to {files}",
         file=out,
     )
     if stats.drops:
@@ -287,7 +288,7 @@ def cmd_play(args, out) -> int:
             print("stg-bag: paused (space or SIGUSR1 resumes, s or SIGUSR2 steps)", file=out, flush=True)
         stats = player.run()
     print(
-        f"stg-bag: published {stats.published} messages ({human_size(stats.bytes)})"
+        f"stg-bag: published {stats.published} messages ({format_bytes(stats.bytes)})"
         + (f", {stats.loops} loops" if args.loop else "")
         + (f", {stats.acks} acknowledgements" if lockstep else "")
         + (f"; skipped {stats.skipped} invalid recorded message(s)" if stats.skipped else ""),

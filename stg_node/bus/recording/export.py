@@ -20,6 +20,7 @@ import numpy as np
 
 from stg_node.bus.recording.format import RecordingError
 from stg_node.bus.recording.reader import BagReader
+from stg_node.bus.stats import per_second
 from stg_node.progress import progress
 
 log = logging.getLogger(__name__)
@@ -46,7 +47,7 @@ def _topic_rate(reader: BagReader, topic: str) -> float:
         start, end = reader.start_ns, reader.end_ns
     if count < 2 or start is None or end is None or end <= start:
         return 30.0
-    return (count - 1) / ((end - start) / 1e9)
+    return per_second(count - 1, (end - start) / 1e9)
 
 
 def _as_bgr(arr: np.ndarray, cv2) -> np.ndarray:

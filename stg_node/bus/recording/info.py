@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 
 from stg_node.bus.recording.format import META_END, META_LAUNCH, META_RECORDING
 from stg_node.bus.recording.reader import BagReader, scan_records
+from stg_node.bus.stats import format_bytes, per_second
 
 
 @dataclass
@@ -110,7 +111,7 @@ def bag_info(reader: BagReader) -> BagInfo:
         first, last = spans.get(topic, (start, end_ns))
         if first is None or last is None or last <= first or n < 2:
             return 0.0
-        return (n - 1) / ((last - first) / 1e9)
+        return per_second(n - 1, (last - first) / 1e9)  # the bus's one rate definition
 
     topics = [
         TopicInfo(
@@ -137,16 +138,6 @@ def bag_info(reader: BagReader) -> BagInfo:
     )
 
 
-def human_size(nbytes: float | None) -> str:
-    if nbytes is None:
-        return "?"
-    for unit in ("B", "KB", "MB", "GB", "TB"):
-        if abs(nbytes) < 1000 or unit == "TB":
-            return f"{nbytes:.0f} {unit}" if unit == "B" else f"{nbytes:.2f} {unit}"
-        nbytes /= 1000
-    return f"{nbytes:.2f} TB"
-
-
 def _when(stamp_ns: int | None) -> str:
     if stamp_ns is None:
         return "-"
@@ -158,7 +149,7 @@ def format_info(info: BagInfo) -> str:
     lines = []
     for f in info.files:
         state = "TRUNCATED" if f.truncated else ("complete" if f.clean_stop else "complete (no end record)")
-        lines.append(f"File:         {f.path}  ({human_size(f.size)}, {f.messages} messages, {state})")
+        lines.append(f"File:         {f.path}  ({format_bytes(f.size)}, {f.messages} messages, {state})")
         if f.truncated:
             lines.append(f"  truncated:  the recorder did not finish this file (killed?): {f.problem}")
             lines.append(f"              {f.messages} messages recovered from its complete chunks")
@@ -167,7 +158,7 @@ def format_info(info: BagInfo) -> str:
         f"Start:        {_when(info.start_ns)}",
         f"End:          {_when(info.end_ns)}",
         f"Messages:     {info.messages}",
-        f"Size:         {human_size(info.size)}",
+        f"Size:         {format_bytes(info.size)}",
         f"Chunks:       {info.chunks} ({', '.join(info.compressions) or 'none'})",
     ]
     if info.recording:
@@ -196,8 +187,8 @@ def format_info(info: BagInfo) -> str:
                 t.type,
                 str(t.messages),
                 f"{t.rate_hz:.2f}",
-                human_size(t.bytes),
-                human_size(t.avg_bytes),
+                format_bytes(t.bytes),
+                format_bytes(t.avg_bytes),
             )
         )
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
