@@ -217,3 +217,18 @@ def test_files_pass_the_mcap_readers_checks(tmp_path, compression):
     summary_bytes = data[footer.summary_start : len(data) - 8 - 29]
     prefix = struct.pack("<BQQQ", 0x02, 20, footer.summary_start, footer.summary_offset_start)
     assert zlib.crc32(prefix, zlib.crc32(summary_bytes)) == footer.summary_crc
+
+
+def test_a_header_with_msgpack_extension_types_is_refused(tmp_path):
+    from mcap.writer import Writer
+
+    path = tmp_path / "ext.mcap"
+    header = msgpack.packb({"type": "BodyPose", "arrays": [], "x": msgpack.ExtType(5, b"\x00")})
+    with open(path, "wb") as f:
+        w = Writer(f)
+        w.start()
+        w.add_message(w.register_channel("body/pose", MESSAGE_ENCODING, 0), 1, header, 1, 0)
+        w.finish()
+    (msg,) = BagReader(path).messages()
+    with pytest.raises(RecordingError, match="header refused: msgpack extension type 5 refused"):
+        msg.frames()

@@ -26,6 +26,7 @@ import numpy as np
 
 from stg_node.bus import Envelope, decode_envelope
 from stg_node.bus.spec import MAX_HEADER_BYTES
+from stg_node.safe_load import unpack_msgpack
 
 MESSAGE_ENCODING = "stg-bus"
 SCHEMA_ENCODING = "stg-proto-yaml"
@@ -76,12 +77,16 @@ def split_payload(topic: str, data) -> list:
     unpacker = msgpack.Unpacker(raw=False, max_buffer_size=MAX_HEADER_BYTES + 16)
     unpacker.feed(view[: MAX_HEADER_BYTES + 16])
     try:
-        header = unpacker.unpack()
-    except Exception as exc:  # OutOfData, ExtraData, FormatError, ValueError, ...
+        unpacker.skip()  # finds where the header ends
+        head = unpacker.tell()
+    except Exception as exc:  # OutOfData, FormatError, StackError, ...
         raise RecordingError(
             f"message on {topic!r}: data does not start with a msgpack header ({type(exc).__name__})"
         ) from None
-    head = unpacker.tell()
+    try:
+        header = unpack_msgpack(view[:head])  # the one safe msgpack path (no extension types)
+    except Exception as exc:
+        raise RecordingError(f"message on {topic!r}: header refused: {exc}") from None
     if not isinstance(header, dict) or not isinstance(header.get("arrays"), list):
         raise RecordingError(f"message on {topic!r}: header is not a map with an 'arrays' list")
     frames = [topic.encode(), view[:head]]
