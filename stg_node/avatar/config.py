@@ -127,6 +127,11 @@ class DensifyConfig:
     flow_max_new: int = 500  # per flow-guided round
     new_time_scale: float = 0.25  # temporal scale (units) of Gaussians added along the flow
     resample_fraction: float = 0.3  # re-sample body parts whose density fell below this x initial
+    # Temporal split: a dynamic Gaussian that the image still pulls on is replaced by copies on
+    # shorter temporal windows (spacetime densification), down to min_time_scale (time units).
+    temporal_split: bool = True
+    temporal_split_max: int = 6  # copies of a Gaussian present at all times
+    min_time_scale: float = 0.06
 
 
 @dataclass(frozen=True)
