@@ -3,6 +3,7 @@
 stg-broker                                   ipc at $STG_BUS or the default path
 stg-broker ipc:///tmp/stg/bus tcp://0.0.0.0:7400 --keys keys/
                                              local nodes on ipc, a robot over CURVE tcp
+stg-broker --bus tcp://0.0.0.0:7400          the same --bus option as every bus command
 """
 
 from __future__ import annotations
@@ -28,6 +29,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("urls", nargs="*", metavar="URL", help="bus URLs to serve (default $STG_BUS or ipc)")
     parser.add_argument(
+        "--bus",
+        action="append",
+        default=[],
+        metavar="URL",
+        help="a bus URL to serve, as every bus command takes it (repeatable; same as a positional URL)",
+    )
+    parser.add_argument(
         "--keys",
         metavar="DIR",
         help="CURVE key directory (stg-keys init): tcp admits only authorised clients",
@@ -48,7 +56,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     configure_logging(args.log_level)
-    urls = args.urls or [BusConfig.from_env().url]
+    urls = [*args.urls, *args.bus] or [BusConfig.from_env().url]
     with sigterm_as_interrupt():
         try:
             broker = Broker(

@@ -7,11 +7,9 @@ OpenCV work, and must start fast on a robot that has no torch at all.
 from __future__ import annotations
 
 import argparse
-import contextlib
-import signal
-import threading
 
 from stg_node.bus.config import ENV_BUS, ENV_KEY_NAME, ENV_KEYS, ENV_NAMESPACE, BusConfig
+from stg_node.signals import interrupt_on_signals
 
 
 def add_bus_options(parser: argparse.ArgumentParser, *, in_subcommand: bool = False) -> None:
@@ -46,19 +44,6 @@ def bus_config(args: argparse.Namespace) -> BusConfig:
     return BusConfig.from_env(url=args.bus, namespace=args.namespace, keys=args.keys, key_name=args.key_name)
 
 
-@contextlib.contextmanager
-def sigterm_as_interrupt():
-    """While active, SIGTERM (e.g. from a launcher) ends the program like Ctrl-C: cleanly, via
-    KeyboardInterrupt. Restores the previous handler on exit; a no-op outside the main thread."""
-
-    def handler(signum, frame):
-        raise KeyboardInterrupt
-
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = signal.signal(signal.SIGTERM, handler)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
+# SIGTERM (from a launcher) and SIGINT both end a bus tool like Ctrl-C, installed explicitly so that
+# a tool started in the background (SIGINT inherited as ignored) still stops on Ctrl-C.
+sigterm_as_interrupt = interrupt_on_signals

@@ -20,11 +20,22 @@ from stg_node.bus import Bus, BusConfig, Frame, Subscriber
 ROOT = Path(__file__).resolve().parents[2]
 
 
+def _ignore_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def _spawn(args: list[str], ready: str) -> subprocess.Popen:
     """Start a Python program from this checkout and wait (at most 30 s) until it prints ``ready``."""
     env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONUNBUFFERED": "1"}
     proc = subprocess.Popen(
-        [sys.executable, *args], cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT
+        [sys.executable, *args],
+        cwd=ROOT,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        # As a background job or under nohup: SIGINT inherited as ignored. Programs must
+        # install their own handlers (stg_node.signals), so Ctrl-C works however they started.
+        preexec_fn=_ignore_sigint,
     )
     deadline = time.monotonic() + 30
     seen = b""
@@ -76,7 +87,9 @@ NODE = textwrap.dedent(
     """
     import sys
     from stg_node.bus import Bus
-    with Bus(sys.argv[1], node="looping", heartbeat_s=0.1) as bus:
+    from stg_node.signals import interrupt_on_signals
+    # A program's own handlers: started in the background, it inherits SIGINT ignored.
+    with interrupt_on_signals(), Bus(sys.argv[1], node="looping", heartbeat_s=0.1) as bus:
         frames = bus.subscribe("camera/frame", "body/pose")
         print("ready", flush=True)
         try:
