@@ -141,6 +141,20 @@ class Node:
         if self.heartbeat is not None:
             self.heartbeat.traffic.drop(reason, count)
 
+    def wait_for_messages(self, timeout: float) -> bool:
+        """Block until a subscription has something (True), ``timeout`` s pass or a stop comes."""
+        if not self._subscribers:
+            self.stop_signals.event.wait(timeout)
+            return False
+        deadline = time.monotonic() + timeout
+        while not self.stopping:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                return False
+            if self._poller.poll(int(min(POLL_S, remaining) * 1000) + 1):
+                return True
+        return False
+
     def sleep(self, seconds: float) -> bool:
         """Wait ``seconds`` unless a stop comes first; True if the full time passed."""
         return not self.stop_signals.event.wait(max(0.0, seconds))
