@@ -235,7 +235,8 @@ def _typed(cls, raw, doc: Located, key: tuple, what: str):
     except ParamError as exc:
         name = exc.name.split("[")[0].split(".")[0] if exc.name else None
         name = "if" if name == "if_" else name
-        problem = exc.problem if exc.name is None else f"{exc.name.replace('if_', 'if')}: {exc.problem}"
+        problem = exc.problem if exc.name is None else f"{exc.name}: {exc.problem}"
+        problem = problem.replace("if_", "if")
         raise doc.error((*key, name) if name else key, f"{what}: {problem}") from None
 
 

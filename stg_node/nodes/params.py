@@ -117,7 +117,10 @@ def coerce(value: Any, tp, name: str, where: str) -> Any:
         options = typing.get_args(tp)
         if type(None) in options and (value is None or (isinstance(value, str) and value.lower() in _NONE)):
             return None
-        for option in (o for o in options if o is not type(None)):
+        others = [o for o in options if o is not type(None)]
+        if len(others) == 1:  # X | None: X's own, more precise error
+            return coerce(value, others[0], name, where)
+        for option in others:
             try:
                 return coerce(value, option, name, where)
             except ParamError:
@@ -182,6 +185,8 @@ def coerce(value: Any, tp, name: str, where: str) -> Any:
             return value
         if isinstance(value, (int, float)) and not isinstance(value, bool):
             return str(value)
+        if isinstance(value, bool):  # YAML reads true/yes/on as booleans
+            raise ParamError(where, name, f"must be text, got {value!r} (quote it: '{str(value).lower()}')")
         fail("text")
     raise TypeError(f"{where}: param {name!r} has a type params cannot parse: {tp!r}")
 
