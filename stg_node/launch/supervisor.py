@@ -277,34 +277,42 @@ class Launcher:
     def _running(self) -> list[NodeState]:
         return [s for s in self.states if s.proc is not None and s.proc.running]
 
-    def _wait(self, seconds: float, signals_before: int) -> bool:
-        """Wait until every process has exited, ``seconds`` pass, or another signal arrives."""
-        deadline = time.monotonic() + seconds
-        while self._running():
-            if time.monotonic() >= deadline or self._signals > signals_before:
-                return False
-            time.sleep(LOOP_S)
-        return True
-
     def _shutdown(self) -> None:
+        """SIGINT to every running node; each one that outlives its own sigint_timeout gets SIGTERM,
+        then SIGKILL after its sigterm_timeout. Another Ctrl-C moves everyone one step on."""
         running = self._running()
         if running:
             log.info("stopping %s", ", ".join(s.name for s in running))
+        now = time.monotonic()
+        stage: dict[str, tuple[int, float]] = {}
         for state in reversed(running):
             state.proc.signal_group(signal.SIGINT)
+            stage[state.name] = (signal.SIGINT, now + state.spec.sigint_timeout)
         seen = self._signals
-        if not self._wait(max((s.spec.sigint_timeout for s in running), default=0.0), seen):
-            for state in self._running():
-                log.warning("%s still running after SIGINT: SIGTERM", state.name)
-                state.proc.signal_group(signal.SIGTERM)
+        while running := self._running():
+            now = time.monotonic()
+            hurry = self._signals > seen
             seen = self._signals
-            if not self._wait(max((s.spec.sigterm_timeout for s in running), default=0.0), seen):
-                for state in self._running():
+            for state in running:
+                sent, deadline = stage.get(state.name, (signal.SIGINT, now))
+                if now < deadline and not hurry:
+                    continue
+                if sent == signal.SIGINT:
+                    log.warning("%s still running after SIGINT: SIGTERM", state.name)
+                    state.proc.signal_group(signal.SIGTERM)
+                    stage[state.name] = (signal.SIGTERM, now + state.spec.sigterm_timeout)
+                elif sent == signal.SIGTERM:
                     log.error("%s still running after SIGTERM: SIGKILL", state.name)
                     state.problems.append("had to be killed (SIGKILL)")
                     self._failed = True
                     state.proc.signal_group(signal.SIGKILL)
-                self._wait(5.0, 1 << 30)
+                    stage[state.name] = (signal.SIGKILL, now + 5.0)
+                elif deadline != float("inf"):
+                    log.error("%s (pid %s) survives SIGKILL; giving up on it", state.name, state.proc.pid)
+                    stage[state.name] = (signal.SIGKILL, float("inf"))
+            if all(stage.get(s.name, (0, 0.0))[1] == float("inf") for s in running):
+                break
+            time.sleep(LOOP_S)
         for state in self.states:  # whatever the nodes left behind in their groups
             if state.proc is not None:
                 state.proc.signal_group(signal.SIGKILL)
