@@ -45,6 +45,11 @@ ENV_PARENT_PID = "STG_LAUNCH_PID"
 POLL_S = 0.1
 
 
+class NodeError(RuntimeError):
+    """A node cannot go on for a reason it can state (bad input, a source that cannot be opened):
+    logged as one line, without a traceback; the node exits 1."""
+
+
 @dataclass(frozen=True)
 class Event:
     """One thing that happened to a node: a message arrived, or its tick came due."""
@@ -235,6 +240,11 @@ class Node:
             self.run()
         except KeyboardInterrupt:  # a second Ctrl-C / SIGTERM: skip the rest of the work
             self.log.warning("interrupted")
+        except NodeError as exc:
+            self.log.error("failed: %s", exc)
+            self.error(str(exc))
+            self.set_state("error")
+            self.exit_code = 1
         except Exception as exc:
             self.log.exception("failed: %s", exc)
             self.error(f"{type(exc).__name__}: {exc}")

@@ -21,11 +21,12 @@ from pathlib import Path
 import numpy as np
 
 from stg_node.data.types import Camera
+from stg_node.nodes.runtime import NodeError
 
 log = logging.getLogger(__name__)
 
 
-class SourceError(RuntimeError):
+class SourceError(NodeError):
     """A source cannot be opened or read; says which and why."""
 
 
