@@ -67,6 +67,9 @@ class Node:
     Params: ClassVar[type] = NoParams
     #: Period of on_tick in seconds (None: no ticks).
     tick_s: ClassVar[float | None] = None
+    #: After a teardown that published (a final snapshot), wait this long before closing the bus:
+    #: sockets close with LINGER 0, which would drop what is still on its way out.
+    linger_s: ClassVar[float] = 0.5
 
     def __init__(
         self,
@@ -84,6 +87,8 @@ class Node:
         self.log = logging.getLogger(f"stg_node.nodes.{name}")
         self.stop_signals = stop or StopSignals()
         self.exit_code = 0
+        self._closing = False
+        self._owed = False
         self._subscribers: list[tuple[Subscriber, dict[str, str]]] = []
         self._poller = zmq.Poller()
         parent = os.environ.get(ENV_PARENT_PID, "")
@@ -112,7 +117,9 @@ class Node:
         return sub
 
     def publish(self, msg: Message, topic: str | None = None, *, stamp_ns: int | None = None) -> int:
-        return self.bus.publish(msg, self.topic(topic or msg.SPEC.topic), stamp_ns=stamp_ns)
+        seq = self.bus.publish(msg, self.topic(topic or msg.SPEC.topic), stamp_ns=stamp_ns)
+        self._owed = self._closing
+        return seq
 
     # -- state --------------------------------------------------------------------------------------
 
@@ -234,7 +241,7 @@ class Node:
             if self.heartbeat is not None:
                 # A launcher waits for this first heartbeat: give its subscription a moment to
                 # reach us (PUB/SUB drops what is sent before), then beat.
-                self.bus.publisher.wait_for_subscribers("node/status", timeout=1.0)
+                self.bus.publisher.wait_for_subscribers("node/status", timeout=0.5)
                 self.heartbeat.start()
             self.log.info("running (pid %d)", os.getpid())
             self.run()
@@ -256,8 +263,11 @@ class Node:
 
     def close(self) -> None:
         self.set_state("stopping")
+        self._closing = True
         try:
             self.teardown()
+            if self._owed:  # let what teardown published leave before LINGER-0 sockets close
+                time.sleep(self.linger_s)
         except KeyboardInterrupt:
             self.log.warning("teardown interrupted")
         except Exception as exc:
