@@ -33,7 +33,7 @@ from stg_node.bus import Broker, BrokerRunning, Subscriber
 from stg_node.bus.messages import NodeStatus
 from stg_node.launch.process import ChildProcess, OutputSink
 from stg_node.launch.spec import LaunchSpec, NodeSpec
-from stg_node.nodes.runtime import ENV_PARENT_PID
+from stg_node.nodes.runtime import ENV_PARENT_PID, ENV_RESPAWN
 
 log = logging.getLogger("stg_node.launch")
 
@@ -201,6 +201,7 @@ class Launcher:
         argv = spec.command(self.spec.bus)
         if state.proc is None:
             state.proc = ChildProcess(spec.name, argv, self._env(spec), spec.cwd, self.sink)
+        state.proc.env[ENV_RESPAWN] = str(state.respawns)
         try:
             pid = state.proc.start()
         except OSError as exc:

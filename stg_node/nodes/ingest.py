@@ -27,6 +27,7 @@ class IngestParams:
     dataset_kind: Literal["auto", "zju", "thuman4", "folder", "synth"] = param("auto", doc="dataset layout")
     split: str = param("train", doc="dataset split: train, novel_view, novel_pose, all")
     camera: str = param("", doc="only this dataset camera (default: every camera of the split)")
+    train_frames: str = param("", doc="ZJU-MoCap: the training range START:STOP[:STEP] (default: the subject's)")
     size: int = param(512, min=0, doc="dataset images: longer side in pixels (0: native)")
     device: str = param("0", doc="v4l2: device index or /dev/videoN")
     width: int = param(0, min=0, unit="px", doc="live/video frame width (0: the source's)")
@@ -59,7 +60,14 @@ class IngestNode(Node):
 
         try:
             if p.source == "dataset":
-                self.source = sources.DatasetSource(p.path, kind=p.dataset_kind, split=p.split, size=p.size or None, camera=p.camera)
+                self.source = sources.DatasetSource(
+                    p.path,
+                    kind=p.dataset_kind,
+                    split=p.split,
+                    size=p.size or None,
+                    camera=p.camera,
+                    train_frames=p.train_frames,
+                )
             elif p.source in ("video", "v4l2"):
                 self.source = sources.OpenCVSource(
                     p.path if p.source == "video" else p.device,

@@ -41,6 +41,8 @@ from stg_node.signals import StopSignals
 
 #: Set by stg-launch: the launcher's pid. A node whose parent changes (the launcher died) stops.
 ENV_PARENT_PID = "STG_LAUNCH_PID"
+#: Set by stg-launch: how many times this node has been respawned in this launch (0: first start).
+ENV_RESPAWN = "STG_RESPAWN"
 #: How long the event loop waits at most before looking at the stop flag again.
 POLL_S = 0.1
 
@@ -94,6 +96,8 @@ class Node:
         parent = os.environ.get(ENV_PARENT_PID, "")
         self._parent_pid = int(parent) if parent.isdigit() else None
         self._next_parent_check = 0.0
+        respawn = os.environ.get(ENV_RESPAWN, "")
+        self.respawned = respawn.isdigit() and int(respawn) > 0
         self.bus = Bus(config, node=name, heartbeat_s=0)
         self.heartbeat: Heartbeat | None = None
         if heartbeat_s > 0:

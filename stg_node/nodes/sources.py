@@ -72,17 +72,46 @@ class Calibration:
         return Camera(K=self.K, R=self.R, t=self.t, width=width, height=height, name=name)
 
 
+def parse_frame_range(text: str):
+    """'START:STOP[:STEP]' (STOP may be empty: to the end) -> stg_node.data.splits.FrameRange."""
+    from stg_node.data.splits import FrameRange
+
+    parts = text.split(":")
+    try:
+        if len(parts) not in (2, 3):
+            raise ValueError
+        start = int(parts[0] or 0)
+        stop = int(parts[1]) if parts[1] else None
+        step = int(parts[2]) if len(parts) == 3 and parts[2] else 1
+    except ValueError:
+        raise SourceError(f"train_frames {text!r} must look like START:STOP or START:STOP:STEP") from None
+    if start < 0 or step < 1 or (stop is not None and stop <= start):
+        raise SourceError(f"train_frames {text!r}: need 0 <= START < STOP and STEP >= 1")
+    return FrameRange(start, stop, step)
+
+
 # --- datasets ------------------------------------------------------------------------------------
 
 
 class DatasetSource:
     """The views of one split of a dataset, in order (stg_node.data.open_dataset)."""
 
-    def __init__(self, path: str, *, kind: str = "auto", split: str = "train", size: int | None = 512, camera: str = ""):
+    def __init__(
+        self,
+        path: str,
+        *,
+        kind: str = "auto",
+        split: str = "train",
+        size: int | None = 512,
+        camera: str = "",
+        train_frames: str = "",
+    ):
         from stg_node.data import open_dataset
 
         root = Path(path)
         options = {}
+        if train_frames:
+            options["train_frames"] = parse_frame_range(train_frames)
         if (root / "synth.json").is_file() and kind in ("auto", "synth"):
             from stg_node.data.synth.dataset import open_synth
 

@@ -21,6 +21,7 @@ import time
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 from stg_node.bus import TrainerMetrics
 from stg_node.nodes.avatar_adapter import DEFAULT_MODULE, StepInfo, TrainerAdapter
@@ -49,7 +50,9 @@ class TrainerParams:
     snapshot_every_s: float = param(10.0, min=0.0, unit="s", doc="... and every S seconds (0: off)")
     checkpoint_dir: str = param("", doc="folder for checkpoints (empty: none)")
     checkpoint_every_s: float = param(60.0, min=0.0, unit="s", doc="checkpoint period (0: only at the end)")
-    resume: bool = param(True, doc="continue from checkpoint_dir's checkpoint when there is one")
+    resume: Literal["respawn", "always", "never"] = param(
+        "respawn", doc="continue from checkpoint_dir's checkpoint: when respawned by stg-launch, always, or never"
+    )
     out: str = param("", doc="folder for summary.json at the end (empty: none)")
 
 
@@ -103,7 +106,8 @@ class TrainerNode(Node):
         self.checkpoint = Path(p.checkpoint_dir) / CHECKPOINT_NAME if p.checkpoint_dir else None
         self.elapsed_before = 0.0
         self.resumed_from = None
-        if self.checkpoint is not None and p.resume and self.checkpoint.is_file():
+        resume = p.resume == "always" or (p.resume == "respawn" and self.respawned)
+        if self.checkpoint is not None and resume and self.checkpoint.is_file():
             self.trainer = TrainerAdapter.load(self.checkpoint, module=p.avatar, device=p.device, backend=p.backend)
             state = self._read_state()
             self.elapsed_before = float(state.get("elapsed_s", 0.0))

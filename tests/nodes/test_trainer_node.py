@@ -52,7 +52,7 @@ def feed(feeder: Bus, start: int, count: int, value: int = 100) -> None:
         time.sleep(0.01)
 
 
-def test_metrics_snapshots_checkpoints_and_resume(broker, bus_url, tmp_path):
+def test_metrics_snapshots_checkpoints_and_resume(broker, bus_url, tmp_path, monkeypatch):
     ckpt, out = tmp_path / "ckpt", tmp_path / "out"
     params = {"iters": 30, "snapshot_every": 10, "snapshot_every_s": 0, "checkpoint_dir": str(ckpt), "out": str(out)}
     with Subscriber(BusConfig(url=bus_url), ["trainer/metrics", "avatar/snapshot"]) as sub:
@@ -73,7 +73,8 @@ def test_metrics_snapshots_checkpoints_and_resume(broker, bus_url, tmp_path):
             summary = json.loads((out / "summary.json").read_text())
             assert summary["iterations"] == 30 and summary["finished"]
 
-            # respawned: continues from the checkpoint, not from 0
+            # respawned (stg-launch says so): continues from the checkpoint, not from 0
+            monkeypatch.setenv("STG_RESPAWN", "1")
             node = trainer(bus_url, **{**params, "iters": 45})
             with NodeThread(node) as run:
                 feed(feeder, 3, 3)
@@ -84,6 +85,24 @@ def test_metrics_snapshots_checkpoints_and_resume(broker, bus_url, tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["iterations"] == 45 and summary["resumed_from"] == str(ckpt / "trainer.ckpt")
     assert summary["elapsed_s"] > 0
+
+
+def test_a_fresh_start_ignores_an_old_checkpoint_unless_asked(bus_url, tmp_path, monkeypatch):
+    from fake_avatar import TrainConfig, Trainer
+
+    monkeypatch.delenv("STG_RESPAWN", raising=False)
+    old = Trainer(TrainConfig())
+    old.iteration = 17
+    old.save(str(tmp_path / "trainer.ckpt"))
+    (tmp_path / "trainer.json").write_text('{"iteration": 17, "elapsed_s": 3.0}')
+    for resume, expected in (("respawn", 0), ("always", 17), ("never", 0)):
+        node = trainer(bus_url, checkpoint_dir=str(tmp_path), resume=resume)
+        try:
+            node.setup()
+            assert node.iteration == expected, resume
+            assert (node.resumed_from is not None) == (expected > 0)
+        finally:
+            node.bus.close()
 
 
 def test_a_stopped_trainer_flushes_a_final_snapshot_and_checkpoint(broker, bus_url, tmp_path):
