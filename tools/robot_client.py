@@ -28,6 +28,7 @@ from pathlib import Path
 import msgpack
 import numpy as np
 import zmq
+import zmq.auth
 
 # proto/envelope.yaml: lanes in order (latest, reliable, bulk), each with an in and an out side.
 LANES = ("latest", "reliable", "bulk")
@@ -178,8 +179,6 @@ def main(argv=None) -> int:
     for sock in (sub, pub):
         sock.linger = 0
         if args.keys:
-            import zmq.auth
-
             public, secret = zmq.auth.load_certificate(str(args.keys / "clients" / f"{args.key_name}.key_secret"))
             server, _ = zmq.auth.load_certificate(str(args.keys / "server.key"))
             sock.curve_secretkey, sock.curve_publickey, sock.curve_serverkey = secret, public, server
