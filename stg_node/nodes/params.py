@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import json
 import math
 import types
 import typing
@@ -259,6 +260,17 @@ def describe_params(cls: type) -> list[ParamInfo]:
             default, required = None, True
         out.append(ParamInfo(f.name, _type_name(hints[f.name]), default, required, spec.doc, spec.unit))
     return out
+
+
+def params_markdown(cls: type) -> str:
+    """A markdown table of the parameters (docs/NODES.md holds one per node kind; a test compares)."""
+    rows = ["| param | type | default | meaning |", "|---|---|---|---|"]
+    for info in describe_params(cls):
+        default = "required" if info.required else f"`{json.dumps(info.default)}`"
+        unit = f" [{info.unit}]" if info.unit else ""
+        kind = info.type.replace("|", "\\|")
+        rows.append(f"| `{info.name}` | {kind} | {default} | {info.doc}{unit} |")
+    return "\n".join(rows)
 
 
 _SUBSTITUTION = {"type": "string", "pattern": r"\$\("}

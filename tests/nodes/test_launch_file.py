@@ -183,3 +183,14 @@ def test_the_schema_agrees_with_the_parser_on_the_shipped_launch_files():
         assert not errors, f"{path.name}: {errors[0].message}"
     bad = {"nodes": [{"name": "a", "kind": "ingest", "params": {"rate_hz": "fast"}, "respwan": True}]}
     assert len(list(validator.iter_errors(bad))) >= 2
+
+
+def test_the_launch_guide_documents_every_node_key():
+    import dataclasses
+
+    from stg_node.launch.spec import NodeEntry
+
+    guide = (ROOT / "docs" / "LAUNCH.md").read_text()
+    for f in dataclasses.fields(NodeEntry):
+        name = "if" if f.name == "if_" else f.name
+        assert f"`{name}`" in guide, name

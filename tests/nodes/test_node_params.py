@@ -103,3 +103,10 @@ def test_loading_node_kinds_and_launch_files_imports_no_heavy_package():
     )
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]", out.stdout + out.stderr
+
+
+@pytest.mark.parametrize("kind", sorted(NODE_KINDS))
+def test_docs_show_each_kinds_parameters_as_the_code_declares_them(kind):
+    from stg_node.nodes.params import params_markdown
+
+    assert params_markdown(load_node_class(kind).Params) in (ROOT / "docs" / "NODES.md").read_text()
