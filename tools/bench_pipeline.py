@@ -65,7 +65,9 @@ class QuietSink(OutputSink):
 def start_launch(workdir: Path, name: str, nodes_yaml: str) -> tuple[Launcher, threading.Thread, str]:
     url = f"ipc://{workdir}/{name}"
     path = workdir / f"{name}.yaml"
-    path.write_text(f'bus: {{url: "{url}"}}\nenv: {{STG_THREADS: "1"}}\nnodes:\n' + textwrap.indent(nodes_yaml, "  "))
+    path.write_text(
+        f'bus: {{url: "{url}"}}\nenv: {{STG_THREADS: "1"}}\nnodes:\n' + textwrap.indent(nodes_yaml, "  ")
+    )
     launcher = Launcher(read_launch(path), sink=QuietSink(workdir / f"{name}.log"))
     thread = threading.Thread(target=launcher.run, name=f"launch-{name}", daemon=True)
     thread.start()
@@ -92,7 +94,7 @@ def wait_ready(url: str, names: set[str], timeout: float = 120.0) -> dict[str, i
 
 
 def make_snapshot(avatar: str, data: str, steps: int, size: int, version: int):
-    """A snapshot from ``steps`` training steps on the first frames of ``data`` (through the nodes' adapter)."""
+    """A snapshot from ``steps`` training steps on the first frames of ``data`` (the nodes' adapter)."""
     from stg_node.nodes.avatar_adapter import TrainerAdapter
     from stg_node.nodes.sources import DatasetSource
 
@@ -101,8 +103,14 @@ def make_snapshot(avatar: str, data: str, steps: int, size: int, version: int):
     first = None
     for i, frame in enumerate(source.frames()):
         first = first or frame
-        trainer.add_frame(index=frame.index, time=frame.time, image=frame.image, mask=frame.mask,
-                          camera=frame.camera, smpl=source.dataset.smpl(frame.index))  # fmt: skip
+        trainer.add_frame(
+            index=frame.index,
+            time=frame.time,
+            image=frame.image,
+            mask=frame.mask,
+            camera=frame.camera,
+            smpl=source.dataset.smpl(frame.index),
+        )
         if i >= 7:
             break
     for _ in range(steps):
@@ -120,19 +128,33 @@ def bench_latency(args, workdir: Path) -> dict:
     nodes = f"""
     - name: renderer
       kind: renderer
-      params: {{avatar: {args.avatar}, device: {args.device}, default_view: none, idle_rate_hz: 0, max_rate_hz: 1000}}
+      params: {{avatar: {args.avatar}, device: {args.device}, default_view: none,
+                 idle_rate_hz: 0, max_rate_hz: 1000}}
     """
     launcher, thread, url = start_launch(workdir, "latency", textwrap.dedent(nodes))
     oneshot, live = [], []
     try:
         wait_ready(url, {"renderer"})
-        with Bus(url, node="bench", heartbeat_s=0) as bus, Subscriber(BusConfig(url=url), ["avatar/image"]) as images:
+        with (
+            Bus(url, node="bench", heartbeat_s=0) as bus,
+            Subscriber(BusConfig(url=url), ["avatar/image"]) as images,
+        ):
             for topic in ("avatar/snapshot", "avatar/view", "body/pose"):
                 bus.publisher.wait_for_subscribers(topic, 30)
             bus.publish(snap)
             pose = pose_message(smpl)
-            request = ViewRequest(request_id=0, width=camera.width, height=camera.height, follow_live=False,
-                                  K=camera.K, R=camera.R, t=camera.t, poses=pose.poses, Rh=pose.Rh, Th=pose.Th)  # fmt: skip
+            request = ViewRequest(
+                request_id=0,
+                width=camera.width,
+                height=camera.height,
+                follow_live=False,
+                K=camera.K,
+                R=camera.R,
+                t=camera.t,
+                poses=pose.poses,
+                Rh=pose.Rh,
+                Th=pose.Th,
+            )
             total = args.requests + 5
             for i in range(total):  # (a) one-shot requests
                 request.request_id = i + 1
@@ -144,8 +166,15 @@ def bench_latency(args, workdir: Path) -> dict:
                     raise SystemExit("bench: no answer to a view request within 10 s")
                 if i >= 5:  # warm-up
                     oneshot.append((time.time_ns() - sent) / 1e6)
-            standing = ViewRequest(request_id=10_000, width=camera.width, height=camera.height, follow_live=True,
-                                   K=camera.K, R=camera.R, t=camera.t)  # fmt: skip
+            standing = ViewRequest(
+                request_id=10_000,
+                width=camera.width,
+                height=camera.height,
+                follow_live=True,
+                K=camera.K,
+                R=camera.R,
+                t=camera.t,
+            )
             bus.publish(standing)
             time.sleep(0.5)
             for i in range(total):  # (b) poses into the standing view
@@ -177,18 +206,26 @@ def bench_swap(args, workdir: Path) -> dict:
     nodes = f"""
     - name: renderer
       kind: renderer
-      params: {{avatar: {args.avatar}, device: {args.device}, default_view: none, idle_rate_hz: 0, max_rate_hz: 1000}}
+      params: {{avatar: {args.avatar}, device: {args.device}, default_view: none,
+                 idle_rate_hz: 0, max_rate_hz: 1000}}
     """
     launcher, thread, url = start_launch(workdir, "swap", textwrap.dedent(nodes))
     arrivals: list[float] = []
     swaps: list[float] = []
     try:
         wait_ready(url, {"renderer"})
-        with Bus(url, node="bench", heartbeat_s=0) as bus, Subscriber(BusConfig(url=url), ["avatar/image"]) as images:
+        with (
+            Bus(url, node="bench", heartbeat_s=0) as bus,
+            Subscriber(BusConfig(url=url), ["avatar/image"]) as images,
+        ):
             for topic in ("avatar/snapshot", "avatar/view", "body/pose"):
                 bus.publisher.wait_for_subscribers(topic, 30)
             bus.publish(snaps[0])
-            bus.publish(ViewRequest(request_id=1, width=camera.width, height=camera.height, K=camera.K, R=camera.R, t=camera.t))
+            bus.publish(
+                ViewRequest(
+                    request_id=1, width=camera.width, height=camera.height, K=camera.K, R=camera.R, t=camera.t
+                )
+            )
             pose = pose_message(smpl)
             period = 1.0 / args.swap_rate
             start = time.monotonic()
@@ -225,8 +262,13 @@ def bench_swap(args, workdir: Path) -> dict:
         near |= (times[1:] > s) & (times[:-1] < s + 0.5)
     base = float(np.median(gaps[~near])) if (~near).any() else float("nan")
     worst = float(gaps[near].max()) if near.any() else float("nan")
-    return {"swaps": len(swaps), "median_gap_ms": base * 1e3, "worst_gap_near_swap_ms": worst * 1e3,
-            "pause_ms": max(0.0, worst - base) * 1e3, "images": len(arrivals)}  # fmt: skip
+    return {
+        "swaps": len(swaps),
+        "median_gap_ms": base * 1e3,
+        "worst_gap_near_swap_ms": worst * 1e3,
+        "pause_ms": max(0.0, worst - base) * 1e3,
+        "images": len(arrivals),
+    }
 
 
 def rss_mb(pid: int) -> float:
@@ -246,7 +288,8 @@ def bench_memory(args, workdir: Path) -> dict:
       params: {{path: {args.data}}}
     - name: trainer
       kind: trainer
-      params: {{avatar: {args.avatar}, device: {args.device}, preset: fast, max_frames: 64, snapshot_every_s: 5}}
+      params: {{avatar: {args.avatar}, device: {args.device}, preset: fast,
+                 max_frames: 64, snapshot_every_s: 5}}
     - name: renderer
       kind: renderer
       params: {{avatar: {args.avatar}, device: {args.device}, size: {args.size}}}
@@ -271,32 +314,53 @@ def bench_memory(args, workdir: Path) -> dict:
     for name, points in samples.items():
         t, mb = np.array(points).T
         half = t >= t[-1] / 2
-        slope = float(np.polyfit(t[half], mb[half], 1)[0]) if half.sum() >= 2 else float("nan")  # MB per wall s
-        out["nodes"][name] = {"start_mb": float(mb[0]), "end_mb": float(mb[-1]), "peak_mb": float(np.nanmax(mb)),
-                              "mb_per_stream_hour": slope * 3600 / speedup}  # fmt: skip
+        slope = (
+            float(np.polyfit(t[half], mb[half], 1)[0]) if half.sum() >= 2 else float("nan")
+        )  # MB per wall s
+        out["nodes"][name] = {
+            "start_mb": float(mb[0]),
+            "end_mb": float(mb[-1]),
+            "peak_mb": float(np.nanmax(mb)),
+            "mb_per_stream_hour": slope * 3600 / speedup,
+        }
     return out
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", required=True, help="a dataset folder (e.g. stg-synth output) to train and stream from")
-    parser.add_argument("--avatar", default="stg_node.avatar", help="the avatar implementation (package name)")
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--data", required=True, help="a dataset folder (e.g. stg-synth output) to train and stream from"
+    )
+    parser.add_argument(
+        "--avatar", default="stg_node.avatar", help="the avatar implementation (package name)"
+    )
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--size", type=int, default=256, help="image size (longer side)")
     parser.add_argument("--train-steps", type=int, default=200, help="steps before the latency snapshot")
     parser.add_argument("--requests", type=int, default=100, help="latency samples per kind")
     parser.add_argument("--swap-s", type=float, default=20.0, help="seconds of the hot-swap run")
-    parser.add_argument("--swap-rate", type=float, default=30.0, help="poses per second during the hot-swap run")
+    parser.add_argument(
+        "--swap-rate", type=float, default=30.0, help="poses per second during the hot-swap run"
+    )
     parser.add_argument("--stream-s", type=float, default=360.0, help="wall seconds of the memory run")
-    parser.add_argument("--stream-rate", type=float, default=300.0, help="frames per second of the sped-up stream")
-    parser.add_argument("--only", choices=("latency", "swap", "memory"), action="append", help="run only these")
+    parser.add_argument(
+        "--stream-rate", type=float, default=300.0, help="frames per second of the sped-up stream"
+    )
+    parser.add_argument(
+        "--only", choices=("latency", "swap", "memory"), action="append", help="run only these"
+    )
     parser.add_argument("--quick", action="store_true", help="a smoke run: few samples, short runs")
     parser.add_argument("--json", type=Path, help="also write the results here")
     args = parser.parse_args()
     if args.quick:
         args.train_steps, args.requests, args.swap_s, args.stream_s = 5, 10, 5.0, 8.0
     os.environ.setdefault("STG_THREADS", "1")
-    results = {"machine": f"{platform.node()} {platform.machine()} {os.cpu_count()} cpus", "avatar": args.avatar}
+    results = {
+        "machine": f"{platform.node()} {platform.machine()} {os.cpu_count()} cpus",
+        "avatar": args.avatar,
+    }
     with tempfile.TemporaryDirectory(prefix="stgbench-") as tmp:
         workdir = Path(tmp)
         for name, fn in (("latency", bench_latency), ("swap", bench_swap), ("memory", bench_memory)):
@@ -307,8 +371,10 @@ def main() -> int:
     lat = results.get("latency")
     if lat:
         ok = "meets" if lat["request_ms_median"] <= 50 else "misses"
-        print(f"pose-to-pixels at {lat['size'][0]}x{lat['size'][1]}: request {lat['request_ms_median']:.1f} ms "
-              f"(p95 {lat['request_ms_p95']:.1f}), pose {lat['pose_ms_median']:.1f} ms: {ok} the 50 ms target")  # fmt: skip
+        print(
+            f"pose-to-pixels at {lat['size'][0]}x{lat['size'][1]}: request {lat['request_ms_median']:.1f} ms "
+            f"(p95 {lat['request_ms_p95']:.1f}), pose {lat['pose_ms_median']:.1f} ms: {ok} the 50 ms target"
+        )
     if args.json:
         args.json.write_text(json.dumps(results, indent=2) + "\n")
     return 0

@@ -60,7 +60,12 @@ def write_png(path: Path, rgb: np.ndarray) -> None:
         return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
 
     header = struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0)
-    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b""))
+    path.write_bytes(
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", header)
+        + chunk(b"IDAT", zlib.compress(raw, 6))
+        + chunk(b"IEND", b"")
+    )
 
 
 def decode_image(frames: list, want_topic: bytes) -> dict | None:
@@ -139,23 +144,38 @@ def view_request(seq: int, source: dict, width: int, height: int, follow_live: b
     K[0] *= width / w
     K[1] *= height / h
     header = {
-        "type": "ViewRequest", "v": 1, "seq": seq, "stamp_ns": time.time_ns(), "src": src,
-        "request_id": seq + 1, "width": width, "height": height, "follow_live": follow_live,
-        "arrays": [{"name": n, "dtype": "float64", "shape": list(s)} for n, s in (("K", (3, 3)), ("R", (3, 3)), ("t", (3,)))],
-    }  # fmt: skip
+        "type": "ViewRequest",
+        "v": 1,
+        "seq": seq,
+        "stamp_ns": time.time_ns(),
+        "src": src,
+        "request_id": seq + 1,
+        "width": width,
+        "height": height,
+        "follow_live": follow_live,
+        "arrays": [
+            {"name": n, "dtype": "float64", "shape": list(s)}
+            for n, s in (("K", (3, 3)), ("R", (3, 3)), ("t", (3,)))
+        ],
+    }
     R = np.ascontiguousarray(arrays["R"], np.float64)
     t = np.ascontiguousarray(arrays["t"], np.float64)
     return [header, np.ascontiguousarray(K), R, t]
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0], epilog=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n")[0],
+        epilog=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument("--bus", required=True, help="bus URL (ipc://PATH or tcp://HOST:PORT)")
     parser.add_argument("--namespace", default="", help="topic namespace")
     parser.add_argument("--out", type=Path, required=True, help="folder for the images and images.jsonl")
     parser.add_argument("--count", type=int, default=10, help="stop after this many images (0: no limit)")
-    parser.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (0: no limit)")
+    parser.add_argument(
+        "--duration", type=float, default=0.0, help="stop after this many seconds (0: no limit)"
+    )
     parser.add_argument("--timeout", type=float, default=30.0, help="give up when nothing arrives this long")
     parser.add_argument("--width", type=int, default=0, help="width of the view to ask for (0: ask for none)")
     parser.add_argument("--height", type=int, default=0, help="height of the view to ask for")
@@ -166,7 +186,9 @@ def main(argv=None) -> int:
     parser.add_argument("--key-name", help="our key name in KEYS/clients")
     args = parser.parse_args(argv)
     if args.count < 0 or args.duration < 0 or (args.width > 0) != (args.height > 0):
-        print("robot_client: --count/--duration must be >= 0; give both --width and --height", file=sys.stderr)
+        print(
+            "robot_client: --count/--duration must be >= 0; give both --width and --height", file=sys.stderr
+        )
         return 2
     args.out.mkdir(parents=True, exist_ok=True)
     # Our own handlers: started in the background, a process inherits SIGINT ignored.
@@ -179,7 +201,9 @@ def main(argv=None) -> int:
     for sock in (sub, pub):
         sock.linger = 0
         if args.keys:
-            public, secret = zmq.auth.load_certificate(str(args.keys / "clients" / f"{args.key_name}.key_secret"))
+            public, secret = zmq.auth.load_certificate(
+                str(args.keys / "clients" / f"{args.key_name}.key_secret")
+            )
             server, _ = zmq.auth.load_certificate(str(args.keys / "server.key"))
             sock.curve_secretkey, sock.curve_publickey, sock.curve_serverkey = secret, public, server
     sub.rcvhwm = 4
@@ -200,21 +224,31 @@ def main(argv=None) -> int:
             now = time.monotonic()
             if msg is None:
                 if now - last_seen > args.timeout:
-                    print(f"robot_client: nothing on {image_topic.decode()} for {args.timeout:g} s", file=sys.stderr)
+                    print(
+                        f"robot_client: nothing on {image_topic.decode()} for {args.timeout:g} s",
+                        file=sys.stderr,
+                    )
                     return 1
                 continue
             last_seen = now
             arrays = msg.pop("arrays")
             saved += 1
             write_png(args.out / f"{saved:05d}.png", np.ascontiguousarray(arrays["image"]))
-            msg.update(file=f"{saved:05d}.png", shape=list(arrays["image"].shape),
-                       received_latency_ms=(time.time_ns() - msg.get("source_stamp_ns", 0)) / 1e6)  # fmt: skip
+            msg.update(
+                file=f"{saved:05d}.png",
+                shape=list(arrays["image"].shape),
+                received_latency_ms=(time.time_ns() - msg.get("source_stamp_ns", 0)) / 1e6,
+            )
             log.write(json.dumps(msg) + "\n")
             log.flush()
             if args.width and now - last_request >= args.request_every:
-                frames = view_request(requests, {"arrays": arrays}, args.width, args.height, not args.one_shot, args.src)
+                frames = view_request(
+                    requests, {"arrays": arrays}, args.width, args.height, not args.one_shot, args.src
+                )
                 header = frames[0]
-                pub.send_multipart([topic(args.namespace, VIEW_TOPIC).encode(), msgpack.packb(header), *frames[1:]])
+                pub.send_multipart(
+                    [topic(args.namespace, VIEW_TOPIC).encode(), msgpack.packb(header), *frames[1:]]
+                )
                 requests += 1
                 last_request = now
             if (args.count and saved >= args.count) or (args.duration and now - start >= args.duration):
@@ -228,7 +262,10 @@ def main(argv=None) -> int:
         sub.close()
         pub.close()
         ctx.term()
-    print(f"robot_client: saved {saved} images to {args.out} ({requests} view requests, {reader.malformed} malformed)")
+    print(
+        f"robot_client: saved {saved} images to {args.out} "
+        f"({requests} view requests, {reader.malformed} malformed)"
+    )
     return 0 if saved and (not args.count or saved >= args.count) else 1
 
 

@@ -31,8 +31,13 @@ class NumpyUnpickler(pickle.Unpickler):
             return getattr(_CORE.multiarray, name)
         if module in ("numpy.core.numeric", "numpy._core.numeric") and name == "_frombuffer":
             return _CORE.numeric._frombuffer
-        if module in ("numpy", "numpy.core.numeric", "numpy._core.numeric", "numpy.core.multiarray",
-                      "numpy._core.multiarray") and name in ("ndarray", "dtype"):  # fmt: skip
+        if module in (
+            "numpy",
+            "numpy.core.numeric",
+            "numpy._core.numeric",
+            "numpy.core.multiarray",
+            "numpy._core.multiarray",
+        ) and name in ("ndarray", "dtype"):
             return getattr(np, name)
         if module == "numpy.dtypes" and name.endswith("DType"):
             import numpy.dtypes

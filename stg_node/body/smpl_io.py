@@ -26,11 +26,31 @@ from stg_node.body.safe_pickle import NumpyUnpickler
 SMPL_NUM_JOINTS = 24
 SMPL_PARENTS = (-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 20, 21)
 SMPL_JOINT_NAMES = (
-    "pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2",
-    "left_ankle", "right_ankle", "spine3", "left_foot", "right_foot", "neck", "left_collar",
-    "right_collar", "head", "left_shoulder", "right_shoulder", "left_elbow", "right_elbow",
-    "left_wrist", "right_wrist", "left_hand", "right_hand",
-)  # fmt: skip
+    "pelvis",
+    "left_hip",
+    "right_hip",
+    "spine1",
+    "left_knee",
+    "right_knee",
+    "spine2",
+    "left_ankle",
+    "right_ankle",
+    "spine3",
+    "left_foot",
+    "right_foot",
+    "neck",
+    "left_collar",
+    "right_collar",
+    "head",
+    "left_shoulder",
+    "right_shoulder",
+    "left_elbow",
+    "right_elbow",
+    "left_wrist",
+    "right_wrist",
+    "left_hand",
+    "right_hand",
+)
 
 GENDERS = ("neutral", "male", "female")
 _GENDER_LETTER = {"neutral": "neutral", "male": "m", "female": "f"}
@@ -355,8 +375,13 @@ def validate_model_arrays(data: dict, source: str) -> ModelArrays:
     if faces.size and (faces.min() < 0 or faces.max() >= num_verts):
         raise BodyModelError(f"{source}: faces index vertices outside [0, {num_verts})")
 
-    for key, value in (("v_template", v_template), ("shapedirs", shapedirs), ("posedirs", posedirs),
-                       ("J_regressor", j_regressor), ("weights", weights)):  # fmt: skip
+    for key, value in (
+        ("v_template", v_template),
+        ("shapedirs", shapedirs),
+        ("posedirs", posedirs),
+        ("J_regressor", j_regressor),
+        ("weights", weights),
+    ):
         if not np.all(np.isfinite(value)):
             raise BodyModelError(f"{source}: {key!r} contains NaN or infinite values")
     sums = weights.sum(axis=1)
@@ -382,9 +407,18 @@ def validate_model_arrays(data: dict, source: str) -> ModelArrays:
             )
     name = str(np.asarray(data["name"])) if "name" in data else "smpl"
     return ModelArrays(
-        v_template=v_template, shapedirs=shapedirs, posedirs=posedirs, J_regressor=j_regressor,
-        weights=weights, parents=parents, faces=faces, uv=uv, uv_faces=uv_faces, texture=texture, name=name,
-    )  # fmt: skip
+        v_template=v_template,
+        shapedirs=shapedirs,
+        posedirs=posedirs,
+        J_regressor=j_regressor,
+        weights=weights,
+        parents=parents,
+        faces=faces,
+        uv=uv,
+        uv_faces=uv_faces,
+        texture=texture,
+        name=name,
+    )
 
 
 def read_model_file(path: Path) -> ModelArrays:

@@ -36,7 +36,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("file", nargs="?", type=Path, help="launch file (YAML)")
     parser.add_argument("overrides", nargs="*", metavar="name:=value", help="launch arguments")
     mode = parser.add_mutually_exclusive_group()
-    mode.add_argument("--validate", action="store_true", help="check the file (and node parameters); start nothing")
+    mode.add_argument(
+        "--validate", action="store_true", help="check the file (and node parameters); start nothing"
+    )
     mode.add_argument("--show-args", action="store_true", help="list the file's arguments")
     mode.add_argument("--print", action="store_true", help="print the processes it would start")
     mode.add_argument("--schema", action="store_true", help="print the launch-file JSON schema")
@@ -93,7 +95,10 @@ def main(argv=None) -> int:
         print(f"stg-launch: {exc}", file=sys.stderr)
         return 2
     if args.validate:
-        print(f"{args.file}: ok ({len(spec.nodes)} node(s){', skipped ' + ', '.join(spec.skipped) if spec.skipped else ''})")
+        print(
+            f"{args.file}: ok ({len(spec.nodes)} node(s)"
+            + (f", skipped {', '.join(spec.skipped)})" if spec.skipped else ")")
+        )
         return 0
     if args.show_args:
         print(_show_args(spec))

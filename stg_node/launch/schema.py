@@ -46,7 +46,10 @@ def launch_schema() -> dict:
                 {"type": ["string", "number", "boolean", "null"]},
                 {
                     "type": "object",
-                    "properties": {"default": {"type": ["string", "number", "boolean", "null"]}, "doc": {"type": "string"}},
+                    "properties": {
+                        "default": {"type": ["string", "number", "boolean", "null"]},
+                        "doc": {"type": "string"},
+                    },
                     "additionalProperties": False,
                 },
             ]

@@ -35,7 +35,7 @@ from typing import Any
 
 from stg_node.bus.config import BusConfig, default_url
 from stg_node.bus.topics import LANES
-from stg_node.launch.substitute import Scope, SubstitutionError, substitute, substitute_all
+from stg_node.launch.substitute import Scope, SubstitutionError, substitute
 from stg_node.launch.yamlfile import LaunchFileError, Located, load_file
 from stg_node.nodes import UnknownNodeKind, load_node_class
 from stg_node.nodes.params import ParamError, param, parse_params
@@ -68,10 +68,13 @@ class NodeEntry:
     required: bool = param(False, doc="when this node ends (after any respawns), the launch ends")
     after: list[str] = param([], doc="start only when these nodes are ready")
     ready: str = param(
-        "", doc="when the node counts as ready: heartbeat (kind nodes' default), started (others'), "
-        "exit (exited 0), file:PATH, delay:SECONDS"
+        "",
+        doc="when the node counts as ready: heartbeat (kind nodes' default), started (others'), "
+        "exit (exited 0), file:PATH, delay:SECONDS",
     )
-    ready_timeout: float = param(120.0, min=0.0, unit="s", doc="fail the launch if not ready by then (0: wait)")
+    ready_timeout: float = param(
+        120.0, min=0.0, unit="s", doc="fail the launch if not ready by then (0: wait)"
+    )
     sigint_timeout: float = param(5.0, min=0.0, unit="s", doc="on shutdown: wait after SIGINT before SIGTERM")
     sigterm_timeout: float = param(5.0, min=0.0, unit="s", doc="then wait after SIGTERM before SIGKILL")
     heartbeat: float = param(1.0, min=0.05, unit="s", doc="NodeStatus period (kind nodes)")
@@ -85,7 +88,9 @@ class IncludeEntry:
     """Another launch file, read in place."""
 
     file: str = param(doc="path, relative to the including file")
-    args: dict[str, str] = param({}, doc="its arguments (others: the includer's of the same name, else defaults)")
+    args: dict[str, str] = param(
+        {}, doc="its arguments (others: the includer's of the same name, else defaults)"
+    )
     namespace: str = param("", doc="namespace for all of its nodes")
     if_: bool = param(True, doc="(written `if:`) include only if true")
     unless: bool = param(False, doc="skip the include if true")
@@ -264,7 +269,9 @@ def _declared_args(raw, doc: Located) -> list[ArgInfo]:
         if isinstance(value, dict):
             unknown = set(value) - {"default", "doc"}
             if unknown:
-                raise doc.error(("args", name), f"argument {name!r}: unknown keys {sorted(unknown)} (default, doc)")
+                raise doc.error(
+                    ("args", name), f"argument {name!r}: unknown keys {sorted(unknown)} (default, doc)"
+                )
             default = value.get("default")
             text = value.get("doc", "")
             out.append(ArgInfo(name, None if default is None else _scalar_text(default), str(text)))
@@ -310,7 +317,9 @@ class _Reader:
                 if include_key is None:
                     raise LaunchFileError(path, None, f"unknown launch argument {name!r} (declared: {known})")
                 parent, key = include_key
-                raise parent.error((*key, "args", name), f"{path.name} has no argument {name!r} (declared: {known})")
+                raise parent.error(
+                    (*key, "args", name), f"{path.name} has no argument {name!r} (declared: {known})"
+                )
         values = {}
         for arg in declared:
             if arg.name in given:
@@ -321,7 +330,10 @@ class _Reader:
                 values[arg.name] = arg.default
             else:
                 hint = f" ({arg.doc})" if arg.doc else ""
-                raise doc.error(("args", arg.name), f"launch argument {arg.name!r} is required: pass {arg.name}:=VALUE{hint}")
+                raise doc.error(
+                    ("args", arg.name),
+                    f"launch argument {arg.name!r} is required: pass {arg.name}:=VALUE{hint}",
+                )
         scope = Scope(values, path.parent.resolve())
         file_env = {str(k): _scalar_text(v) for k, v in _substituted(entry.env, doc, ("env",), scope).items()}
 
@@ -342,7 +354,9 @@ class _Reader:
             if not target.is_file():
                 raise doc.error((*key, "file"), f"included file {target} does not exist")
             if not NAMESPACE_PATTERN.match(inc.namespace):
-                raise doc.error((*key, "namespace"), f"namespace {inc.namespace!r} is not a valid topic prefix")
+                raise doc.error(
+                    (*key, "namespace"), f"namespace {inc.namespace!r} is not a valid topic prefix"
+                )
             self.read(
                 target,
                 {k: _scalar_text(v) for k, v in inc.args.items()},
@@ -369,7 +383,9 @@ class _Reader:
             return
         where = f"{doc.path}:{doc.line(key)}"
         if name in self.seen_names:
-            raise doc.error((*key, "name"), f"{label}: a node named {name!r} already exists ({self.seen_names[name]})")
+            raise doc.error(
+                (*key, "name"), f"{label}: a node named {name!r} already exists ({self.seen_names[name]})"
+            )
         self.seen_names[name] = where
         how = [k for k in ("kind", "module", "cmd") if getattr(entry, k) is not None]
         if len(how) != 1:
@@ -377,9 +393,13 @@ class _Reader:
         if entry.cmd is not None and not entry.cmd:
             raise doc.error((*key, "cmd"), f"{label}: cmd is empty")
         if entry.kind is None and entry.params:
-            raise doc.error((*key, "params"), f"{label}: params are for kind nodes; pass args to module/cmd nodes")
+            raise doc.error(
+                (*key, "params"), f"{label}: params are for kind nodes; pass args to module/cmd nodes"
+            )
         if not NAMESPACE_PATTERN.match(entry.namespace):
-            raise doc.error((*key, "namespace"), f"{label}: namespace {entry.namespace!r} is not a valid topic prefix")
+            raise doc.error(
+                (*key, "namespace"), f"{label}: namespace {entry.namespace!r} is not a valid topic prefix"
+            )
         ready = entry.ready or ("heartbeat" if entry.kind is not None else "started")
         self._check_ready(ready, entry, doc, key, label)
         typed = None
@@ -417,9 +437,14 @@ class _Reader:
             except ValueError:
                 ok = False
         if not ok:
-            raise doc.error((*key, "ready"), f"{label}: ready {ready!r} is not one of {', '.join(READY_FORMS)}")
+            raise doc.error(
+                (*key, "ready"), f"{label}: ready {ready!r} is not one of {', '.join(READY_FORMS)}"
+            )
         if ready == "heartbeat" and entry.kind is None:
-            raise doc.error((*key, "ready"), f"{label}: only kind nodes send heartbeats; use started, exit, file: or delay:")
+            raise doc.error(
+                (*key, "ready"),
+                f"{label}: only kind nodes send heartbeats; use started, exit, file: or delay:",
+            )
         if ready == "exit" and entry.respawn:
             raise doc.error((*key, "ready"), f"{label}: a node that is ready when it exits cannot respawn")
 
@@ -434,7 +459,9 @@ def read_launch(path: str | Path, overrides: dict[str, str] | None = None) -> La
     bus = _typed(BusEntry, bus_raw, doc, ("bus",), "bus")
     for topic, lane in bus.lanes.items():
         if lane not in LANES:
-            raise doc.error(("bus", "lanes", topic), f"lane {lane!r} for {topic!r} is not one of {sorted(LANES)}")
+            raise doc.error(
+                ("bus", "lanes", topic), f"lane {lane!r} for {topic!r} is not one of {sorted(LANES)}"
+            )
     if not NAMESPACE_PATTERN.match(bus.namespace):
         raise doc.error(("bus", "namespace"), f"namespace {bus.namespace!r} is not a valid topic prefix")
     section = BusSection(

@@ -58,7 +58,9 @@ def _evaluate(expr: str, scope: Scope) -> str:
         return scope.args[rest[0]]
     if verb == "env":
         if len(rest) not in (1, 2):
-            raise SubstitutionError(f"$(env NAME [DEFAULT]) takes a name and an optional default, got $({expr})")
+            raise SubstitutionError(
+                f"$(env NAME [DEFAULT]) takes a name and an optional default, got $({expr})"
+            )
         value = os.environ.get(rest[0])
         if value is None:
             if len(rest) == 2:

@@ -221,7 +221,11 @@ class Launcher:
             self._mark_ready(state)
         elif how == "delay" and now - state.started_at >= float(value):
             self._mark_ready(state)
-        elif how != "exit" and state.spec.ready_timeout > 0 and now - state.started_at > state.spec.ready_timeout:
+        elif (
+            how != "exit"
+            and state.spec.ready_timeout > 0
+            and now - state.started_at > state.spec.ready_timeout
+        ):
             self._fail(state, f"not ready within {state.spec.ready_timeout:g} s ({state.spec.ready})")
             state.proc.signal_group(signal.SIGTERM)
 

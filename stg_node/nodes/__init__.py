@@ -7,9 +7,9 @@ Each node is its own OS process, started by ``stg-launch`` or by hand:
 | kind | module | what it does |
 |---|---|---|
 | ingest | :mod:`.ingest` | replays a dataset, a video file, a V4L2 camera or an OAK camera on camera/frame |
-| tracker | :mod:`.tracker` | SMPL body pose per frame on body/pose (replay of a dataset's fits, or a live estimator) |
+| tracker | :mod:`.tracker` | body/pose per frame (a dataset's SMPL fits, or a live estimator) |
 | trainer | :mod:`.trainer` | trains the avatar online; avatar/snapshot, trainer/metrics, checkpoints |
-| renderer | :mod:`.renderer` | renders the latest snapshot for avatar/view requests or default views; avatar/image |
+| renderer | :mod:`.renderer` | renders avatar/view requests or default views on avatar/image |
 
 :mod:`.runtime` is the node base class and event loop, :mod:`.params` the typed parameters.
 Node modules import heavy packages (torch, OpenCV, depthai) only when a node starts, so that
@@ -40,7 +40,9 @@ def load_node_class(kind: str) -> type:
     target = NODE_KINDS.get(kind, kind)
     module_name, sep, class_name = target.partition(":")
     if not sep or not module_name or not class_name:
-        raise UnknownNodeKind(f"unknown node kind {kind!r}; known kinds: {', '.join(NODE_KINDS)} (or module:Class)")
+        raise UnknownNodeKind(
+            f"unknown node kind {kind!r}; known kinds: {', '.join(NODE_KINDS)} (or module:Class)"
+        )
     try:
         module = importlib.import_module(module_name)
     except ImportError as exc:

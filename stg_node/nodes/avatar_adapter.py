@@ -75,12 +75,16 @@ class TrainerAdapter:
         return cls(trainer, avatar)
 
     @classmethod
-    def load(cls, path: str | Path, *, module: str = DEFAULT_MODULE, device: str = "cpu", backend: str = "auto"):
+    def load(
+        cls, path: str | Path, *, module: str = DEFAULT_MODULE, device: str = "cpu", backend: str = "auto"
+    ):
         avatar = avatar_module(module)
         return cls(avatar.Trainer.load(str(path), device=device, backend=backend), avatar)
 
     def add_frame(self, *, index: int, time: float, image, mask, camera: Camera, smpl: SmplParams) -> None:
-        frame = self._module.TrainFrame(index=index, time=time, image=image, mask=mask, camera=camera, smpl=smpl)
+        frame = self._module.TrainFrame(
+            index=index, time=time, image=image, mask=mask, camera=camera, smpl=smpl
+        )
         self._trainer.add_frame(frame)
 
     def step(self) -> StepInfo:
@@ -113,16 +117,27 @@ class RendererAdapter:
 
     @classmethod
     def from_snapshot(
-        cls, msg: GaussianSnapshot, *, module: str = DEFAULT_MODULE, device: str = "cpu", backend: str = "auto"
+        cls,
+        msg: GaussianSnapshot,
+        *,
+        module: str = DEFAULT_MODULE,
+        device: str = "cpu",
+        backend: str = "auto",
     ) -> RendererAdapter:
         avatar = avatar_module(module)
-        return cls(avatar.AvatarRenderer.from_snapshot(msg, device=device, backend=backend), msg.model_version)
+        return cls(
+            avatar.AvatarRenderer.from_snapshot(msg, device=device, backend=backend), msg.model_version
+        )
 
-    def render(self, camera: Camera, smpl: SmplParams, time: float | None = None, background=(0, 0, 0)) -> RenderOutput:
+    def render(
+        self, camera: Camera, smpl: SmplParams, time: float | None = None, background=(0, 0, 0)
+    ) -> RenderOutput:
         out = self._renderer.render(camera, smpl, time=time, background=background)
         return RenderOutput(
             image=np.ascontiguousarray(out.image, dtype=np.uint8),
             alpha=None if out.alpha is None else np.ascontiguousarray(out.alpha, dtype=np.uint8),
-            depth=None if getattr(out, "depth", None) is None else np.ascontiguousarray(out.depth, np.float32),
+            depth=None
+            if getattr(out, "depth", None) is None
+            else np.ascontiguousarray(out.depth, np.float32),
             render_ms=float(out.render_ms),
         )

@@ -31,7 +31,9 @@ def frame_message(sample: FrameSample, *, camera_id: str = "") -> Frame:
 
 def frame_camera(frame: Frame) -> Camera:
     h, w = frame.image.shape[:2]
-    return Camera(K=np.array(frame.K), R=np.array(frame.R), t=np.array(frame.t), width=w, height=h, name=frame.camera_id)
+    return Camera(
+        K=np.array(frame.K), R=np.array(frame.R), t=np.array(frame.t), width=w, height=h, name=frame.camera_id
+    )
 
 
 def pose_message(smpl: SmplParams, *, frame: Frame | None = None, confidence: float = 1.0) -> BodyPose:
@@ -49,12 +51,18 @@ def pose_message(smpl: SmplParams, *, frame: Frame | None = None, confidence: fl
 
 
 def pose_smpl(pose: BodyPose) -> SmplParams:
-    return SmplParams(poses=np.array(pose.poses), Rh=np.array(pose.Rh), Th=np.array(pose.Th), betas=np.array(pose.betas))
+    return SmplParams(
+        poses=np.array(pose.poses), Rh=np.array(pose.Rh), Th=np.array(pose.Th), betas=np.array(pose.betas)
+    )
 
 
 def request_camera(request: ViewRequest) -> Camera:
     return Camera(
-        K=np.array(request.K), R=np.array(request.R), t=np.array(request.t), width=request.width, height=request.height
+        K=np.array(request.K),
+        R=np.array(request.R),
+        t=np.array(request.t),
+        width=request.width,
+        height=request.height,
     )
 
 

@@ -27,21 +27,29 @@ class IngestParams:
     dataset_kind: Literal["auto", "zju", "thuman4", "folder", "synth"] = param("auto", doc="dataset layout")
     split: str = param("train", doc="dataset split: train, novel_view, novel_pose, all")
     camera: str = param("", doc="only this dataset camera (default: every camera of the split)")
-    train_frames: str = param("", doc="ZJU-MoCap: the training range START:STOP[:STEP] (default: the subject's)")
+    train_frames: str = param(
+        "", doc="ZJU-MoCap: the training range START:STOP[:STEP] (default: the subject's)"
+    )
     size: int = param(512, min=0, doc="dataset images: longer side in pixels (0: native)")
     device: str = param("0", doc="v4l2: device index or /dev/videoN")
     width: int = param(0, min=0, unit="px", doc="live/video frame width (0: the source's)")
     height: int = param(0, min=0, unit="px", doc="live/video frame height (0: the source's)")
     fps: float = param(0.0, min=0.0, unit="Hz", doc="live capture rate to ask for (0: the source's)")
     calibration: str = param("", doc="live/video: JSON with K (and R, t) for the delivered size")
-    hfov_deg: float = param(60.0, min=1.0, max=179.0, unit="deg", doc="live/video without calibration: field of view")
-    rate_hz: float = param(-1.0, min=-1.0, unit="Hz", doc="-1 the source's rate, 0 as fast as consumed, > 0 fixed")
+    hfov_deg: float = param(
+        60.0, min=1.0, max=179.0, unit="deg", doc="live/video without calibration: field of view"
+    )
+    rate_hz: float = param(
+        -1.0, min=-1.0, unit="Hz", doc="-1 the source's rate, 0 as fast as consumed, > 0 fixed"
+    )
     pace_topic: str = param("body/pose", doc="rate_hz 0: the topic whose frame_seq acknowledges frames")
     max_ahead: int = param(2, min=0, doc="rate_hz 0: frames published ahead of the last acknowledged one")
     pace_timeout_s: float = param(2.0, min=0.0, unit="s", doc="rate_hz 0: publish anyway after this long")
     loop: bool = param(False, doc="start over at the end (dataset and video sources)")
     max_frames: int = param(0, min=0, doc="stop after this many frames (0: no limit)")
-    wait_subscribers_s: float = param(5.0, min=0.0, unit="s", doc="before the first frame, wait this long for a subscriber")
+    wait_subscribers_s: float = param(
+        5.0, min=0.0, unit="s", doc="before the first frame, wait this long for a subscriber"
+    )
 
     def validate(self) -> None:
         if self.source in ("dataset", "video") and not self.path:
@@ -80,7 +88,11 @@ class IngestNode(Node):
                 )
             else:
                 self.source = sources.OakSource(
-                    replay=p.path, width=p.width or 640, height=p.height or 400, fps=p.fps or 30.0, calibration=p.calibration
+                    replay=p.path,
+                    width=p.width or 640,
+                    height=p.height or 400,
+                    fps=p.fps or 30.0,
+                    calibration=p.calibration,
                 )
         except (SourceError, ValueError, OSError) as exc:  # DatasetError is a ValueError
             raise SourceError(f"ingest cannot open its {p.source} source: {exc}") from exc
@@ -159,5 +171,11 @@ class IngestNode(Node):
 
         p = self.params
         self.source = sources.OpenCVSource(
-            p.path, v4l2=False, width=p.width, height=p.height, fps=p.fps, calibration=p.calibration, hfov_deg=p.hfov_deg
+            p.path,
+            v4l2=False,
+            width=p.width,
+            height=p.height,
+            fps=p.fps,
+            calibration=p.calibration,
+            hfov_deg=p.hfov_deg,
         )

@@ -143,7 +143,9 @@ def coerce(value: Any, tp, name: str, where: str) -> Any:
         if origin is tuple and args and args[-1] is not Ellipsis:
             if len(value) != len(args):
                 fail(f"a list of {len(args)} values ({_type_name(tp)})")
-            return tuple(coerce(v, a, f"{name}[{i}]", where) for i, (v, a) in enumerate(zip(value, args)))
+            return tuple(
+                coerce(v, a, f"{name}[{i}]", where) for i, (v, a) in enumerate(zip(value, args, strict=True))
+            )
         item = args[0] if args else Any
         items = [coerce(v, item, f"{name}[{i}]", where) for i, v in enumerate(value)]
         return tuple(items) if origin is tuple else items
@@ -213,7 +215,9 @@ def parse_params(cls: type, values: dict | None, *, where: str = "node"):
         if name not in values:
             if f.default is _MISSING and f.default_factory is _MISSING:
                 doc = _spec(f).doc
-                raise ParamError(where, name, f"required ({_type_name(hints[name])}{': ' + doc if doc else ''})")
+                raise ParamError(
+                    where, name, f"required ({_type_name(hints[name])}{': ' + doc if doc else ''})"
+                )
             continue
         value = coerce(values[name], hints[name], name, where)
         spec = _spec(f)

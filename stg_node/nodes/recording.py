@@ -66,18 +66,26 @@ class ImageRecorder:
         return written
 
 
-def contact_sheet(images: list[np.ndarray], labels: list[str], *, count: int = 12, columns: int = 4, tile: int = 192) -> np.ndarray:
+def contact_sheet(
+    images: list[np.ndarray], labels: list[str], *, count: int = 12, columns: int = 4, tile: int = 192
+) -> np.ndarray:
     """A grid of ``count`` evenly spaced images (BGR), each ``tile`` pixels on its longer side, labelled."""
     picks = np.unique(np.linspace(0, len(images) - 1, min(count, len(images))).round().astype(int))
     tiles = []
     for i in picks:
         im = images[i]
         scale = tile / max(im.shape[:2])
-        im = cv2.resize(im, (max(1, round(im.shape[1] * scale)), max(1, round(im.shape[0] * scale))), interpolation=cv2.INTER_AREA)
+        im = cv2.resize(
+            im,
+            (max(1, round(im.shape[1] * scale)), max(1, round(im.shape[0] * scale))),
+            interpolation=cv2.INTER_AREA,
+        )
         canvas = np.zeros((tile, tile, 3), np.uint8)
         canvas[: im.shape[0], : im.shape[1]] = im
         if i < len(labels) and labels[i]:
-            cv2.putText(canvas, labels[i], (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
+            cv2.putText(
+                canvas, labels[i], (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA
+            )
         tiles.append(canvas)
     rows = []
     for r in range(0, len(tiles), columns):

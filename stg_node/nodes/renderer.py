@@ -43,16 +43,24 @@ class RendererParams:
     device: str = param("cpu", doc="torch device")
     backend: str = param("auto", doc="rasterizer backend: auto (the best available), cpu, cuda, torch")
     size: int = param(256, min=8, max=4096, unit="px", doc="default views: longer side")
-    default_view: Literal["train", "orbit", "both", "none"] = param("both", doc="what to render when nobody asks")
+    default_view: Literal["train", "orbit", "both", "none"] = param(
+        "both", doc="what to render when nobody asks"
+    )
     orbit_period_s: float = param(8.0, min=0.1, unit="s", doc="one turn of the orbit view")
     max_rate_hz: float = param(30.0, min=0.1, unit="Hz", doc="renders per second at most (standing views)")
-    idle_rate_hz: float = param(2.0, min=0.0, unit="Hz", doc="re-render the last pose this often (0: only on new poses)")
-    view_ttl_s: float = param(0.0, min=0.0, unit="s", doc="forget a standing view not renewed for this long (0: never)")
+    idle_rate_hz: float = param(
+        2.0, min=0.0, unit="Hz", doc="re-render the last pose this often (0: only on new poses)"
+    )
+    view_ttl_s: float = param(
+        0.0, min=0.0, unit="s", doc="forget a standing view not renewed for this long (0: never)"
+    )
     max_oneshot: int = param(64, min=1, doc="one-shot requests queued at most (the oldest are dropped)")
     record_dir: str = param("", doc="write default-view images here, and an MP4 + contact sheet at the end")
     record_every: int = param(1, min=1, doc="record every Nth default-view image")
     video_fps: float = param(15.0, min=1.0, unit="Hz", doc="frame rate of the recorded MP4")
-    drain_s: float = param(0.5, min=0.0, unit="s", doc="on stop: wait this long for a last snapshot to render")
+    drain_s: float = param(
+        0.5, min=0.0, unit="s", doc="on stop: wait this long for a last snapshot to render"
+    )
 
 
 class SnapshotLoader:
@@ -160,7 +168,9 @@ class RendererNode(Node):
     def _load_failed(self, msg: GaussianSnapshot, exc: Exception) -> None:
         self.drop("bad_snapshot")
         self.error(f"snapshot v{msg.model_version} not loaded: {exc}")
-        self.log.warning("snapshot v%d (%s) not loaded, keeping the previous one: %s", msg.model_version, msg.format, exc)
+        self.log.warning(
+            "snapshot v%d (%s) not loaded, keeping the previous one: %s", msg.model_version, msg.format, exc
+        )
 
     def _swap(self) -> None:
         built = self.loader.take()

@@ -117,7 +117,9 @@ class DatasetSource:
 
             self.dataset = open_synth(root, split, size=size)
         else:
-            self.dataset = open_dataset(root, "auto" if kind == "synth" else kind, split, size=size, **options)
+            self.dataset = open_dataset(
+                root, "auto" if kind == "synth" else kind, split, size=size, **options
+            )
         self.camera_name = camera
         self.views = [v for v in self.dataset.views if not camera or v.camera == camera]
         if not self.views:
@@ -205,7 +207,9 @@ class OpenCVSource:
                     t = (stamp - first) / 1e9
                 else:
                     t = index / self.fps
-                yield CapturedFrame(index, t, rgb, calibration.camera(w, h, self.name), None, stamp if self.live else 0)
+                yield CapturedFrame(
+                    index, t, rgb, calibration.camera(w, h, self.name), None, stamp if self.live else 0
+                )
                 index += 1
         finally:
             self.capture.release()
@@ -259,13 +263,17 @@ class OakSource:
                 output = cam.requestOutput((width, height), dai.ImgFrame.Type.RGB888i, fps=fps)
                 if self.calibration is None:
                     device = self.pipeline.getDefaultDevice()
-                    K = device.readCalibration().getCameraIntrinsics(dai.CameraBoardSocket.CAM_A, width, height)
+                    K = device.readCalibration().getCameraIntrinsics(
+                        dai.CameraBoardSocket.CAM_A, width, height
+                    )
                     self.calibration = Calibration(np.asarray(K, np.float64), np.eye(3), np.zeros(3))
             self.queue = output.createOutputQueue(maxSize=4, blocking=False)
         except SourceError:
             raise
         except Exception as exc:
-            raise SourceError(f"cannot build the depthai pipeline ({'replay ' + replay if replay else 'device'}): {exc}") from exc
+            raise SourceError(
+                f"cannot build the depthai pipeline ({'replay ' + replay if replay else 'device'}): {exc}"
+            ) from exc
 
     def frames(self) -> Iterator[CapturedFrame]:
         dai = self._dai
@@ -283,13 +291,19 @@ class OakSource:
                     continue
                 stamp = time.time_ns()
                 frame = msg.getCvFrame()  # BGR, as OpenCV uses
-                rgb = np.ascontiguousarray(frame[..., ::-1]) if frame.ndim == 3 else np.repeat(frame[..., None], 3, 2)
+                rgb = (
+                    np.ascontiguousarray(frame[..., ::-1])
+                    if frame.ndim == 3
+                    else np.repeat(frame[..., None], 3, 2)
+                )
                 h, w = rgb.shape[:2]
                 if self.calibration is None:
                     self.calibration = Calibration.from_fov(w, h, self.hfov_deg)
                 first = first or stamp
                 t = (stamp - first) / 1e9 if self.live else index / (self.fps or 30.0)
-                yield CapturedFrame(index, t, rgb, self.calibration.camera(w, h, self.name), None, stamp if self.live else 0)
+                yield CapturedFrame(
+                    index, t, rgb, self.calibration.camera(w, h, self.name), None, stamp if self.live else 0
+                )
                 index += 1
         finally:
             try:

@@ -59,7 +59,8 @@ class ReplayEstimator:
         expected = self.dataset.time(frame.index)
         if abs(expected - frame.time) > self.max_time_error_s:
             raise EstimateMismatch(
-                f"frame {frame.index} has time {frame.time:.4f} s, the dataset's frame {frame.index} is at {expected:.4f} s"
+                f"frame {frame.index} has time {frame.time:.4f} s, "
+                f"the dataset's frame {frame.index} is at {expected:.4f} s"
             )
         return PoseEstimate(self.dataset.smpl(frame.index), 1.0)
 
@@ -68,8 +69,12 @@ class ReplayEstimator:
 class TrackerParams:
     mode: Literal["replay", "live"] = param("replay", doc="replay a dataset's SMPL fits, or a live estimator")
     path: str = param("", doc="replay: the dataset folder the ingest node replays")
-    dataset_kind: Literal["auto", "zju", "thuman4", "folder", "synth"] = param("auto", doc="replay: dataset layout")
-    max_time_error_s: float = param(0.002, min=0.0, unit="s", doc="replay: frame time vs dataset time tolerance")
+    dataset_kind: Literal["auto", "zju", "thuman4", "folder", "synth"] = param(
+        "auto", doc="replay: dataset layout"
+    )
+    max_time_error_s: float = param(
+        0.002, min=0.0, unit="s", doc="replay: frame time vs dataset time tolerance"
+    )
     estimator: str = param("", doc="live: package.module:Class implementing PoseEstimator")
     estimator_params: dict[str, Any] = param({}, doc="live: keyword arguments for the estimator")
     min_confidence: float = param(0.0, min=0.0, max=1.0, doc="drop estimates below this confidence")
@@ -82,7 +87,7 @@ class TrackerParams:
 
 
 def open_replay_dataset(path: str, kind: str = "auto"):
-    """The dataset whose SMPL fits are replayed (every frame: split 'all' is not needed, smpl(i) reads any)."""
+    """The dataset whose SMPL fits are replayed (smpl(i) reads any frame)."""
     from pathlib import Path
 
     from stg_node.data import open_dataset
@@ -113,7 +118,9 @@ class TrackerNode(Node):
     def setup(self) -> None:
         p = self.params
         if p.mode == "replay":
-            self.estimator: PoseEstimator = ReplayEstimator(open_replay_dataset(p.path, p.dataset_kind), p.max_time_error_s)
+            self.estimator: PoseEstimator = ReplayEstimator(
+                open_replay_dataset(p.path, p.dataset_kind), p.max_time_error_s
+            )
         else:
             self.estimator = load_estimator(p.estimator, p.estimator_params)
         # every frame that reaches us, in order (keep_last=False): a pose per frame for the trainer

@@ -51,7 +51,8 @@ class TrainerParams:
     checkpoint_dir: str = param("", doc="folder for checkpoints (empty: none)")
     checkpoint_every_s: float = param(60.0, min=0.0, unit="s", doc="checkpoint period (0: only at the end)")
     resume: Literal["respawn", "always", "never"] = param(
-        "respawn", doc="continue from checkpoint_dir's checkpoint: when respawned by stg-launch, always, or never"
+        "respawn",
+        doc="continue from checkpoint_dir's checkpoint: when respawned by stg-launch, always, or never",
     )
     out: str = param("", doc="folder for summary.json at the end (empty: none)")
 
@@ -108,7 +109,9 @@ class TrainerNode(Node):
         self.resumed_from = None
         resume = p.resume == "always" or (p.resume == "respawn" and self.respawned)
         if self.checkpoint is not None and resume and self.checkpoint.is_file():
-            self.trainer = TrainerAdapter.load(self.checkpoint, module=p.avatar, device=p.device, backend=p.backend)
+            self.trainer = TrainerAdapter.load(
+                self.checkpoint, module=p.avatar, device=p.device, backend=p.backend
+            )
             state = self._read_state()
             self.elapsed_before = float(state.get("elapsed_s", 0.0))
             self.iteration = int(state.get("iteration", 0))
@@ -178,7 +181,10 @@ class TrainerNode(Node):
                 psnr=info.psnr,
                 it_per_s=max(info.it_per_s, 0.0),
                 elapsed_s=self.elapsed,
-                extra={"frames_added": float(self.frames_added), "frames_buffered": float(self.frames_in_buffer)},
+                extra={
+                    "frames_added": float(self.frames_added),
+                    "frames_buffered": float(self.frames_in_buffer),
+                },
             )
         )
 

@@ -39,4 +39,6 @@ def default_camera(width: int = 256, height: int = 256, distance: float = 3.0) -
     """A camera on the world z axis looking at the origin, for when no training camera is known."""
     f = 1.2 * max(width, height)
     K = np.array([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
-    return Camera(K=K, R=np.eye(3), t=np.array([0.0, 0.0, distance]), width=width, height=height, name="default")
+    return Camera(
+        K=K, R=np.eye(3), t=np.array([0.0, 0.0, distance]), width=width, height=height, name="default"
+    )

@@ -133,3 +133,10 @@ def test_subscriber_close_is_prompt_and_idempotent(ipc_url):
     sub.close()
     sub.close()
     assert time.monotonic() - start < 1.0
+
+
+def test_broker_cli_takes_the_bus_option_like_every_bus_command(ipc_dir):
+    url = f"ipc://{ipc_dir}/bus"
+    proc = _spawn(["-m", "stg_node.cli.broker", "--bus", url, "--status-period", "0"], f"serving {url}")
+    code, out, _ = _stop(proc, signal.SIGTERM)
+    assert code == 0 and os.listdir(ipc_dir) == [], out

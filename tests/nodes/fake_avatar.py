@@ -60,7 +60,9 @@ class StepResult:
 
 
 class Trainer:
-    def __init__(self, config: TrainConfig, body_model=None, device="cpu", backend="auto", seed=0, max_frames=64):
+    def __init__(
+        self, config: TrainConfig, body_model=None, device="cpu", backend="auto", seed=0, max_frames=64
+    ):
         self.config = config
         self.max_frames = max_frames
         self.frames: deque = deque(maxlen=max_frames)
@@ -107,8 +109,14 @@ class Trainer:
 
     def save(self, path: str) -> None:
         with open(path, "wb") as f:
-            np.savez(f, iteration=self.iteration, step_s=self.config.step_s, load_s=self.config.load_s,
-                     max_frames=self.max_frames, color=self._color())  # fmt: skip
+            np.savez(
+                f,
+                iteration=self.iteration,
+                step_s=self.config.step_s,
+                load_s=self.config.load_s,
+                max_frames=self.max_frames,
+                color=self._color(),
+            )
 
     @classmethod
     def load(cls, path: str, device="cpu", backend="auto") -> Trainer:

@@ -1,4 +1,4 @@
-"""Helpers for the node tests: run a node in a thread, wait for conditions, spawn processes from this checkout."""
+"""Helpers for the node tests: nodes in threads, waiting, processes from this checkout."""
 
 from __future__ import annotations
 

@@ -7,16 +7,15 @@ import time
 import cv2
 import numpy as np
 import pytest
+from fixtures.datasets import write_thuman4, write_zju_original
 from nodehelpers import NodeThread
 from sample_nodes import pose
 
-from fixtures.datasets import write_thuman4, write_zju_original
 from stg_node.bus import Bus, BusConfig, Frame, Subscriber
 from stg_node.data import open_dataset
 from stg_node.nodes.ingest import IngestNode, IngestParams
 from stg_node.nodes.params import parse_params
 from stg_node.nodes.sources import Calibration, OakSource, OpenCVSource, SourceError
-
 
 # Every frame, in order: camera/frame moved to the lossless lane, as a replay launch file may do.
 LOSSLESS = {"camera/frame": "reliable"}
@@ -70,7 +69,9 @@ def test_a_set_rate_paces_the_frames(broker, bus_url, tmp_path):
 def test_as_fast_as_consumed_waits_for_acknowledgements(broker, bus_url, tmp_path):
     """rate_hz 0: frame k is published only after body/pose acknowledged frame k - 1 - max_ahead."""
     write_zju_original(tmp_path / "d", num_frames=6, num_cams=1)
-    node = ingest(bus_url, path=str(tmp_path / "d"), size=32, rate_hz=0, max_ahead=0, pace_timeout_s=30, loop=True)
+    node = ingest(
+        bus_url, path=str(tmp_path / "d"), size=32, rate_hz=0, max_ahead=0, pace_timeout_s=30, loop=True
+    )
     config = BusConfig(url=bus_url, lanes=LOSSLESS)
     seen = []
     with Subscriber(config, ["camera/frame"]) as sub, Bus(bus_url, node="acker", heartbeat_s=0) as acker:

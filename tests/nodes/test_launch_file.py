@@ -104,9 +104,21 @@ def test_includes_pass_arguments_down_and_prefix_names_and_namespaces(tmp_path):
     ("text", "line", "words"),
     [
         ("nodes:\n  - name: a\n    cmd: [true\n", 4, "not valid YAML"),
-        ("nodes:\n  - name: a\n    cmd: [x]\n    respwan: true\n", 4, "respwan: unknown parameter; did you mean 'respawn'"),
-        (f"nodes:\n  - name: a\n    kind: {ECHO}\n    params:\n      setup_s: soon\n", 5, "param 'setup_s': must be a number"),
-        (f"nodes:\n  - name: a\n    kind: {ECHO}\n    params: {{colour: red}}\n", 4, "'colour': unknown parameter"),
+        (
+            "nodes:\n  - name: a\n    cmd: [x]\n    respwan: true\n",
+            4,
+            "respwan: unknown parameter; did you mean 'respawn'",
+        ),
+        (
+            f"nodes:\n  - name: a\n    kind: {ECHO}\n    params:\n      setup_s: soon\n",
+            5,
+            "param 'setup_s': must be a number",
+        ),
+        (
+            f"nodes:\n  - name: a\n    kind: {ECHO}\n    params: {{colour: red}}\n",
+            4,
+            "'colour': unknown parameter",
+        ),
         ("nodes:\n  - {name: a, cmd: [x], if_: true}\n", 2, "write 'if:', not 'if_:'"),
         ("nodes:\n  - name: a\n    kind: nope\n", 3, "unknown node kind 'nope'"),
         ("nodes:\n  - name: a\n    cmd: [x]\n    name: b\n", 4, "key 'name' appears twice"),

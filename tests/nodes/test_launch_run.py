@@ -24,7 +24,9 @@ ECHO = "tests.nodes.sample_nodes:Echo"
 def launch(tmp_path: Path, body: str, **overrides) -> tuple[int, str, Launcher]:
     """Run a launch file in this process; (exit code, node output, launcher)."""
     path = tmp_path / "t.yaml"
-    path.write_text(f'args: {{bus: "ipc://{tmp_path}/bus"}}\nbus: {{url: $(arg bus)}}\n' + textwrap.dedent(body))
+    path.write_text(
+        f'args: {{bus: "ipc://{tmp_path}/bus"}}\nbus: {{url: $(arg bus)}}\n' + textwrap.dedent(body)
+    )
     out = io.StringIO()
     launcher = Launcher(read_launch(path, overrides), sink=OutputSink(out, color=False))
     code = launcher.run()
@@ -174,7 +176,9 @@ def test_sigint_on_the_launch_leaves_no_process_behind(tmp_path):
     proc.send_signal(signal.SIGINT)
     rest, _ = proc.communicate(timeout=30)
     assert proc.returncode == 0, "".join(lines) + rest
-    assert wait_until(lambda: not any(pid_alive(p) for p in pids), timeout=5), [p for p in pids if pid_alive(p)]
+    assert wait_until(lambda: not any(pid_alive(p) for p in pids), timeout=5), [
+        p for p in pids if pid_alive(p)
+    ]
 
 
 def test_a_launcher_killed_outright_takes_its_nodes_with_it(tmp_path):

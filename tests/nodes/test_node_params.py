@@ -35,7 +35,15 @@ class P:
 def test_strings_from_substitutions_become_the_declared_types():
     p = parse_params(
         P,
-        {"path": "x", "rate_hz": "1e3", "count": "7", "loop": "yes", "mode": "b", "sizes": "[4, 5]", "limit": "none"},
+        {
+            "path": "x",
+            "rate_hz": "1e3",
+            "count": "7",
+            "loop": "yes",
+            "mode": "b",
+            "sizes": "[4, 5]",
+            "limit": "none",
+        },
     )
     assert (p.rate_hz, p.count, p.loop, p.mode, p.sizes, p.limit) == (1000.0, 7, True, "b", [4, 5], None)
     assert parse_params(P, {"path": 5, "sizes": "6, 7", "limit": "2.5", "options": "{a: 1}"}).sizes == [6, 7]

@@ -20,7 +20,10 @@ from stg_node.nodes.runtime import Node
 def test_a_node_reports_its_identity_rates_and_drops_in_its_heartbeat(broker, bus_url, tmp_path):
     flush = tmp_path / "flushed"
     node = Echo("echo1", EchoParams(flush_file=str(flush)), BusConfig(url=bus_url), heartbeat_s=0.1)
-    with Subscriber(BusConfig(url=bus_url), ["node/status", "trainer/metrics"]) as sub, NodeThread(node) as run:
+    with (
+        Subscriber(BusConfig(url=bus_url), ["node/status", "trainer/metrics"]) as sub,
+        NodeThread(node) as run,
+    ):
         with Bus(bus_url, node="feeder", heartbeat_s=0) as feeder:
             assert feeder.publisher.wait_for_subscribers("body/pose", 10)
             for i in range(20):
@@ -57,7 +60,9 @@ def test_remaps_rename_topics_and_events_keep_the_name_the_node_asked_for(broker
             seen.append((topic, msg.header.topic))
             self.publish(TrainerMetrics(iteration=1, loss=0.0))
 
-    node = Probe("probe", None, BusConfig(url=bus_url), remap={"body/pose": "rig/body/pose", "trainer/metrics": "m"})
+    node = Probe(
+        "probe", None, BusConfig(url=bus_url), remap={"body/pose": "rig/body/pose", "trainer/metrics": "m"}
+    )
     with Subscriber(BusConfig(url=bus_url), ["m"]) as out, NodeThread(node):
         with Bus(bus_url, node="feeder", heartbeat_s=0) as feeder:
             assert feeder.publisher.wait_for_subscribers("rig/body/pose", 10)
@@ -96,10 +101,19 @@ def test_a_failing_node_exits_1_and_still_flushes(broker, bus_url, tmp_path):
 def _node_process(tmp_path, bus_url, **params):
     params = {"flush_file": str(tmp_path / "flushed"), **params}
     return spawn(
-        ["-m", "stg_node.nodes", "tests.nodes.sample_nodes:Echo", "--name", "bg", "--bus", bus_url,
-         "--params", json.dumps(params)],
+        [
+            "-m",
+            "stg_node.nodes",
+            "tests.nodes.sample_nodes:Echo",
+            "--name",
+            "bg",
+            "--bus",
+            bus_url,
+            "--params",
+            json.dumps(params),
+        ],
         preexec_fn=ignore_sigint,
-    )  # fmt: skip
+    )
 
 
 def _wait_for_line(proc, text: str, timeout: float = 60.0) -> str:

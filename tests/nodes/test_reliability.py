@@ -22,9 +22,9 @@ import msgpack
 import numpy as np
 import pytest
 import zmq
+from fixtures.datasets import write_zju_original
 from nodehelpers import ignore_sigint, pid_alive, spawn, wait_until
 
-from fixtures.datasets import write_zju_original
 from stg_node.bus import BusConfig, Subscriber, lane_endpoint
 from stg_node.bus.messages import NodeStatus, RenderedImage, TrainerMetrics
 
@@ -85,11 +85,21 @@ def garbage(url: str) -> None:
             sock.connect(lane_endpoint(url, lane, "in"))
             socks.append(sock)
         time.sleep(0.5)  # subscriptions reach the new publishers
-        header = {"type": "Frame", "v": 1, "seq": 0, "stamp_ns": 1, "src": "evil", "index": 0,
-                  "arrays": [{"name": "image", "dtype": "uint8", "shape": [4000, 4000, 3]}]}  # fmt: skip
+        header = {
+            "type": "Frame",
+            "v": 1,
+            "seq": 0,
+            "stamp_ns": 1,
+            "src": "evil",
+            "index": 0,
+            "arrays": [{"name": "image", "dtype": "uint8", "shape": [4000, 4000, 3]}],
+        }
         for _ in range(20):
-            for sock, topics in zip(socks, (["camera/frame", "avatar/image"], ["body/pose", "avatar/view"],
-                                            ["avatar/snapshot"]), strict=True):  # fmt: skip
+            for sock, topics in zip(
+                socks,
+                (["camera/frame", "avatar/image"], ["body/pose", "avatar/view"], ["avatar/snapshot"]),
+                strict=True,
+            ):
                 for topic in topics:
                     sock.send_multipart([topic.encode()])
                     sock.send_multipart([topic.encode(), b"\xc1\xff not msgpack"])
@@ -161,7 +171,9 @@ def run_scenario(tmp_path, kill: tuple[str, ...]) -> None:
         lazy.append(sock)
     seen_pids: set[int] = set()
     try:
-        assert wait_until(lambda: set(NODES) <= set(watcher.pids) and watcher.images_since(0) > 5, 90), "".join(output)
+        assert wait_until(lambda: set(NODES) <= set(watcher.pids) and watcher.images_since(0) > 5, 90), (
+            "".join(output)
+        )
         assert wait_until(lambda: (tmp_path / "ckpt" / "trainer.json").is_file(), 30)
         seen_pids |= set(watcher.pids.values())
 
@@ -171,12 +183,16 @@ def run_scenario(tmp_path, kill: tuple[str, ...]) -> None:
                 checkpointed = json.loads((tmp_path / "ckpt" / "trainer.json").read_text())["iteration"]
             killed_at = time.monotonic()
             os.kill(old_pid, signal.SIGKILL)
-            assert wait_until(lambda n=name, p=old_pid: watcher.pids.get(n, p) != p, 60), f"{name} not respawned"
+            assert wait_until(lambda n=name, p=old_pid: watcher.pids.get(n, p) != p, 60), (
+                f"{name} not respawned"
+            )
             back_at = time.monotonic()
             seen_pids.add(watcher.pids[name])
             if name != "renderer":  # the renderer served on while the node was down
                 assert watcher.longest_image_gap(killed_at, back_at) < 1.5, name
-            assert wait_until(lambda t=back_at: watcher.images_since(t) > 3, 30), f"no images after {name} came back"
+            assert wait_until(lambda t=back_at: watcher.images_since(t) > 3, 30), (
+                f"no images after {name} came back"
+            )
             if name == "trainer":
                 assert wait_until(lambda t=back_at: any(w > t for w, _ in watcher.iterations), 30)
                 with watcher.lock:
@@ -191,7 +207,9 @@ def run_scenario(tmp_path, kill: tuple[str, ...]) -> None:
         t = time.monotonic()
         with watcher.lock:
             iteration = watcher.iterations[-1][1]
-        assert wait_until(lambda: watcher.images_since(t) > 3 and watcher.iterations[-1][1] > iteration + 5, 20)
+        assert wait_until(
+            lambda: watcher.images_since(t) > 3 and watcher.iterations[-1][1] > iteration + 5, 20
+        )
     finally:
         launcher.send_signal(signal.SIGINT)
         try:
@@ -206,7 +224,9 @@ def run_scenario(tmp_path, kill: tuple[str, ...]) -> None:
     assert launcher.returncode == 0, log[-3000:]
     for node in NODES:
         assert f"[{node}] " in log
-    assert wait_until(lambda: not any(pid_alive(p) for p in seen_pids), 10), [p for p in seen_pids if pid_alive(p)]
+    assert wait_until(lambda: not any(pid_alive(p) for p in seen_pids), 10), [
+        p for p in seen_pids if pid_alive(p)
+    ]
 
 
 def test_kill_the_trainer_garbage_a_lazy_subscriber_and_ctrl_c(tmp_path):

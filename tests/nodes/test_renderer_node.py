@@ -23,7 +23,9 @@ K = np.array([[100.0, 0, 32], [0, 100.0, 32], [0, 0, 1]])
 
 def renderer(bus_url, **params) -> RendererNode:
     values = {"avatar": FAKE, "idle_rate_hz": 20, "default_view": "train", "size": 64, **params}
-    return RendererNode("renderer", parse_params(RendererParams, values), BusConfig(url=bus_url), heartbeat_s=0.1)
+    return RendererNode(
+        "renderer", parse_params(RendererParams, values), BusConfig(url=bus_url), heartbeat_s=0.1
+    )
 
 
 def snapshot(iteration: int, color=(0.2, 0.4, 0.6), load_s: float = 0.0):
@@ -42,7 +44,9 @@ def body_at(th) -> object:
 
 
 def train_frame() -> Frame:
-    return Frame(index=0, image=np.zeros((64, 64, 3), np.uint8), K=K, R=np.eye(3), t=np.array([0.0, 0.0, 3.0]))
+    return Frame(
+        index=0, image=np.zeros((64, 64, 3), np.uint8), K=K, R=np.eye(3), t=np.array([0.0, 0.0, 3.0])
+    )
 
 
 def wait_subscribed(bus: Bus, *topics: str) -> None:
@@ -70,7 +74,9 @@ def test_default_view_renders_the_live_pose_from_the_training_camera(broker, bus
                 got = images.recv(timeout=1)
     assert got is not None and got.pose_seq == seq
     assert got.snapshot_version == 3 and got.request_id == -1
-    u, v, depth = project(Camera(K=K, R=np.eye(3), t=np.array([0, 0, 3.0]), width=64, height=64), [0.1, -0.05, 0])
+    u, v, depth = project(
+        Camera(K=K, R=np.eye(3), t=np.array([0, 0, 3.0]), width=64, height=64), [0.1, -0.05, 0]
+    )
     cu, cv = disc_center(got)
     assert (cu, cv) == pytest.approx((u, v), abs=0.6)  # independent: the pinhole projection of the body root
     assert (got.alpha > 0).sum() == pytest.approx(np.pi * (100 * BODY_RADIUS_M / depth) ** 2, rel=0.15)
@@ -80,11 +86,24 @@ def test_default_view_renders_the_live_pose_from_the_training_camera(broker, bus
 
 def test_one_shot_and_standing_view_requests(broker, bus_url):
     node = renderer(bus_url, idle_rate_hz=10)
-    R = orbit_camera(Camera(K=K, R=np.eye(3), t=np.array([0, 0, 3.0]), width=64, height=64), np.zeros(3), 0.3).R
+    R = orbit_camera(
+        Camera(K=K, R=np.eye(3), t=np.array([0, 0, 3.0]), width=64, height=64), np.zeros(3), 0.3
+    ).R
     K2 = np.array([[100.0, 0, 24], [0, 100.0, 20], [0, 0, 1]])
-    oneshot = ViewRequest(request_id=42, width=48, height=40, follow_live=False, K=K2, R=R, t=np.array([0, 0, 2.0]),
-                          poses=np.zeros((24, 3), np.float32), Th=np.array([0.05, 0.0, 0.2], np.float32))  # fmt: skip
-    standing = ViewRequest(request_id=7, width=32, height=32, follow_live=True, K=K, R=np.eye(3), t=np.array([0, 0, 4.0]))
+    oneshot = ViewRequest(
+        request_id=42,
+        width=48,
+        height=40,
+        follow_live=False,
+        K=K2,
+        R=R,
+        t=np.array([0, 0, 2.0]),
+        poses=np.zeros((24, 3), np.float32),
+        Th=np.array([0.05, 0.0, 0.2], np.float32),
+    )
+    standing = ViewRequest(
+        request_id=7, width=32, height=32, follow_live=True, K=K, R=np.eye(3), t=np.array([0, 0, 4.0])
+    )
     with Subscriber(BusConfig(url=bus_url), ["avatar/image"], keep_last=False) as images, NodeThread(node):
         with Bus(bus_url, node="robot", heartbeat_s=0) as robot:
             wait_subscribed(robot, "avatar/snapshot", "avatar/view", "body/pose")
@@ -119,7 +138,10 @@ def test_one_shot_and_standing_view_requests(broker, bus_url):
 
 def test_snapshots_are_swapped_without_a_pause_and_bad_ones_are_refused(broker, bus_url):
     node = renderer(bus_url, idle_rate_hz=50, max_rate_hz=50)
-    with Subscriber(BusConfig(url=bus_url), ["avatar/image", "node/status"], keep_last=False) as sub, NodeThread(node):
+    with (
+        Subscriber(BusConfig(url=bus_url), ["avatar/image", "node/status"], keep_last=False) as sub,
+        NodeThread(node),
+    ):
         with Bus(bus_url, node="trainer", heartbeat_s=0) as trainer:
             wait_subscribed(trainer, "avatar/snapshot", "body/pose")
             trainer.publish(snapshot(1, color=(1.0, 0.0, 0.0)))
@@ -159,7 +181,10 @@ def test_the_renderer_keeps_serving_when_the_trainer_is_gone_and_on_a_late_start
     """The broker latches the snapshot: a renderer (re)started later renders at once. (The broker
     latches what reaches it, i.e. what someone subscribed to when it was published: here a
     previous renderer.)"""
-    with Subscriber(BusConfig(url=bus_url), ["avatar/snapshot"]), Bus(bus_url, node="trainer", heartbeat_s=0) as trainer:
+    with (
+        Subscriber(BusConfig(url=bus_url), ["avatar/snapshot"]),
+        Bus(bus_url, node="trainer", heartbeat_s=0) as trainer,
+    ):
         wait_subscribed(trainer, "avatar/snapshot")
         trainer.publish(snapshot(9))
         time.sleep(0.3)
@@ -178,7 +203,9 @@ def test_orbit_keeps_distance_and_height_and_looks_at_the_body():
     for angle in np.linspace(0, 2 * np.pi, 7):
         cam = orbit_camera(train, center, angle)
         position = -cam.R.T @ cam.t
-        assert np.linalg.norm(position - center) == pytest.approx(np.linalg.norm(np.array([0, 0, -3.0]) - center))
+        assert np.linalg.norm(position - center) == pytest.approx(
+            np.linalg.norm(np.array([0, 0, -3.0]) - center)
+        )
         assert position[1] == pytest.approx(0.0, abs=1e-9)  # height along the image's up axis kept
         np.testing.assert_allclose(cam.R @ cam.R.T, np.eye(3), atol=1e-12)
         u, v, _ = project(cam, center)

@@ -28,9 +28,20 @@ def test_the_client_imports_nothing_of_ours():
     modules = {a.name.split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
     modules |= {n.module.split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module}
     assert "stg_node" not in modules and modules <= {
-        "argparse", "json", "signal", "struct", "sys", "threading", "time", "zlib", "pathlib", "msgpack", "numpy",
-        "zmq", "__future__",
-    }  # fmt: skip
+        "argparse",
+        "json",
+        "signal",
+        "struct",
+        "sys",
+        "threading",
+        "time",
+        "zlib",
+        "pathlib",
+        "msgpack",
+        "numpy",
+        "zmq",
+        "__future__",
+    }
 
 
 def test_the_client_receives_asks_for_a_view_and_saves_images(broker, bus_url, tmp_path):
@@ -40,8 +51,25 @@ def test_the_client_receives_asks_for_a_view_and_saves_images(broker, bus_url, t
         wait_subscribed(bus, "avatar/snapshot", "body/pose", "camera/frame")
         bus.publish(snapshot(4, color=(0.0, 0.8, 0.2)))
         bus.publish(train_frame())
-        client = spawn([str(CLIENT), "--bus", bus_url, "--out", str(out), "--count", "15", "--width", "40",
-                        "--height", "30", "--request-every", "0.2", "--timeout", "20"])  # fmt: skip
+        client = spawn(
+            [
+                str(CLIENT),
+                "--bus",
+                bus_url,
+                "--out",
+                str(out),
+                "--count",
+                "15",
+                "--width",
+                "40",
+                "--height",
+                "30",
+                "--request-every",
+                "0.2",
+                "--timeout",
+                "20",
+            ]
+        )
         deadline = time.monotonic() + 60
         while client.poll() is None and time.monotonic() < deadline:
             bus.publish(body_at([0.0, 0.0, 0.0]), stamp_ns=time.time_ns())
@@ -55,7 +83,9 @@ def test_the_client_receives_asks_for_a_view_and_saves_images(broker, bus_url, t
     assert asked and all(r["shape"] == [30, 40, 3] and r["request_src"] == "robot" for r in asked)
     first = read_png(out / records[0]["file"])
     assert list(first.shape) == records[0]["shape"]
-    np.testing.assert_array_equal(np.unique(first.reshape(-1, 3), axis=0)[-1], [0, 204, 51])  # the avatar's colour
+    np.testing.assert_array_equal(
+        np.unique(first.reshape(-1, 3), axis=0)[-1], [0, 204, 51]
+    )  # the avatar's colour
 
 
 def test_the_client_says_when_nothing_comes(bus_url, tmp_path):

@@ -6,9 +6,9 @@ import time
 
 import numpy as np
 import pytest
+from fixtures.datasets import write_zju_original
 from nodehelpers import NodeThread, wait_until
 
-from fixtures.datasets import write_zju_original
 from stg_node.bus import Bus, BusConfig, Frame, Subscriber
 from stg_node.bus.messages import NodeStatus
 from stg_node.data.types import SmplParams
@@ -25,7 +25,9 @@ from stg_node.nodes.tracker import (
 
 
 def frame(index: int, time_s: float) -> Frame:
-    return Frame(index=index, time=time_s, image=np.zeros((4, 4, 3), np.uint8), K=np.eye(3), R=np.eye(3), t=np.zeros(3))
+    return Frame(
+        index=index, time=time_s, image=np.zeros((4, 4, 3), np.uint8), K=np.eye(3), R=np.eye(3), t=np.zeros(3)
+    )
 
 
 def test_replay_matches_by_index_and_checks_the_time(tmp_path):
@@ -88,14 +90,20 @@ class HalfConfident:
         if frame.index == 99:
             return None
         z = np.zeros(3, np.float32)
-        smpl = SmplParams(poses=np.zeros((24, 3), np.float32), Rh=z, Th=z + self.shift, betas=np.zeros(10, np.float32))
+        smpl = SmplParams(
+            poses=np.zeros((24, 3), np.float32), Rh=z, Th=z + self.shift, betas=np.zeros(10, np.float32)
+        )
         return PoseEstimate(smpl, 0.5)
 
 
 def test_a_live_estimator_plugs_in_by_name(broker, bus_url):
     params = parse_params(
         TrackerParams,
-        {"mode": "live", "estimator": "tests.nodes.test_tracker:HalfConfident", "estimator_params": {"shift": 2.0}},
+        {
+            "mode": "live",
+            "estimator": "tests.nodes.test_tracker:HalfConfident",
+            "estimator_params": {"shift": 2.0},
+        },
     )
     node = TrackerNode("tracker", params, BusConfig(url=bus_url), heartbeat_s=0)
     with Subscriber(BusConfig(url=bus_url), ["body/pose"]) as sub, NodeThread(node):

@@ -38,7 +38,9 @@ def test_frame_pairs_match_in_either_order_and_stay_bounded():
 
 
 def trainer(bus_url, **params) -> TrainerNode:
-    return TrainerNode("trainer", parse_params(TrainerParams, {"avatar": FAKE, **params}), BusConfig(url=bus_url))
+    return TrainerNode(
+        "trainer", parse_params(TrainerParams, {"avatar": FAKE, **params}), BusConfig(url=bus_url)
+    )
 
 
 def feed(feeder: Bus, start: int, count: int, value: int = 100) -> None:
@@ -54,7 +56,13 @@ def feed(feeder: Bus, start: int, count: int, value: int = 100) -> None:
 
 def test_metrics_snapshots_checkpoints_and_resume(broker, bus_url, tmp_path, monkeypatch):
     ckpt, out = tmp_path / "ckpt", tmp_path / "out"
-    params = {"iters": 30, "snapshot_every": 10, "snapshot_every_s": 0, "checkpoint_dir": str(ckpt), "out": str(out)}
+    params = {
+        "iters": 30,
+        "snapshot_every": 10,
+        "snapshot_every_s": 0,
+        "checkpoint_dir": str(ckpt),
+        "out": str(out),
+    }
     with Subscriber(BusConfig(url=bus_url), ["trainer/metrics", "avatar/snapshot"]) as sub:
         with Bus(bus_url, node="feeder", heartbeat_s=0) as feeder:
             node = trainer(bus_url, **params)
@@ -80,7 +88,9 @@ def test_metrics_snapshots_checkpoints_and_resume(broker, bus_url, tmp_path, mon
                 feed(feeder, 3, 3)
                 run.thread.join(30)
                 assert run.code == 0
-            resumed = [m.iteration for m in iter(lambda: sub.recv(timeout=1), None) if isinstance(m, TrainerMetrics)]
+            resumed = [
+                m.iteration for m in iter(lambda: sub.recv(timeout=1), None) if isinstance(m, TrainerMetrics)
+            ]
     assert resumed == list(range(31, 46))
     summary = json.loads((out / "summary.json").read_text())
     assert summary["iterations"] == 45 and summary["resumed_from"] == str(ckpt / "trainer.ckpt")
