@@ -25,6 +25,7 @@ Figures go to docs/BENCHMARKS.md only from an idle machine (the lead's final run
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import platform
@@ -118,21 +119,16 @@ def make_snapshot(avatar: str, data: str, steps: int, size: int, version: int):
     return trainer.snapshot(version), first, source.dataset.smpl(first.index)
 
 
-def percentile(values: list[float], q: float) -> float:
-    return float(np.percentile(np.asarray(values), q)) if values else float("nan")
-
-
-def bench_latency(args, workdir: Path) -> dict:
-    snap, frame, smpl = make_snapshot(args.avatar, args.data, args.train_steps, args.size, 1)
-    camera = resized_camera(frame.camera, args.size)
+@contextlib.contextmanager
+def renderer_session(args, workdir: Path, name: str):
+    """A renderer alone under the launcher; yields (bus to publish on, subscriber of avatar/image)."""
     nodes = f"""
     - name: renderer
       kind: renderer
       params: {{avatar: {args.avatar}, device: {args.device}, default_view: none,
                  idle_rate_hz: 0, max_rate_hz: 1000}}
     """
-    launcher, thread, url = start_launch(workdir, "latency", textwrap.dedent(nodes))
-    oneshot, live = [], []
+    launcher, thread, url = start_launch(workdir, name, textwrap.dedent(nodes))
     try:
         wait_ready(url, {"renderer"})
         with (
@@ -141,54 +137,66 @@ def bench_latency(args, workdir: Path) -> dict:
         ):
             for topic in ("avatar/snapshot", "avatar/view", "body/pose"):
                 bus.publisher.wait_for_subscribers(topic, 30)
-            bus.publish(snap)
-            pose = pose_message(smpl)
-            request = ViewRequest(
-                request_id=0,
-                width=camera.width,
-                height=camera.height,
-                follow_live=False,
-                K=camera.K,
-                R=camera.R,
-                t=camera.t,
-                poses=pose.poses,
-                Rh=pose.Rh,
-                Th=pose.Th,
-            )
-            total = args.requests + 5
-            for i in range(total):  # (a) one-shot requests
-                request.request_id = i + 1
-                sent = time.time_ns()
-                bus.publish(request, stamp_ns=sent)
-                while (msg := images.recv(timeout=10)) is not None and msg.request_id != i + 1:
-                    pass
-                if msg is None:
-                    raise SystemExit("bench: no answer to a view request within 10 s")
-                if i >= 5:  # warm-up
-                    oneshot.append((time.time_ns() - sent) / 1e6)
-            standing = ViewRequest(
-                request_id=10_000,
-                width=camera.width,
-                height=camera.height,
-                follow_live=True,
-                K=camera.K,
-                R=camera.R,
-                t=camera.t,
-            )
-            bus.publish(standing)
-            time.sleep(0.5)
-            for i in range(total):  # (b) poses into the standing view
-                sent = time.time_ns()
-                seq = bus.publish(pose, stamp_ns=sent)
-                while (msg := images.recv(timeout=10)) is not None and msg.pose_seq != seq:
-                    pass
-                if msg is None:
-                    raise SystemExit("bench: no image for a pose within 10 s")
-                if i >= 5:
-                    live.append((time.time_ns() - sent) / 1e6)
-                time.sleep(0.01)
+            yield bus, images
     finally:
         stop_launch(launcher, thread)
+
+
+def percentile(values: list[float], q: float) -> float:
+    return float(np.percentile(np.asarray(values), q)) if values else float("nan")
+
+
+def bench_latency(args, workdir: Path) -> dict:
+    snap, frame, smpl = make_snapshot(args.avatar, args.data, args.train_steps, args.size, 1)
+    camera = resized_camera(frame.camera, args.size)
+    oneshot, live = [], []
+    with renderer_session(args, workdir, "latency") as (bus, images):
+        bus.publish(snap)
+        pose = pose_message(smpl)
+        request = ViewRequest(
+            request_id=0,
+            width=camera.width,
+            height=camera.height,
+            follow_live=False,
+            K=camera.K,
+            R=camera.R,
+            t=camera.t,
+            poses=pose.poses,
+            Rh=pose.Rh,
+            Th=pose.Th,
+        )
+        total = args.requests + 5
+        for i in range(total):  # (a) one-shot requests
+            request.request_id = i + 1
+            sent = time.time_ns()
+            bus.publish(request, stamp_ns=sent)
+            while (msg := images.recv(timeout=10)) is not None and msg.request_id != i + 1:
+                pass
+            if msg is None:
+                raise SystemExit("bench: no answer to a view request within 10 s")
+            if i >= 5:  # warm-up
+                oneshot.append((time.time_ns() - sent) / 1e6)
+        standing = ViewRequest(
+            request_id=10_000,
+            width=camera.width,
+            height=camera.height,
+            follow_live=True,
+            K=camera.K,
+            R=camera.R,
+            t=camera.t,
+        )
+        bus.publish(standing)
+        time.sleep(0.5)
+        for i in range(total):  # (b) poses into the standing view
+            sent = time.time_ns()
+            seq = bus.publish(pose, stamp_ns=sent)
+            while (msg := images.recv(timeout=10)) is not None and msg.pose_seq != seq:
+                pass
+            if msg is None:
+                raise SystemExit("bench: no image for a pose within 10 s")
+            if i >= 5:
+                live.append((time.time_ns() - sent) / 1e6)
+            time.sleep(0.01)
     return {
         "size": [camera.width, camera.height],
         "request_ms_median": statistics.median(oneshot),
@@ -203,58 +211,42 @@ def bench_swap(args, workdir: Path) -> dict:
     snaps = [make_snapshot(args.avatar, args.data, args.train_steps, args.size, v)[0] for v in (1, 2)]
     _, frame, smpl = make_snapshot(args.avatar, args.data, 1, args.size, 0)
     camera = resized_camera(frame.camera, args.size)
-    nodes = f"""
-    - name: renderer
-      kind: renderer
-      params: {{avatar: {args.avatar}, device: {args.device}, default_view: none,
-                 idle_rate_hz: 0, max_rate_hz: 1000}}
-    """
-    launcher, thread, url = start_launch(workdir, "swap", textwrap.dedent(nodes))
     arrivals: list[float] = []
     swaps: list[float] = []
-    try:
-        wait_ready(url, {"renderer"})
-        with (
-            Bus(url, node="bench", heartbeat_s=0) as bus,
-            Subscriber(BusConfig(url=url), ["avatar/image"]) as images,
-        ):
-            for topic in ("avatar/snapshot", "avatar/view", "body/pose"):
-                bus.publisher.wait_for_subscribers(topic, 30)
-            bus.publish(snaps[0])
-            bus.publish(
-                ViewRequest(
-                    request_id=1, width=camera.width, height=camera.height, K=camera.K, R=camera.R, t=camera.t
-                )
+    with renderer_session(args, workdir, "swap") as (bus, images):
+        bus.publish(snaps[0])
+        bus.publish(
+            ViewRequest(
+                request_id=1, width=camera.width, height=camera.height, K=camera.K, R=camera.R, t=camera.t
             )
-            pose = pose_message(smpl)
-            period = 1.0 / args.swap_rate
-            start = time.monotonic()
-            next_swap = start + 2.0
-            version = 1
-            stop = threading.Event()
+        )
+        pose = pose_message(smpl)
+        period = 1.0 / args.swap_rate
+        start = time.monotonic()
+        next_swap = start + 2.0
+        version = 1
+        stop = threading.Event()
 
-            def collect():
-                while not stop.is_set():
-                    msg = images.recv(timeout=0.1)
-                    if isinstance(msg, RenderedImage):
-                        arrivals.append(time.monotonic())
+        def collect():
+            while not stop.is_set():
+                msg = images.recv(timeout=0.1)
+                if isinstance(msg, RenderedImage):
+                    arrivals.append(time.monotonic())
 
-            reader = threading.Thread(target=collect, daemon=True)
-            reader.start()
-            while time.monotonic() - start < args.swap_s:
-                bus.publish(pose, stamp_ns=time.time_ns())
-                if time.monotonic() >= next_swap:
-                    version += 1
-                    snap = snaps[version % 2]
-                    snap.model_version = version
-                    bus.publish(snap)
-                    swaps.append(time.monotonic())
-                    next_swap += 2.0
-                time.sleep(period)
-            stop.set()
-            reader.join(2)
-    finally:
-        stop_launch(launcher, thread)
+        reader = threading.Thread(target=collect, daemon=True)
+        reader.start()
+        while time.monotonic() - start < args.swap_s:
+            bus.publish(pose, stamp_ns=time.time_ns())
+            if time.monotonic() >= next_swap:
+                version += 1
+                snap = snaps[version % 2]
+                snap.model_version = version
+                bus.publish(snap)
+                swaps.append(time.monotonic())
+                next_swap += 2.0
+            time.sleep(period)
+        stop.set()
+        reader.join(2)
     times = np.asarray(arrivals)
     gaps = np.diff(times)
     near = np.zeros(len(gaps), bool)

@@ -7,19 +7,22 @@ import signal
 import subprocess
 import sys
 import threading
-import time
 from pathlib import Path
+
+from tests.bus.bushelpers import wait_until  # one helper for every suite
 
 ROOT = Path(__file__).resolve().parents[2]
 
-
-def wait_until(predicate, timeout: float = 10.0, step: float = 0.02) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(step)
-    return bool(predicate())
+__all__ = [
+    "ROOT",
+    "NodeThread",
+    "child_env",
+    "ignore_sigint",
+    "launch_file",
+    "pid_alive",
+    "spawn",
+    "wait_until",
+]
 
 
 class NodeThread:
@@ -84,3 +87,15 @@ def pid_alive(pid: int) -> bool:
     except OSError:
         return False
     return True
+
+
+def launch_file(folder: Path, body: str) -> Path:
+    """``folder``/t.yaml: a launch file on a private ipc bus in ``folder`` (arg ``bus``), then ``body``
+    (YAML: ``nodes:``, ``env:`` ...; dedented)."""
+    import textwrap
+
+    path = folder / "t.yaml"
+    path.write_text(
+        f'args: {{bus: "ipc://{folder}/bus"}}\nbus: {{url: $(arg bus)}}\n' + textwrap.dedent(body)
+    )
+    return path

@@ -7,11 +7,11 @@ import io
 import re
 import signal
 import sys
-import textwrap
+import threading
 import time
 from pathlib import Path
 
-from nodehelpers import ignore_sigint, pid_alive, spawn, wait_until
+from nodehelpers import ignore_sigint, launch_file, pid_alive, spawn, wait_until
 
 from stg_node.launch import read_launch
 from stg_node.launch.process import OutputSink
@@ -23,10 +23,7 @@ ECHO = "tests.nodes.sample_nodes:Echo"
 
 def launch(tmp_path: Path, body: str, **overrides) -> tuple[int, str, Launcher]:
     """Run a launch file in this process; (exit code, node output, launcher)."""
-    path = tmp_path / "t.yaml"
-    path.write_text(
-        f'args: {{bus: "ipc://{tmp_path}/bus"}}\nbus: {{url: $(arg bus)}}\n' + textwrap.dedent(body)
-    )
+    path = launch_file(tmp_path, body)
     out = io.StringIO()
     launcher = Launcher(read_launch(path, overrides), sink=OutputSink(out, color=False))
     code = launcher.run()
@@ -119,23 +116,17 @@ def test_escalation_sigint_then_sigterm_then_sigkill(tmp_path):
         "signal.signal(signal.SIGTERM, signal.SIG_IGN); print('up', flush=True); time.sleep(60)"
     )
     polite = "import time\ntry:\n    time.sleep(60)\nexcept KeyboardInterrupt:\n    print('bye', flush=True)"
-    path = tmp_path / "t.yaml"
-    path.write_text(
-        textwrap.dedent(
-            f"""
-            args: {{bus: "ipc://{tmp_path}/bus"}}
-            bus: {{url: $(arg bus)}}
+    path = launch_file(
+        tmp_path,
+        f"""
             nodes:
               - {{name: stubborn, cmd: [{PY}, -c, "{stubborn}"], sigint_timeout: 0.3, sigterm_timeout: 0.3}}
               - name: polite
                 cmd: [{PY}, -c, {polite!r}]
-            """
-        )
+        """,
     )
     out = io.StringIO()
     launcher = Launcher(read_launch(path), sink=OutputSink(out, color=False))
-    import threading
-
     threading.Timer(1.5, launcher.request_stop).start()
     start = time.monotonic()
     code = launcher.run()
@@ -150,17 +141,13 @@ def test_escalation_sigint_then_sigterm_then_sigkill(tmp_path):
 def test_sigint_on_the_launch_leaves_no_process_behind(tmp_path):
     """stg-launch in the background (SIGINT inherited ignored), with nodes that start children
     of their own; Ctrl-C ends it with exit 0, and no pid it started survives."""
-    path = tmp_path / "t.yaml"
-    path.write_text(
-        textwrap.dedent(
-            f"""
-            args: {{bus: "ipc://{tmp_path}/bus"}}
-            bus: {{url: $(arg bus)}}
+    path = launch_file(
+        tmp_path,
+        f"""
             nodes:
               - {{name: node, kind: {ECHO}, params: {{child: true}}}}
               - {{name: shell, cmd: [sh, -c, "sleep 300 & echo grandchild $!; wait"]}}
-            """
-        )
+        """,
     )
     proc = spawn(["-m", "stg_node.cli.launch", str(path), "--no-color"], preexec_fn=ignore_sigint)
     lines: list[str] = []
@@ -182,10 +169,8 @@ def test_sigint_on_the_launch_leaves_no_process_behind(tmp_path):
 
 
 def test_a_launcher_killed_outright_takes_its_nodes_with_it(tmp_path):
-    path = tmp_path / "t.yaml"
-    path.write_text(
-        f'args: {{bus: "ipc://{tmp_path}/bus"}}\nbus: {{url: $(arg bus)}}\n'
-        f"nodes:\n  - {{name: node, kind: {ECHO}}}\n  - {{name: sleeper, cmd: [sleep, '300']}}\n"
+    path = launch_file(
+        tmp_path, f"nodes:\n  - {{name: node, kind: {ECHO}}}\n  - {{name: sleeper, cmd: [sleep, '300']}}\n"
     )
     proc = spawn(["-m", "stg_node.cli.launch", str(path), "--no-color"])
     lines: list[str] = []

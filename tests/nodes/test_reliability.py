@@ -14,7 +14,6 @@ from __future__ import annotations
 import json
 import os
 import signal
-import textwrap
 import threading
 import time
 
@@ -23,7 +22,7 @@ import numpy as np
 import pytest
 import zmq
 from fixtures.datasets import write_zju_original
-from nodehelpers import ignore_sigint, pid_alive, spawn, wait_until
+from nodehelpers import ignore_sigint, launch_file, pid_alive, spawn, wait_until
 
 from stg_node.bus import BusConfig, Subscriber, lane_endpoint
 from stg_node.bus.messages import NodeStatus, RenderedImage, TrainerMetrics
@@ -116,13 +115,9 @@ def garbage(url: str) -> None:
 def write_launch(tmp_path) -> tuple[str, object]:
     data = tmp_path / "subject"
     write_zju_original(data, num_frames=6, num_cams=1)
-    url = f"ipc://{tmp_path}/bus"
-    path = tmp_path / "pipeline.yaml"
-    path.write_text(
-        textwrap.dedent(
-            f"""
-            args: {{bus: "{url}"}}
-            bus: {{url: $(arg bus)}}
+    path = launch_file(
+        tmp_path,
+        f"""
             env: {{STG_THREADS: "1"}}
             nodes:
               - name: tracker
@@ -147,10 +142,9 @@ def write_launch(tmp_path) -> tuple[str, object]:
                 after: [tracker, trainer]
                 respawn: true
                 respawn_delay: 0.2
-            """
-        )
+        """,
     )
-    return url, path
+    return f"ipc://{tmp_path}/bus", path
 
 
 def run_scenario(tmp_path, kill: tuple[str, ...]) -> None:

@@ -120,7 +120,7 @@ def test_a_stopped_trainer_flushes_a_final_snapshot_and_checkpoint(broker, bus_u
     with Subscriber(BusConfig(url=bus_url), ["avatar/snapshot"]) as sub:
         with Bus(bus_url, node="feeder", heartbeat_s=0) as feeder, NodeThread(node) as run:
             feed(feeder, 0, 2)
-            assert wait_until(lambda: node.iteration > 5)
+            assert wait_until(lambda: node.iteration > 5, timeout=10)
             assert run.stop() == 0
         snap = sub.recv(timeout=5)
     assert snap is not None and snap.model_version == node.iteration > 0
