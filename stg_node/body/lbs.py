@@ -58,16 +58,10 @@ def quaternion_to_matrix(quaternions: torch.Tensor) -> torch.Tensor:
     q = quaternions / quaternions.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     w, x, y, z = q.unbind(-1)
     rows = [
-        1 - 2 * (y * y + z * z),
-        2 * (x * y - w * z),
-        2 * (x * z + w * y),
-        2 * (x * y + w * z),
-        1 - 2 * (x * x + z * z),
-        2 * (y * z - w * x),
-        2 * (x * z - w * y),
-        2 * (y * z + w * x),
-        1 - 2 * (x * x + y * y),
-    ]
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    ]  # fmt: skip
     return torch.stack(rows, dim=-1).reshape(q.shape[:-1] + (3, 3))
 
 
@@ -216,18 +210,12 @@ def _cofactor_and_det(matrices: torch.Tensor) -> tuple[torch.Tensor, torch.Tenso
     co00, co01, co02 = e * i - f * h, f * g - d * i, d * h - e * g
     cofactor = torch.stack(
         [
-            co00,
-            co01,
-            co02,
-            c * h - b * i,
-            a * i - c * g,
-            b * g - a * h,
-            b * f - c * e,
-            c * d - a * f,
-            a * e - b * d,
+            co00, co01, co02,
+            c * h - b * i, a * i - c * g, b * g - a * h,
+            b * f - c * e, c * d - a * f, a * e - b * d,
         ],
         dim=-1,
-    ).reshape(matrices.shape)
+    ).reshape(matrices.shape)  # fmt: skip
     return cofactor, a * co00 + b * co01 + c * co02
 
 

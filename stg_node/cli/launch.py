@@ -17,10 +17,10 @@ import logging
 import sys
 from pathlib import Path
 
+from stg_node.cli.runner import UsageError, add_log_level_option, run_main
 from stg_node.launch.process import OutputSink
 from stg_node.launch.spec import LaunchSpec, parse_overrides, read_launch
 from stg_node.launch.yamlfile import LaunchFileError
-from stg_node.logs import configure_logging
 from stg_node.nodes.runtime import name_process
 
 log = logging.getLogger("stg_node.launch")
@@ -45,7 +45,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--no-broker", action="store_true", help="do not start a broker (one runs already)")
     parser.add_argument("--log-dir", type=Path, help="also write each process's output to DIR/NAME.log")
     parser.add_argument("--no-color", action="store_true", help="no colored [name] prefixes")
-    parser.add_argument("--log-level", help="DEBUG, INFO, ... (default $STG_LOG_LEVEL or INFO)")
+    add_log_level_option(parser)
     return parser
 
 
@@ -71,34 +71,21 @@ def _print_plan(spec: LaunchSpec) -> str:
     return "\n".join(lines)
 
 
-def main(argv=None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    try:
-        configure_logging(args.log_level)
-    except ValueError as exc:
-        print(f"stg-launch: {exc}", file=sys.stderr)
-        return 2
+def run(args: argparse.Namespace) -> int:
     if args.schema:
         from stg_node.launch.schema import schema_text
 
         sys.stdout.write(schema_text())
         return 0
     if args.file is None:
-        parser.print_usage(sys.stderr)
-        print("stg-launch: a launch file is required", file=sys.stderr)
-        return 2
+        raise UsageError("a launch file is required")
     try:
-        overrides = parse_overrides(args.overrides)
-        spec = read_launch(args.file, overrides)
-    except (LaunchFileError, ValueError) as exc:
-        print(f"stg-launch: {exc}", file=sys.stderr)
-        return 2
+        spec = read_launch(args.file, parse_overrides(args.overrides))
+    except (LaunchFileError, ValueError) as exc:  # a bad file is bad usage: it names file and line
+        raise UsageError(str(exc)) from exc
     if args.validate:
-        print(
-            f"{args.file}: ok ({len(spec.nodes)} node(s)"
-            + (f", skipped {', '.join(spec.skipped)})" if spec.skipped else ")")
-        )
+        skipped = f", skipped {', '.join(spec.skipped)}" if spec.skipped else ""
+        print(f"{args.file}: ok ({len(spec.nodes)} node(s){skipped})")
         return 0
     if args.show_args:
         print(_show_args(spec))
@@ -111,11 +98,14 @@ def main(argv=None) -> int:
 
     name_process("launch")
     sink = OutputSink(log_dir=args.log_dir, color=False if args.no_color else None)
-    try:
-        launcher = Launcher(spec, sink=sink, broker=False if args.no_broker else None)
-        return launcher.run()
+    try:  # the launcher installs its own SIGINT/SIGTERM handlers: a stop is its normal end
+        return Launcher(spec, sink=sink, broker=False if args.no_broker else None).run()
     finally:
         sink.close()
+
+
+def main(argv=None) -> int:
+    return run_main(build_parser(), run, argv, stop_is_success=True)
 
 
 if __name__ == "__main__":

@@ -20,7 +20,7 @@ from pathlib import Path
 
 from stg_node.bus.config import BusConfig
 from stg_node.cli.bus_options import add_bus_options, bus_config
-from stg_node.logs import configure_logging
+from stg_node.cli.runner import UsageError, add_log_level_option, run_main
 from stg_node.nodes import NODE_KINDS, UnknownNodeKind, load_node_class
 from stg_node.nodes.params import ParamError, describe_params, parse_params
 from stg_node.nodes.runtime import name_process
@@ -45,7 +45,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--lane", action="append", default=[], metavar="TOPIC=LANE", help="move a topic to another lane"
     )
     parser.add_argument("--heartbeat", type=float, default=1.0, metavar="S", help="NodeStatus period")
-    parser.add_argument("--log-level", help="DEBUG, INFO, ... (default $STG_LOG_LEVEL or INFO)")
+    add_log_level_option(parser)
     parser.add_argument("--list", action="store_true", help="list the node kinds and exit")
     parser.add_argument("--describe", action="store_true", help="print the kind's parameters and exit")
     add_bus_options(parser)
@@ -85,20 +85,15 @@ def describe(kind: str, cls: type) -> str:
     return "\n".join(lines)
 
 
-def main(argv=None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+def run(args: argparse.Namespace) -> int:
     if args.list:
         for kind, target in NODE_KINDS.items():
             print(f"{kind:10s} {target}")
         return 0
     if not args.kind:
-        parser.print_usage(sys.stderr)
-        print("python -m stg_node.nodes: a node kind is required (--list shows them)", file=sys.stderr)
-        return 2
+        raise UsageError("a node kind is required (--list shows them)")
     name = args.name or args.kind.rpartition(":")[2].lower()
     try:
-        configure_logging(args.log_level)
         cls = load_node_class(args.kind)
         if args.describe:
             print(describe(args.kind, cls))
@@ -109,20 +104,22 @@ def main(argv=None) -> int:
         config: BusConfig = bus_config(args)
         if args.lane:
             config = config.with_(lanes=_pairs(args.lane, "=", "--lane"))
-            config.__post_init__()  # checks the lane names
     except (UnknownNodeKind, ParamError, ValueError, OSError) as exc:
-        print(f"python -m stg_node.nodes: {exc}", file=sys.stderr)
-        return 2
+        raise UsageError(str(exc)) from exc
     name_process(name)
-    with StopSignals() as stop:
+    with StopSignals() as stop:  # the first SIGINT/SIGTERM ends the loop, teardown still runs
         try:
             node = cls(name, params, config, remap=remap, heartbeat_s=args.heartbeat, stop=stop)
         except KeyboardInterrupt:
             return 0
-        except Exception as exc:  # e.g. the bus URL cannot be reached
+        except (OSError, ValueError) as exc:  # e.g. the bus URL cannot be reached
             log.error("%s: cannot start: %s", name, exc)
             return 1
         return node.execute()
+
+
+def main(argv=None) -> int:
+    return run_main(build_parser(), run, argv, stop_is_success=True)
 
 
 if __name__ == "__main__":

@@ -2,6 +2,7 @@
 
 One place for the field-by-field copies between ``stg_node.bus`` messages (wire types) and
 ``stg_node.data.types`` (what loaders yield and the avatar consumes), so no node spells them out.
+Poses go through the bus's own conversion (``BodyPose.from_smpl`` / ``BodyPose.to_smpl``).
 """
 
 from __future__ import annotations
@@ -38,21 +39,12 @@ def frame_camera(frame: Frame) -> Camera:
 
 def pose_message(smpl: SmplParams, *, frame: Frame | None = None, confidence: float = 1.0) -> BodyPose:
     """A body/pose message for ``smpl``, tied to ``frame`` (its seq, index and time) when given."""
-    return BodyPose(
+    return BodyPose.from_smpl(
+        smpl,
         frame_seq=frame.header.seq if frame is not None and frame.header.seq >= 0 else -1,
         frame_index=frame.index if frame is not None else -1,
         time=frame.time if frame is not None else 0.0,
         confidence=float(confidence),
-        poses=np.asarray(smpl.poses, np.float32).reshape(24, 3),
-        Rh=np.asarray(smpl.Rh, np.float32).reshape(3),
-        Th=np.asarray(smpl.Th, np.float32).reshape(3),
-        betas=np.asarray(smpl.betas, np.float32).reshape(-1),
-    )
-
-
-def pose_smpl(pose: BodyPose) -> SmplParams:
-    return SmplParams(
-        poses=np.array(pose.poses), Rh=np.array(pose.Rh), Th=np.array(pose.Th), betas=np.array(pose.betas)
     )
 
 

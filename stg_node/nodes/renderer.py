@@ -31,7 +31,7 @@ import numpy as np
 from stg_node.bus import BodyPose, Frame, GaussianSnapshot, RenderedImage, ViewRequest
 from stg_node.data.types import Camera, SmplParams
 from stg_node.nodes.avatar_adapter import DEFAULT_MODULE, RendererAdapter
-from stg_node.nodes.convert import frame_camera, pose_smpl, request_camera, request_smpl, resized_camera
+from stg_node.nodes.convert import frame_camera, request_camera, request_smpl, resized_camera
 from stg_node.nodes.params import param
 from stg_node.nodes.runtime import Node
 from stg_node.nodes.views import default_camera, orbit_camera
@@ -272,7 +272,7 @@ class RendererNode(Node):
 
     def _render_live(self) -> None:
         pose = self.pose
-        smpl = pose_smpl(pose)
+        smpl = pose.to_smpl()
         common = {"time_s": pose.time, "source_stamp_ns": pose.header.stamp_ns, "pose_seq": pose.header.seq}
         if self.standing:
             for view in list(self.standing.values()):

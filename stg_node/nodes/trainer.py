@@ -25,7 +25,7 @@ from typing import Literal
 
 from stg_node.bus import TrainerMetrics
 from stg_node.nodes.avatar_adapter import DEFAULT_MODULE, StepInfo, TrainerAdapter
-from stg_node.nodes.convert import frame_camera, pose_smpl
+from stg_node.nodes.convert import frame_camera
 from stg_node.nodes.params import param
 from stg_node.nodes.runtime import Node
 
@@ -159,7 +159,7 @@ class TrainerNode(Node):
             image=frame.image,
             mask=frame.mask,
             camera=frame_camera(frame),
-            smpl=pose_smpl(pose),
+            smpl=pose.to_smpl(),
         )
         self.frames_added += 1
         self.frames_in_buffer = min(self.frames_in_buffer + 1, self.params.max_frames)

@@ -21,11 +21,13 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def _ignore_sigint() -> None:
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # as a shell does for a job started with '&'
 
 
-def _spawn(args: list[str], ready: str) -> subprocess.Popen:
-    """Start a Python program from this checkout and wait (at most 30 s) until it prints ``ready``."""
+def _spawn(args: list[str], ready: str, background: bool = False) -> subprocess.Popen:
+    """Start a Python program from this checkout and wait (at most 30 s) until it prints ``ready``.
+
+    ``background``: start it with SIGINT ignored, as a non-interactive shell starts ``cmd &``."""
     env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONUNBUFFERED": "1"}
     proc = subprocess.Popen(
         [sys.executable, *args],
@@ -33,9 +35,7 @@ def _spawn(args: list[str], ready: str) -> subprocess.Popen:
         env=env,
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
-        # As a background job or under nohup: SIGINT inherited as ignored. Programs must
-        # install their own handlers (stg_node.signals), so Ctrl-C works however they started.
-        preexec_fn=_ignore_sigint,
+        preexec_fn=_ignore_sigint if background else None,
     )
     deadline = time.monotonic() + 30
     seen = b""
@@ -46,6 +46,7 @@ def _spawn(args: list[str], ready: str) -> subprocess.Popen:
             break
         seen += chunk
         if ready.encode() in seen:
+            proc.startup_output = seen.decode(errors="replace")
             return proc
     proc.kill()
     proc.communicate()
@@ -67,18 +68,28 @@ def _stop(proc: subprocess.Popen, sig: int, within: float = 5.0) -> tuple[int, s
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_broker_cli_stops_cleanly(ipc_dir, sig):
     url = f"ipc://{ipc_dir}/bus"
-    proc = _spawn(["-m", "stg_node.cli.broker", url, "--status-period", "0.1"], "serving")
+    proc = _spawn(["-m", "stg_node.cli.broker", "--bus", url, "--status-period", "0.1"], "serving", True)
     code, out, took = _stop(proc, sig)
     assert code == 0, out
     assert "Traceback" not in out
     assert os.listdir(ipc_dir) == []  # no stale socket files
 
 
-def test_topic_echo_stops_on_ctrl_c(ipc_url):
+def test_broker_cli_still_takes_a_positional_url_with_a_warning(ipc_dir):
+    url = f"ipc://{ipc_dir}/bus"
+    proc = _spawn(["-m", "stg_node.cli.broker", url, "--status-period", "0.1"], f"serving {url}")
+    code, out, _ = _stop(proc, signal.SIGINT)
+    assert code == 0, out
+    assert "deprecated; use --bus URL" in proc.startup_output
+
+
+@pytest.mark.parametrize("background", [False, True])
+def test_topic_hz_stops_on_ctrl_c(ipc_url, background):
     from stg_node.bus import Broker
 
     with Broker(ipc_url, status_period_s=0):
-        proc = _spawn(["-m", "stg_node.cli.topic", "--bus", ipc_url, "hz", "body/pose"], "subscribed")
+        args = ["-m", "stg_node.cli.topic", "--bus", ipc_url, "hz", "body/pose"]
+        proc = _spawn(args, "subscribed", background)
         code, out, _ = _stop(proc, signal.SIGINT)
     assert code == 0 and "Traceback" not in out
 
@@ -87,9 +98,7 @@ NODE = textwrap.dedent(
     """
     import sys
     from stg_node.bus import Bus
-    from stg_node.signals import interrupt_on_signals
-    # A program's own handlers: started in the background, it inherits SIGINT ignored.
-    with interrupt_on_signals(), Bus(sys.argv[1], node="looping", heartbeat_s=0.1) as bus:
+    with Bus(sys.argv[1], node="looping", heartbeat_s=0.1) as bus:
         frames = bus.subscribe("camera/frame", "body/pose")
         print("ready", flush=True)
         try:
@@ -133,10 +142,3 @@ def test_subscriber_close_is_prompt_and_idempotent(ipc_url):
     sub.close()
     sub.close()
     assert time.monotonic() - start < 1.0
-
-
-def test_broker_cli_takes_the_bus_option_like_every_bus_command(ipc_dir):
-    url = f"ipc://{ipc_dir}/bus"
-    proc = _spawn(["-m", "stg_node.cli.broker", "--bus", url, "--status-period", "0"], f"serving {url}")
-    code, out, _ = _stop(proc, signal.SIGTERM)
-    assert code == 0 and os.listdir(ipc_dir) == [], out

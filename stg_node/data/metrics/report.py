@@ -58,15 +58,9 @@ class EvaluationReport:
     lpips_unavailable: dict[str, str] = field(default_factory=dict)
 
     def as_dict(self) -> dict:
-        return {
-            "protocol": self.protocol,
-            "protocol_name": self.protocol_name,
-            "views": self.views,
-            "psnr": self.psnr,
-            "ssim": self.ssim,
-            "lpips": dict(self.lpips),
-            "lpips_unavailable": dict(self.lpips_unavailable),
-        }
+        return {"protocol": self.protocol, "protocol_name": self.protocol_name, "views": self.views,
+                "psnr": self.psnr, "ssim": self.ssim, "lpips": dict(self.lpips),
+                "lpips_unavailable": dict(self.lpips_unavailable)}  # fmt: skip
 
     def __str__(self) -> str:
         parts = [f"PSNR {self.psnr:.2f} dB", f"SSIM {self.ssim:.4f}"]
@@ -90,13 +84,8 @@ def _as_float_image(image) -> np.ndarray:
 class Evaluator:
     """Accumulates PSNR / SSIM / LPIPS over views under one protocol."""
 
-    def __init__(
-        self,
-        protocol: str = "full",
-        lpips_nets: tuple[str, ...] = ("alex", "vgg"),
-        ssim_window: str = "gaussian",
-        lpips_dir: Path | None = None,
-    ):
+    def __init__(self, protocol: str = "full", lpips_nets: tuple[str, ...] = ("alex", "vgg"),
+                 ssim_window: str = "gaussian", lpips_dir: Path | None = None):  # fmt: skip
         if protocol not in PROTOCOLS:
             raise ValueError(f"protocol must be one of {sorted(PROTOCOLS)}, got {protocol!r}")
         if ssim_window not in SSIM_TEXT:
@@ -151,10 +140,8 @@ class Evaluator:
         w, h = self._size or (0, 0)
         region = PROTOCOLS[self.protocol_name].format(w=w, h=h)
         nets = "/".join(self.lpips_models) or "none"
-        return (
-            f"{self.protocol_name}: {region}; PSNR (data range 1); {SSIM_TEXT[self.ssim_window]}; "
-            f"LPIPS v0.1 ({nets}) on [0,1] RGB; mean over views"
-        )
+        return (f"{self.protocol_name}: {region}; PSNR (data range 1); {SSIM_TEXT[self.ssim_window]}; "
+                f"LPIPS v0.1 ({nets}) on [0,1] RGB; mean over views")  # fmt: skip
 
     def report(self) -> EvaluationReport:
         if not self.views:
@@ -163,12 +150,6 @@ class Evaluator:
         mean_psnr = float(np.mean(finite)) if all(math.isfinite(p) for p in finite) else math.inf
         lpips = {net: float(np.mean([v.lpips[net] for v in self.views])) for net in self.lpips_models}
         mean_ssim = float(np.mean([v.ssim for v in self.views]))
-        return EvaluationReport(
-            protocol=self.protocol,
-            protocol_name=self.protocol_name,
-            views=len(self.views),  # noqa: E501
-            psnr=mean_psnr,
-            ssim=mean_ssim,
-            lpips=lpips,
-            lpips_unavailable=dict(self.lpips_unavailable),
-        )
+        return EvaluationReport(protocol=self.protocol, protocol_name=self.protocol_name, views=len(self.views),  # noqa: E501
+                                psnr=mean_psnr, ssim=mean_ssim, lpips=lpips,
+                                lpips_unavailable=dict(self.lpips_unavailable))  # fmt: skip
