@@ -119,7 +119,7 @@ class Trainer:
             )
 
     @classmethod
-    def load(cls, path: str, device="cpu", backend="auto") -> Trainer:
+    def load(cls, path: str, body_model=None, device="cpu", backend="auto") -> Trainer:
         data = np.load(path)
         config = TrainConfig(step_s=float(data["step_s"]), load_s=float(data["load_s"]))
         trainer = cls(config, max_frames=int(data["max_frames"]))
@@ -154,7 +154,9 @@ class AvatarRenderer:
         time.sleep(float(msg.meta.get("load_s", 0.0)))
         return cls(np.array(msg.arrays["color"]).reshape(3), msg.iteration)
 
-    def render(self, camera, smpl, time=None, background=(0, 0, 0)) -> RenderOut:
+    def render(
+        self, camera, smpl, time=None, *, background=(0, 0, 0), follow=False, depth=False
+    ) -> RenderOut:
         start = _now()
         h, w = camera.height, camera.width
         image = np.empty((h, w, 3), np.uint8)
