@@ -212,26 +212,36 @@ def refine_from_heatmap(
 ) -> np.ndarray:
     """MediaPipe's RefineLandmarksFromHeatmap: sigmoid-weighted mean of a kxk window per landmark.
 
-    ``xy_norm`` (K, 2) normalised crop coordinates; ``heatmap`` (H, W, >=K) logits. Landmarks
-    whose window peaks below ``min_confidence`` (or that lie outside the map) are left alone.
+    ``xy_norm`` (K, 2) normalised crop coordinates; ``heatmap`` (H, W, >=K) logits. The window
+    is clipped at the map's border; landmarks whose window peaks below ``min_confidence`` (or
+    that lie outside the map) are left alone. Vectorised over landmarks.
     """
     refined = np.array(xy_norm, dtype=np.float64, copy=True)
     height, width = heatmap.shape[:2]
+    count = min(refined.shape[0], heatmap.shape[2])
     half = (kernel - 1) // 2
-    for k in range(min(refined.shape[0], heatmap.shape[2])):
-        col = int(refined[k, 0] * width)
-        row = int(refined[k, 1] * height)
-        if not (0 <= col < width and 0 <= row < height):
-            continue
-        r0, r1 = max(0, row - half), min(height, row + half + 1)
-        c0, c1 = max(0, col - half), min(width, col + half + 1)
-        confidence = sigmoid(heatmap[r0:r1, c0:c1, k])
-        total = confidence.sum()
-        if confidence.max() < min_confidence or total <= 0:
-            continue
-        rows, cols = np.mgrid[r0:r1, c0:c1]
-        refined[k, 0] = (cols * confidence).sum() / total / width
-        refined[k, 1] = (rows * confidence).sum() / total / height
+    cols = (refined[:count, 0] * width).astype(np.int64)  # truncation, as MediaPipe's int cast
+    rows = (refined[:count, 1] * height).astype(np.int64)
+    inside = (cols >= 0) & (cols < width) & (rows >= 0) & (rows < height)
+    offsets = np.arange(-half, half + 1)
+    win_rows = rows[:, None] + offsets  # (K, k)
+    win_cols = cols[:, None] + offsets
+    valid = ((win_rows >= 0) & (win_rows < height))[:, :, None] & ((win_cols >= 0) & (win_cols < width))[
+        :, None, :
+    ]
+    channel = np.arange(count)[:, None, None]
+    values = heatmap[
+        np.clip(win_rows, 0, height - 1)[:, :, None], np.clip(win_cols, 0, width - 1)[:, None, :], channel
+    ]
+    confidence = np.where(valid, sigmoid(values), 0.0)  # (K, k, k)
+    total = confidence.sum(axis=(1, 2))
+    peak = confidence.max(axis=(1, 2))
+    use = inside & (peak >= min_confidence) & (total > 0)
+    safe = np.where(total > 0, total, 1.0)
+    mean_col = (confidence * win_cols[:, None, :]).sum(axis=(1, 2)) / safe
+    mean_row = (confidence * win_rows[:, :, None]).sum(axis=(1, 2)) / safe
+    refined[:count, 0] = np.where(use, mean_col / width, refined[:count, 0])
+    refined[:count, 1] = np.where(use, mean_row / height, refined[:count, 1])
     return refined
 
 

@@ -55,6 +55,12 @@ MIN_DEPTH_M = 0.1
 # Upright, facing the camera: SMPL's y (up) to the camera's -y (up on screen), z (front) to -z.
 FACING_CAMERA = np.diag([1.0, -1.0, -1.0])
 YAW_HYPOTHESES_DEG = (0.0, 90.0, 180.0, 270.0)
+# A third starting pose for (re)initialisation: standing with the arms down, elbows a little bent.
+RELAXED_POSE = np.zeros(POSE_PARAMS)
+RELAXED_POSE[(16 - 1) * 3 + 2] = -1.1  # left shoulder lowers the arm (z < 0)
+RELAXED_POSE[(17 - 1) * 3 + 2] = 1.1
+RELAXED_POSE[(18 - 1) * 3 + 1] = -0.3  # left elbow flexes (y < 0)
+RELAXED_POSE[(19 - 1) * 3 + 1] = 0.3
 DTYPE = torch.float64
 
 
@@ -76,6 +82,7 @@ class FitConfig:
     temporal_rad_per_s: float = 3.0  # plausible joint rotation speed (sigma of the temporal term)
     temporal_m_per_s: float = 1.0  # plausible body speed
     max_temporal_gap_s: float = 0.5  # longer gaps: no temporal term
+    rescue_units: float = 3.0  # a tracked fit worse than this (RMS, noise units) is redone from scratch
     shape_sigma: float = 1.0
     damping: float = 1e-2
     step_eps: float = 1e-6  # forward-difference step
@@ -370,10 +377,10 @@ class SmplFitter:
         }
         gap = None if self._last_time is None else timestamp - self._last_time
         reinit = not self._tracking or gap is None or gap < 0 or gap > cfg.max_temporal_gap_s
-        extra = self.num_betas if calibrating else 0
+        active = torch.arange(GLOBAL_PARAMS + POSE_PARAMS + (self.num_betas if calibrating else 0))
+        rescued = False
         if reinit:
-            theta_np = self._initialise(obs, ctx)
-            iterations = cfg.init_iterations
+            theta, ctx = self._initialise(obs, ctx, active)
         else:
             dt = max(gap, 1e-3)
             ctx["previous"] = (
@@ -384,12 +391,16 @@ class SmplFitter:
             ctx["prev_translation"] = torch.as_tensor(self._translation, dtype=DTYPE)
             ctx["base_rotation"] = torch.as_tensor(self._rotation, dtype=DTYPE)
             theta_np = np.concatenate([np.zeros(3), self._translation, self._pose])
-            iterations = cfg.iterations
-        if calibrating:
-            theta_np = np.concatenate([theta_np, self.betas])
-        theta = torch.as_tensor(theta_np, dtype=DTYPE)
-        active = torch.arange(GLOBAL_PARAMS + POSE_PARAMS + extra)
-        theta, _ = self._solve(theta, active, obs, ctx, iterations)
+            if calibrating:
+                theta_np = np.concatenate([theta_np, self.betas])
+            theta, _ = self._solve(torch.as_tensor(theta_np, dtype=DTYPE), active, obs, ctx, cfg.iterations)
+            if self._reprojection_error(theta, obs, ctx)[0] > cfg.rescue_units:
+                # Lost the thread (a fast move, a limb stuck in a mirror pose): start over from
+                # several hypotheses, keep the best, the tracked answer included.
+                tracked = (self._cost(theta, obs, ctx), theta, ctx)
+                fresh, fresh_ctx = self._initialise(obs, dict(ctx, previous=None), active)
+                if self._cost(fresh, obs, fresh_ctx) < tracked[0]:
+                    theta, ctx, rescued = fresh, fresh_ctx, True
         # Fold the rotation update into the base rotation.
         rotation = ctx["base_rotation"].numpy() @ _rotation_from_vector(theta[:3].numpy())
         self._rotation = rotation
@@ -407,7 +418,7 @@ class SmplFitter:
             rms_px=rms_px,
             rms_units=rms_units,
             used_targets=used,
-            reinitialised=reinit,
+            reinitialised=reinit or rescued,
         )
 
     def add_calibration(self, result: FitResult, confidence: float) -> None:
@@ -434,14 +445,46 @@ class SmplFitter:
         rms_units = math.sqrt(mean_sq)
         return rms_units, rms_units * obs.unit_px, used
 
-    def _initialise(self, obs: _Observation, ctx: dict) -> np.ndarray:
-        """Rotation + translation hypotheses at the current pose; the best after a short refinement."""
+    def _initialise(self, obs: _Observation, ctx: dict, active: torch.Tensor) -> tuple[torch.Tensor, dict]:
+        """Fit from scratch: for each starting pose (the current one, the rest pose, arms down),
+        the best of several global rotations after a short rotation + translation refinement, then
+        a full fit; the lowest cost wins. Returns theta and the context (its base rotation)."""
         cfg = self.config
-        pose = torch.as_tensor(self._pose, dtype=DTYPE)
+        best = None
+        starts = [self._pose, np.zeros(POSE_PARAMS), RELAXED_POSE]
+        seen = []
+        for start in starts:
+            if any(np.allclose(start, other) for other in seen):
+                continue
+            seen.append(start)
+            rotation, translation = self._best_placement(obs, ctx, start)
+            local_ctx = dict(ctx, base_rotation=torch.as_tensor(rotation, dtype=DTYPE))
+            theta_np = np.concatenate([np.zeros(3), translation, start])
+            if ctx["calibrating"]:
+                theta_np = np.concatenate([theta_np, self.betas])
+            theta, _ = self._solve(torch.as_tensor(theta_np, dtype=DTYPE), active, obs, local_ctx, cfg.init_iterations)
+            cost = self._cost(theta, obs, local_ctx)
+            if best is None or cost < best[0]:
+                best = (cost, theta, local_ctx)
+        return best[1], best[2]
+
+    def _cost(self, theta: torch.Tensor, obs: _Observation, ctx: dict) -> float:
+        """The robust (Cauchy) cost of a solution, comparable between solutions of one frame."""
+        with torch.no_grad():
+            plain = dict(ctx, robust=torch.ones_like(obs.weight))
+            res, norms = self._residuals(theta[None], obs, plain)
+            num_2d = 2 * obs.xy.shape[0]
+            c = self.config.robust_scale
+            cauchy = (c * c * torch.log1p((norms[0] / c) ** 2) * obs.weight).sum()
+            return float(cauchy + (res[0, num_2d:] ** 2).sum())
+
+    def _best_placement(self, obs: _Observation, ctx: dict, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Global rotation and translation hypotheses at ``pose``; the best after a short refinement."""
+        cfg = self.config
         with torch.no_grad():
             local = self.model(
                 ctx["betas"],
-                pose.reshape(1, NUM_BODY_JOINTS, 3),
+                torch.as_tensor(pose, dtype=DTYPE).reshape(1, NUM_BODY_JOINTS, 3),
                 torch.zeros(1, 3, dtype=DTYPE),
                 torch.zeros(1, 3, dtype=DTYPE),
             )[0].numpy()
@@ -451,19 +494,18 @@ class SmplFitter:
             if candidate is not None:
                 candidates.insert(0, candidate)
         best = None
-        global_ctx = dict(ctx, calibrating=False)
+        global_ctx = dict(ctx, calibrating=False, previous=None)
         for rotation in candidates:
             translation = self._initial_translation(local, rotation, obs)
-            theta = torch.as_tensor(np.concatenate([np.zeros(3), translation, self._pose]), dtype=DTYPE)
+            theta = torch.as_tensor(np.concatenate([np.zeros(3), translation, pose]), dtype=DTYPE)
             global_ctx["base_rotation"] = torch.as_tensor(rotation, dtype=DTYPE)
             theta, cost = self._solve(
                 theta, torch.arange(GLOBAL_PARAMS), obs, global_ctx, max(cfg.global_iterations, 1)
             )
             if best is None or cost < best[0]:
-                best = (cost, theta, rotation)
-        _, theta, rotation = best
-        ctx["base_rotation"] = torch.as_tensor(rotation, dtype=DTYPE)
-        return theta.numpy().copy()
+                refined = rotation @ _rotation_from_vector(theta[:3].numpy())
+                best = (cost, refined, theta[3:6].numpy().copy())
+        return best[1], best[2]
 
     def _rotation_from_bones(self, local: np.ndarray, obs: _Observation) -> np.ndarray | None:
         """The rotation taking the body's bone directions onto the network's (Kabsch), if enough agree."""

@@ -16,6 +16,8 @@ All functions take the 23 non-root joints (SMPL's root rotation stays zero; ``Rh
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import torch
 
@@ -37,11 +39,29 @@ def euler_zyx_from_matrix(rotations: torch.Tensor) -> torch.Tensor:
     return torch.stack([x, y, z], dim=-1)
 
 
+def _wrap(angle: torch.Tensor) -> torch.Tensor:
+    return torch.remainder(angle + math.pi, 2 * math.pi) - math.pi
+
+
 def limit_excess(body_rotations: torch.Tensor) -> torch.Tensor:
-    """(B, 23, 3, 3) local joint rotations -> (B, 23, 3) radians outside the joint limits (0 inside)."""
+    """(B, 23, 3, 3) local joint rotations -> (B, 23, 3) radians outside the joint limits (0 inside).
+
+    Every rotation has two Z-Y-X decompositions: ``(x, y, z)`` with ``|y| <= 90`` degrees and
+    ``(x + pi, pi - y, z + pi)``. An elbow flexed past 90 degrees (its range reaches 145) is only
+    inside its limits in the second, so each joint is judged by the branch that fits it better.
+    """
     euler = euler_zyx_from_matrix(body_rotations)
+    other = torch.stack(
+        [_wrap(euler[..., 0] + math.pi), _wrap(math.pi - euler[..., 1]), _wrap(euler[..., 2] + math.pi)], dim=-1
+    )
     limits = torch.as_tensor(LIMITS_RAD, dtype=euler.dtype, device=euler.device)
-    return torch.relu(limits[..., 0] - euler) + torch.relu(euler - limits[..., 1])
+
+    def excess(angles):
+        return torch.relu(limits[..., 0] - angles) + torch.relu(angles - limits[..., 1])
+
+    first, second = excess(euler), excess(other)
+    use_second = second.sum(dim=-1, keepdim=True) < first.sum(dim=-1, keepdim=True)
+    return torch.where(use_second, second, first)
 
 
 def prior_sigma() -> np.ndarray:

@@ -23,8 +23,8 @@ from stg_node.body import lbs
 
 @dataclass(frozen=True)
 class OneEuroConfig:
-    min_cutoff_hz: float = 1.5  # cutoff at rest: lower = smoother, more lag
-    beta: float = 0.5  # how fast the cutoff rises with speed (per unit of the signal per second)
+    min_cutoff_hz: float = 2.0  # cutoff at rest: lower = smoother, more lag
+    beta: float = 10.0  # how fast the cutoff rises with speed (per unit of the signal per second)
     derivative_cutoff_hz: float = 1.0
 
     def validate(self) -> None:
