@@ -220,9 +220,11 @@ def refine_from_heatmap(
     height, width = heatmap.shape[:2]
     count = min(refined.shape[0], heatmap.shape[2])
     half = (kernel - 1) // 2
-    cols = (refined[:count, 0] * width).astype(np.int64)  # truncation, as MediaPipe's int cast
-    rows = (refined[:count, 1] * height).astype(np.int64)
-    inside = (cols >= 0) & (cols < width) & (rows >= 0) & (rows < height)
+    finite = np.all(np.isfinite(refined[:count]), axis=1)
+    scaled = np.where(finite[:, None], refined[:count] * np.array([width, height]), -1.0)
+    cols = scaled[:, 0].astype(np.int64)  # truncation, as MediaPipe's int cast
+    rows = scaled[:, 1].astype(np.int64)
+    inside = finite & (cols >= 0) & (cols < width) & (rows >= 0) & (rows < height)
     offsets = np.arange(-half, half + 1)
     win_rows = rows[:, None] + offsets  # (K, k)
     win_cols = cols[:, None] + offsets

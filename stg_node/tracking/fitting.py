@@ -78,7 +78,7 @@ class FitConfig:
     world_sigma: float = 0.25  # unit-vector difference (~ sin 15 degrees)
     world_weight: float = 1.0
     prior_weight: float = 3.0
-    limit_weight: float = 30.0  # per radian outside a joint's range
+    limit_weight: float = 100.0  # per radian outside a joint's range
     temporal_rad_per_s: float = 3.0  # plausible joint rotation speed (sigma of the temporal term)
     temporal_m_per_s: float = 1.0  # plausible body speed
     max_temporal_gap_s: float = 0.5  # longer gaps: no temporal term
@@ -462,7 +462,9 @@ class SmplFitter:
             theta_np = np.concatenate([np.zeros(3), translation, start])
             if ctx["calibrating"]:
                 theta_np = np.concatenate([theta_np, self.betas])
-            theta, _ = self._solve(torch.as_tensor(theta_np, dtype=DTYPE), active, obs, local_ctx, cfg.init_iterations)
+            theta, _ = self._solve(
+                torch.as_tensor(theta_np, dtype=DTYPE), active, obs, local_ctx, cfg.init_iterations
+            )
             cost = self._cost(theta, obs, local_ctx)
             if best is None or cost < best[0]:
                 best = (cost, theta, local_ctx)
@@ -478,7 +480,9 @@ class SmplFitter:
             cauchy = (c * c * torch.log1p((norms[0] / c) ** 2) * obs.weight).sum()
             return float(cauchy + (res[0, num_2d:] ** 2).sum())
 
-    def _best_placement(self, obs: _Observation, ctx: dict, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _best_placement(
+        self, obs: _Observation, ctx: dict, pose: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Global rotation and translation hypotheses at ``pose``; the best after a short refinement."""
         cfg = self.config
         with torch.no_grad():

@@ -67,7 +67,7 @@ class SegmentationMasker:
 class PlateMasker:
     """Foreground = pixels that differ from an empty plate by more than ``threshold`` (0-255 scale)."""
 
-    def __init__(self, plate_rgb: np.ndarray, threshold: float = 30.0, blur: int = 5):
+    def __init__(self, plate_rgb: np.ndarray, threshold: float = 15.0, blur: int = 3):
         self.plate = np.asarray(plate_rgb)
         _check_frame(self.plate)
         self.threshold = float(threshold)

@@ -52,7 +52,8 @@ def limit_excess(body_rotations: torch.Tensor) -> torch.Tensor:
     """
     euler = euler_zyx_from_matrix(body_rotations)
     other = torch.stack(
-        [_wrap(euler[..., 0] + math.pi), _wrap(math.pi - euler[..., 1]), _wrap(euler[..., 2] + math.pi)], dim=-1
+        [_wrap(euler[..., 0] + math.pi), _wrap(math.pi - euler[..., 1]), _wrap(euler[..., 2] + math.pi)],
+        dim=-1,
     )
     limits = torch.as_tensor(LIMITS_RAD, dtype=euler.dtype, device=euler.device)
 

@@ -24,7 +24,9 @@ GT2D_BOUNDS_MM = {"smpl24": (50.0, 38.0), "blazepose33": (55.0, 45.0)}
 
 
 def test_body_points_match_the_body_models_joints_and_vertices(body):
-    points = [PointSpec(f"j{j}", joint=j) for j in range(24)] + [PointSpec(n, landmark=n) for n in LANDMARK_NAMES]
+    points = [PointSpec(f"j{j}", joint=j) for j in range(24)] + [
+        PointSpec(n, landmark=n) for n in LANDMARK_NAMES
+    ]
     model = BodyKeypoints(body, points)
     g = torch.Generator().manual_seed(1)
     betas = torch.randn(3, 10, generator=g) * 0.5

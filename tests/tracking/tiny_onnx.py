@@ -75,7 +75,9 @@ def model_bytes(nodes, initializers, inputs, outputs, opset: int = 13) -> bytes:
     return _int(1, 8) + _str(2, "stg_node-tests") + _bytes(7, graph) + _bytes(8, opset_id)
 
 
-def dot_heatmap_model(path, width: int = 192, height: int = 256, stride: int = 4, keypoints: int = 17) -> None:
+def dot_heatmap_model(
+    path, width: int = 192, height: int = 256, stride: int = 4, keypoints: int = 17
+) -> None:
     """Write the COCO-17 heatmap network described in the module docstring."""
     weight = np.zeros((keypoints, 3, 1, 1), np.float32)
     for k in range(keypoints):
