@@ -67,8 +67,8 @@ def main(argv: list[str] | None = None) -> int:
         source = [read_image(p) for p in sorted((folder / "Camera_B1").glob("*.png"))]
 
     print(
-        f"tracker speed, {threads} thread(s), {platform.processor() or platform.machine()}, {args.frames} frames "
-        f"x {args.repeats} passes per size, mask {args.mask_method}"
+        f"tracker speed, {threads} thread(s), {platform.processor() or platform.machine()}, "
+        f"{args.frames} frames x {args.repeats} passes per size, mask {args.mask_method}"
     )
     print(
         f"{'size':>5} {'detect ms':>10} {'fit ms':>8} {'mask ms':>8} {'total ms':>9} {'fps':>6} "
@@ -111,7 +111,8 @@ def main(argv: list[str] | None = None) -> int:
         )
     verdict = "keeps up with" if worst_fps >= CAMERA_RATE else "falls behind"
     print(
-        f"slowest size: {worst_fps:.1f} frames/s: {verdict} a {CAMERA_RATE:.0f} fps camera (medians per frame)"
+        f"slowest size: {worst_fps:.1f} frames/s: {verdict} a {CAMERA_RATE:.0f} fps camera "
+        "(medians per frame)"
     )
     return 0
 

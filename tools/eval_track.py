@@ -102,7 +102,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"  mask IoU        {report.mask_iou:.3f}")
     print(f"  confident       {100 * report.confident_fraction:.0f} % of frames (confidence >= 0.5)")
     print(
-        f"  tracking speed  {report.fps:.1f} frames/s end to end ({threads} thread(s), {platform.processor() or platform.machine()})"
+        f"  tracking speed  {report.fps:.1f} frames/s end to end ({threads} thread(s), "
+        f"{platform.processor() or platform.machine()})"
     )
     if args.json is not None:
         args.json.write_text(

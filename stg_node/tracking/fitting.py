@@ -83,6 +83,7 @@ class FitConfig:
     temporal_m_per_s: float = 1.0  # plausible body speed
     max_temporal_gap_s: float = 0.5  # longer gaps: no temporal term
     rescue_units: float = 3.0  # a tracked fit worse than this (RMS, noise units) is redone from scratch
+    rescue_cooldown_s: float = 0.5  # at most one rescue per this time (each costs ~10 frames' fitting)
     shape_sigma: float = 1.0
     damping: float = 1e-2
     step_eps: float = 1e-6  # forward-difference step
@@ -193,6 +194,7 @@ class SmplFitter:
         self._translation = np.array([0.0, 0.0, 3.0])
         self._pose = np.zeros(POSE_PARAMS)
         self._last_time: float | None = None
+        self._last_rescue: float | None = None
         self._tracking = False
         if not keep_shape and not self._fixed_betas:
             self.betas = np.zeros(self.num_betas)
@@ -394,7 +396,9 @@ class SmplFitter:
             if calibrating:
                 theta_np = np.concatenate([theta_np, self.betas])
             theta, _ = self._solve(torch.as_tensor(theta_np, dtype=DTYPE), active, obs, ctx, cfg.iterations)
-            if self._reprojection_error(theta, obs, ctx)[0] > cfg.rescue_units:
+            cooled = self._last_rescue is None or not 0 <= timestamp - self._last_rescue < cfg.rescue_cooldown_s
+            if cooled and self._reprojection_error(theta, obs, ctx)[0] > cfg.rescue_units:
+                self._last_rescue = timestamp
                 # Lost the thread (a fast move, a limb stuck in a mirror pose): start over from
                 # several hypotheses, keep the best, the tracked answer included.
                 tracked = (self._cost(theta, obs, ctx), theta, ctx)
