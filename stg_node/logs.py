@@ -18,6 +18,24 @@ DATE_FORMAT = "%H:%M:%S"
 _HANDLER_MARK = "_stg_node_handler"
 
 
+class _Handler(logging.StreamHandler):
+    """A StreamHandler that, unless given a stream, writes to ``sys.stderr`` as it is at each
+    record (like logging.lastResort): redirections and test capture made after logging was
+    configured still get the lines, and a replaced stderr is never written to after closing."""
+
+    def __init__(self, stream=None):
+        super().__init__(stream)  # sets self.stream (to sys.stderr when None) through the setter
+        self._fixed = stream
+
+    @property
+    def stream(self):
+        return self._fixed if self._fixed is not None else sys.stderr
+
+    @stream.setter
+    def stream(self, value) -> None:
+        self._fixed = value
+
+
 def parse_level(value: str | int | None) -> int:
     """Turn 'debug', 'INFO', '10' or 10 into a logging level; a clear error otherwise."""
     if value is None or value == "":
@@ -45,7 +63,7 @@ def configure_logging(level: str | int | None = None, stream=None) -> int:
     root = logging.getLogger()
     ours = [h for h in root.handlers if getattr(h, _HANDLER_MARK, False)]
     if not ours:
-        handler = logging.StreamHandler(stream or sys.stderr)
+        handler = _Handler(stream)
         handler.setFormatter(logging.Formatter(LOG_FORMAT, DATE_FORMAT))
         setattr(handler, _HANDLER_MARK, True)
         root.addHandler(handler)

@@ -8,6 +8,7 @@ latin-1 byte strings), ``shapedirs`` as a chumpy ``Ch`` object (a stand-in class
 from __future__ import annotations
 
 import collections
+import contextlib
 import io
 import pickle
 import struct
@@ -99,9 +100,18 @@ class _Py2Pickler(pickle._Pickler):
     dispatch[type] = save_global
 
 
+class ChumpyLeftover:
+    """Marks a value to be written as a chumpy expression holding no value of its own (e.g. a
+    transpose of a Ch), what an official file keeps where chumpy computed something lazily."""
+
+    def __init__(self, value):
+        self.value = np.asarray(value)
+
+
 def _stand_in_chumpy():
     chumpy = types.ModuleType("chumpy")
     chumpy_ch = types.ModuleType("chumpy.ch")
+    chumpy_reordering = types.ModuleType("chumpy.reordering")
 
     class Ch:
         def __init__(self, x):
@@ -112,26 +122,33 @@ def _stand_in_chumpy():
         def __getstate__(self):
             return {"x": self.x, "_dirty_vars": self._dirty_vars, "_itr": self._itr}
 
+    class transpose:  # noqa: N801 (chumpy's own name)
+        def __init__(self, a):
+            self.a = Ch(a)
+            self.axes = None
+
+        def __getstate__(self):
+            return {"a": self.a, "axes": self.axes, "_dirty_vars": set()}
+
     Ch.__module__ = "chumpy.ch"
     Ch.__qualname__ = "Ch"
+    transpose.__module__ = "chumpy.reordering"
+    transpose.__qualname__ = "transpose"
     chumpy_ch.Ch = Ch
+    chumpy_reordering.transpose = transpose
     chumpy.ch = chumpy_ch
-    return chumpy, chumpy_ch, Ch
+    chumpy.reordering = chumpy_reordering
+    return {"chumpy": chumpy, "chumpy.ch": chumpy_ch, "chumpy.reordering": chumpy_reordering}
 
 
-def smpl_pkl_bytes(arrays: dict, protocol: int = 2) -> bytes:
-    import scipy.sparse
-
-    chumpy, chumpy_ch, Ch = _stand_in_chumpy()
-    saved = {name: sys.modules.get(name) for name in ("chumpy", "chumpy.ch")}
-    sys.modules["chumpy"], sys.modules["chumpy.ch"] = chumpy, chumpy_ch
+@contextlib.contextmanager
+def _chumpy_importable():
+    """Our stand-in chumpy module while pickling, so objects pickle under chumpy's class paths."""
+    modules = _stand_in_chumpy()
+    saved = {name: sys.modules.get(name) for name in modules}
+    sys.modules.update(modules)
     try:
-        data = dict(arrays)
-        data["shapedirs"] = Ch(np.asarray(arrays["shapedirs"]))
-        data["J_regressor"] = scipy.sparse.csc_matrix(arrays["J_regressor"])
-        buffer = io.BytesIO()
-        _Py2Pickler(buffer, protocol=protocol).dump(data)
-        return buffer.getvalue()
+        yield modules
     finally:
         for name, module in saved.items():
             if module is None:
@@ -140,12 +157,54 @@ def smpl_pkl_bytes(arrays: dict, protocol: int = 2) -> bytes:
                 sys.modules[name] = module
 
 
+def _leftovers_to_chumpy(arrays: dict, modules: dict) -> dict:
+    transpose = modules["chumpy.reordering"].transpose
+    return {k: transpose(v.value) if isinstance(v, ChumpyLeftover) else v for k, v in arrays.items()}
+
+
+def smpl_pkl_bytes(arrays: dict, protocol: int = 2) -> bytes:
+    import scipy.sparse
+
+    with _chumpy_importable() as modules:
+        data = _leftovers_to_chumpy(arrays, modules)
+        data["shapedirs"] = modules["chumpy.ch"].Ch(np.asarray(arrays["shapedirs"]))
+        data["J_regressor"] = scipy.sparse.csc_matrix(arrays["J_regressor"])
+        buffer = io.BytesIO()
+        _Py2Pickler(buffer, protocol=protocol).dump(data)
+        return buffer.getvalue()
+
+
 def write_smpl_pkl(path, arrays: dict, protocol: int = 2) -> None:
     path.write_bytes(smpl_pkl_bytes(arrays, protocol))
 
 
 def write_smpl_npz(path, arrays: dict) -> None:
-    np.savez(path, **{k: np.asarray(v) for k, v in arrays.items()})
+    """Plain arrays; a :class:`ChumpyLeftover` becomes a pickled chumpy object in an object member
+    (what ``np.savez(**smpl_dict)`` writes when the dict still holds chumpy objects)."""
+    with _chumpy_importable() as modules:
+        data = _leftovers_to_chumpy(arrays, modules)
+        np.savez(path, **{k: np.asarray(v) if isinstance(v, np.ndarray | list | str) else _object_array(v)
+                          for k, v in data.items()})  # fmt: skip
+
+
+def _object_array(value) -> np.ndarray:
+    holder = np.empty((), dtype=object)
+    holder[()] = value
+    return holder
+
+
+def real_world_extras(arrays: dict, seed: int = 0) -> dict:
+    """What users' SMPL files carry beside the model: texture coordinates as ``vt``/``ft`` (OBJ
+    naming) and as a per-corner ``uv`` (F, 3, 2), and a chumpy leftover with no stored value.
+    (``random_smpl_arrays`` already has ``J``, ``bs_style``, ``bs_type`` and ``kintree_table``.)"""
+    rng = np.random.default_rng(seed)
+    num_faces = len(arrays["f"])
+    return {
+        "vt": rng.uniform(0, 1, (num_faces // 2, 2)),
+        "ft": rng.integers(0, num_faces // 2, (num_faces, 3)).astype(np.uint32),
+        "uv": rng.uniform(0, 1, (num_faces, 3, 2)),
+        "pose_leftover": ChumpyLeftover(rng.normal(size=(4, 3))),
+    }
 
 
 def smplx_oracle(arrays: dict, dtype):

@@ -14,9 +14,14 @@ from stg_node.body import (
     drive_body,
     load_body_model,
     load_smpl_params,
-    procedural_walk,
     save_smpl_params,
 )
+from stg_node.data.synth.motions import make_motion
+
+
+def _walk(num_frames: int, seed: int, betas=None):
+    """The project's motion generator (z-up ZJU-MoCap world), a walking sequence."""
+    return make_motion("walk", num_frames, 30.0, np.random.default_rng(seed), betas=betas)
 
 
 def _write_zju_new_params(folder, motion):
@@ -26,7 +31,7 @@ def _write_zju_new_params(folder, motion):
         np.save(
             folder / f"{i}.npy",
             {
-                "poses": motion.poses[i : i + 1].astype(np.float32),
+                "poses": motion.poses[i : i + 1].reshape(1, 72).astype(np.float32),
                 "Rh": motion.Rh[i : i + 1].astype(np.float32),
                 "Th": motion.Th[i : i + 1].astype(np.float32),
                 "shapes": np.atleast_2d(motion.betas).astype(np.float32)[:1],
@@ -36,7 +41,7 @@ def _write_zju_new_params(folder, motion):
 
 @pytest.fixture(scope="module")
 def sequence_dir(tmp_path_factory):
-    motion = procedural_walk(num_frames=24, seed=1, betas=np.linspace(-0.5, 0.5, 10))
+    motion = _walk(24, seed=1, betas=np.linspace(-0.5, 0.5, 10))
     folder = tmp_path_factory.mktemp("zju") / "new_params"
     _write_zju_new_params(folder, motion)
     return folder, motion
@@ -45,10 +50,12 @@ def sequence_dir(tmp_path_factory):
 def test_zju_new_params_round_trip(sequence_dir):
     folder, motion = sequence_dir
     loaded = load_smpl_params(folder)
-    assert len(loaded) == 24 and loaded.poses.shape == (24, 72) and loaded.betas.shape == (24, 10)
+    assert len(loaded) == 24 and loaded.poses.shape == (24, 24, 3) and loaded.betas.shape == (24, 10)
     assert np.array_equal(loaded.poses, motion.poses) and np.array_equal(loaded.Th, motion.Th)
     one = load_smpl_params(folder / "3.npy")
     assert np.array_equal(one.poses[0], motion.poses[3]) and np.array_equal(one.Rh[0], motion.Rh[3])
+    frame = loaded[3]  # one frame of a sequence is the per-frame type the datasets deliver
+    assert frame.poses.shape == (24, 3) and np.array_equal(frame.Th, motion.Th[3])
     # Frame order is numeric (10.npy after 9.npy), not lexical.
     assert np.array_equal(loaded.poses[10], motion.poses[10])
 
@@ -79,29 +86,30 @@ def test_same_code_path_drives_smpl_and_open_body(tmp_path, sequence_dir):
     assert out.vertices.shape == (24, open_body.num_vertices, 3)
     local = open_body(betas=torch.as_tensor(motion.betas, dtype=torch.float64), poses=poses)
     assert torch.allclose(out.joints, local.joints @ rot + th, atol=1e-9)
-    height = out.vertices[..., 1].amax(1) - out.vertices[..., 1].amin(1)
-    assert torch.all(height > 1.3) and torch.all(height < 2.3)  # upright (an arm may be up), not exploded
-    # The pelvis follows Th (it walks a circle), the feet stay near the floor.
-    pelvis_xz, th_xz = out.joints[:, 0, [0, 2]], th[:, 0, [0, 2]]
-    assert torch.allclose(th_xz.norm(dim=1), torch.full((24,), 2.0, dtype=torch.float64), atol=1e-5)
-    assert float((pelvis_xz - th_xz).norm(dim=1).max()) < 0.1
-    assert float(out.vertices[..., 1].amin()) > -0.2
+    # The motion's world is ZJU-MoCap's, z up: every frame is an upright whole body along z ...
+    height = out.vertices[..., 2].amax(1) - out.vertices[..., 2].amin(1)
+    assert torch.all(height > 1.3) and torch.all(height < 2.3)
+    # ... whose pelvis follows Th over the ground plane (the walk moves it by more than that).
+    pelvis_xy, th_xy = out.joints[:, 0, :2], th[:, 0, :2]
+    assert float((pelvis_xy - th_xy).norm(dim=1).max()) < 0.1
+    assert float((th_xy[-1] - th_xy[0]).norm()) > 0.2
 
 
 def test_npz_sequences_and_amass_layout(tmp_path):
-    motion = procedural_walk(num_frames=10, seed=2)
+    motion = _walk(10, seed=2)
     save_smpl_params(tmp_path / "walk.npz", motion)
     loaded = load_smpl_params(tmp_path / "walk.npz")
     assert np.array_equal(loaded.poses, motion.poses) and loaded.fps == pytest.approx(30.0)
+    hands = np.full((10, 90), 0.3, np.float32)  # SMPL-H hand joints, dropped on reading
     amass = {
-        "poses": np.concatenate([motion.poses[:, :66], np.full((10, 90), 0.3, np.float32)], 1),
+        "poses": np.concatenate([motion.poses.reshape(10, 72)[:, :66], hands], 1),
         "trans": motion.Th,
         "betas": np.arange(16, dtype=np.float64),
         "mocap_framerate": np.float64(120),
     }
     np.savez(tmp_path / "amass.npz", **amass)
     loaded = load_smpl_params(tmp_path / "amass.npz")
-    assert np.array_equal(loaded.poses[:, :66], motion.poses[:, :66]) and not loaded.poses[:, 66:].any()
+    assert np.array_equal(loaded.poses[:, :22], motion.poses[:, :22]) and not loaded.poses[:, 22:].any()
     assert np.array_equal(loaded.Th, motion.Th) and not loaded.Rh.any() and loaded.fps == 120
 
 

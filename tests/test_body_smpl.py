@@ -2,12 +2,22 @@
 
 from __future__ import annotations
 
+import logging
 import pickle
+import re
 
 import numpy as np
 import pytest
 import torch
-from smpl_fixtures import random_smpl_arrays, smpl_pkl_bytes, smplx_oracle, write_smpl_npz, write_smpl_pkl
+from smpl_fixtures import (
+    ChumpyLeftover,
+    random_smpl_arrays,
+    real_world_extras,
+    smpl_pkl_bytes,
+    smplx_oracle,
+    write_smpl_npz,
+    write_smpl_pkl,
+)
 
 from stg_node.body import BodyModelError, axis_angle_to_matrix, load_body_model
 from stg_node.body.smpl_io import accepted_file_names
@@ -203,3 +213,82 @@ def test_pickle_with_foreign_globals_is_refused(tmp_path):
         BodyModelError, match="refusing to unpickle posix.system|refusing to unpickle os.system"
     ):
         load_body_model(path)
+
+
+# --- users' files: extra arrays are ignored with one warning, required ones are checked ---------
+
+WRITERS = {"pkl": write_smpl_pkl, "npz": write_smpl_npz}
+
+
+def _warnings(caplog) -> list[str]:
+    return [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+
+
+def _ignored_names(message: str) -> set[str]:
+    """The array names listed in the loader's 'ignoring N array(s) ...: name (why); ...' warning."""
+    listed = message.split("does not use: ", 1)[1]
+    return {match.group(1) for match in re.finditer(r"(?:^|; )(\w+) \(", listed)}
+
+
+@pytest.mark.parametrize("source", ["pkl", "npz"])
+def test_real_world_extras_are_ignored_with_one_warning(tmp_path, smpl_arrays, source, caplog):
+    # An SMPL_NEUTRAL file as users have them: vt/ft, a per-corner uv (F, 3, 2), a chumpy
+    # leftover, and the official extras J, bs_style, bs_type (random_smpl_arrays has those).
+    path = tmp_path / f"SMPL_NEUTRAL.{source}"
+    WRITERS[source](path, {**smpl_arrays, **real_world_extras(smpl_arrays, seed=5)})
+    with caplog.at_level(logging.DEBUG, logger="stg_node.body.smpl_io"):
+        model = load_body_model(tmp_path, dtype=torch.float64)
+    warnings = _warnings(caplog)
+    assert len(warnings) == 1, warnings
+    assert _ignored_names(warnings[0]) == {"vt", "ft", "uv", "pose_leftover"}
+    num_faces = len(smpl_arrays["f"])
+    assert f"uv is ({num_faces}, 3, 2) float64, expected (Vt, 2)" in warnings[0]  # says why uv is unused
+    assert str(path) in warnings[0]
+    assert model.uv is None and model.uv_faces is None
+    # The model is the one in the file: smplx (independent code) on the same arrays agrees.
+    oracle = smplx_oracle(smpl_arrays, torch.float64)
+    betas, poses, Rh, Th = _random_inputs(2, batch=2)
+    ref_verts, _ = _oracle_world(oracle, betas, poses, Rh, Th)
+    assert torch.allclose(model(betas, poses, Rh, Th).vertices, ref_verts, atol=1e-5, rtol=0)
+
+
+def test_official_extras_and_the_open_body_load_without_a_warning(tmp_path, smpl_arrays, caplog):
+    write_smpl_pkl(tmp_path / "SMPL_NEUTRAL.pkl", smpl_arrays)  # J, bs_style, bs_type, kintree_table
+    with caplog.at_level(logging.DEBUG, logger="stg_node.body.smpl_io"):
+        load_body_model(tmp_path)
+        load_body_model(None)
+    assert _warnings(caplog) == []
+    assert any("bs_style" in r.getMessage() and r.levelno == logging.DEBUG for r in caplog.records)
+
+
+@pytest.mark.parametrize("source", ["pkl", "npz"])
+def test_a_missing_misshapen_or_valueless_required_array_is_named(tmp_path, smpl_arrays, source):
+    extras = real_world_extras(smpl_arrays)
+    write = WRITERS[source]
+    broken = {**smpl_arrays, **extras}
+    del broken["posedirs"]
+    write(tmp_path / f"a.{source}", broken)
+    with pytest.raises(BodyModelError, match=r"missing key\(s\) \['posedirs'\]"):
+        load_body_model(tmp_path / f"a.{source}")
+    misshapen = {**smpl_arrays, **extras, "weights": smpl_arrays["weights"][:-1]}
+    write(tmp_path / f"b.{source}", misshapen)
+    with pytest.raises(BodyModelError, match=r"'weights' has shape \(499, 24\), expected \(500, 24\)"):
+        load_body_model(tmp_path / f"b.{source}")
+    leftover = {**smpl_arrays, "v_template": ChumpyLeftover(smpl_arrays["v_template"])}
+    write(tmp_path / f"c.{source}", leftover)
+    with pytest.raises(BodyModelError, match="required 'v_template' is a chumpy expression without a stored"):
+        load_body_model(tmp_path / f"c.{source}")
+
+
+def test_our_own_texture_coordinates_are_still_checked_and_used(tmp_path, smpl_arrays, caplog):
+    rng = np.random.default_rng(0)
+    faces = smpl_arrays["f"]
+    uv = {"uv": rng.uniform(0, 1, (50, 2)), "uv_faces": rng.integers(0, 50, faces.shape)}
+    write_smpl_npz(tmp_path / "good.npz", {**smpl_arrays, **uv})
+    model = load_body_model(tmp_path / "good.npz", dtype=torch.float64)
+    assert torch.equal(model.uv, torch.as_tensor(uv["uv"])) and model.uv_faces.shape == faces.shape
+    bad = {**smpl_arrays, **uv, "uv_faces": uv["uv_faces"] + 50}  # indexes past the end of uv
+    write_smpl_npz(tmp_path / "bad.npz", bad)
+    with caplog.at_level(logging.WARNING, logger="stg_node.body.smpl_io"):
+        model = load_body_model(tmp_path / "bad.npz")
+    assert model.uv is None and _ignored_names(_warnings(caplog)[0]) == {"uv", "uv_faces"}

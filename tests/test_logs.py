@@ -43,3 +43,17 @@ def test_parse_level(text, level):
 def test_bad_level_is_a_clear_error():
     with pytest.raises(ValueError, match="STG_LOG_LEVEL"):
         parse_level("loud")
+
+
+def test_default_handler_follows_the_current_stderr(monkeypatch, clean_root):
+    """Configured once, then stderr is redirected (test capture, contextlib.redirect_stderr):
+    the lines go to the stderr of the moment, never to a stream that was replaced."""
+    clean_root.handlers[:] = [h for h in clean_root.handlers if not getattr(h, "_stg_node_handler", False)]
+    first, second = io.StringIO(), io.StringIO()
+    monkeypatch.setattr("sys.stderr", first)
+    configure_logging("INFO")
+    logging.getLogger("stg_node.x").info("one")
+    monkeypatch.setattr("sys.stderr", second)
+    first.close()
+    logging.getLogger("stg_node.x").info("two")
+    assert "two" in second.getvalue() and "one" not in second.getvalue()

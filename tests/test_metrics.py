@@ -16,6 +16,7 @@ from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 from stg_node.data.metrics import Evaluator, psnr, ssim
 from stg_node.data.metrics import lpips_weights as lw
 from stg_node.data.metrics.lpips import LPIPS, LpipsUnavailable, lpips_available, lpips_distance
+from stg_node.safe_load import safe_loads
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
 from lpips_reference_values import reference_pairs  # noqa: E402
@@ -125,7 +126,7 @@ def test_flax_to_torch_conv_layout_against_explicit_correlation():
         tree[f"NetLinLayer_{i}"] = {
             "Conv_0": {"kernel": np.abs(rng.normal(size=(1, 1, c, 1))).astype(np.float32)}
         }
-    state = lw.convert_flax_checkpoint("alex", lw.restricted_loads(pickle.dumps(tree)))
+    state = lw.convert_flax_checkpoint("alex", safe_loads(pickle.dumps(tree)))
     model = LPIPS("alex", state=state)
     x = torch.from_numpy(rng.normal(size=(1, 3, 40, 40)).astype(np.float32))
     out = model.backbone[0](x)[0].detach().numpy()  # stride 4, padding 2
@@ -143,9 +144,9 @@ def test_restricted_unpickler_refuses_code():
             return (print, ("pwned",))
 
     with pytest.raises(pickle.UnpicklingError, match="builtins.print"):
-        lw.restricted_loads(pickle.dumps(Evil()))
+        safe_loads(pickle.dumps(Evil()))
     with pytest.raises(lw.LpipsWeightsError, match="unexpected"):
-        lw.convert_flax_checkpoint("alex", lw.restricted_loads(pickle.dumps({"AlexNet_0": [1, 2]})))
+        lw.convert_flax_checkpoint("alex", safe_loads(pickle.dumps({"AlexNet_0": [1, 2]})))
 
 
 def test_missing_weights_are_reported_unavailable_never_a_number(tmp_path, capsys):

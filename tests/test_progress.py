@@ -1,6 +1,10 @@
 import io
+import threading
+import time
 
-from stg_node.progress import LOG_INTERVAL_S, progress
+import pytest
+
+from stg_node.progress import LOG_INTERVAL_S, progress, wait_with_progress
 
 
 class _Terminal(io.StringIO):
@@ -31,3 +35,20 @@ def test_disabled_bar_writes_nothing():
     for _ in progress(range(10), desc="quiet", file=out, enabled=False):
         pass
     assert out.getvalue() == ""
+
+
+def test_wait_with_progress_runs_the_work_elsewhere_and_passes_result_and_errors():
+    out = _Terminal()
+    main = threading.get_ident()
+
+    def work():
+        time.sleep(1.1)
+        return threading.get_ident()
+
+    assert wait_with_progress(work, desc="compiling", file=out) != main
+    assert "compiling: 00:01 elapsed" in out.getvalue()
+    with pytest.raises(ZeroDivisionError):
+        wait_with_progress(lambda: 1 / 0, desc="failing", file=io.StringIO())
+    quiet = io.StringIO()
+    assert wait_with_progress(threading.get_ident, desc="off", enabled=False, file=quiet) == main
+    assert quiet.getvalue() == ""

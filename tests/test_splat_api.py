@@ -56,8 +56,8 @@ def test_wrong_types_sizes_and_camera_are_clear_errors():
     with pytest.raises(TypeError, match="means must be a torch.Tensor"):
         _call(bad)
     for w, h, msg in [
-        (0, 16, "width must be >= 1"),
-        (24, -1, "height must be >= 1"),
+        (-1, 16, "width must be >= 0"),
+        (24, -1, "height must be >= 0"),
         (24.0, 16, "width must be an int"),
     ]:
         bad = list(args)
@@ -177,3 +177,15 @@ def test_torch_reference_memory_chunking_does_not_change_the_result():
         assert torch.allclose(image, full, atol=1e-6), (block, pairs)
         assert torch.allclose(alpha, alpha_full, atol=1e-6), (block, pairs)
     assert (alpha_full > 0.999).float().mean() > 0.05  # early termination exercised
+
+
+def test_finite_check_is_exact_when_the_fast_sum_overflows():
+    from stg_node.splat.validation import check_finite
+
+    huge = torch.tensor([3e38, 3e38, 1.0])  # finite, but the float32 sum overflows to inf
+    check_finite("means", huge)
+    for bad in (float("nan"), float("inf"), -float("inf")):
+        poisoned = huge.clone()
+        poisoned[2] = bad
+        with pytest.raises(ValueError, match=r"means contains non-finite values \(first at index \(2,\)"):
+            check_finite("means", poisoned)

@@ -117,12 +117,14 @@ def test_two_gaussians_composite_front_to_back(backend):
     assert alpha[10, 10, 0].item() == pytest.approx(1 - (1 - a1) * (1 - a2), abs=1e-6)
 
 
-def test_opaque_stack_stops_when_transmittance_would_drop_below_threshold():
-    """Ten opaque layers: each blends alpha 0.99 until the next would push T below 1e-4."""
+def test_opaque_stack_stops_when_transmittance_would_reach_the_threshold():
+    """Ten opaque layers: each blends alpha ALPHA_MAX (0.999, gsplat's clamp) until the next would
+    take T to 1e-4 or below (gsplat's `next_T <= 1e-4f`): T 1 -> 0.001, then the second layer
+    (T 1e-6) is not blended."""
     n = 10
     means = torch.stack([torch.tensor([0.0, 0.0, 2.0 + 0.1 * i]) for i in range(n)]).double()
     quats = torch.tensor([[1.0, 0, 0, 0]] * n, dtype=torch.float64)
-    scales = torch.full((n, 3), 1.0, dtype=torch.float64)  # huge: alpha clamps to 0.99
+    scales = torch.full((n, 3), 1.0, dtype=torch.float64)  # huge: alpha clamps to ALPHA_MAX
     opacities = torch.ones(n, dtype=torch.float64)
     colors = torch.eye(n, dtype=torch.float64)
     K = torch.tensor([[50.0, 0.0, 4.0], [0.0, 50.0, 4.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
@@ -140,11 +142,11 @@ def test_opaque_stack_stops_when_transmittance_would_drop_below_threshold():
                 8,
                 backend=backend,
             )
-            # The same rule in the working precision: T 1 -> 0.01 -> ~1e-4, and whether the
-            # second layer's T lands just above or just below 1e-4 depends on rounding.
+            # The same rule in the working precision.
             keep = 1.0 - torch.tensor(constants.ALPHA_MAX, dtype=dtype)
             t2 = keep * keep
-            second = bool(t2 >= torch.tensor(constants.TRANSMITTANCE_MIN, dtype=dtype))
+            second = bool(t2 > torch.tensor(constants.TRANSMITTANCE_MIN, dtype=dtype))
+            assert not second
             expected = [
                 constants.ALPHA_MAX,
                 constants.ALPHA_MAX * (1 - constants.ALPHA_MAX) if second else 0.0,

@@ -130,9 +130,10 @@ def test_chunked_rasterization_equals_single_pass():
     """A tiny intersection budget forces many chunks; the result must not change."""
     scene, viewmat, K = random_scene(400, 64, 48, seed=6)
     out1, grad1, info1 = _render("cpu", scene, viewmat, K, 64, 48)
-    stats_single = dict(cpu_backend.last_stats["forward"])
+    stats_single = info1["stats"]["forward"]
     out2, grad2, info2 = _render("cpu", scene, viewmat, K, 64, 48, max_intersections=100)
-    stats_chunked = cpu_backend.last_stats["forward"]
+    stats_chunked = info2["stats"]["forward"]
+    assert info2["stats"]["backward"]["n_chunks"] == stats_chunked["n_chunks"]  # filled by backward
     assert stats_single["n_chunks"] == 1
     assert stats_chunked["n_chunks"] > 5
     assert stats_chunked["n_intersections"] == stats_single["n_intersections"]
@@ -213,7 +214,7 @@ def test_missing_compiler_is_reported_and_auto_falls_back(monkeypatch, tmp_path,
     def unavailable():
         raise build.ExtensionUnavailable("no C++ compiler found (test)", reason="no-compiler")
 
-    monkeypatch.setattr(api, "load_kernels", unavailable)
+    monkeypatch.setattr(cpu_backend, "load_kernels", unavailable)
     monkeypatch.setattr(api, "_warned", set())
     monkeypatch.setattr(api, "_logged_choices", set())
     scene, viewmat, K = random_scene(20, 16, 16)

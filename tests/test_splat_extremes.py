@@ -143,14 +143,47 @@ def test_straddling_the_image_border(backend):
 
 
 def test_opacity_zero_and_one(backend):
+    """Opacity 0 is culled; opacity 1 gives min(ALPHA_MAX, exp(-sigma)): gsplat's clamp, on
+    every backend (float32 and gsplat's fast exp agree to ~1e-7 here: tolerance 2e-6)."""
     viewmat, K = _camera(device=backend[1])
-    params = _gaussians([[0.0, 0.0, 2.0], [0.3, 0.0, 2.0]], [[0.05], [0.5]], [0.0, 1.0], device=backend[1])
+    f, depth = 40.0, 2.0
+    # A 10 px Gaussian centred on a pixel corner, (22, 12): its 4 nearest pixel centres are
+    # 0.5 px away per axis, where exp(-sigma) = 0.9975 lies between 0.99 and ALPHA_MAX. Flat
+    # along z, so the off-axis term of the EWA Jacobian vanishes.
+    scales = [[0.05, 0.05, 0.05], [0.5, 0.5, 1e-6]]
+    params = _gaussians([[0.0, 0.0, depth], [0.3, 0.0, depth]], scales, [0.0, 1.0], device=backend[1])
     _, alpha, info, grads = _render_and_backprop(backend, params, viewmat, K, 32, 24)
     assert info["visible"].tolist() == [False, True]
-    # Opacity 1 and a 10 px wide Gaussian: alpha clamps to ALPHA_MAX around its centre.
-    assert alpha.max().item() == pytest.approx(constants.ALPHA_MAX, abs=1e-6)
-    assert (alpha > constants.ALPHA_MAX - 1e-6).sum() >= 4
+    var = (f * 0.5 / depth) ** 2 + constants.LOW_PASS_EPS2D
+    peak = math.exp(-0.5 * 0.5 / var)
+    assert 0.99 < peak < constants.ALPHA_MAX
+    assert alpha[11:13, 21:23].flatten().tolist() == pytest.approx([peak] * 4, abs=2e-6)
+    assert alpha.max().item() == pytest.approx(peak, abs=2e-6)
     assert grads[3][0] == 0  # an invisible Gaussian gets no gradient
+    # A 20 px Gaussian: exp(-sigma) > ALPHA_MAX near its centre, so alpha clamps there.
+    wide = _gaussians([[0.3, 0.0, depth]], [[1.0, 1.0, 1e-6]], [1.0], device=backend[1])
+    _, alpha_wide, _, _ = _render_and_backprop(backend, wide, viewmat, K, 32, 24)
+    assert alpha_wide.max().item() == pytest.approx(constants.ALPHA_MAX, abs=1e-7)
+    assert (alpha_wide > constants.ALPHA_MAX - 1e-7).sum() >= 4
+
+
+def test_transmittance_stop_at_exactly_the_threshold(backend):
+    """gsplat stops a pixel when the next Gaussian would take T to 1e-4 *or below* (exclusive:
+    that one is not blended). Two Gaussians centred on a pixel centre (sigma = 0, so alpha =
+    opacity exactly) with float32 opacities chosen so that (1 - a1)(1 - a2) rounds to exactly
+    float32(1e-4): (1 - a1) = 1593856 / 2^24, (1 - a2) = 17660 / 2^24, product 2^48 * 1e-4f."""
+    device = backend[1]
+    a1, a2 = 1 - 1593856 / 2**24, 1 - 17660 / 2**24
+    T1 = torch.tensor(1.0) - torch.tensor(a1)
+    assert T1 * (torch.tensor(1.0) - torch.tensor(a2)) == torch.tensor(constants.TRANSMITTANCE_MIN)
+    K = torch.tensor([[20.0, 0.0, 4.5], [0.0, 20.0, 4.5], [0.0, 0.0, 1.0]], device=device)
+    colors = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    params = _gaussians(
+        [[0.0, 0.0, 2.0], [0.0, 0.0, 3.0]], [[0.01]] * 2, [a1, a2], colors=colors, device=device
+    )
+    image, alpha, _, _ = _render_and_backprop(backend, params, torch.eye(4, device=device), K, 9, 9)
+    assert image[4, 4].tolist() == [pytest.approx(a1, abs=1e-7), 0.0, 0.0]
+    assert alpha[4, 4, 0].item() == pytest.approx(a1, abs=1e-7)
 
 
 def test_zero_and_unnormalised_quaternions(backend):
@@ -239,6 +272,38 @@ def test_zero_and_one_gaussian(backend, n):
         assert alpha.max() > 0.5 and info["visible"].all()
 
 
+def test_nothing_visible_renders_the_background(backend):
+    """Every Gaussian culled, each by another rule (behind, beyond the far plane, off-screen,
+    opacity below 1/255): the background, alpha 0, zero and finite gradients, no intersection."""
+    device = backend[1]
+    viewmat, K = _camera(device=device)
+    means = [[0.0, 0.0, -1.0], [0.0, 0.0, 50.0], [3.0, 0.0, 1.0], [0.0, -2.0, 1.0], [0.0, 0.0, 2.0]]
+    opacities = [0.9, 0.9, 0.9, 0.9, 0.5 / 255]
+    params = _gaussians(means, [[0.05]] * 5, opacities, device=device)
+    bg = torch.tensor([0.3, 0.5, 0.7], device=device)
+    image, alpha, info, grads = _render_and_backprop(
+        backend, params, viewmat, K, 32, 24, background=bg, far_plane=10.0
+    )
+    assert alpha.max() == 0 and torch.equal(image, bg.expand_as(image))
+    assert not info["visible"].any() and not info["radii"].any() and info["n_intersections"] == 0
+    assert all(not g.any() for g in grads)
+
+
+@pytest.mark.parametrize("size", [(0, 24), (32, 0), (0, 0)])
+def test_zero_area_images_are_empty_backgrounds(backend, size):
+    width, height = size
+    device = backend[1]
+    viewmat, K = _camera(device=device)
+    params = _gaussians([[0.0, 0.0, 2.0], [0.1, 0.0, 3.0]], device=device)
+    bg = torch.tensor([0.3, 0.5, 0.7], device=device)
+    image, alpha, info, grads = _render_and_backprop(
+        backend, params, viewmat, K, width, height, background=bg, render_depth=True
+    )
+    assert info["depth"].shape == (height, width, 1)
+    assert not info["visible"].any() and info["means2d"].shape == (2, 2)
+    assert all(not g.any() for g in grads)
+
+
 @pytest.mark.parametrize("size", [(1, 1), (1, 7), (9, 1), (17, 33)])
 def test_small_and_odd_image_sizes(backend, size):
     width, height = size
@@ -317,15 +382,13 @@ def test_memory_stays_bounded_when_every_gaussian_covers_every_tile(backend):
     image does not depend on the chunking."""
     if backend[0] != "cpu":
         pytest.skip("chunking is a property of the cpu backend")
-    from stg_node.splat import cpu_backend
-
     n = 300
     viewmat, K = _camera(128, 96, f=100.0)
     gen = torch.Generator().manual_seed(0)
     means = torch.cat([torch.rand(n, 2, generator=gen) * 0.2 - 0.1, torch.rand(n, 1, generator=gen) + 1.0], 1)
     params = _gaussians(means, torch.full((n, 1), 2.0), torch.full((n,), 0.02))
-    image1, _, _, _ = _render_and_backprop(backend, params, viewmat, K, 128, 96)
-    assert cpu_backend.last_stats["forward"]["n_intersections"] == n * 8 * 6
-    image2, _, _, _ = _render_and_backprop(backend, params, viewmat, K, 128, 96, max_intersections=1000)
-    assert cpu_backend.last_stats["forward"]["n_chunks"] >= 14
+    image1, _, info1, _ = _render_and_backprop(backend, params, viewmat, K, 128, 96)
+    assert info1["stats"]["forward"]["n_intersections"] == info1["n_intersections"] == n * 8 * 6
+    image2, _, info2, _ = _render_and_backprop(backend, params, viewmat, K, 128, 96, max_intersections=1000)
+    assert info2["stats"]["forward"]["n_chunks"] >= 14
     assert torch.equal(image1, image2)

@@ -16,6 +16,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -25,11 +26,11 @@ from stg_node.body import (  # noqa: E402
     blend_transforms,
     canonical_transforms,
     load_body_model,
-    procedural_walk,
     skin_points,
     skin_rotations,
 )
 from stg_node.body.lbs import matrix_to_quaternion, quaternion_to_matrix  # noqa: E402
+from stg_node.data.synth.motions import make_motion  # noqa: E402
 from stg_node.logs import configure_logging  # noqa: E402
 from stg_node.threads import configure_threads  # noqa: E402
 
@@ -73,7 +74,7 @@ def main(argv=None) -> int:
     threads = configure_threads()
     torch.manual_seed(0)
     body = load_body_model(None)
-    motion = procedural_walk(2)
+    motion = make_motion("walk", 2, 30.0, np.random.default_rng(0))
     transforms = canonical_transforms(
         body,
         torch.as_tensor(motion.betas),

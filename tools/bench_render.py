@@ -7,8 +7,11 @@ a camera framing it to 85 % of the image height (an avatar in a telepresence vie
 thread count a child process is started with STG_THREADS set (stg_node.threads applies it)
 and measures, per case: forward (no grad) and forward+backward (grads for all parameters,
 a weighted-sum loss) wall time, per-stage timings of the C++ kernels, and the torch
-reference on the same scene for the same-run ratio. The load average is printed with every
-row: on a shared machine the figures are only comparable within one run.
+reference on the same scene for the same-run ratio. On a CUDA machine each row adds the cuda
+backend (gsplat) forward and forward+backward on the same scene in the same run (run
+``stg-splat-prebuild`` first, or the warm-up includes gsplat's first-use build). The load
+average is printed with every row: on a shared machine the figures are only comparable
+within one run.
 
     python tools/bench_render.py [--threads 1 2] [--repeats 20] [--torch-repeats 2]
                                  [--cases 10000x256 50000x512] [--no-torch] [--png docs/splat_person.png]
@@ -57,7 +60,7 @@ def _child(args) -> None:
 
     from stg_node.logs import configure_logging
     from stg_node.progress import progress
-    from stg_node.splat import cpu_backend, rasterize
+    from stg_node.splat import rasterize
     from stg_node.splat.scenes import front_camera, person_sized_scene
     from stg_node.threads import configure_threads
 
@@ -78,26 +81,27 @@ def _child(args) -> None:
         def forward_backward(backend, params=params, viewmat=viewmat, K=K, size=size, weights=weights):
             for p in params:
                 p.grad = None
-            image, alpha, _ = rasterize(*params, viewmat, K, size, size, backend=backend)
+            image, alpha, info = rasterize(*params, viewmat, K, size, size, backend=backend)
             ((image * weights).sum() + alpha.sum()).backward()
+            return info
 
         row = {"n": n, "size": size, "threads": threads, "load_before": os.getloadavg()[0]}
         row["cpu_fwd"] = _time(lambda: forward("cpu"), args.repeats)
         stages = {"project": [], "sort": [], "bin": [], "raster": []}
         for _ in range(5):
-            forward("cpu")
-            stages["project"].append(cpu_backend.last_stats["project"]["ms"])
+            info = forward("cpu")[2]
+            stages["project"].append(info["stats"]["project"]["ms"])
             for key in ("sort", "bin", "raster"):
-                stages[key].append(cpu_backend.last_stats["forward"][f"ms_{key}"])
+                stages[key].append(info["stats"]["forward"][f"ms_{key}"])
         row["cpu_stages_ms"] = {k: statistics.median(v) for k, v in stages.items()}
-        row["n_intersections"] = cpu_backend.last_stats["forward"]["n_intersections"]
+        row["n_intersections"] = info["n_intersections"]
         row["cpu_fwdbwd"] = _time(lambda: forward_backward("cpu"), max(5, args.repeats // 2))
         bstages = {"raster_bwd": [], "reduce": [], "project_bwd": []}
         for _ in range(3):
-            forward_backward("cpu")
-            bstages["raster_bwd"].append(cpu_backend.last_stats["backward"]["ms_raster"])
-            bstages["reduce"].append(cpu_backend.last_stats["backward"]["ms_reduce"])
-            bstages["project_bwd"].append(cpu_backend.last_stats["project_backward"]["ms"])
+            stats = forward_backward("cpu")["stats"]  # the backward stages arrive with backward()
+            bstages["raster_bwd"].append(stats["backward"]["ms_raster"])
+            bstages["reduce"].append(stats["backward"]["ms_reduce"])
+            bstages["project_bwd"].append(stats["project_backward"]["ms"])
         row["cpu_stages_ms"].update({k: statistics.median(v) for k, v in bstages.items()})
         if not args.no_torch:
             row["torch_fwd"] = _time(lambda: forward("torch"), args.torch_repeats, warmup=1)
@@ -111,7 +115,19 @@ def _child(args) -> None:
                     with torch.no_grad():
                         rasterize(*cuda_scene, vm, kk, size, size, backend="cuda")
 
+                cuda_params = [t.clone().requires_grad_(True) for t in cuda_scene]
+                cuda_weights = weights.cuda()
+
+                def cuda_forward_backward(cuda_params=cuda_params, vm=vm, kk=kk, size=size, w=cuda_weights):
+                    for p in cuda_params:
+                        p.grad = None
+                    image, alpha, _ = rasterize(*cuda_params, vm, kk, size, size, backend="cuda")
+                    ((image * w).sum() + alpha.sum()).backward()
+
                 row["cuda_fwd"] = _time(cuda_forward, args.repeats * 5, warmup=5, sync=torch.cuda.synchronize)
+                row["cuda_fwdbwd"] = _time(
+                    cuda_forward_backward, args.repeats * 5, warmup=5, sync=torch.cuda.synchronize
+                )
                 row["cuda_device"] = torch.cuda.get_device_name()
             except Exception as exc:  # report, do not hide: the cuda path is optional here
                 row["cuda_error"] = f"{type(exc).__name__}: {exc}"
@@ -224,7 +240,10 @@ def main() -> int:
         if "cuda_fwd" in r:
             print(
                 f"cuda ({r['cuda_device']}) {r['n']} Gaussians {r['size']}^2: "
-                f"{1 / r['cuda_fwd']['median_s']:.0f} FPS forward"
+                f"{1 / r['cuda_fwd']['median_s']:.0f} FPS forward, "
+                f"{_fmt_ms(r['cuda_fwdbwd']['median_s'])} forward+backward; same run, cpu backend "
+                f"{r['threads']} thread(s): {r['cpu_fwd']['median_s'] / r['cuda_fwd']['median_s']:.0f}x / "
+                f"{r['cpu_fwdbwd']['median_s'] / r['cuda_fwdbwd']['median_s']:.0f}x slower"
             )
         elif "cuda_error" in r:
             print(f"cuda failed: {r['cuda_error']}")

@@ -16,11 +16,11 @@ import zipfile
 from pathlib import Path
 
 import numpy as np
-import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's stg_node first
 
 from stg_node.data.metrics.lpips_weights import load_state  # noqa: E402
+from stg_node.safe_load import load_torch  # noqa: E402
 
 
 def main() -> int:
@@ -30,8 +30,7 @@ def main() -> int:
     worst = 0.0
     with zipfile.ZipFile(sys.argv[1]) as wheel:
         for net in ("alex", "vgg"):
-            official = torch.load(io.BytesIO(wheel.read(f"lpips/weights/v0.1/{net}.pth")), map_location="cpu",
-                                  weights_only=True)  # fmt: skip
+            official = load_torch(io.BytesIO(wheel.read(f"lpips/weights/v0.1/{net}.pth")))
             ours = load_state(net)
             for i in range(5):
                 diff = float(

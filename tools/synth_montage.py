@@ -37,8 +37,9 @@ def _garment_heat(folder: Path, frame: int, body, annots: dict, size: int, scale
 
     from stg_node.data.synth.mesh_raster import TexturedMesh, render_mesh
     from stg_node.data.types import Camera
+    from stg_node.safe_load import load_npy
 
-    params = np.load(folder / "new_params" / f"{frame}.npy", allow_pickle=True).item()
+    params = load_npy(folder / "new_params" / f"{frame}.npy")
     gt = np.load(folder / "new_vertices" / f"{frame}.npy")
     with torch.no_grad():
         skinned = (
@@ -77,6 +78,7 @@ def main(argv: list[str] | None = None) -> int:
     from stg_node.data.synth.generate import SynthConfig, generate
     from stg_node.data.synth.writer import read_metadata
     from stg_node.logs import configure_logging
+    from stg_node.safe_load import load_npy
     from stg_node.threads import configure_threads
 
     configure_logging("WARNING")
@@ -88,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
             folder = Path(tmp) / "bench"
             generate(SynthConfig(out=folder, seed=0, size=384), body=body)
         meta = read_metadata(folder)
-        annots = np.load(folder / "annots.npy", allow_pickle=True).item()
+        annots = load_npy(folder / "annots.npy")
         segments = meta["motion_segments"]
         frames = [(seg["start"] + seg["stop"]) // 2 for seg in segments]
         n_train = meta["num_train_frames"]

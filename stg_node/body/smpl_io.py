@@ -4,24 +4,32 @@ The official SMPL files are Python-2 pickles holding chumpy arrays and a scipy-s
 ``J_regressor``. We read them with neither chumpy nor scipy, through a restricted unpickler that
 knows exactly the globals those files use (numpy array reconstruction, chumpy ``Ch`` objects,
 scipy sparse matrices, ``copy_reg`` plumbing) and turns them into plain numpy arrays; any other
-global in the stream is refused, so a model file cannot run code. ``.npz`` files with the same
-keys are read with ``allow_pickle=False``.
+global in the stream is refused, so a model file cannot run code (the unpickler widens
+:class:`stg_node.safe_load.SafeUnpickler`, the project's one safe loader). ``.npz`` files with the
+same keys are read with ``allow_pickle=False``; a member holding pickled objects (chumpy leftovers
+of a converted ``.pkl``) goes through the same restricted unpickler.
 
 This module owns the file names we accept, the checks on keys and shapes, and the detection of
 SMPL's relatives (SMPL-H, SMPL-X, MANO), which we name in the error instead of failing later.
+Real files carry more than the model needs (texture coordinates ``vt``/``ft``, a per-corner
+``uv`` (F, 3, 2), a precomputed ``J``, ``bs_style``/``bs_type``, SMPLify's priors): only a
+missing or misshapen *required* array refuses a file; the rest is ignored, and whatever is not
+a known SMPL-file extra is named in one warning.
 """
 
 from __future__ import annotations
 
-import io
+import logging
 import pickle
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from stg_node.body.safe_pickle import NumpyUnpickler
+from stg_node.safe_load import RefusedPickleError, SafeUnpickler, load_npz, safe_loads
+
+log = logging.getLogger(__name__)
 
 SMPL_NUM_JOINTS = 24
 SMPL_PARENTS = (-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 20, 21)
@@ -41,6 +49,14 @@ SMPL_DOWNLOAD_HINT = (
 )
 
 REQUIRED_KEYS = ("v_template", "shapedirs", "posedirs", "J_regressor", "weights", "kintree_table", "f")
+# Used when present and well-formed (the open body has them); ignored with the warning otherwise.
+OPTIONAL_KEYS = ("uv", "uv_faces", "texture", "name")
+# Found in official SMPL / SMPLify files and in the open body, and not needed: ignored without a
+# warning (logged at debug level). ``J`` is recomputed from J_regressor so that it follows betas.
+KNOWN_EXTRA_KEYS = (
+    "J", "bs_style", "bs_type", "vert_sym_idxs", "J_regressor_prior", "weights_prior",
+    "pose_training_info", "shape_labels", "source",
+)  # fmt: skip
 
 # Known relatives, recognised by joint count (weights' columns) and vertex count.
 _VARIANTS = {
@@ -194,8 +210,12 @@ def _reconstructor(cls, base, state):
     return object.__new__(cls)
 
 
-class _RestrictedUnpickler(NumpyUnpickler):
+class SmplUnpickler(SafeUnpickler):
     """Unpickles SMPL model files; refuses every global they do not need."""
+
+    allowed_description = (
+        "an SMPL model file holds only numpy arrays, chumpy arrays and scipy sparse matrices"
+    )
 
     def find_class(self, module: str, name: str):
         if module in ("copy_reg", "copyreg") and name == "_reconstructor":
@@ -204,18 +224,24 @@ class _RestrictedUnpickler(NumpyUnpickler):
             return _ChumpyStandIn
         if module.startswith("scipy.sparse") and name in _SPARSE_CLASSES:
             return _SPARSE_CLASSES[name]
-        try:
-            return super().find_class(module, name)
-        except pickle.UnpicklingError:
-            raise pickle.UnpicklingError(
-                f"refusing to unpickle {module}.{name}: an SMPL model file holds only numpy arrays, chumpy "
-                "arrays and scipy sparse matrices"
-            ) from None
+        return super().find_class(module, name)
+
+
+@dataclass(frozen=True)
+class _Unreadable:
+    """A value that could not become an array (a chumpy expression without a stored value)."""
+
+    reason: str
 
 
 def _to_numpy(key: str, value):
+    """Chumpy and scipy stand-ins -> numpy; a value with no numbers in it -> :class:`_Unreadable`
+    (an error later only if ``key`` is required)."""
     if isinstance(value, (_ChumpyStandIn, _SparseStandIn)):
-        return value.to_numpy(key)
+        try:
+            return value.to_numpy(key)
+        except BodyModelError as exc:
+            return _Unreadable(str(exc))
     return value
 
 
@@ -223,10 +249,10 @@ def read_pickle_model(path: Path) -> dict:
     """The arrays of an SMPL ``.pkl`` (Python 2 or 3 pickle) as a dict of numpy values."""
     raw = path.read_bytes()
     try:
-        data = _RestrictedUnpickler(io.BytesIO(raw), encoding="latin1").load()
+        data = safe_loads(raw, SmplUnpickler)
+    except RefusedPickleError as exc:
+        raise BodyModelError(f"{path}: {exc}") from None
     except pickle.UnpicklingError as exc:
-        if str(exc).startswith("refusing"):
-            raise BodyModelError(f"{path}: {exc}") from None
         raise BodyModelError(f"{path}: not a readable SMPL pickle ({exc})") from None
     except Exception as exc:  # truncated or corrupt stream
         raise BodyModelError(f"{path}: not a readable SMPL pickle ({type(exc).__name__}: {exc})") from None
@@ -236,17 +262,15 @@ def read_pickle_model(path: Path) -> dict:
 
 
 def read_npz_model(path: Path) -> dict:
-    """The arrays of an SMPL-format ``.npz`` (no pickled objects allowed)."""
+    """The arrays of an SMPL-format ``.npz``; object members (chumpy leftovers) go through
+    :class:`SmplUnpickler`."""
     try:
-        with np.load(path, allow_pickle=False) as archive:
-            return {k: archive[k] for k in archive.files}
-    except ValueError as exc:
-        raise BodyModelError(
-            f"{path}: holds pickled objects, which we do not load from .npz ({exc}); "
-            "re-save it with plain arrays"
-        ) from None
+        data = load_npz(path, unpickler=SmplUnpickler)
+    except RefusedPickleError as exc:
+        raise BodyModelError(str(exc)) from None  # names the file and the member
     except Exception as exc:
         raise BodyModelError(f"{path}: not a readable .npz archive ({type(exc).__name__}: {exc})") from None
+    return {str(k): _to_numpy(str(k), v) for k, v in data.items()}
 
 
 # --------------------------------------------------------------------------------------------
@@ -288,8 +312,11 @@ def validate_model_arrays(data: dict, source: str) -> ModelArrays:
         )
 
     def array(key, dtype=np.float64):
+        value = data[key]
+        if isinstance(value, _Unreadable):
+            raise BodyModelError(f"{source}: required {value.reason}")
         try:
-            return np.asarray(data[key], dtype=dtype)
+            return np.asarray(value, dtype=dtype)
         except (TypeError, ValueError) as exc:
             raise BodyModelError(f"{source}: {key!r} is not numeric ({exc})") from None
 
@@ -338,7 +365,7 @@ def validate_model_arrays(data: dict, source: str) -> ModelArrays:
     if j_regressor.shape != (SMPL_NUM_JOINTS, num_verts):
         raise _shape_error(source, "J_regressor", j_regressor, f"(24, {num_verts})")
 
-    kintree = np.asarray(data["kintree_table"])
+    kintree = array("kintree_table", None)
     if kintree.ndim != 2 or kintree.shape != (2, SMPL_NUM_JOINTS):
         raise _shape_error(source, "kintree_table", kintree, "(2, 24)")
     parents = kintree[0].astype(np.int64)
@@ -348,7 +375,7 @@ def validate_model_arrays(data: dict, source: str) -> ModelArrays:
             f"{source}: kintree_table parents {parents.tolist()} are not a tree in SMPL order"
         )
 
-    faces = np.asarray(data["f"])
+    faces = array("f", None)
     if faces.ndim != 2 or faces.shape[1] != 3:
         raise _shape_error(source, "f", faces, "(F, 3)")
     faces = faces.astype(np.int64)
@@ -366,25 +393,87 @@ def validate_model_arrays(data: dict, source: str) -> ModelArrays:
             f"(found sums in [{sums.min():.4f}, {sums.max():.4f}])"
         )
 
-    uv = uv_faces = texture = None
-    if "uv" in data:
-        uv = np.asarray(data["uv"], dtype=np.float64)
-        uv_faces = np.asarray(data["uv_faces"], dtype=np.int64) if "uv_faces" in data else None
-        if uv.ndim != 2 or uv.shape[1] != 2:
-            raise _shape_error(source, "uv", uv, "(Vt, 2)")
-        if uv_faces is None or uv_faces.shape != faces.shape:
-            raise _shape_error(source, "uv_faces", uv_faces, f"{faces.shape} (one UV index per face corner)")
-    if "texture" in data:
-        texture = np.asarray(data["texture"])
-        if texture.ndim != 3 or texture.shape[2] != 3 or texture.dtype != np.uint8:
-            raise BodyModelError(
-                f"{source}: 'texture' must be (H, W, 3) uint8, got {texture.shape} {texture.dtype}"
-            )
-    name = str(np.asarray(data["name"])) if "name" in data else "smpl"
+    optional = _optional_arrays(data, faces.shape)
+    _report_ignored(data, optional.ignored, source)
     return ModelArrays(
         v_template=v_template, shapedirs=shapedirs, posedirs=posedirs, J_regressor=j_regressor,
-        weights=weights, parents=parents, faces=faces, uv=uv, uv_faces=uv_faces, texture=texture, name=name,
+        weights=weights, parents=parents, faces=faces, uv=optional.uv, uv_faces=optional.uv_faces,
+        texture=optional.texture, name=optional.name,
     )  # fmt: skip
+
+
+@dataclass
+class _OptionalArrays:
+    uv: np.ndarray | None = None
+    uv_faces: np.ndarray | None = None
+    texture: np.ndarray | None = None
+    name: str = "smpl"
+    ignored: dict[str, str] = field(default_factory=dict)  # optional key -> why it was not used
+
+
+def _uv_problem(uv, uv_faces, faces_shape: tuple[int, ...]) -> str | None:
+    """Why ``uv``/``uv_faces`` cannot be our texture coordinates, or None if they can."""
+    if np.ndim(uv) != 2 or np.shape(uv)[1] != 2:
+        return f"uv is {_describe(uv)}, expected (Vt, 2) indexed by uv_faces"
+    if np.shape(uv_faces) != tuple(faces_shape):
+        return (
+            f"uv_faces is {_describe(uv_faces)}, expected {tuple(faces_shape)} (one uv index per face corner)"
+        )
+    uv_faces = np.asarray(uv_faces)
+    if uv_faces.size and (uv_faces.min() < 0 or uv_faces.max() >= len(uv)):
+        return f"uv_faces index outside uv's {len(uv)} rows"
+    return None
+
+
+def _optional_arrays(data: dict, faces_shape: tuple[int, ...]) -> _OptionalArrays:
+    """uv + uv_faces, texture and name where present and well-formed; the reason for each one that is not."""
+    out = _OptionalArrays()
+    if "uv" in data or "uv_faces" in data:
+        problem = _uv_problem(data.get("uv"), data.get("uv_faces"), faces_shape)
+        if problem is None:
+            out.uv = np.asarray(data["uv"], dtype=np.float64)
+            out.uv_faces = np.asarray(data["uv_faces"], dtype=np.int64)
+        else:
+            out.ignored.update({key: problem for key in ("uv", "uv_faces") if key in data})
+    if "texture" in data:
+        texture = data["texture"]
+        if (
+            isinstance(texture, np.ndarray)
+            and texture.dtype == np.uint8
+            and texture.ndim == 3
+            and (texture.shape[2] == 3)
+        ):
+            out.texture = texture
+        else:
+            out.ignored["texture"] = f"texture is {_describe(texture)}, expected (H, W, 3) uint8"
+    if "name" in data:
+        out.name = str(np.asarray(data["name"]))
+    return out
+
+
+def _report_ignored(data: dict, optional_ignored: dict[str, str], source: str) -> None:
+    """One warning naming every array of ``data`` the model does not use (known SMPL extras: debug only)."""
+    used = set(REQUIRED_KEYS) | set(OPTIONAL_KEYS)
+    known = sorted(k for k in data if k in KNOWN_EXTRA_KEYS)
+    unknown = {
+        k: (v.reason if isinstance(v, _Unreadable) else _describe(v))
+        for k, v in data.items()
+        if k not in used and k not in KNOWN_EXTRA_KEYS
+    }
+    unknown.update(optional_ignored)
+    if known:
+        log.debug("%s: not used (known SMPL-file extras): %s", source, ", ".join(known))
+    if unknown:
+        listed = "; ".join(f"{key} ({why})" for key, why in sorted(unknown.items()))
+        log.warning("%s: ignoring %d array(s) the body model does not use: %s", source, len(unknown), listed)
+
+
+def _describe(value) -> str:
+    if value is None:
+        return "missing"
+    if isinstance(value, np.ndarray):
+        return f"{value.shape} {value.dtype}"
+    return type(value).__name__
 
 
 def read_model_file(path: Path) -> ModelArrays:

@@ -27,23 +27,20 @@ import time
 import zmq
 
 from stg_node.bus import security, sockets
-from stg_node.bus.channels import recv_multipart
 from stg_node.bus.codec import decode_envelope, encode
 from stg_node.bus.config import BusConfig, default_url
 from stg_node.bus.messages import TOPIC_TYPES, NodeStatus
+from stg_node.bus.sockets import NOBLOCK, recv_multipart, send_frames
 from stg_node.bus.spec import MessageError
-from stg_node.bus.stats import DropLog, Traffic
+from stg_node.bus.stats import DropLog, RateMeter, Traffic
 from stg_node.bus.topics import LANES, base_name, join_namespace
 
 log = logging.getLogger(__name__)
 
 LATCHED_TOPICS = frozenset(name for name, cls in TOPIC_TYPES.items() if cls.SPEC.latched)
-_STANDARD = frozenset(TOPIC_TYPES)
 _BATCH = 256  # messages forwarded per socket before looking at the others again
 _MAX_TOPICS_TRACKED = 1024
 NOOP = b""
-_NOBLOCK = int(zmq.NOBLOCK)
-_SNDMORE = int(zmq.SNDMORE)
 
 
 class BrokerRunning(RuntimeError):
@@ -162,11 +159,11 @@ class Broker:
             role[xsub] = ("data", xsub, xpub)
             role[xpub] = ("subs", xsub, xpub)
         next_status = time.monotonic()
-        last_counts: tuple[dict, dict, float] = ({}, {}, time.monotonic())
+        rates = RateMeter()
         while not self._stop.is_set():
             now = time.monotonic()
             if self.status_period_s > 0 and now >= next_status:
-                last_counts = self._publish_status(last_counts)
+                self._publish_status(rates)
                 next_status = now + self.status_period_s
             wait_ms = 100
             if self.status_period_s > 0:
@@ -182,7 +179,7 @@ class Broker:
         """Move up to a batch of messages downstream, zero-copy (the frames are re-sent as is)."""
         for _ in range(_BATCH):
             try:
-                frames = recv_multipart(xsub, _NOBLOCK)
+                frames = recv_multipart(xsub, NOBLOCK)
             except zmq.Again:
                 return
             topic = frames[0].bytes
@@ -193,9 +190,7 @@ class Broker:
             self.traffic.count(name, sum(map(len, frames)) - len(topic))
             if latched:
                 self._latch(topic, frames)
-            last = len(frames) - 1
-            for i, frame in enumerate(frames):
-                xpub.send(frame, _SNDMORE if i < last else 0, copy=False)
+            send_frames(xpub, frames)
 
     def _topic_info(self, topic: bytes) -> tuple[str, bool]:
         """Stats name and whether latched, per topic; bounded against peers inventing topics."""
@@ -235,11 +230,10 @@ class Broker:
             else:
                 xpub.send(NOOP)
 
-    def _publish_status(self, last: tuple[dict, dict, float]) -> tuple[dict, dict, float]:
-        prev_msgs, prev_bytes, prev_time = last
+    def _publish_status(self, rates: RateMeter) -> None:
         now = time.monotonic()
-        msgs, nbytes = dict(self.traffic.messages), dict(self.traffic.bytes)
-        dt = max(now - prev_time, 1e-6)
+        msgs = dict(self.traffic.messages)
+        interval = rates.sample(msgs, self.traffic.bytes)
         status = NodeStatus(
             node=self.node,
             state="running",
@@ -248,8 +242,8 @@ class Broker:
             uptime_s=now - self._started,
             period_s=self.status_period_s,
             received=msgs,
-            rates_hz={t: (n - prev_msgs.get(t, 0)) / dt for t, n in msgs.items()},
-            bytes_per_s={t: (b - prev_bytes.get(t, 0)) / dt for t, b in nbytes.items()},
+            rates_hz=interval.rates_hz,
+            bytes_per_s=interval.bytes_per_s,
             drops=dict(self.traffic.drops),
             errors=self.traffic.errors,
             last_error=self.traffic.last_error,
@@ -260,10 +254,9 @@ class Broker:
             )
         except MessageError as exc:  # e.g. too many topics for one header
             self.traffic.error(f"status not published: {exc}")
-            return msgs, nbytes, now
+            return
         self._lanes[self._status_lane][1].send_multipart(frames, copy=False)
         self._status_seq += 1
-        return msgs, nbytes, now
 
     # -- shutdown ---------------------------------------------------------------------------
 

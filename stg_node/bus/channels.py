@@ -19,25 +19,13 @@ import threading
 
 import zmq
 
+from stg_node.bus.sockets import EVENTS, NOBLOCK, POLLIN, recv_multipart
 from stg_node.bus.topics import Lane
 
 log = logging.getLogger(__name__)
 
-_NOBLOCK = int(zmq.NOBLOCK)
-_EVENTS = int(zmq.EVENTS)
-_POLLIN = int(zmq.POLLIN)
 _MAX_MAILBOX_TOPICS = 1024
 _ids = itertools.count()
-
-
-def recv_multipart(sock: zmq.Socket, flags: int = 0) -> list:
-    """recv_multipart(copy=False) without a getsockopt(RCVMORE) per part."""
-    frame = sock.recv(flags, copy=False)
-    frames = [frame]
-    while frame.more:
-        frame = sock.recv(0, copy=False)
-        frames.append(frame)
-    return frames
 
 
 class DirectChannel:
@@ -56,7 +44,7 @@ class DirectChannel:
     def take(self) -> list:
         # EVENTS (~1 us) rather than a NOBLOCK recv raising zmq.Again (~5 us) when empty;
         # POLLIN means a whole multipart message is there, so the recv cannot block.
-        if not self.sock.get(_EVENTS) & _POLLIN:
+        if not self.sock.get(EVENTS) & POLLIN:
             return []
         return [recv_multipart(self.sock)]
 
@@ -90,7 +78,7 @@ class LatestChannel:
 
     def take(self) -> list:
         pollable = self.pollable
-        while pollable.get(_EVENTS) & _POLLIN:  # consume wake-ups; the mailbox is the truth
+        while pollable.get(EVENTS) & POLLIN:  # consume wake-ups; the mailbox is the truth
             pollable.recv()
         with self._lock:
             if not self._mailbox:
@@ -114,7 +102,7 @@ class LatestChannel:
                         sock.subscribe(command[1:])
                 if sock in events:
                     newest: dict[bytes, list] = {}
-                    while sock.get(_EVENTS) & _POLLIN:  # everything queued, without an exception at the end
+                    while sock.get(EVENTS) & POLLIN:  # everything queued, without an exception at the end
                         frames = recv_multipart(sock)
                         key = frames[0].bytes
                         newest.pop(key, None)  # re-insert: order follows the newest arrivals
@@ -139,7 +127,7 @@ class LatestChannel:
 
     def close(self) -> None:
         try:
-            self.pollable.send(b"stop", _NOBLOCK)
+            self.pollable.send(b"stop", NOBLOCK)
         except zmq.ZMQError:
             pass
         self._thread.join(timeout=5.0)

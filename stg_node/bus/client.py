@@ -16,10 +16,10 @@ from __future__ import annotations
 import zmq
 
 from stg_node.bus import security
-from stg_node.bus.config import BusConfig
+from stg_node.bus.config import BusConfig, as_config
 from stg_node.bus.heartbeat import Heartbeat
 from stg_node.bus.messages import Message
-from stg_node.bus.pubsub import Publisher, Subscriber, _as_config, default_node_id
+from stg_node.bus.pubsub import Publisher, Subscriber, default_node_id
 
 
 class Bus:
@@ -37,7 +37,7 @@ class Bus:
         heartbeat_s: float = 1.0,
         bind: bool = False,
     ):
-        self.config = _as_config(config)
+        self.config = as_config(config)
         self.node = node or default_node_id()
         self.context = zmq.Context()
         self.subscribers: list[Subscriber] = []

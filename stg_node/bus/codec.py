@@ -15,7 +15,6 @@ of the received frames (zero-copy). Every failure is a :class:`MessageError` who
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import msgpack
@@ -37,9 +36,9 @@ from stg_node.bus.spec import (
     all_finite,
 )
 from stg_node.bus.topics import base_name
+from stg_node.safe_load import unpack_msgpack
 
 _WIRE_NAME = {dt.str: name for name, dt in WIRE_DTYPES.items()}
-_STANDARD_TOPICS = frozenset(TOPIC_TYPES)
 _MISSING = object()
 
 
@@ -104,9 +103,7 @@ def encode_counted(msg: Message, *, topic: str, seq: int, src: str, stamp_ns: in
         shape = arr.shape
         if shape != a.fixed:
             spec.check_array(a.name, a.dtype, shape, bound)
-        if a.check_finite and not (
-            (arr.nbytes <= 2048 and math.isfinite(sum(arr.reshape(-1).tolist()))) or all_finite(arr)
-        ):
+        if a.check_finite and not all_finite(arr):
             raise MessageError("nonfinite", f"{where}.{a.name} holds NaN or Inf")
         total += arr.nbytes
         descs.append(a.descriptor(shape))
@@ -148,7 +145,7 @@ def encode_counted(msg: Message, *, topic: str, seq: int, src: str, stamp_ns: in
 # --- decode ------------------------------------------------------------------------------------
 
 
-_unpackb = msgpack.unpackb
+_unpackb = unpack_msgpack  # msgpack.unpackb refusing extension types
 _topic_cache: dict[bytes, str] = {}
 
 
@@ -269,7 +266,7 @@ def expected_type(topic: str) -> type[Message] | None:
         return _expected_cache[topic]
     except KeyError:
         pass
-    base = base_name(topic, _STANDARD_TOPICS)
+    base = base_name(topic, TOPIC_TYPES)
     cls = TOPIC_TYPES[base] if base else None
     if len(_expected_cache) >= 4096:
         _expected_cache.clear()
@@ -361,9 +358,7 @@ def decode(frames) -> Message:
                 "bytes", f"array {name!r}: buffer has {buf.nbytes} bytes, header implies {nbytes}"
             )
         flat = np.frombuffer(buf, dtype=dtype)
-        # Small float arrays (K, R, t, poses): a Python sum of the values is finite iff they all
-        # are (an overflowing sum of huge finite values falls through to the exact check).
-        if finite and not ((nbytes <= 2048 and math.isfinite(sum(flat.tolist()))) or all_finite(flat)):
+        if finite and not all_finite(flat):
             raise MessageError("nonfinite", f"{type_name}.{name} holds NaN or Inf")
         (kwargs if fixed else members)[name] = flat.reshape(shape)
     for name in absent:

@@ -20,8 +20,10 @@ from __future__ import annotations
 import os
 import socket
 import tempfile
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from types import MappingProxyType
 
 from stg_node.bus.codec import expected_type
 from stg_node.bus.messages import TOPIC_TYPES
@@ -35,7 +37,6 @@ DEFAULT_TCP_PORT = 7400
 SIDES = ("in", "out")
 # sockaddr_un.sun_path is 108 bytes on Linux, including the terminating NUL.
 _MAX_IPC_PATH = 107
-_STANDARD = frozenset(TOPIC_TYPES)
 
 
 def default_url() -> str:
@@ -85,23 +86,39 @@ def lane_endpoint(url: str, lane: str | Lane, side: str) -> str:
     return endpoint
 
 
-@dataclass
+@dataclass(frozen=True)
 class BusConfig:
-    """How one node reaches the bus. Immutable in use; make variants with :meth:`with_`."""
+    """How one node reaches the bus. Frozen (``lanes`` too, a read-only mapping): share one
+    freely between threads and objects; make variants with :meth:`with_`."""
 
     url: str = field(default_factory=default_url)
     namespace: str = ""
     keys: str | Path | None = None  # CURVE key directory (stg-keys); None = no security
     key_name: str | None = None  # this client's key in keys/clients/<name>.key_secret
     curve_on_ipc: bool = False  # CURVE on ipc/inproc too (off: file permissions protect ipc)
-    lanes: dict[str, str] = field(default_factory=dict)  # topic (standard name) -> lane override
+    lanes: Mapping[str, str] = field(default_factory=dict)  # topic (standard name) -> lane override
 
     def __post_init__(self):
-        parse_url(self.url)
+        for lane in LANES.values():  # the URL, and every endpoint derived from it (ipc path length)
+            lane_endpoint(self.url, lane, "out")
         check_namespace(self.namespace)
-        for topic, lane in self.lanes.items():
+        lanes = dict(self.lanes)  # a private copy: the caller's dict cannot change us later
+        for topic, lane in lanes.items():
             if lane not in LANES:
                 raise ValueError(f"lane {lane!r} for topic {topic!r} is not one of {sorted(LANES)}")
+        object.__setattr__(self, "lanes", MappingProxyType(lanes))
+
+    def __hash__(self) -> int:
+        lanes = tuple(self.lanes.items())
+        return hash((self.url, self.namespace, self.keys, self.key_name, self.curve_on_ipc, lanes))
+
+    def __getstate__(self) -> dict:  # a mappingproxy does not pickle; its dict does
+        return {**self.__dict__, "lanes": dict(self.lanes)}
+
+    def __setstate__(self, state: dict) -> None:
+        for name, value in state.items():
+            object.__setattr__(self, name, value)
+        object.__setattr__(self, "lanes", MappingProxyType(dict(self.lanes)))
 
     @classmethod
     def from_env(cls, **overrides) -> BusConfig:
@@ -139,7 +156,7 @@ class BusConfig:
 
     def lane_of(self, topic: str) -> Lane:
         """The lane a full topic travels on: override, else its standard type's lane, else reliable."""
-        base = base_name(topic, _STANDARD)
+        base = base_name(topic, TOPIC_TYPES)
         key = base or topic
         if key in self.lanes:
             return LANES[self.lanes[key]]
@@ -148,6 +165,16 @@ class BusConfig:
         return LANES[DEFAULT_LANE]
 
     expected_type = staticmethod(expected_type)
+
+
+def as_config(config: BusConfig | str | None) -> BusConfig:
+    """What the bus classes accept as ``config``: a BusConfig as is, a URL string (the rest from
+    the environment), or None (everything from the environment, see :meth:`BusConfig.from_env`)."""
+    if config is None:
+        return BusConfig.from_env()
+    if isinstance(config, str):
+        return BusConfig.from_env(url=config)
+    return config
 
 
 def free_tcp_base_port(host: str = "127.0.0.1", span: int = 2 * len(LANES)) -> int:

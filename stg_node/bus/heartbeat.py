@@ -19,15 +19,18 @@ from collections import Counter
 
 from stg_node.bus.messages import NODE_STATES, NodeStatus
 from stg_node.bus.pubsub import Publisher, Subscriber
-from stg_node.bus.stats import Traffic
+from stg_node.bus.stats import RateMeter, Traffic
 
 log = logging.getLogger(__name__)
 
 
 class Heartbeat:
-    """Publishes a NodeStatus for ``publisher.node`` every ``period_s`` seconds."""
+    """Publishes a NodeStatus for ``publisher.node`` every ``period_s`` seconds.
 
-    def __init__(self, publisher: Publisher, sources=(), *, period_s: float = 1.0):
+    Rates are over the interval since the previous status (stats.RateMeter); ``clock`` (a
+    monotonic clock in seconds) is injectable for tests."""
+
+    def __init__(self, publisher: Publisher, sources=(), *, period_s: float = 1.0, clock=time.monotonic):
         if period_s <= 0:
             raise ValueError(f"heartbeat period must be > 0 s, got {period_s}")
         self.publisher = publisher
@@ -35,8 +38,9 @@ class Heartbeat:
         self.traffic = Traffic()  # the node's own errors / drops, beyond its endpoints'
         self._sources: list = [publisher, *sources]
         self._state = "starting"
-        self._started = time.monotonic()
-        self._last = ({}, {}, time.monotonic())
+        self._clock = clock
+        self._started = clock()
+        self._rates = RateMeter(clock)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._host = pysocket.gethostname()
@@ -72,22 +76,18 @@ class Heartbeat:
             drops.update(snap["drops"])
             errors += snap["errors"]
             last_error = snap["last_error"] or last_error
-        total = published + received
-        prev_msgs, prev_bytes, prev_time = self._last
-        now = time.monotonic()
-        dt = max(now - prev_time, 1e-6)
-        self._last = (dict(total), dict(nbytes), now)
+        rates = self._rates.sample(published + received, nbytes)
         return NodeStatus(
             node=self.publisher.node,
             state=self._state,
             pid=os.getpid(),
             host=self._host,
-            uptime_s=now - self._started,
+            uptime_s=self._clock() - self._started,
             period_s=self.period_s,
             published=dict(published),
             received=dict(received),
-            rates_hz={t: (n - prev_msgs.get(t, 0)) / dt for t, n in total.items()},
-            bytes_per_s={t: (b - prev_bytes.get(t, 0)) / dt for t, b in nbytes.items()},
+            rates_hz=rates.rates_hz,
+            bytes_per_s=rates.bytes_per_s,
             drops=dict(drops),
             errors=errors,
             last_error=last_error,

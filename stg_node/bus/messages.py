@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from typing import ClassVar
+from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
@@ -23,6 +23,9 @@ from stg_node.bus.spec import (
     MessageSpec,
     ScalarSpec,
 )
+
+if TYPE_CHECKING:
+    from stg_node.body.params import SmplParams
 
 #: type name -> message class, filled by :func:`message`.
 REGISTRY: dict[str, type[Message]] = {}
@@ -221,6 +224,36 @@ class BodyPose(Message):
     joints: np.ndarray | None = array(
         "float32", (24, 3), required=False, unit="m", doc="posed joint positions in world coordinates"
     )
+
+    # The one conversion between the bus and stg_node.body.params.SmplParams (imported on use:
+    # a bus-only process never loads it). Both directions copy nothing and change no value.
+    @classmethod
+    def from_smpl(cls, params: SmplParams, **fields) -> BodyPose:
+        """A BodyPose carrying ``params`` (an SMPL :class:`~stg_node.body.params.SmplParams`);
+        ``fields`` sets the rest (``frame_seq``, ``frame_index``, ``time``, ``confidence``, ``joints``).
+
+        The wire has no body-model tag, so parameters of another model (THuman4.0's SMPL-X fits,
+        ``model="smplx"``) are refused rather than passed on as SMPL's.
+        """
+        from stg_node.body.params import SmplParams
+
+        if not isinstance(params, SmplParams):
+            raise TypeError(f"BodyPose.from_smpl takes SmplParams, got {type(params).__name__}")
+        if params.model != "smpl":
+            raise ValueError(
+                f"BodyPose carries SMPL parameters; these are {params.model!r} parameters, whose betas "
+                "mean something else (convert them to SMPL first)"
+            )
+        return cls(poses=params.poses, Rh=params.Rh, Th=params.Th, betas=params.betas, **fields)
+
+    def to_smpl(self) -> SmplParams:
+        """This pose as :class:`~stg_node.body.params.SmplParams` (``model="smpl"``), checked on the way.
+
+        The arrays are the message's own (read-only views of the received frames): copy one
+        before writing to it."""
+        from stg_node.body.params import SmplParams
+
+        return SmplParams(poses=self.poses, Rh=self.Rh, Th=self.Th, betas=self.betas)
 
 
 @message(

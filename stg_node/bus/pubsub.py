@@ -37,8 +37,9 @@ import zmq
 from stg_node.bus import sockets
 from stg_node.bus.channels import DirectChannel, LatestChannel
 from stg_node.bus.codec import Envelope, decode, decode_envelope, encode_counted
-from stg_node.bus.config import BusConfig
+from stg_node.bus.config import BusConfig, as_config
 from stg_node.bus.messages import Message
+from stg_node.bus.sockets import EVENTS, POLLIN, send_frames
 from stg_node.bus.spec import MAX_HEADER_BYTES, MessageError
 from stg_node.bus.stats import DropLog, SeqTracker, Traffic
 from stg_node.bus.topics import LANES, Lane
@@ -46,24 +47,12 @@ from stg_node.bus.topics import LANES, Lane
 log = logging.getLogger(__name__)
 
 WILDCARDS = ("", "*", "#")
-# Plain ints: pyzmq's enum flags cost microseconds per operation on the hot path.
-_SNDMORE = int(zmq.SNDMORE)
-_NOBLOCK = int(zmq.NOBLOCK)
-_EVENTS = int(zmq.EVENTS)
-_POLLIN = int(zmq.POLLIN)
+_as_config = as_config  # its former private home; config.as_config is the one to import
 
 
 def default_node_id() -> str:
     prog = os.path.basename(sys.argv[0] or "python").removesuffix(".py") or "python"
     return f"{prog}-{os.getpid()}"
-
-
-def _as_config(config: BusConfig | str | None) -> BusConfig:
-    if config is None:
-        return BusConfig.from_env()
-    if isinstance(config, str):
-        return BusConfig.from_env(url=config)
-    return config
 
 
 def _timeout_ms(deadline: float | None) -> int:
@@ -89,7 +78,7 @@ class Publisher:
         bind: bool = False,
         lanes=None,
     ):
-        self.config = _as_config(config)
+        self.config = as_config(config)
         self.node = node or default_node_id()
         self.traffic = Traffic()
         self._context = context or zmq.Context.instance()
@@ -147,10 +136,7 @@ class Publisher:
             seq = self._seq.get(full, 0)
             stamp = stamp_ns or msg.header.stamp_ns or time.time_ns()
             frames, nbytes = encode_counted(msg, topic=full, seq=seq, src=self.node, stamp_ns=stamp)
-            last = len(frames) - 1
-            send = sock.send
-            for i, frame in enumerate(frames):  # send_multipart, minus its per-call flag enums
-                send(frame, _SNDMORE if i < last else 0, copy=False)
+            send_frames(sock, frames)
             self._seq[full] = seq + 1
             self.traffic.count(full, nbytes)
             self._published += 1
@@ -162,7 +148,7 @@ class Publisher:
 
     def _read_subscriptions(self, sock: zmq.Socket) -> None:
         seen = self._subscriptions.setdefault(sock, {})
-        while sock.get(_EVENTS) & _POLLIN:
+        while sock.get(EVENTS) & POLLIN:
             event = sock.recv()
             if not event:
                 continue
@@ -239,7 +225,7 @@ class Subscriber:
         keep_last: bool | None = None,
         drop_log_interval_s: float = 10.0,
     ):
-        self.config = _as_config(config)
+        self.config = as_config(config)
         self.traffic = Traffic()
         self.typed = typed
         self._context = context or zmq.Context.instance()

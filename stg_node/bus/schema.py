@@ -16,6 +16,7 @@ import yaml
 
 from stg_node.bus.messages import REGISTRY, Message
 from stg_node.bus.spec import ArraySpec, ScalarSpec
+from stg_node.safe_load import load_yaml
 
 
 def _scalar(s: ScalarSpec) -> dict:
@@ -84,7 +85,7 @@ def load_proto(directory: str | Path) -> dict[str, dict]:
     for path in sorted(Path(directory).glob("*.yaml")):
         if path.name == "envelope.yaml":
             continue
-        data = yaml.safe_load(path.read_text())
+        data = load_yaml(path)
         out[data["type"]] = {**data, "_file": path.name}
     return out
 

@@ -48,7 +48,8 @@ def _need(path: Path, what: str) -> Path:
     return path
 
 
-def _check_name(name: str) -> str:
+def check_key_name(name: str) -> str:
+    """``name`` if it can name a client key (a file name in authorized/), else ValueError."""
     if not name or not all(c.isalnum() or c in "-_." for c in name) or name.startswith("."):
         raise ValueError(f"key name {name!r} must be letters, digits, '-', '_' or '.'")
     if name == SERVER_NAME:
@@ -78,7 +79,7 @@ def add_client(directory: str | Path, name: str) -> Path:
     """Make a client key pair under clients/ and authorise it; returns the secret key file."""
     root = Path(directory)
     _need(root / f"{SERVER_NAME}.key", "broker public key")
-    _check_name(name)
+    check_key_name(name)
     clients = root / CLIENTS_DIR
     clients.mkdir(exist_ok=True)
     if (clients / f"{name}.key_secret").exists():
@@ -102,7 +103,7 @@ def authorize(directory: str | Path, public_key_file: str | Path) -> Path:
 
 def revoke(directory: str | Path, name: str) -> bool:
     """Remove ``name`` from authorized/ (its key files stay). True if it was authorised."""
-    path = Path(directory) / AUTHORIZED_DIR / f"{_check_name(name)}.key"
+    path = Path(directory) / AUTHORIZED_DIR / f"{check_key_name(name)}.key"
     if path.exists():
         path.unlink()
         return True

@@ -375,20 +375,25 @@ def _shape_text(shape) -> str:
     return "[" + ", ".join(str(d) for d in shape) + "]"
 
 
-def all_finite(arr: np.ndarray) -> bool:
-    """True when a float array holds no NaN/Inf.
+#: Arrays up to this size are checked for finiteness by a Python sum (see all_finite).
+_SMALL_FINITE_BYTES = 2048
 
-    Small arrays (K, R, poses...) are summed as Python floats, ~5x faster than a numpy
+
+def all_finite(arr: np.ndarray) -> bool:
+    """True when a real array holds no NaN/Inf (integer arrays always hold none).
+
+    The one finiteness check of the codec, for encoding and decoding alike. Small arrays
+    (K, R, t, poses... up to 2 KiB) are summed as Python floats, ~5x faster than a numpy
     call at this size: NaN and Inf propagate through a sum, and only an overflowing sum of
     huge finite values needs the exact check. Large ones are checked in chunks so the
     boolean temporary stays small."""
-    if arr.dtype.kind != "f" or arr.size == 0:
+    if arr.nbytes <= _SMALL_FINITE_BYTES:
+        if math.isfinite(sum(arr.ravel().tolist())):
+            return True
+        return arr.dtype.kind != "f" or bool(np.isfinite(arr).all())
+    if arr.dtype.kind != "f":
         return True
     flat = arr.reshape(-1)
-    if flat.size <= 256:
-        if math.isfinite(sum(flat.tolist())):
-            return True
-        return bool(np.isfinite(flat).all())
     step = 1 << 22
     for start in range(0, flat.size, step):
         if not np.isfinite(flat[start : start + step]).all():

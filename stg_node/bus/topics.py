@@ -26,6 +26,7 @@ never dropped by policy, queues deep enough for the traffic, and every loss is d
 
 from __future__ import annotations
 
+from collections.abc import Container
 from dataclasses import dataclass
 
 from stg_node.bus.spec import MAX_TOPIC_BYTES, TOPIC_PATTERN
@@ -75,8 +76,10 @@ def join_namespace(namespace: str, topic: str) -> str:
     return f"{namespace}/{topic}" if namespace else topic
 
 
-def base_name(topic: str, standard: set[str] | frozenset[str]) -> str | None:
-    """The standard topic name a full topic ends with (``rig1/camera/frame`` -> ``camera/frame``)."""
+def base_name(topic: str, standard: Container[str]) -> str | None:
+    """The standard topic name a full topic ends with (``rig1/camera/frame`` -> ``camera/frame``).
+
+    ``standard`` is normally messages.TOPIC_TYPES, the one table of standard topics."""
     parts = topic.rsplit("/", 2)
     if len(parts) >= 2:
         tail = f"{parts[-2]}/{parts[-1]}"

@@ -3,19 +3,18 @@
     stg-synth --out DIR [--seed S --frames N --size PX --motion NAME --views C --view-every K ...]
 
 See docs/SYNTH.md for what is rendered, the garment model, the cameras and splits, and the layout.
+Exit 2 for bad usage (an invalid option value, an --out that holds other files without
+--overwrite), 1 when the work fails (e.g. a --body file that cannot be read), 130 on Ctrl-C.
 """
 
 from __future__ import annotations
 
 import argparse
-import logging
 import sys
 from pathlib import Path
 
-from stg_node.logs import configure_logging
+from stg_node.cli.runner import UsageError, add_log_level_option, run_main
 from stg_node.threads import configure_threads
-
-log = logging.getLogger("stg_node.cli.synth")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -77,15 +76,15 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--threads", default=None, help="CPU threads (default: STG_THREADS or 1)")
-    parser.add_argument("--log-level", default=None, help="log level (default: STG_LOG_LEVEL or INFO)")
+    add_log_level_option(parser)
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    configure_logging(args.log_level)
-    configure_threads(args.threads)
+def run(args: argparse.Namespace) -> int:
+    try:
+        configure_threads(args.threads)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from exc
 
     from stg_node.data.synth.generate import SynthConfig, generate
 
@@ -106,17 +105,23 @@ def main(argv: list[str] | None = None) -> int:
     )
     try:
         config.validate()
-        body = None
-        if args.body is not None:
-            from stg_node.body import load_body_model
+    except ValueError as exc:
+        raise UsageError(str(exc)) from exc
+    body = None
+    if args.body is not None:
+        from stg_node.body import load_body_model
 
-            body = load_body_model(args.body)
+        body = load_body_model(args.body)
+    try:
         result = generate(config, body=body, progress=not args.no_progress)
-    except (ValueError, FileExistsError, FileNotFoundError, OSError) as err:
-        log.error("%s", err)
-        return 2
+    except FileExistsError as exc:  # --out holds something else: the command line must change
+        raise UsageError(str(exc)) from exc
     print(f"wrote {result.num_views} views of {config.num_frames} frames to {result.out}")
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_main(build_parser(), run, argv)
 
 
 if __name__ == "__main__":

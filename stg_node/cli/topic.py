@@ -6,24 +6,25 @@
     stg-topic bw camera/frame           bandwidth and message sizes, every second
 
 Topics are relative to --namespace unless they start with '/'. Every command stops on
-Ctrl-C (exit 0), after -n messages or after --duration seconds.
+Ctrl-C or SIGTERM (exit 0), after -n messages or after --duration seconds. The numbers
+come from stg_node.bus.stats, the code a node's heartbeat reports its rates with.
 """
 
 from __future__ import annotations
 
 import argparse
 import datetime
-import statistics
+import functools
 import sys
 import time
-from collections import deque
 
 import numpy as np
 
 from stg_node.bus.codec import Envelope
 from stg_node.bus.pubsub import Subscriber
-from stg_node.cli.bus_options import add_bus_options, bus_config, sigterm_as_interrupt
-from stg_node.logs import configure_logging
+from stg_node.bus.stats import ArrivalWindow, TopicCensus, WindowStats
+from stg_node.cli.bus_options import add_bus_options, bus_config
+from stg_node.cli.runner import UsageError, add_log_level_option, run_main
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -34,6 +35,7 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=__doc__,
     )
     add_bus_options(parser)
+    add_log_level_option(parser)
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("list", help="topics seen on the bus")
@@ -115,35 +117,30 @@ def _remaining(deadline: float | None, tick: float = 1.0) -> float:
 
 
 def cmd_list(config, args, out) -> int:
-    seen: dict[str, dict] = {}
+    census = TopicCensus()
     with Subscriber(config, [""], typed=False, keep_last=False) as sub:
         deadline = _deadline(args.duration)
         start = time.monotonic()
         while time.monotonic() < deadline:
             env = sub.recv(timeout=_remaining(deadline, 0.2))
-            if env is None:
-                continue
-            entry = seen.setdefault(env.topic, {"type": env.type, "count": 0, "bytes": 0, "src": set()})
-            entry["count"] += 1
-            entry["bytes"] += env.nbytes
-            entry["src"].add(env.header["src"])
-        elapsed = max(time.monotonic() - start, 1e-9)
+            if env is not None:
+                census.add(env.topic, env.type, env.nbytes, env.header["src"])
+        elapsed = time.monotonic() - start
         drops = dict(sub.traffic.drops)
-    if not seen:
+    if not census:
         print(f"no messages on {config.url} in {args.duration:g} s", file=out)
         return 0
     rows = [("TOPIC", "TYPE", "LANE", "MSGS", "HZ", "AVG SIZE", "SOURCES")]
-    for topic in sorted(seen):
-        e = seen[topic]
+    for topic in census.summary(elapsed):
         rows.append(
             (
-                topic,
-                e["type"],
-                config.lane_of(topic).name,
-                str(e["count"]),
-                f"{e['count'] / elapsed:.1f}",
-                _size(e["bytes"] / e["count"]),
-                ",".join(sorted(e["src"])),
+                topic.topic,
+                topic.type,
+                config.lane_of(topic.topic).name,
+                str(topic.messages),
+                f"{topic.rate_hz:.1f}",
+                _size(topic.mean_bytes),
+                ",".join(topic.sources),
             )
         )
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
@@ -170,80 +167,64 @@ def cmd_echo(config, args, out) -> int:
 
 
 def cmd_rate(config, args, out, mode: str) -> int:
-    """hz and bw: a sliding window of arrival times (and sizes), reported every second."""
-    arrivals: deque[float] = deque(maxlen=args.window + 1)
-    sizes: deque[int] = deque(maxlen=args.window)
-    received = 0
+    """hz and bw: a sliding window of arrival times and sizes (bus.stats.ArrivalWindow), every second."""
+    window = ArrivalWindow(args.window)
     next_report = time.monotonic() + 1.0
     with Subscriber(config, [args.topic], typed=False, keep_last=False) as sub:
         deadline = _deadline(args.duration)
         print(f"subscribed to {sub.topics[0]}", file=out, flush=True)
-        while (args.count is None or received < args.count) and (
+        while (args.count is None or window.received < args.count) and (
             deadline is None or time.monotonic() < deadline
         ):
             env = sub.recv(timeout=_remaining(deadline, max(0.0, next_report - time.monotonic())))
             now = time.monotonic()
             if env is not None:
-                arrivals.append(now)
-                sizes.append(env.nbytes)
-                received += 1
+                window.add(now, env.nbytes)
             if now >= next_report:
-                _report(mode, arrivals, sizes, out)
+                _report(mode, window, out)
                 next_report = now + 1.0
-        if received:
-            _report(mode, arrivals, sizes, out)
-    if not received:
+        if window.received:
+            _report(mode, window, out)
+    if not window.received:
         print(f"no messages on {args.topic}", file=out)
     return 0
 
 
-def _report(mode: str, arrivals: deque, sizes: deque, out) -> None:
-    if len(arrivals) < 2:
-        print("no new messages" if not arrivals else "1 message so far", file=out, flush=True)
-        return
-    gaps = [b - a for a, b in zip(list(arrivals)[:-1], list(arrivals)[1:], strict=True)]
-    span = arrivals[-1] - arrivals[0]
-    if mode == "hz":
-        rate = len(gaps) / span if span > 0 else float("inf")
-        std = statistics.pstdev(gaps) if len(gaps) > 1 else 0.0
+def _report(mode: str, window: ArrivalWindow, out) -> None:
+    stats: WindowStats | None = window.stats()
+    if stats is None:
+        print("no new messages" if not len(window) else "1 message so far", file=out, flush=True)
+    elif mode == "hz":
         print(
-            f"average rate: {rate:.3f} Hz\n\tmin: {min(gaps):.4f}s max: {max(gaps):.4f}s "
-            f"std dev: {std:.5f}s window: {len(gaps)}",
+            f"average rate: {stats.rate_hz:.3f} Hz\n"
+            f"\tmin: {stats.min_gap_s:.4f}s max: {stats.max_gap_s:.4f}s "
+            f"std dev: {stats.std_gap_s:.5f}s window: {stats.arrivals - 1}",
             file=out,
             flush=True,
         )
     else:
-        recent = list(sizes)[1:]  # sizes of the messages that close each gap
-        bandwidth = sum(recent) / span if span > 0 else float("inf")
         print(
-            f"average: {_size(bandwidth)}/s\n\tmean: {_size(statistics.fmean(sizes))} "
-            f"min: {_size(min(sizes))} max: {_size(max(sizes))} window: {len(sizes)}",
+            f"average: {_size(stats.bytes_per_s)}/s\n\tmean: {_size(stats.mean_bytes)} "
+            f"min: {_size(stats.min_bytes)} max: {_size(stats.max_bytes)} window: {stats.sized}",
             file=out,
             flush=True,
         )
 
 
-def main(argv=None, out=None) -> int:
+def run(args: argparse.Namespace, out=None) -> int:
     out = out or sys.stdout
-    args = build_parser().parse_args(argv)
-    configure_logging()
-    try:
-        config = bus_config(args)
-    except ValueError as exc:
-        print(f"stg-topic: {exc}", file=sys.stderr)
-        return 2
-    try:
-        with sigterm_as_interrupt():
-            if args.command == "list":
-                return cmd_list(config, args, out)
-            if args.command == "echo":
-                return cmd_echo(config, args, out)
-            return cmd_rate(config, args, out, args.command)
-    except KeyboardInterrupt:
-        return 0
-    except (OSError, ValueError) as exc:
-        print(f"stg-topic: {exc}", file=sys.stderr)
-        return 1
+    config = bus_config(args)
+    if args.command in ("hz", "bw") and args.window < 1:
+        raise UsageError(f"--window must be >= 1, got {args.window}")
+    if args.command == "list":
+        return cmd_list(config, args, out)
+    if args.command == "echo":
+        return cmd_echo(config, args, out)
+    return cmd_rate(config, args, out, args.command)
+
+
+def main(argv=None, out=None) -> int:
+    return run_main(build_parser(), functools.partial(run, out=out), argv, stop_is_success=True)
 
 
 if __name__ == "__main__":

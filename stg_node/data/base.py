@@ -189,13 +189,17 @@ class SequenceDataset(Sequence[FrameSample], ABC):
         """Seconds since the first frame of the sequence."""
         return (frame - self.all_frames[0]) / self.fps
 
+    def read_view_mask(self, frame: int, camera: str) -> tuple[np.ndarray, Path]:
+        """The raw ``(H, W)`` uint8 mask of a view and the file to name in errors (a loader that
+        combines several mask files overrides this)."""
+        path = self.mask_path(frame, camera)
+        return read_mask(path), path
+
     def load(self, frame: int, camera: str) -> FrameSample:
         image_path = self.image_path(frame, camera)
-        mask_path = self.mask_path(frame, camera)
+        mask, mask_path = self.read_view_mask(frame, camera)
         preparer = self.preparer(camera)
-        image, mask = preparer(
-            read_image(image_path), read_mask(mask_path), image_path=image_path, mask_path=mask_path
-        )
+        image, mask = preparer(read_image(image_path), mask, image_path=image_path, mask_path=mask_path)
         return FrameSample(
             index=frame,
             time=self.time(frame),

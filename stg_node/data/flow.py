@@ -29,6 +29,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from stg_node.safe_load import load_npz
+
 log = logging.getLogger(__name__)
 
 PRESETS = {
@@ -194,13 +196,13 @@ class FlowCache:
 
     @staticmethod
     def _read(path: Path, shape: tuple[int, int]) -> FlowPair:
-        with np.load(path, allow_pickle=False) as data:
-            pair = FlowPair(
-                forward=data["forward"].astype(np.float32),
-                backward=data["backward"].astype(np.float32),
-                valid_forward=data["valid_forward"].astype(bool),
-                valid_backward=data["valid_backward"].astype(bool),
-            )
+        data = load_npz(path)
+        pair = FlowPair(
+            forward=data["forward"].astype(np.float32),
+            backward=data["backward"].astype(np.float32),
+            valid_forward=data["valid_forward"].astype(bool),
+            valid_backward=data["valid_backward"].astype(bool),
+        )
         if pair.forward.shape != (*shape, 2) or pair.valid_forward.shape != shape:
             raise ValueError(f"shape {pair.forward.shape} does not match frames {shape}")
         return pair

@@ -25,7 +25,7 @@ import numpy as np
 
 from stg_node.data.base import SequenceDataset, smpl_from_arrays
 from stg_node.data.errors import DatasetError
-from stg_node.data.io import IMAGE_SUFFIXES, as_array, load_json
+from stg_node.data.io import IMAGE_SUFFIXES, as_array, load_json, load_npz_arrays
 from stg_node.data.splits import FrameRange, MonocularProtocol, SplitSpec
 from stg_node.data.types import SmplParams
 from stg_node.data.views import RawCamera
@@ -124,15 +124,7 @@ class FolderDataset(SequenceDataset):
 
     def _load_poses(self, frames: list[int]) -> None:
         path = self.root / "poses.npz"
-        if not path.is_file():
-            raise DatasetError(path, "file is missing", "SMPL parameters per frame (poses, Th, betas)")
-        try:
-            with np.load(path, allow_pickle=False) as npz:
-                data = {k: np.asarray(npz[k]) for k in npz.files}
-        except Exception as exc:
-            raise DatasetError(
-                path, f"cannot be read ({type(exc).__name__}: {exc})", "an .npz archive"
-            ) from exc
+        data = load_npz_arrays(path, "SMPL parameters per frame (poses, Th, betas)")
         if "Th" not in data and "transl" in data:
             data["Th"] = data["transl"]
         if "betas" not in data and "shapes" in data:

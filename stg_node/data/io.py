@@ -2,7 +2,8 @@
 
 Each reader checks what it got and raises :class:`~stg_node.data.errors.DatasetError` naming
 the file: OpenCV returns ``None`` for a corrupt image and numpy raises bare pickling errors, and
-neither says which of ten thousand files is broken.
+neither says which of ten thousand files is broken. Pickled and ``.npz`` files are read through
+:mod:`stg_node.safe_load`, so a crafted dataset file cannot run code.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import cv2
 import numpy as np
 
 from stg_node.data.errors import DatasetError
+from stg_node.safe_load import RefusedPickleError, load_npy, load_npz
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp")
 
@@ -69,21 +71,45 @@ def read_mask(path: str | Path) -> np.ndarray:
 
 
 def load_npy_dict(path: str | Path) -> dict[str, Any]:
-    """A dict saved with ``np.save(path, dict)`` (ZJU-MoCap's annots.npy, new_params/*.npy)."""
+    """A dict saved with ``np.save(path, dict)`` (ZJU-MoCap's annots.npy, new_params/*.npy).
+
+    Read by :func:`stg_node.safe_load.load_npy`: only numpy arrays and plain containers are
+    rebuilt; a pickle naming anything else (``os.system``) is refused before it runs.
+    """
     path = Path(path)
     if not path.is_file():
         raise DatasetError(path, "file is missing", "a .npy file holding a pickled dict")
     try:
-        data = np.load(path, allow_pickle=True)
+        data = load_npy(path)
+    except RefusedPickleError as exc:
+        raise DatasetError(
+            path, f"refused: {str(exc).removeprefix(f'{path}: ')}", "a dict of arrays saved with np.save"
+        ) from None
     except Exception as exc:  # numpy raises ValueError, UnpicklingError, EOFError, OSError ...
         raise DatasetError(
             path, f"cannot be read as .npy ({type(exc).__name__}: {exc})", "a .npy file written by np.save"
         ) from exc
-    if isinstance(data, np.ndarray) and data.dtype == object and data.shape == ():
-        data = data.item()
     if not isinstance(data, dict):
         raise DatasetError(path, f"holds a {type(data).__name__}", "a dict saved with np.save(path, dict)")
     return data
+
+
+def load_npz_arrays(path: str | Path, expected: str) -> dict[str, np.ndarray]:
+    """Every array of an ``.npz`` (:func:`stg_node.safe_load.load_npz`: no pickled members);
+    ``expected`` says what the file should hold, for the error."""
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(path, "file is missing", expected)
+    try:
+        return load_npz(path)
+    except RefusedPickleError as exc:
+        raise DatasetError(
+            path, f"refused: {str(exc).removeprefix(f'{path}: ')}", f"{expected}, plain arrays only"
+        ) from None
+    except Exception as exc:
+        raise DatasetError(
+            path, f"cannot be read ({type(exc).__name__}: {exc})", f"an .npz archive: {expected}"
+        ) from exc
 
 
 def load_json(path: str | Path) -> Any:

@@ -31,7 +31,7 @@ import numpy as np
 
 from stg_node.data.base import SequenceDataset, image_size, smpl_from_arrays
 from stg_node.data.errors import DatasetError
-from stg_node.data.io import as_array, load_json
+from stg_node.data.io import as_array, load_json, load_npz_arrays
 from stg_node.data.splits import FrameRange, MonocularProtocol, SplitSpec
 from stg_node.data.types import SmplParams
 from stg_node.data.views import RawCamera
@@ -70,17 +70,13 @@ class THuman4Dataset(SequenceDataset):
         self._calib = calib
         self.all_camera_names = sorted(calib)
         params_path = self.root / "smpl_params.npz"
-        if not params_path.is_file():
-            raise DatasetError(
-                params_path, "file is missing", "SMPL-X parameters per frame (smpl_params.npz)"
-            )
-        try:
-            with np.load(params_path, allow_pickle=False) as npz:
-                params = {k: np.asarray(npz[k], dtype=np.float64) for k in npz.files}
-        except Exception as exc:
-            raise DatasetError(
-                params_path, f"cannot be read ({type(exc).__name__}: {exc})", "an .npz archive"
-            ) from exc
+        arrays = load_npz_arrays(params_path, "SMPL-X parameters per frame (smpl_params.npz)")
+        params = {}
+        for key, value in arrays.items():
+            try:
+                params[key] = np.asarray(value, dtype=np.float64)
+            except (TypeError, ValueError) as exc:
+                raise DatasetError(params_path, f"{key} is not numeric ({exc})", "float arrays") from exc
         missing = [k for k in SMPLX_KEYS if k not in params]
         if missing:
             raise DatasetError(params_path, f"lacks {missing}", f"arrays {list(SMPLX_KEYS)}")

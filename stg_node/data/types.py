@@ -3,7 +3,9 @@
 Loaders (ZJU-MoCap, THuman4.0, the folder format, the synthetic benchmark) all produce
 these, so the trainer and the evaluation never care where a frame came from. Units and
 axes follow ../shared/ARCHITECTURE.md: metres, seconds, OpenCV cameras with
-world-to-camera R, t; images H x W x 3 uint8 RGB; masks H x W uint8 0/255.
+world-to-camera R, t; images H x W x 3 uint8 RGB; masks H x W uint8 0/255. The SMPL parameters
+are :class:`stg_node.body.params.SmplParams` (ZJU-MoCap's ``Rh``/``Th`` convention), the
+project's one type for them, re-exported here.
 """
 
 from __future__ import annotations
@@ -12,22 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from stg_node.body.params import SmplParams  # the one SMPL-parameter type; re-exported for loaders
 
-@dataclass(frozen=True)
-class SmplParams:
-    """SMPL parameters of one frame in ZJU-MoCap's convention.
-
-    world_vertices = rotation(Rh) @ smpl(betas, poses) + Th, where ``poses[0]`` is SMPL's own
-    global orientation (often zero in ZJU-MoCap, which puts it in ``Rh`` instead).
-    """
-
-    poses: np.ndarray  # (24, 3) axis-angle per joint, radians, float32
-    Rh: np.ndarray  # (3,) axis-angle global rotation, float32
-    Th: np.ndarray  # (3,) global translation, metres, float32
-    betas: np.ndarray  # (num_betas,) shape coefficients, float32
-    # Which body model the parameters belong to: "smpl", or "smplx" where a dataset only ships
-    # SMPL-X fits (THuman4.0): the 22 shared joints map over, but SMPL-X betas span another space.
-    model: str = "smpl"
+__all__ = ["Camera", "FrameSample", "SmplParams"]
 
 
 @dataclass(frozen=True)

@@ -32,7 +32,7 @@ import numpy as np
 
 from stg_node.data.base import SequenceDataset, image_size, smpl_from_arrays
 from stg_node.data.errors import DatasetError
-from stg_node.data.io import as_array, find_image, load_npy_dict
+from stg_node.data.io import as_array, find_image, load_npy_dict, read_mask
 from stg_node.data.splits import FrameRange, MonocularProtocol, SplitSpec, zju_protocol
 from stg_node.data.types import SmplParams
 from stg_node.data.views import RawCamera
@@ -254,30 +254,21 @@ class ZJUMoCapDataset(SequenceDataset):
             paths.append(found if found is not None else stem.with_suffix(".png"))
         return paths
 
-    def load(self, frame: int, camera: str):
+    def read_view_mask(self, frame: int, camera: str) -> tuple[np.ndarray, Path]:
         if self.refined or len(self._mask_root) == 1:
-            return super().load(frame, camera)
+            return super().read_view_mask(frame, camera)
         # union of mask/ and mask_cihp/, as Neural Body's can_smpl loader does
-        from stg_node.data.io import read_image, read_mask
-        from stg_node.data.types import FrameSample
-
         paths = self.mask_paths(frame, camera)
-        mask = np.maximum.reduce([read_mask(p) for p in paths])
-        image_path = self.image_path(frame, camera)
-        preparer = self.preparer(camera)
-        image, mask = preparer(read_image(image_path), mask, image_path=image_path, mask_path=paths[0])
-        return FrameSample(
-            index=frame,
-            time=self.time(frame),
-            image=image,
-            mask=mask,
-            camera=preparer.camera,
-            smpl=self.smpl(frame),
-        )
+        return np.maximum.reduce([read_mask(p) for p in paths]), paths[0]
 
     def smpl_path(self, frame: int) -> Path:
         if frame not in self._params_number:
-            raise KeyError(f"frame {frame} has no SMPL parameters in {self._params_dir}")
+            raise DatasetError(
+                self._params_dir,
+                f"frame {frame} has no SMPL parameters",
+                f"a frame of this sequence with its <n>.npy file (frames {self.all_frames[0]}.."
+                f"{self.all_frames[-1]})",
+            )
         return self._params_dir / f"{self._params_number[frame]}.npy"
 
     def _read_smpl(self, frame: int) -> SmplParams:

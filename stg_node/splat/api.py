@@ -1,92 +1,77 @@
 """`rasterize()`: the one public entry point, and the choice of backend behind it.
 
-Every backend answers the same contract (shapes, constants, gradients, the `info` dict);
-this module validates the inputs once, picks the backend (`auto`: gsplat for CUDA tensors
-when it works, else the C++ kernels, else the torch reference; the choice is logged once),
-adds the optional depth channel and the background, and assembles `info`.
+Every backend answers the same interface (backend.py) and contract (shapes, constants,
+gradients, the projection). This module does, once and for all of them: validate the inputs;
+replace zero quaternions by the identity; answer an empty scene (no Gaussians) or a zero-area
+image itself, so no backend ever launches a kernel for one (gsplat would kill the process);
+pick the backend (`auto`: gsplat for CUDA tensors when it works, else the C++ kernels for CPU
+tensors, else the torch reference; the choice is logged once, a fallback warned once); blend
+the background, turn accumulated depth into expected depth, and assemble `info`.
 """
 
 from __future__ import annotations
 
+import importlib
 import logging
 import warnings
 
 import torch
 
 from . import constants as K_
-from . import torch_reference
-from .build import ExtensionUnavailable, load_kernels
+from .backend import SplatBackend, blank_images, track_means2d
+from .types import BackendOutput, BackendUnavailable, Projection, RenderOptions, RenderRequest, RenderStats
 from .validation import check_inputs
 
 log = logging.getLogger(__name__)
 
-BACKENDS = ("auto", "torch", "cpu", "cuda")
+# The backends, by name: each module holds one object `BACKEND` answering `SplatBackend`.
+# A new backend is a new module and one line here.
+_BACKEND_MODULES = {"torch": "torch_reference", "cpu": "cpu_backend", "cuda": "cuda_backend"}
+BACKENDS = ("auto", *_BACKEND_MODULES)
 DEPTH_MODES = ("expected", "accumulated")
 
 _logged_choices: set[tuple[str, str]] = set()
 _warned: set[str] = set()
-_cuda_failure: Exception | None = None
+_failures: dict[str, BackendUnavailable] = {}  # backends that failed at render time, by name
 
 
-class _AbsGradHolder:
-    """Lets a backend's backward add AbsGS statistics to ``info["means2d"].absgrad``."""
-
-    def __init__(self, tensor: torch.Tensor):
-        self.tensor = tensor
-
-    def add_absgrad(self, index: torch.Tensor | None, values: torch.Tensor) -> None:
-        t = self.tensor
-        current = getattr(t, "absgrad", None)
-        if current is None:
-            current = torch.zeros(t.shape, dtype=t.dtype, device=t.device)
-        values = values.to(dtype=t.dtype, device=t.device)
-        if index is None:
-            current = current + values
-        else:
-            current = current.index_add(0, index, values)
-        t.absgrad = current
+def backend_impl(name: str) -> SplatBackend:
+    """The backend object registered under `name` (imported on first use)."""
+    return importlib.import_module(f".{_BACKEND_MODULES[name]}", __package__).BACKEND
 
 
 def _warn_once(key: str, message: str) -> None:
     if key in _warned:
         return
     _warned.add(key)
-    warnings.warn(message, RuntimeWarning, stacklevel=3)
+    warnings.warn(message, RuntimeWarning, stacklevel=4)
     log.warning(message)
+
+
+def backend_status(name: str) -> str | None:
+    """None if backend `name` can run here (may build the CPU kernels), else why not."""
+    if name in _failures:
+        return str(_failures[name])
+    try:
+        backend_impl(name).check()
+    except BackendUnavailable as exc:
+        return str(exc)
+    return None
 
 
 def cpu_backend_status() -> str | None:
     """None if the C++ kernels load (building them on first call), else why not."""
-    try:
-        load_kernels()
-    except ExtensionUnavailable as exc:
-        return str(exc)
-    return None
+    return backend_status("cpu")
 
 
 def cuda_backend_status() -> str | None:
     """None if gsplat imports (its kernels compile on the first render), else why not."""
-    if not torch.cuda.is_available():
-        return "no CUDA device"
-    if _cuda_failure is not None:
-        return str(_cuda_failure)
-    from .cuda_backend import GsplatUnavailable, import_gsplat
-
-    try:
-        import_gsplat()
-    except GsplatUnavailable as exc:
-        return str(exc)
-    return None
+    return backend_status("cuda")
 
 
 def available_backends() -> list[str]:
     """The concrete backends usable in this process (may build the CPU kernels)."""
-    out = ["torch"]
-    if cpu_backend_status() is None:
-        out.append("cpu")
-    if cuda_backend_status() is None:
-        out.append("cuda")
-    return out
+    return [name for name in _BACKEND_MODULES if name == "torch" or backend_status(name) is None]
 
 
 def _log_choice(device: str, backend: str, why: str) -> None:
@@ -100,39 +85,86 @@ def resolve_backend(backend: str, device: torch.device) -> str:
     """The concrete backend `rasterize` will use for tensors on `device`."""
     if backend not in BACKENDS:
         raise ValueError(f"unknown backend {backend!r}; choose one of {', '.join(BACKENDS)}")
-    if backend == "cuda":
-        if device.type != "cuda":
-            raise ValueError(f"backend='cuda' needs CUDA tensors, got tensors on {device}")
-        return "cuda"
-    if backend == "cpu":
-        if device.type != "cpu":
-            raise ValueError(f"backend='cpu' needs CPU tensors, got tensors on {device}")
-        load_kernels()  # raises ExtensionUnavailable, naming the reason (and the build log)
-        return "cpu"
-    if backend == "torch":
-        return "torch"
-    if device.type == "cuda":
-        status = cuda_backend_status()
+    if backend != "auto":
+        impl = backend_impl(backend)
+        if impl.device_type is not None and device.type != impl.device_type:
+            raise ValueError(
+                f"backend={backend!r} needs {impl.device_type.upper()} tensors, got tensors on {device}"
+            )
+        impl.check()  # raises BackendUnavailable naming the reason (a named backend never falls back)
+        return backend
+    for name in _BACKEND_MODULES:
+        impl = backend_impl(name)
+        if impl.device_type != device.type:
+            continue
+        status = backend_status(name)
         if status is None:
-            _log_choice("cuda", "cuda", "gsplat")
-            return "cuda"
+            _log_choice(device.type, name, impl.description)
+            return name
         _warn_once(
-            "cuda", f"gsplat is not usable ({status}); rendering CUDA tensors with the slow torch reference"
+            name,
+            f"{impl.description} unavailable ({status}); rendering {device.type.upper()} tensors "
+            "with the slow torch reference",
         )
-        _log_choice("cuda", "torch", status)
-        return "torch"
-    if device.type == "cpu":
-        status = cpu_backend_status()
-        if status is None:
-            _log_choice("cpu", "cpu", "C++/OpenMP kernels")
-            return "cpu"
-        _warn_once(
-            "cpu", f"C++ splat kernels unavailable ({status}); falling back to the slow torch reference"
-        )
-        _log_choice("cpu", "torch", status)
+        _log_choice(device.type, "torch", status)
         return "torch"
     _log_choice(device.type, "torch", "no dedicated backend for this device")
     return "torch"
+
+
+def sanitize_quats(quats: torch.Tensor) -> torch.Tensor:
+    """Quaternions whose every component is below QUAT_NORM_EPS in magnitude (a zero one) ->
+    the identity (1, 0, 0, 0); the others are returned untouched.
+
+    Applied before any backend sees them: gsplat would turn them into NaN covariances (its
+    squared norm underflows), ours into a degenerate matrix, so one documented behaviour needs
+    one place. The replaced rows get a zero gradient. One cheap reduction in the common case
+    where nothing needs replacing (one device sync on CUDA)."""
+    if quats.numel() == 0:
+        return quats
+    largest = quats.detach().abs().amax(dim=-1)
+    if not bool(largest.amin() < K_.QUAT_NORM_EPS):
+        return quats
+    identity = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=quats.dtype, device=quats.device)
+    return torch.where((largest < K_.QUAT_NORM_EPS)[:, None], identity, quats)
+
+
+def _empty_render(request: RenderRequest) -> BackendOutput:
+    """No Gaussians or no pixels: nothing to draw, no backend called. Outputs and the all-culled
+    projection stay in the autograd graph (zero gradients, means2d .grad/.absgrad set)."""
+    means = request.means
+    n, dtype, device = means.shape[0], means.dtype, means.device
+    projection = Projection(
+        means2d=means[:, :2] * 0.0,
+        conics=torch.zeros((n, 3), dtype=dtype, device=device),
+        depths=torch.zeros((n,), dtype=dtype, device=device),
+        opacities=request.opacities * 0.0,
+        radii=torch.zeros((n, 2), dtype=torch.int32, device=device),
+        bbox=torch.tensor([0, -1, 0, -1], dtype=torch.int32, device=device).repeat(n, 1),
+        visible=torch.zeros((n,), dtype=torch.bool, device=device),
+    )
+    holder = track_means2d(projection.means2d)
+    image, alpha, depth = blank_images(request, projection, holder, dtype)
+    return BackendOutput(image, alpha, depth, projection, RenderStats(n_intersections=0))
+
+
+def _render(chosen: str, request: RenderRequest, *, explicit: bool) -> tuple[str, BackendOutput]:
+    """Render with `chosen`; under `auto`, a backend that fails at render time (gsplat's build)
+    is remembered as unavailable and the torch reference renders instead."""
+    try:
+        return chosen, backend_impl(chosen).render(request)
+    except BackendUnavailable as exc:
+        if explicit or chosen == "torch":
+            raise
+        _failures[chosen] = exc
+        device = request.means.device.type
+        _warn_once(
+            chosen,
+            f"{backend_impl(chosen).description} is not usable ({exc}); rendering {device.upper()} "
+            "tensors with the slow torch reference",
+        )
+        _log_choice(device, "torch", str(exc))
+        return "torch", backend_impl("torch").render(request)
 
 
 def rasterize(
@@ -162,14 +194,14 @@ def rasterize(
 
     Args:
         means: [N, 3] centres in world space (metres).
-        quats: [N, 4] rotations, wxyz, any norm (normalised inside; a zero quaternion is the
-            identity).
+        quats: [N, 4] rotations, wxyz, any norm (normalised inside; one whose components are
+            all below 1e-12 in magnitude, e.g. zero, is the identity, with a zero gradient).
         scales: [N, 3] standard deviations along the rotated axes, activated (>= 0).
         opacities: [N] activated opacities (in [0, 1]).
         colors: [N, C] any number of channels (RGB, features ...), blended as given.
         viewmat: [4, 4] world-to-camera matrix, OpenCV axes (x right, y down, z forward).
         K: [3, 3] pinhole intrinsics [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] in pixels.
-        width, height: image size in pixels.
+        width, height: image size in pixels (0 gives an empty image).
         background: [C] (or a scalar) colour behind the Gaussians; default black.
         backend: "auto", "cpu" (C++/OpenMP), "cuda" (gsplat) or "torch" (reference).
         near_plane, far_plane: depth culling of the centres, metres.
@@ -189,9 +221,15 @@ def rasterize(
         ``backend`` (the one used), ``means2d`` ([N, 2] projected centres, differentiable;
         after ``backward()`` its ``.grad`` holds dL/dmeans2d and ``.absgrad`` the sum over
         pixels of |dL/dmeans2d| (AbsGS), both accumulating like ``.grad``; in pixels),
-        ``radii`` ([N, 2] int32 screen radius in x and y, 0 = culled), ``visible`` ([N] bool),
-        ``depths`` ([N] camera z), ``conics`` ([N, 3]), ``opacities`` ([N] effective),
-        ``n_intersections``, ``width``, ``height``, ``tile_size`` and ``depth`` when asked.
+        ``radii`` ([N, 2] int32 screen radius in x and y, 0 = culled), ``visible`` ([N] bool,
+        radii > 0: gsplat's culling rules, docs/SPLAT.md), ``depths`` ([N] camera z),
+        ``conics`` ([N, 3]), ``opacities`` ([N] effective), ``n_intersections`` (tile pairs
+        the backend processed), ``n_gaussians``, ``width``, ``height``, ``tile_size``,
+        ``stats`` (backend-specific stage timings, filled further by backward) and ``depth``
+        when asked.
+
+    An empty scene (no Gaussians, or every one culled) or a zero-area image renders the
+    background (alpha 0) on every backend, never launching a kernel for nothing.
 
     Gradients flow to means, quats, scales, opacities, colors and background (not to
     viewmat or K).
@@ -222,145 +260,54 @@ def rasterize(
         finite=check_inputs_finite,
     )
     chosen = resolve_backend(backend, means.device)
-    options = dict(
-        near_plane=near_plane,
-        far_plane=far_plane,
-        eps2d=eps2d,
-        radius_clip=radius_clip,
-        antialiased=antialiased,
+    request = RenderRequest(
+        means=means,
+        quats=sanitize_quats(quats),
+        scales=scales,
+        opacities=opacities,
+        colors=colors,
+        viewmat=viewmat,
+        K=K,
+        width=width,
+        height=height,
+        options=RenderOptions(
+            near_plane=float(near_plane),
+            far_plane=float(far_plane),
+            eps2d=float(eps2d),
+            radius_clip=float(radius_clip),
+            antialiased=bool(antialiased),
+            render_depth=bool(render_depth),
+            max_intersections=int(max_intersections),
+        ),
     )
-    if chosen == "cuda":
-        try:
-            return _rasterize_cuda(
-                means,
-                quats,
-                scales,
-                opacities,
-                colors,
-                viewmat,
-                K,
-                width,
-                height,
-                background,
-                render_depth,
-                depth_mode,
-                options,
-                explicit=backend == "cuda",
-            )
-        except _FallBack:
-            chosen = "torch"
-
     n = means.shape[0]
-    if chosen == "cpu":
-        from . import cpu_backend as impl
-
-        options["max_intersections"] = max_intersections
-        dtype = means.dtype
-        f32 = (means.float(), quats.float(), scales.float(), opacities.float(), colors.float())
-        means_, quats_, scales_, opacities_, colors_ = f32
+    if n == 0 or width == 0 or height == 0:
+        out = _empty_render(request)
     else:
-        impl = torch_reference
-        dtype = means.dtype
-        means_, quats_, scales_, opacities_, colors_ = means, quats, scales, opacities, colors
+        chosen, out = _render(chosen, request, explicit=backend != "auto")
 
-    # Depth planes in the precision of the (working) inputs, so a centre placed exactly on the
-    # near plane in float32 is kept, as in gsplat.
-    for key in ("near_plane", "far_plane"):
-        options[key] = float(torch.tensor(options[key], dtype=means_.dtype))
-    proj = impl.project(means_, quats_, scales_, opacities_, viewmat, K, width, height, **options)
-    means2d = proj.means2d
-    holder = None
-    if means2d.requires_grad:
-        means2d.retain_grad()
-        holder = _AbsGradHolder(means2d)
-    render_colors = colors_
-    if render_depth:
-        render_colors = torch.cat([colors_, proj.depths[:, None].to(colors_.dtype)], dim=1)
-    if chosen == "cpu":
-        image, alpha = impl.rasterize(proj, render_colors, width, height, holder=holder, **options)
-    else:
-        image, alpha = impl.rasterize(proj, render_colors, width, height, holder=holder)
-    image = image.to(dtype)
-    alpha = alpha.to(dtype)
-    depth = None
-    if render_depth:
-        image, depth = image[..., :-1], image[..., -1:]
-        if depth_mode == "expected":
-            depth = depth / alpha.clamp_min(K_.DEPTH_ALPHA_EPS)
+    dtype = means.dtype
+    image, alpha, depth = out.image, out.alpha, out.depth
+    if depth is not None and depth_mode == "expected":
+        depth = depth / alpha.clamp_min(K_.DEPTH_ALPHA_EPS)
     if background is not None:
         image = image + (1.0 - alpha) * background.to(dtype)
+    proj = out.projection
     info = {
         "backend": chosen,
-        "means2d": means2d,
+        "means2d": proj.means2d,
         "radii": proj.radii,
         "visible": proj.visible,
         "depths": proj.depths,
         "conics": proj.conics,
         "opacities": proj.opacities,
-        "n_intersections": (
-            impl.last_stats.get("forward", {}).get("n_intersections", -1)
-            if chosen == "cpu"
-            else torch_reference.count_intersections(proj)
-        ),
+        "n_intersections": out.stats.n_intersections,
         "n_gaussians": n,
         "width": width,
         "height": height,
         "tile_size": K_.TILE_SIZE,
+        "stats": out.stats.stages,
     }
-    if depth is not None:
-        info["depth"] = depth
-    return image, alpha, info
-
-
-class _FallBack(Exception):
-    pass
-
-
-def _rasterize_cuda(
-    means,
-    quats,
-    scales,
-    opacities,
-    colors,
-    viewmat,
-    K,
-    width,
-    height,
-    background,
-    render_depth,
-    depth_mode,
-    options,
-    *,
-    explicit: bool,
-):
-    global _cuda_failure
-    from . import cuda_backend
-
-    try:
-        image, alpha, depth, info = cuda_backend.rasterize(
-            means,
-            quats,
-            scales,
-            opacities,
-            colors,
-            viewmat,
-            K,
-            width,
-            height,
-            background,
-            render_depth=render_depth,
-            depth_mode=depth_mode,
-            **options,
-        )
-    except cuda_backend.GsplatUnavailable as exc:
-        if explicit:
-            raise
-        _cuda_failure = exc
-        _warn_once("cuda", f"gsplat is not usable ({exc}); rendering CUDA tensors with the torch reference")
-        raise _FallBack() from exc
-    info.update(
-        backend="cuda", n_gaussians=means.shape[0], width=width, height=height, tile_size=K_.TILE_SIZE
-    )
     if depth is not None:
         info["depth"] = depth
     return image, alpha, info

@@ -30,6 +30,9 @@ import sys
 import threading
 from pathlib import Path
 
+from ..progress import wait_with_progress
+from .types import BackendUnavailable
+
 log = logging.getLogger(__name__)
 
 ENV_CACHE = "STG_SPLAT_CACHE"
@@ -47,7 +50,7 @@ X86_V3_FEATURES = ("avx2", "fma", "f16c", "bmi1", "bmi2")
 X86_V3_FLAGS = ("-mavx2", "-mfma", "-mf16c", "-mbmi", "-mbmi2")
 
 
-class ExtensionUnavailable(RuntimeError):
+class ExtensionUnavailable(BackendUnavailable):
     """The CPU kernels cannot be built or loaded here; ``reason`` says why, ``log_path`` where."""
 
     def __init__(self, message: str, reason: str, log_path: Path | None = None):
@@ -198,14 +201,17 @@ def _compile(cpp_extension, namespace, source_dir, cflags, build_dir, log_path, 
         "building the CPU splat kernels with %s %s (once; cached in %s)", cxx, " ".join(cflags), build_dir
     )
     try:
-        cpp_extension.load(
-            name=namespace,
-            sources=[str(source_dir / name) for name in SOURCES],
-            extra_cflags=[*cflags, f"-DSTG_SPLAT_NS={namespace}"],
-            extra_ldflags=list(BASE_LDFLAGS),
-            build_directory=str(build_dir),
-            is_python_module=False,
-            verbose=False,
+        wait_with_progress(
+            lambda: cpp_extension.load(
+                name=namespace,
+                sources=[str(source_dir / name) for name in SOURCES],
+                extra_cflags=[*cflags, f"-DSTG_SPLAT_NS={namespace}"],
+                extra_ldflags=list(BASE_LDFLAGS),
+                build_directory=str(build_dir),
+                is_python_module=False,
+                verbose=False,
+            ),
+            desc="building the CPU splat kernels",
         )
     except Exception as exc:  # cpp_extension raises RuntimeError with the compiler output
         log_path.write_text(f"compiler: {cxx} ({version})\nflags: {' '.join(cflags)}\n\n{exc}\n")

@@ -1,9 +1,13 @@
 """The numbers that define what a splat render *is*, shared by every backend.
 
-The torch reference, the C++ kernels (which receive these values as arguments at every
-call, so they can never drift from this file) and the gsplat wrapper all read them from
-here. gsplat compiles its own copies of the alpha/transmittance thresholds; ours are
-chosen to equal gsplat's so the CUDA path renders the same image (see docs/SPLAT.md).
+The torch reference and the C++ kernels (which receive these values as arguments at every
+call, so they can never drift from this file) read them from here; the gsplat wrapper passes
+the tunable ones (eps2d, planes, radius clip, tile size) to gsplat. The rest gsplat compiles
+in, and ours are its values, read from the source of the version the ``cuda`` extra pins
+(gsplat 1.5.3: ``ALPHA_THRESHOLD`` in cuda/include/Common.h; ``min(0.999f, ...)``,
+``next_T <= 1e-4f`` in csrc/RasterizeToPixels3DGSFwd.cu; ``3.33f`` and the opacity-aware
+extent in csrc/ProjectionEWA3DGSFused.cu), so a model trained on one backend renders the same
+on another (docs/SPLAT.md, "Constants").
 """
 
 from __future__ import annotations
@@ -20,16 +24,21 @@ LOW_PASS_EPS2D = 0.3
 
 # Depth culling, in metres along the camera's +z axis: a Gaussian whose centre is nearer
 # than NEAR_PLANE or farther than FAR_PLANE is dropped (a centre exactly on the near plane
-# is kept).
+# is kept). gsplat's defaults.
 NEAR_PLANE = 0.01
 FAR_PLANE = 1e10
 
-# Compositing: a Gaussian's alpha at a pixel is min(ALPHA_MAX, opacity * exp(-sigma)); a
-# contribution below ALPHA_MIN is skipped; a pixel stops accepting Gaussians as soon as the
-# next one would push its transmittance below TRANSMITTANCE_MIN (that one is not blended).
-ALPHA_MAX = 0.99
+# Compositing (gsplat's rules and values): a Gaussian's alpha at a pixel is
+# min(ALPHA_MAX, opacity * exp(-sigma)); a contribution below ALPHA_MIN is skipped; a pixel
+# stops accepting Gaussians as soon as the next one would take its transmittance to
+# TRANSMITTANCE_MIN or below (that one is not blended). Compared in float32 for float32 renders.
+ALPHA_MAX = 0.999
 ALPHA_MIN = 1.0 / 255.0
 TRANSMITTANCE_MIN = 1e-4
+
+# The gsplat release these values were read from; the cuda backend warns on another 1.5.x and
+# refuses older ones (the ``cuda`` extra pins this range).
+GSPLAT_VERSION = "1.5.3"
 
 # Opacity-aware screen radius: a Gaussian with effective opacity o reaches ALPHA_MIN at
 # sqrt(2 ln(o / ALPHA_MIN)) standard deviations, which is what its bounding box covers,
@@ -43,8 +52,10 @@ SIGMA_EXTENT_MAX = 3.33
 # 3DGS/gsplat, so Gaussians far off-screen do not get absurd 2D covariances.
 FRUSTUM_MARGIN = 0.3
 
-# Quaternions are normalised as q / max(|q|, QUAT_NORM_EPS): a zero quaternion becomes the
-# identity rotation instead of NaN.
+# Quaternions: rasterize() replaces any whose every component is below QUAT_NORM_EPS in
+# magnitude (a zero one) by the identity (1, 0, 0, 0) before a backend sees it (gsplat would
+# turn it into NaN); every backend then normalises q / |q| (the C++ kernels as
+# q / max(|q|, QUAT_NORM_EPS)).
 QUAT_NORM_EPS = 1e-12
 
 # Anti-aliased mode multiplies opacity by sqrt(det(S) / det(S + eps2d I)); its gradient uses

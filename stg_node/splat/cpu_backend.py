@@ -1,12 +1,14 @@
 """The `cpu` backend: autograd wrappers around the C++/OpenMP kernels (csrc/, built by build.py).
 
-Two autograd Functions mirror the reference's two stages, so the public API composes them the
-same way for every backend: ``_Project`` (3D -> screen-space Gaussians) and ``_Rasterize``
-(screen space -> image). Their backward passes are the hand-written C++ ones. The thread
-count is torch's (``torch.get_num_threads()``, set by ``stg_node.threads``).
+Two autograd Functions are the two stages of `CpuBackend` (a `TwoStageBackend`): ``_Project``
+(3D -> screen-space Gaussians) and ``_Rasterize`` (screen space -> image). Their backward
+passes are the hand-written C++ ones. The thread count is torch's (``torch.get_num_threads()``,
+set by ``stg_node.threads``).
 
 Tensors are computed in float32 (inputs of another float dtype are cast, and gradients are
-cast back by autograd). ``viewmat`` and ``K`` are not differentiated.
+cast back by autograd). ``viewmat`` and ``K`` are not differentiated. Per-stage timings and
+counters go into the render's `RenderStats.stages` (``info["stats"]``): "project" and
+"forward" when rendering, "project_backward" and "backward" once backward has run.
 """
 
 from __future__ import annotations
@@ -16,11 +18,9 @@ import time
 import torch
 
 from . import constants as K_
+from .backend import TwoStageBackend, plane_in_dtype
 from .build import load_kernels
-from .torch_reference import Projection
-
-#: Timings (ms) and counters of the last forward/backward call in this process, for profiling.
-last_stats: dict[str, dict[str, float]] = {}
+from .types import AbsGradHolder, Projection, RenderRequest, RenderStats
 
 
 def settings_vector(
@@ -58,7 +58,7 @@ def _stats_dict(stats: torch.Tensor) -> dict[str, float]:
         "ms_bin": s[1],
         "ms_raster": s[2],
         "ms_reduce": s[3],
-        "n_visible": int(s[4]),
+        "n_drawn": int(s[4]),  # visible Gaussians covering a pixel centre
         "n_intersections": int(s[5]),
         "n_chunks": int(s[6]),
     }
@@ -70,7 +70,7 @@ def _f32(t: torch.Tensor) -> torch.Tensor:
 
 class _Project(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means, quats, scales, opacities, viewmat, K, width, height, settings):
+    def forward(ctx, means, quats, scales, opacities, viewmat, K, width, height, settings, stages):
         ops = load_kernels().ops
         threads = torch.get_num_threads()
         vm = viewmat.detach().to(torch.float64).contiguous()
@@ -80,16 +80,16 @@ class _Project(torch.autograd.Function):
         means2d, conics, depths, opac_eff, _comp, radii, bbox, visible = ops.project_fwd(
             m, q, s, o, vm, kk, width, height, settings, threads
         )
-        last_stats["project"] = {"ms": (time.perf_counter() - t0) * 1e3}
+        stages["project"] = {"ms": (time.perf_counter() - t0) * 1e3}
         ctx.save_for_backward(m, q, s, o, vm, kk, visible)
-        ctx.args = (width, height, settings)
+        ctx.args = (width, height, settings, stages)
         ctx.mark_non_differentiable(radii, bbox, visible)
         return means2d, conics, depths, opac_eff, radii, bbox, visible
 
     @staticmethod
     def backward(ctx, g_means2d, g_conics, g_depths, g_opac, _g_radii, _g_bbox, _g_visible):
         m, q, s, o, vm, kk, visible = ctx.saved_tensors
-        width, height, settings = ctx.args
+        width, height, settings, stages = ctx.args
         ops = load_kernels().ops
 
         def grad_or_zeros(g, like):
@@ -113,14 +113,26 @@ class _Project(torch.autograd.Function):
             grad_or_zeros(g_depths, o),
             grad_or_zeros(g_opac, o),
         )
-        last_stats["project_backward"] = {"ms": (time.perf_counter() - t0) * 1e3}
-        return g_means, g_quats, g_scales, g_opac, None, None, None, None, None
+        stages["project_backward"] = {"ms": (time.perf_counter() - t0) * 1e3}
+        return g_means, g_quats, g_scales, g_opac, None, None, None, None, None, None
 
 
 class _Rasterize(torch.autograd.Function):
     @staticmethod
     def forward(
-        ctx, means2d, conics, opacities, colors, depths, bbox, visible, width, height, settings, holder
+        ctx,
+        means2d,
+        conics,
+        opacities,
+        colors,
+        depths,
+        bbox,
+        visible,
+        width,
+        height,
+        settings,
+        holder,
+        stages,
     ):
         ops = load_kernels().ops
         args = (
@@ -133,16 +145,16 @@ class _Rasterize(torch.autograd.Function):
             visible.contiguous(),
         )
         color, T, last, stats = ops.raster_fwd(*args, width, height, settings, torch.get_num_threads())
-        last_stats["forward"] = _stats_dict(stats)
+        stages["forward"] = _stats_dict(stats)
         ctx.save_for_backward(*args, T, last)
-        ctx.args = (width, height, settings, holder)
+        ctx.args = (width, height, settings, holder, stages)
         alpha = (1.0 - T).unsqueeze(-1)
         return color, alpha
 
     @staticmethod
     def backward(ctx, g_color, g_alpha):
         means2d, conics, opacities, colors, depths, bbox, visible, T, last = ctx.saved_tensors
-        width, height, settings, holder = ctx.args
+        width, height, settings, holder, stages = ctx.args
         ops = load_kernels().ops
         g_color = torch.zeros((height, width, colors.shape[1])) if g_color is None else _f32(g_color)
         g_alpha = torch.zeros((height, width)) if g_alpha is None else _f32(g_alpha[..., 0])
@@ -163,85 +175,80 @@ class _Rasterize(torch.autograd.Function):
             g_color,
             g_alpha,
         )
-        last_stats["backward"] = _stats_dict(stats)
+        stages["backward"] = _stats_dict(stats)
         if holder is not None:
             holder.add_absgrad(None, g_abs)
-        return g_means2d, g_conics, g_opac, g_colors, None, None, None, None, None, None, None
+        return g_means2d, g_conics, g_opac, g_colors, None, None, None, None, None, None, None, None
 
 
-def project(
-    means,
-    quats,
-    scales,
-    opacities,
-    viewmat,
-    K,
-    width,
-    height,
-    *,
-    near_plane,
-    far_plane,
-    eps2d,
-    radius_clip,
-    antialiased,
-    max_intersections=K_.MAX_INTERSECTIONS_PER_CHUNK,
-) -> Projection:
-    settings = settings_vector(
-        near_plane=near_plane,
-        far_plane=far_plane,
-        eps2d=eps2d,
-        radius_clip=radius_clip,
-        antialiased=antialiased,
-        max_intersections=max_intersections,
-    )
-    means2d, conics, depths, opac_eff, radii, bbox, visible = _Project.apply(
-        means, quats, scales, opacities, viewmat, K, int(width), int(height), settings
-    )
-    dtype = means.dtype
-    return Projection(
-        means2d=means2d.to(dtype),
-        conics=conics.to(dtype),
-        depths=depths.to(dtype),
-        opacities=opac_eff.to(dtype),
-        radii=radii,
-        bbox=bbox,
-        visible=visible,
-    )
+class CpuBackend(TwoStageBackend):
+    """The C++/OpenMP kernels, float32, on CPU tensors."""
+
+    name = "cpu"
+    device_type = "cpu"
+    description = "C++/OpenMP kernels"
+
+    def check(self) -> None:
+        load_kernels()  # builds them on the first call (cached on disk); ExtensionUnavailable if not
+
+    def working_dtype(self, dtype: torch.dtype) -> torch.dtype:
+        return torch.float32
+
+    def _settings(self, request: RenderRequest) -> list[float]:
+        o = request.options
+        return settings_vector(
+            near_plane=plane_in_dtype(o.near_plane, torch.float32),
+            far_plane=plane_in_dtype(o.far_plane, torch.float32),
+            eps2d=o.eps2d,
+            radius_clip=o.radius_clip,
+            antialiased=o.antialiased,
+            max_intersections=o.max_intersections,
+        )
+
+    def project(self, request: RenderRequest, tensors, stats: RenderStats) -> Projection:
+        means2d, conics, depths, opac_eff, radii, bbox, visible = _Project.apply(
+            *tensors,
+            request.viewmat,
+            request.K,
+            int(request.width),
+            int(request.height),
+            self._settings(request),
+            stats.stages,
+        )
+        return Projection(
+            means2d=means2d,
+            conics=conics,
+            depths=depths,
+            opacities=opac_eff,
+            radii=radii,
+            bbox=bbox,
+            visible=visible,
+        )
+
+    def rasterize(
+        self,
+        request: RenderRequest,
+        projection: Projection,
+        colors: torch.Tensor,
+        holder: AbsGradHolder | None,
+        stats: RenderStats,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        image, alpha = _Rasterize.apply(
+            projection.means2d,
+            projection.conics,
+            projection.opacities,
+            colors,
+            projection.depths.detach(),
+            projection.bbox,
+            projection.visible,
+            int(request.width),
+            int(request.height),
+            self._settings(request),
+            holder,
+            stats.stages,
+        )
+        stats.n_intersections = int(stats.stages["forward"]["n_intersections"])
+        return image, alpha
 
 
-def rasterize(
-    proj: Projection,
-    colors,
-    width,
-    height,
-    *,
-    holder=None,
-    near_plane=K_.NEAR_PLANE,
-    far_plane=K_.FAR_PLANE,
-    eps2d=K_.LOW_PASS_EPS2D,
-    radius_clip=0.0,
-    antialiased=False,
-    max_intersections=K_.MAX_INTERSECTIONS_PER_CHUNK,
-):
-    settings = settings_vector(
-        near_plane=near_plane,
-        far_plane=far_plane,
-        eps2d=eps2d,
-        radius_clip=radius_clip,
-        antialiased=antialiased,
-        max_intersections=max_intersections,
-    )
-    image, alpha = _Rasterize.apply(
-        proj.means2d,
-        proj.conics,
-        proj.opacities,
-        colors,
-        proj.depths.detach(),
-        proj.bbox,
-        proj.visible,
-        int(width),
-        int(height),
-        settings,
-        holder,
-    )
-    return image.to(colors.dtype), alpha.to(colors.dtype)
+BACKEND = CpuBackend()

@@ -18,25 +18,12 @@ float32 render composites in float32 exactly as the C++ backend does.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import torch
 from torch.utils.checkpoint import checkpoint
 
 from . import constants as K_
-
-
-@dataclass
-class Projection:
-    """Screen-space Gaussians, one row per input Gaussian (culled rows are zero)."""
-
-    means2d: torch.Tensor  # [N, 2] pixels; differentiable
-    conics: torch.Tensor  # [N, 3] inverse 2D covariance (a, b, c); differentiable
-    depths: torch.Tensor  # [N] camera z; differentiable
-    opacities: torch.Tensor  # [N] effective opacity (x compensation); differentiable
-    radii: torch.Tensor  # [N, 2] int32 screen radius in pixels (x, y); 0 = culled
-    bbox: torch.Tensor  # [N, 4] int32 inclusive pixel box x0, x1, y0, y1
-    visible: torch.Tensor  # [N] bool
+from .backend import TwoStageBackend, plane_in_dtype
+from .types import AbsGradHolder, Projection, RenderRequest, RenderStats
 
 
 class _CompensationSqrt(torch.autograd.Function):
@@ -148,15 +135,18 @@ def project(
         ry = torch.ceil(extent * c1.clamp_min(0).sqrt())
         visible &= ~((rx <= radius_clip) & (ry <= radius_clip))
         mx, my = means2d[:, 0].detach(), means2d[:, 1].detach()
+        # gsplat's image test: culled when [mean - radius, mean + radius] misses (0, W) x (0, H).
+        visible &= (mx + rx > 0) & (mx - rx < width) & (my + ry > 0) & (my - ry < height)
+        # Pixels whose centre (j + 0.5) lies within the radius; empty for a visible Gaussian
+        # that reaches less than half a pixel into the image.
         x0 = torch.ceil(mx - rx - 0.5).clamp_min(0)
         x1 = torch.floor(mx + rx - 0.5).clamp_max(width - 1)
         y0 = torch.ceil(my - ry - 0.5).clamp_min(0)
         y1 = torch.floor(my + ry - 0.5).clamp_max(height - 1)
-        visible &= (x0 <= x1) & (y0 <= y1)
-        visible &= torch.isfinite(mx) & torch.isfinite(my)
         bbox = torch.stack([x0, x1, y0, y1], dim=-1)
+        covers = visible & (x0 <= x1) & (y0 <= y1)
         bbox = torch.where(
-            visible[:, None], bbox, torch.tensor([0.0, -1.0, 0.0, -1.0], dtype=work, device=bbox.device)
+            covers[:, None], bbox, torch.tensor([0.0, -1.0, 0.0, -1.0], dtype=work, device=bbox.device)
         )
         bbox = bbox.clamp(-1, max(width, height)).to(torch.int32)
         radii = torch.stack([rx, ry], dim=-1).clamp(0, K_.RADIUS_REPORT_MAX)
@@ -200,7 +190,7 @@ class _PairMeans(torch.autograd.Function):
 
 def count_intersections(proj: Projection) -> int:
     """Tile intersections the tiled backends will process (for info parity)."""
-    b = proj.bbox[proj.visible].to(torch.int64)
+    b = proj.bbox[proj.drawn()].to(torch.int64)
     if b.numel() == 0:
         return 0
     ts = K_.TILE_SIZE
@@ -246,10 +236,11 @@ def _composite_block(
             valid = inside & (sigma >= 0) & (alpha >= K_.ALPHA_MIN) & ~done[:, None]
             a_valid = torch.where(valid, alpha, torch.zeros_like(alpha))
             # Transmittance after each candidate if every valid one were blended; the first
-            # that would drop below the threshold stops the pixel (and is not blended).
+            # that would take it to TRANSMITTANCE_MIN or below stops the pixel (and is not
+            # blended), as gsplat's `next_T <= 1e-4f` does.
             t_after = torch.cumprod(torch.cat([T.detach()[:, None], 1 - a_valid], dim=1), dim=1)[:, 1:]
-            blend = valid & (t_after >= K_.TRANSMITTANCE_MIN)
-            stopped = (valid & (t_after < K_.TRANSMITTANCE_MIN)).any(dim=1)
+            blend = valid & (t_after > K_.TRANSMITTANCE_MIN)
+            stopped = (valid & (t_after <= K_.TRANSMITTANCE_MIN)).any(dim=1)
         a_blend = torch.where(blend, alpha, torch.zeros_like(alpha))
         trans = torch.cumprod(torch.cat([T[:, None], 1 - a_blend], dim=1), dim=1)
         # An explicit multiply-sum, not a matmul: tiny BLAS calls wake OpenBLAS's own thread
@@ -307,7 +298,7 @@ def rasterize(
     """
     device, dtype = colors.device, colors.dtype
     C = colors.shape[1]
-    vis_idx = torch.nonzero(proj.visible).squeeze(1)
+    vis_idx = torch.nonzero(proj.drawn()).squeeze(1)
     order = torch.sort(proj.depths.detach()[vis_idx], stable=True).indices
     sorted_ids = vis_idx[order]
     if block_size is None:
@@ -362,3 +353,41 @@ def rasterize(
         anchor = sum(t.sum() for t in tensors if t.requires_grad) * 0.0
         image, T_final = image + anchor, T_final + anchor
     return image, (1.0 - T_final)[..., None]
+
+
+class TorchBackend(TwoStageBackend):
+    """The reference as a backend: any device, the inputs' dtype (float64 for gradcheck)."""
+
+    name = "torch"
+    device_type = None
+    description = "pure PyTorch reference"
+
+    def project(self, request: RenderRequest, tensors, stats: RenderStats) -> Projection:
+        o = request.options
+        dtype = tensors[0].dtype
+        return project(
+            *tensors,
+            request.viewmat,
+            request.K,
+            request.width,
+            request.height,
+            near_plane=plane_in_dtype(o.near_plane, dtype),
+            far_plane=plane_in_dtype(o.far_plane, dtype),
+            eps2d=o.eps2d,
+            radius_clip=o.radius_clip,
+            antialiased=o.antialiased,
+        )
+
+    def rasterize(
+        self,
+        request: RenderRequest,
+        projection: Projection,
+        colors: torch.Tensor,
+        holder: AbsGradHolder | None,
+        stats: RenderStats,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        stats.n_intersections = count_intersections(projection)
+        return rasterize(projection, colors, request.width, request.height, holder=holder)
+
+
+BACKEND = TorchBackend()

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from bushelpers import sample_messages
 
-from stg_node.bus import Broker, BusConfig, Frame, Publisher
+from stg_node.bus import Broker, BusConfig, Frame, NodeStatus, Publisher, Subscriber
 from stg_node.bus.codec import encode_counted
 from stg_node.cli import topic as topic_cli
 
@@ -94,6 +94,32 @@ def test_hz_matches_the_rate_actually_published(running):
     truth = (len(stamps) - 1) / (stamps[-1] - stamps[0])
     assert reported == pytest.approx(truth, rel=0.25)
     assert "window: " in text
+
+
+def test_hz_and_the_brokers_node_status_report_the_same_rate(running):
+    """Live: what stg-topic hz prints and what the broker's NodeStatus says for the same topic."""
+    url, talker = running
+    rates: list[float] = []
+    stop = threading.Event()
+
+    def watch():
+        with Subscriber(BusConfig(url=url), ["node/status"]) as sub:
+            while not stop.is_set():
+                msg = sub.recv(timeout=0.2)
+                if isinstance(msg, NodeStatus) and msg.node == "broker" and "body/pose" in msg.rates_hz:
+                    rates.append(msg.rates_hz["body/pose"])
+
+    watcher = threading.Thread(target=watch, daemon=True)
+    watcher.start()
+    try:
+        time.sleep(0.3)
+        text = _run("--bus", url, "hz", "body/pose", "--duration", "2.0", "--window", "50")
+    finally:
+        stop.set()
+        watcher.join(5)
+    reported = float(re.findall(r"average rate: ([\d.]+) Hz", text)[-1])
+    assert len(rates) >= 5  # the broker reports every 0.2 s
+    assert reported == pytest.approx(np.median(rates[1:]), rel=0.25)
 
 
 def test_bw_reports_the_exact_message_size(running):

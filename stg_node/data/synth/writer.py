@@ -29,6 +29,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from stg_node.body.motion import save_smpl_params
+from stg_node.body.params import SmplParams
 from stg_node.data.synth.cameras import camera_name
 from stg_node.data.types import Camera
 
@@ -91,19 +93,11 @@ def write_annots(out: Path, cameras: list[Camera], num_frames: int) -> None:
     np.save(Path(out) / ANNOTS_FILE, {"cams": cams, "ims": ims}, allow_pickle=True)
 
 
-def write_frame_smpl(
-    out: Path, frame: int, poses: np.ndarray, Rh: np.ndarray, Th: np.ndarray, betas: np.ndarray
-) -> None:
+def write_frame_smpl(out: Path, frame: int, params: SmplParams) -> None:
     """``new_params/{frame}.npy`` in ZJU-MoCap's dict layout (all float32, leading batch axis of 1)."""
     folder = Path(out) / PARAMS_DIR
     folder.mkdir(exist_ok=True)
-    params = {
-        "poses": np.asarray(poses, dtype=np.float32).reshape(1, -1),
-        "Rh": np.asarray(Rh, dtype=np.float32).reshape(1, 3),
-        "Th": np.asarray(Th, dtype=np.float32).reshape(1, 3),
-        "shapes": np.asarray(betas, dtype=np.float32).reshape(1, -1),
-    }
-    np.save(folder / f"{frame}.npy", params, allow_pickle=True)
+    save_smpl_params(folder / f"{frame}.npy", params)
 
 
 def write_frame_vertices(out: Path, frame: int, vertices: np.ndarray) -> None:

@@ -166,7 +166,7 @@ at::Tensor stats_tensor(const stg_splat::RasterStats& st) {
     p[1] = st.ms_bin;
     p[2] = st.ms_raster;
     p[3] = st.ms_reduce;
-    p[4] = static_cast<double>(st.n_visible);
+    p[4] = static_cast<double>(st.n_drawn);
     p[5] = static_cast<double>(st.n_intersections);
     p[6] = static_cast<double>(st.n_chunks);
     return out;

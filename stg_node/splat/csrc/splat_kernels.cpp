@@ -218,14 +218,20 @@ void project_forward(int64_t n, const float* means, const float* quats, const fl
         const double rx = std::ceil(extent * std::sqrt(g.a1));
         const double ry = std::ceil(extent * std::sqrt(g.c1));
         if (rx <= s.radius_clip && ry <= s.radius_clip) continue;
-        // Pixel j (centre j + 0.5) is covered when |mx - (j + 0.5)| <= rx. Clip in double
-        // before converting to int, so huge radii or far-off centres cannot overflow.
+        // gsplat's image test (ProjectionEWA3DGSFused.cu): culled when [mean - radius,
+        // mean + radius] misses (0, W) x (0, H). Written so that a NaN centre is culled too.
         const double W = cam.width, H = cam.height;
+        const bool on_image = (g.mx + rx > 0.0) & (g.mx - rx < W) & (g.my + ry > 0.0) & (g.my - ry < H);
+        if (!on_image) continue;
+        // Pixel j (centre j + 0.5) is covered when |mx - (j + 0.5)| <= rx. Clip in double
+        // before converting to int, so huge radii or far-off centres cannot overflow. The box
+        // is empty (0, -1, 0, -1) for a visible Gaussian that reaches less than half a pixel
+        // into the image.
         const double x0 = std::max(std::ceil(g.mx - rx - 0.5), 0.0);
         const double x1 = std::min(std::floor(g.mx + rx - 0.5), W - 1.0);
         const double y0 = std::max(std::ceil(g.my - ry - 0.5), 0.0);
         const double y1 = std::min(std::floor(g.my + ry - 0.5), H - 1.0);
-        if (!(x0 <= x1 && y0 <= y1)) continue;
+        const bool covers = (x0 <= x1) & (y0 <= y1);
 
         means2d[i * 2] = static_cast<float>(g.mx);
         means2d[i * 2 + 1] = static_cast<float>(g.my);
@@ -239,10 +245,10 @@ void project_forward(int64_t n, const float* means, const float* quats, const fl
         const double rmax = static_cast<double>(s.radius_report_max);
         radii[i * 2] = static_cast<int32_t>(std::min(rx, rmax));
         radii[i * 2 + 1] = static_cast<int32_t>(std::min(ry, rmax));
-        bbox[i * 4] = static_cast<int32_t>(x0);
-        bbox[i * 4 + 1] = static_cast<int32_t>(x1);
-        bbox[i * 4 + 2] = static_cast<int32_t>(y0);
-        bbox[i * 4 + 3] = static_cast<int32_t>(y1);
+        bbox[i * 4] = covers ? static_cast<int32_t>(x0) : 0;
+        bbox[i * 4 + 1] = covers ? static_cast<int32_t>(x1) : -1;
+        bbox[i * 4 + 2] = covers ? static_cast<int32_t>(y0) : 0;
+        bbox[i * 4 + 3] = covers ? static_cast<int32_t>(y1) : -1;
         visible[i] = 1;
     }
 }
@@ -405,13 +411,18 @@ void radix_sort(std::vector<uint32_t>& keys, std::vector<int32_t>& vals) {
     }
 }
 
+// A visible Gaussian whose pixel box holds at least one pixel centre.
+inline bool drawn(const int32_t* bbox, const uint8_t* visible, int64_t i) {
+    return visible[i] && bbox[i * 4] <= bbox[i * 4 + 1] && bbox[i * 4 + 2] <= bbox[i * 4 + 3];
+}
+
 void sort_visible(int64_t n, const float* means2d, const float* conics, const float* opac_eff,
                   const float* colors, int channels, const float* depths, const int32_t* bbox,
                   const uint8_t* visible, int threads, SortedGaussians& out) {
     std::vector<uint32_t> keys;
     std::vector<int32_t> ids;
     for (int64_t i = 0; i < n; ++i) {
-        if (!visible[i]) continue;
+        if (!drawn(bbox, visible, i)) continue;
         uint32_t key;
         std::memcpy(&key, &depths[i], sizeof(key));
         keys.push_back(key);
@@ -605,8 +616,8 @@ void forward_tile(const SortedGaussians& S, const TileRect& r, const int32_t* li
                 const bool valid = (l >= lx0) & (l <= lx1) & (sigma >= 0.0f) & (alpha >= thr[l]);
                 const float Tl = T[l];
                 const float Tn = Tl * (1.0f - alpha);
-                const bool stop = valid & (Tn < tmin);
-                const bool blend = valid & (Tn >= tmin);
+                const bool stop = valid & (Tn <= tmin);  // gsplat: next_T <= 1e-4f, exclusive
+                const bool blend = valid & (Tn > tmin);
                 sc.w[l] = blend ? alpha * Tl : 0.0f;
                 T[l] = blend ? Tn : Tl;
                 last[l] = blend ? kk : last[l];
@@ -799,7 +810,7 @@ void count_intersections(int64_t n, const int32_t* bbox, const uint8_t* visible,
                          int height, int64_t max_per_chunk, int64_t* total, int64_t* chunks) {
     SortedGaussians S;  // only the boxes matter for counting; order is irrelevant
     for (int64_t i = 0; i < n; ++i) {
-        if (!visible[i]) continue;
+        if (!drawn(bbox, visible, i)) continue;
         S.x0.push_back(bbox[i * 4]);
         S.x1.push_back(bbox[i * 4 + 1]);
         S.y0.push_back(bbox[i * 4 + 2]);
@@ -820,7 +831,7 @@ void rasterize_forward(int64_t n, const float* means2d, const float* conics, con
     SortedGaussians S;
     sort_visible(n, means2d, conics, opac_eff, colors, channels, depths, bbox, visible, s.threads, S);
     stats->ms_sort = ms_since(t0);
-    stats->n_visible = S.count;
+    stats->n_drawn = S.count;
 
     t0 = Clock::now();
     TileGrid grid;
@@ -872,7 +883,7 @@ void rasterize_backward(int64_t n, const float* means2d, const float* conics, co
     SortedGaussians S;
     sort_visible(n, means2d, conics, opac_eff, colors, channels, depths, bbox, visible, s.threads, S);
     stats->ms_sort = ms_since(t0);
-    stats->n_visible = S.count;
+    stats->n_drawn = S.count;
     t0 = Clock::now();
     TileGrid grid;
     count_and_plan(S, width, height, s.max_intersections_per_chunk, grid);

@@ -57,8 +57,9 @@ struct Camera {
 //   opac_eff[i]         opacity times the anti-aliasing compensation (= opacity if off)
 //   comp[i]             the compensation (1 when anti-aliasing is off)
 //   radii[i*2+{0,1}]    screen radius in pixels along x and y (0 when culled)
-//   bbox[i*4+{0..3}]    inclusive pixel box x0, x1, y0, y1 clipped to the image
-//   visible[i]          1 if the Gaussian reaches at least one pixel centre
+//   bbox[i*4+{0..3}]    inclusive pixel box x0, x1, y0, y1 clipped to the image; empty
+//                       (0, -1, 0, -1) when no pixel centre lies within the radius
+//   visible[i]          1 if not culled (gsplat's rules: radius > 0, box overlapping the image)
 void project_forward(int64_t n, const float* means, const float* quats, const float* scales,
                      const float* opacities, const Camera& cam, const Settings& s, float* means2d,
                      float* conics, float* depths, float* opac_eff, float* comp, int32_t* radii,
@@ -76,7 +77,7 @@ void project_backward(int64_t n, const float* means, const float* quats, const f
 // Stage timings (milliseconds) and counters reported back to Python.
 struct RasterStats {
     double ms_sort = 0, ms_bin = 0, ms_raster = 0, ms_reduce = 0;
-    int64_t n_visible = 0, n_intersections = 0, n_chunks = 0;
+    int64_t n_drawn = 0, n_intersections = 0, n_chunks = 0;
 };
 
 // Counts tile intersections (int64) and the number of chunks rasterize_forward would use,
