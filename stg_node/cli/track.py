@@ -2,22 +2,19 @@
 
     stg-track INPUT --out POSES.npz [--intrinsics FILE.json | --fov DEG] [--smpl-model FILE] [--masks DIR]
 
-Exit codes: 0 done, 1 the tracking failed (unreadable input, missing network files, ...),
-2 bad usage. See docs/TRACKING.md.
+Exit codes as every command (docs/CLI.md): 0 done, 1 the tracking failed (unreadable input,
+missing network files, ...), 2 bad usage, 130 interrupted (POSES.npz is then not written).
+See docs/TRACKING.md.
 """
 
 from __future__ import annotations
 
 import argparse
-import logging
-import signal
 import sys
 from pathlib import Path
 
-from stg_node.logs import configure_logging
+from stg_node.cli.runner import UsageError, add_log_level_option, run_main
 from stg_node.threads import configure_threads
-
-log = logging.getLogger("stg_node.cli.track")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -77,30 +74,30 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--no-smoothing", action="store_true", help="no One-Euro smoothing of the parameters")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--threads", default=None, help="CPU threads (default: STG_THREADS or 1)")
-    parser.add_argument("--log-level", default=None, help="log level (default: STG_LOG_LEVEL or INFO)")
+    add_log_level_option(parser)
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    configure_logging(args.log_level)
-    threads = configure_threads(args.threads)
-    signal.signal(signal.SIGINT, signal.default_int_handler)  # even when started with SIGINT ignored
+def run(args: argparse.Namespace) -> int:
+    try:
+        threads = configure_threads(args.threads)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from exc
+    if not args.input.exists():
+        raise UsageError(f"INPUT {args.input} does not exist (a video file or a folder of images)")
+    if args.out.suffix != ".npz":
+        raise UsageError(f"--out must name a .npz file, got {args.out}")
+    if args.mask_method == "plate" and args.plate is None:
+        raise UsageError("--mask-method plate needs --plate FILE (an image of the empty scene)")
+    if args.detector == "onnx" and args.pose_model is None:
+        raise UsageError("--detector onnx needs --pose-model FILE.onnx")
+    if args.fps is not None and not args.fps > 0:
+        raise UsageError(f"--fps must be positive, got {args.fps}")
+    if args.max_side != 0 and args.max_side < 64:
+        raise UsageError(f"--max-side must be 0 (native) or at least 64, got {args.max_side}")
 
-    from stg_node.cli.bus_options import sigterm_as_interrupt
     from stg_node.tracking.pipeline import TrackOptions, track_to_file
 
-    if not args.input.exists():
-        parser.error(f"INPUT {args.input} does not exist (a video file or a folder of images)")
-    if args.out.suffix != ".npz":
-        parser.error(f"--out must name a .npz file, got {args.out}")
-    if args.mask_method == "plate" and args.plate is None:
-        parser.error("--mask-method plate needs --plate FILE (an image of the empty scene)")
-    if args.detector == "onnx" and args.pose_model is None:
-        parser.error("--detector onnx needs --pose-model FILE.onnx")
-    if args.fps is not None and not args.fps > 0:
-        parser.error(f"--fps must be positive, got {args.fps}")
     options = TrackOptions(
         intrinsics=None if args.intrinsics is None else str(args.intrinsics),
         smpl_model=args.smpl_model,
@@ -113,32 +110,22 @@ def main(argv: list[str] | None = None) -> int:
         smoothing=not args.no_smoothing,
         **({} if args.fov is None else {"fov_deg": args.fov}),
     )
-    from stg_node.tracking.model_files import PoseModelError
-    from stg_node.tracking.runtime import RunnerError
-
-    try:
-        with sigterm_as_interrupt():
-            summary = track_to_file(
-                args.input,
-                args.out,
-                options,
-                masks_dir=args.masks,
-                progress=not args.no_progress,
-                threads=threads,
-            )
-    except KeyboardInterrupt:
-        log.error("interrupted; %s not written", args.out)
-        return 1
-    except (ValueError, OSError, PoseModelError, RunnerError) as err:
-        # Bad input files, missing network files, unreadable video: one clear line (the errors
-        # name the file and the fix), exit code 1.
-        log.error("%s", err)
-        return 1
+    summary = track_to_file(
+        args.input, args.out, options, masks_dir=args.masks, progress=not args.no_progress, threads=threads
+    )
     print(
         f"wrote {summary.out}: {summary.frames} frames, {summary.confident_frames} confident "
         f"(mean confidence {summary.mean_confidence:.2f}) in {summary.seconds:.1f} s"
     )
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    from stg_node.tracking.model_files import PoseModelError
+    from stg_node.tracking.runtime import RunnerError
+
+    # Missing or unloadable network files are the user's situation (the message names the fix).
+    return run_main(build_parser(), run, argv, expected=(PoseModelError, RunnerError))
 
 
 if __name__ == "__main__":

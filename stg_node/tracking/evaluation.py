@@ -147,12 +147,13 @@ def evaluate_synth(
     from stg_node.data.io import read_mask
     from stg_node.data.synth import read_metadata
     from stg_node.data.synth.cameras import camera_name
+    from stg_node.safe_load import load_npy
     from stg_node.tracking.pipeline import TrackOptions, track_to_file
     from stg_node.tracking.poses_file import read_poses
 
     folder = Path(folder)
     metadata = read_metadata(folder)
-    annots = np.load(folder / "annots.npy", allow_pickle=True).item()
+    annots = load_npy(folder / "annots.npy")
     K = np.asarray(annots["cams"]["K"][0], dtype=np.float64)
     R = np.asarray(annots["cams"]["R"][0], dtype=np.float64)
     t = np.asarray(annots["cams"]["T"][0], dtype=np.float64).reshape(3) / 1000.0
@@ -184,7 +185,7 @@ def evaluate_synth(
     # body the tracker fitted.
     truth_body = load_body_model()
     body = load_body_model(options.smpl_model)
-    params = [np.load(folder / "new_params" / f"{int(p.stem)}.npy", allow_pickle=True).item() for p in frames]
+    params = [load_npy(folder / "new_params" / f"{int(p.stem)}.npy") for p in frames]
     gt_world = joints_from_params(
         truth_body,
         np.concatenate([p["poses"] for p in params]),

@@ -396,7 +396,8 @@ class SmplFitter:
             if calibrating:
                 theta_np = np.concatenate([theta_np, self.betas])
             theta, _ = self._solve(torch.as_tensor(theta_np, dtype=DTYPE), active, obs, ctx, cfg.iterations)
-            cooled = self._last_rescue is None or not 0 <= timestamp - self._last_rescue < cfg.rescue_cooldown_s
+            since = None if self._last_rescue is None else timestamp - self._last_rescue
+            cooled = since is None or not 0 <= since < cfg.rescue_cooldown_s
             if cooled and self._reprojection_error(theta, obs, ctx)[0] > cfg.rescue_units:
                 self._last_rescue = timestamp
                 # Lost the thread (a fast move, a limb stuck in a mirror pose): start over from

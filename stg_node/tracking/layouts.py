@@ -18,24 +18,9 @@ from stg_node.body.smpl_io import SMPL_JOINT_NAMES
 from stg_node.tracking.blazepose import BLAZEPOSE_NAMES
 from stg_node.tracking.body_points import JOINT_INDEX, PointSpec
 
-COCO17_NAMES = (
-    "nose",
-    "left_eye",
-    "right_eye",
-    "left_ear",
-    "right_ear",
-    "left_shoulder",
-    "right_shoulder",
-    "left_elbow",
-    "right_elbow",
-    "left_wrist",
-    "right_wrist",
-    "left_hip",
-    "right_hip",
-    "left_knee",
-    "right_knee",
-    "left_ankle",
-    "right_ankle",
+# COCO's 17 keypoints carry BlazePose's names for the same points, in COCO's order.
+COCO17_NAMES = tuple(
+    BLAZEPOSE_NAMES[i] for i in (0, 2, 5, 7, 8, 11, 12, 13, 14, 15, 16, 23, 24, 25, 26, 27, 28)
 )
 
 # Limb joints named alike in SMPL and the detectors, with their weight.

@@ -15,15 +15,14 @@ Nothing downloads at run time: :func:`pose_model_paths` only looks there and rai
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
-import os
-import subprocess
 import sys
 import tempfile
 import zipfile
 from pathlib import Path
+
+from stg_node.offline_assets import DownloadError, pip_download, sha256_bytes, user_data_dir, write_atomic
 
 log = logging.getLogger(__name__)
 
@@ -47,20 +46,13 @@ class PoseModelError(RuntimeError):
 
 
 def models_dir() -> Path:
-    if os.environ.get(ENV_DIR):
-        return Path(os.environ[ENV_DIR]).expanduser()
-    base = os.environ.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
-    return Path(base) / "stg_node" / "pose"
+    return user_data_dir(ENV_DIR, "pose")
 
 
 def model_path(role: str, directory: Path | None = None) -> Path:
     if role not in MODELS:
         raise ValueError(f"role must be one of {tuple(MODELS)}, got {role!r}")
     return (directory or models_dir()) / Path(MODELS[role][0]).name
-
-
-def _sha256(data: bytes) -> str:
-    return hashlib.sha256(data).hexdigest()
 
 
 def pose_model_paths(directory: Path | None = None, *, verify: bool = False) -> dict[str, Path]:
@@ -76,7 +68,7 @@ def pose_model_paths(directory: Path | None = None, *, verify: bool = False) -> 
                 "the folder holding pose_detection.tflite and pose_landmark_full.tflite, or pass your "
                 "own ONNX pose model (--detector onnx --pose-model FILE)"
             )
-        if verify and _sha256(path.read_bytes()) != digest:
+        if verify and sha256_bytes(path.read_bytes()) != digest:
             raise PoseModelError(
                 f"{path} does not match the pinned checksum; reinstall with `{INSTALL_COMMAND}`"
             )
@@ -94,25 +86,13 @@ def installed(directory: Path | None = None) -> bool:
 
 def download_wheel(directory: Path) -> Path:
     """``pip download --no-deps`` the mediapipe wheel for this interpreter into ``directory``."""
-    cmd = [
-        sys.executable,
-        "-m",
-        "pip",
-        "download",
-        "--no-deps",
-        "--only-binary",
-        ":all:",
-        "--disable-pip-version-check",
-        "-q",
-        "-d",
-        str(directory),
-        WHEEL_REQUIREMENT,
-    ]
-    result = subprocess.run(cmd, capture_output=True, text=True)
+    try:
+        pip_download(WHEEL_REQUIREMENT, directory)
+    except DownloadError as exc:
+        raise PoseModelError(str(exc)) from exc
     wheels = sorted(directory.glob("mediapipe-0.10.21-*.whl"))
-    if result.returncode != 0 or not wheels:
-        tail = (result.stderr or result.stdout).strip().splitlines()[-3:]
-        raise PoseModelError(f"pip download {WHEEL_REQUIREMENT} failed: {' | '.join(tail) or 'no wheel'}")
+    if not wheels:
+        raise PoseModelError(f"pip download {WHEEL_REQUIREMENT} left no wheel in {directory}")
     return wheels[0]
 
 
@@ -128,7 +108,7 @@ def install(directory: Path | None = None, wheel: Path | None = None) -> dict[st
             wheel = download_wheel(Path(tmp))
         wheel = Path(wheel)
         if wheel.name == WHEEL_NAME:
-            digest = _sha256(wheel.read_bytes())
+            digest = sha256_bytes(wheel.read_bytes())
             if digest != WHEEL_SHA256:
                 raise PoseModelError(f"{wheel}: SHA-256 {digest} is not the pinned {WHEEL_SHA256}")
         directory.mkdir(parents=True, exist_ok=True)
@@ -143,14 +123,9 @@ def install(directory: Path | None = None, wheel: Path | None = None) -> dict[st
                     blob = archive.read(member)  # in memory: nothing else is unpacked
                 except KeyError:
                     raise PoseModelError(f"{wheel.name} has no {member}") from None
-                if _sha256(blob) != member_sha:
+                if sha256_bytes(blob) != member_sha:
                     raise PoseModelError(f"{member} in {wheel.name}: checksum mismatch")
-                target = model_path(role, directory)
-                with tempfile.NamedTemporaryFile(dir=directory, suffix=".tmp", delete=False) as fh:
-                    fh.write(blob)
-                os.chmod(fh.name, 0o644)
-                os.replace(fh.name, target)
-                written[role] = target
+                written[role] = write_atomic(model_path(role, directory), blob)
     manifest = {
         "source": WHEEL_REQUIREMENT,
         "licence": "Apache-2.0 (MediaPipe)",

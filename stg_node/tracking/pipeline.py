@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 
 import stg_node
+from stg_node.offline_assets import sha256_file
 from stg_node.progress import progress as progress_bar
 from stg_node.tracking.camera import DEFAULT_FOV_DEG, Intrinsics, from_fov, load_intrinsics
 from stg_node.tracking.poses_file import TrackedPoses, write_poses
@@ -30,7 +31,6 @@ log = logging.getLogger(__name__)
 
 ENV_CACHE = "STG_TRACK_CACHE"
 CACHE_FORMAT = 1  # bump when the output of the same input and settings changes
-HASH_CHUNK = 1 << 20
 
 
 @dataclass(frozen=True)
@@ -63,14 +63,6 @@ class TrackSummary:
     seconds: float
 
 
-def _file_digest(path: Path, digest=None):
-    digest = digest or hashlib.sha256()
-    with open(path, "rb") as fh:
-        while chunk := fh.read(HASH_CHUNK):
-            digest.update(chunk)
-    return digest
-
-
 def input_digest(path: str | Path) -> str:
     """SHA-256 of a video file's bytes, or of an image folder's image names and bytes."""
     path = Path(path)
@@ -78,9 +70,9 @@ def input_digest(path: str | Path) -> str:
     if path.is_dir():
         for file in ImageFolderSource(path).files:
             digest.update(file.name.encode() + b"\0")
-            _file_digest(file, digest)
+            sha256_file(file, digest)
     else:
-        _file_digest(path, digest)
+        sha256_file(path, digest)
     return digest.hexdigest()
 
 
@@ -90,7 +82,7 @@ def _options_digest(options: TrackOptions) -> str:
     for key in ("intrinsics", "smpl_model", "pose_model", "plate"):
         value = described[key]
         if value is not None and Path(value).is_file():
-            described[key] = {"name": Path(value).name, "sha256": _file_digest(Path(value)).hexdigest()}
+            described[key] = {"name": Path(value).name, "sha256": sha256_file(Path(value)).hexdigest()}
     described["stg_node"] = stg_node.__version__
     described["format"] = CACHE_FORMAT
     return hashlib.sha256(json.dumps(described, sort_keys=True, default=str).encode()).hexdigest()

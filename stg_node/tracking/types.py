@@ -11,7 +11,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from stg_node.data.types import SmplParams
+from stg_node.body.params import SmplParams
 
 __all__ = ["Keypoints", "PoseEstimator", "SmplParams", "TrackEstimate"]
 

@@ -52,15 +52,15 @@ def test_usage_errors_exit_with_2(tmp_path, capsys):
         [str(tmp_path), "--out", str(tmp_path / "p.npz"), "--detector", "onnx"],
         [str(tmp_path), "--out", str(tmp_path / "p.npz"), "--mask-method", "plate"],
     ):
-        with pytest.raises(SystemExit) as exit_info:
-            main(argv)
-        assert exit_info.value.code == 2, argv
+        assert main(argv) == 2, argv
+    assert "usage: stg-track" in capsys.readouterr().err
 
 
-def test_missing_networks_exit_with_1_and_name_the_fix(tmp_path, monkeypatch, synth_video, caplog):
+def test_missing_networks_exit_with_1_and_name_the_fix(tmp_path, monkeypatch, synth_video, capsys):
     monkeypatch.setenv("STG_POSE_MODELS", str(tmp_path / "empty"))
     assert main([str(synth_video), "--out", str(tmp_path / "p.npz"), "--no-progress"]) == 1
-    assert "install_pose_models" in caplog.text
+    error = capsys.readouterr().err
+    assert error.startswith("stg-track: error: ") and "install_pose_models" in error
     assert not (tmp_path / "p.npz").exists()
 
 
@@ -83,7 +83,8 @@ def test_poses_file_contract_with_any_detector(tmp_path, synth_video, dot_model,
     assert sorted(p.name for p in masks.iterdir())[:2] == ["000000.png", "000001.png"]
     assert len(list(masks.iterdir())) == 12
     motion = load_smpl_params(out)  # the body package's own reader takes it as a motion
-    assert motion.poses.shape == (12, 72) and motion.fps == pytest.approx(30.0)
+    assert motion.poses.shape == (12, 24, 3) and motion.fps == pytest.approx(30.0)
+    assert np.allclose(motion.betas, np.load(out)["shapes"])
     tracked = read_poses(out)
     assert tracked.image_size == (256, 256) and len(tracked) == 12
 
@@ -91,14 +92,20 @@ def test_poses_file_contract_with_any_detector(tmp_path, synth_video, dot_model,
 def test_stg_track_runs_as_a_module(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     result = subprocess.run(
-        [sys.executable, "-m", "stg_node.cli.track", "--help"], capture_output=True, text=True, env=env, cwd=ROOT
+        [sys.executable, "-m", "stg_node.cli.track", "--help"],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=ROOT,
     )
     assert result.returncode == 0 and "POSES.npz" in result.stdout
 
 
 def test_broken_poses_files_are_refused(tmp_path):
     path = tmp_path / "p.npz"
-    np.savez(path, poses=np.zeros((3, 72)), Rh=np.zeros((3, 3)), Th=np.zeros((3, 3)), shapes=np.zeros((3, 10)))
+    np.savez(
+        path, poses=np.zeros((3, 72)), Rh=np.zeros((3, 3)), Th=np.zeros((3, 3)), shapes=np.zeros((3, 10))
+    )
     with pytest.raises(PosesFileError, match="confidence"):
         read_poses(path)
     np.savez(
@@ -124,14 +131,11 @@ def test_track_video_caches_by_content_and_options(tmp_path, monkeypatch, synth_
     again = pipeline.track_video(synth_video, options, cache_dir=cache, progress=False)
     assert first == again and first.name == "POSES.npz" and len(calls) == 1
     assert len(list((first.parent / "masks").iterdir())) == 12
-    other = pipeline.track_video(
-        synth_video, pipeline.TrackOptions(detector="onnx", pose_model=str(dot_model), mask="none", fov_deg=50.0),
-        cache_dir=cache, progress=False,
-    )  # fmt: skip
+    wider = pipeline.TrackOptions(detector="onnx", pose_model=str(dot_model), mask="none", fov_deg=50.0)
+    other = pipeline.track_video(synth_video, wider, cache_dir=cache, progress=False)
     assert other != first and len(calls) == 2
     copy = tmp_path / "copy.avi"
-    data = bytearray(synth_video.read_bytes())
-    copy.write_bytes(bytes(data))
+    copy.write_bytes(synth_video.read_bytes())
     assert pipeline.track_video(copy, options, cache_dir=cache, progress=False) == first  # same bytes
     assert len(calls) == 2
     assert not [p for p in cache.iterdir() if p.name.startswith(".")]  # no staging folders left

@@ -232,7 +232,10 @@ def test_network_install_reads_only_the_two_files_checks_them_and_is_idempotent(
 
     detector_blob, landmark_blob = b"fake detector network", b"fake landmark network"
     members = {
-        "detector": ("mediapipe/modules/pose_detection/pose_detection.tflite", hashlib.sha256(detector_blob).hexdigest()),
+        "detector": (
+            "mediapipe/modules/pose_detection/pose_detection.tflite",
+            hashlib.sha256(detector_blob).hexdigest(),
+        ),
         "landmarker": (
             "mediapipe/modules/pose_landmark/pose_landmark_full.tflite",
             hashlib.sha256(landmark_blob).hexdigest(),

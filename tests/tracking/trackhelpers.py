@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from stg_node.body.lbs import axis_angle_to_matrix
+from stg_node.safe_load import load_npy
 from stg_node.tracking.body_points import BodyKeypoints
 from stg_node.tracking.layouts import KeypointLayout
 from stg_node.tracking.model_files import PoseModelError, pose_model_paths
@@ -67,7 +68,7 @@ def load_ground_truth(folder: Path) -> GroundTruth:
     dataset = open_synth(folder, "train", size=None)
     camera = dataset.camera(dataset.camera_names[0])
     frames = range(int(metadata["num_frames"]))
-    params = [np.load(folder / "new_params" / f"{i}.npy", allow_pickle=True).item() for i in frames]
+    params = [load_npy(folder / "new_params" / f"{i}.npy") for i in frames]
     return GroundTruth(
         K=camera.K,
         R=camera.R,
