@@ -16,7 +16,7 @@ benchmark's joint limits) and the foundation helpers (progress, threads); it kno
 the bus or the node runtime. ``cli`` (``stg-track``) and the tracker node call it.
 """
 
-from stg_node.tracking.camera import DEFAULT_FOV_DEG, Intrinsics, from_fov, load_intrinsics
+from stg_node.tracking.camera import DEFAULT_FOV_DEG, Intrinsics, from_fov, load_intrinsics, smpl_to_world
 from stg_node.tracking.detectors import KeypointDetector, make_detector
 from stg_node.tracking.fitting import FitConfig, SmplFitter
 from stg_node.tracking.pipeline import TrackOptions, build_tracker, track_to_file, track_video
@@ -43,6 +43,7 @@ __all__ = [
     "load_intrinsics",
     "make_detector",
     "read_poses",
+    "smpl_to_world",
     "track_to_file",
     "track_video",
     "write_poses",

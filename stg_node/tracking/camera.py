@@ -104,3 +104,23 @@ def load_intrinsics(path: str | Path, width: int, height: int) -> Intrinsics:
         if dist.size not in DIST_COUNTS or not np.all(np.isfinite(dist)):
             raise IntrinsicsError(f'{path}: "dist" must hold {DIST_COUNTS} finite values, got {dist.size}')
     return Intrinsics(K, dist, width, height, f"file:{path}")
+
+
+def smpl_to_world(smpl, R: np.ndarray, t: np.ndarray):
+    """Camera-frame SMPL parameters (what the tracker gives) -> a world frame with world-to-camera ``R, t``.
+
+    ``x_cam = R x_world + t`` and ``x_cam = R(Rh) p + Th`` give ``x_world = (R^T R(Rh)) p + R^T (Th - t)``:
+    the pose and shape are unchanged, ``Rh`` and ``Th`` are re-expressed.
+    """
+    import dataclasses
+
+    import torch
+
+    from stg_node.body import lbs
+
+    R = np.asarray(R, dtype=np.float64)
+    t = np.asarray(t, dtype=np.float64).reshape(3)
+    rotation = R.T @ lbs.axis_angle_to_matrix(torch.as_tensor(smpl.Rh, dtype=torch.float64)).numpy()
+    Rh = lbs.matrix_to_axis_angle(torch.as_tensor(rotation)).numpy()
+    Th = R.T @ (np.asarray(smpl.Th, dtype=np.float64) - t)
+    return dataclasses.replace(smpl, Rh=Rh, Th=Th)

@@ -13,6 +13,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import tempfile
 from dataclasses import dataclass, field
@@ -166,9 +167,7 @@ def evaluate_synth(
         intrinsics = tmp / "K.json"
         intrinsics.write_text(json.dumps({"K": K.tolist()}))
         base = options or TrackOptions()
-        options = TrackOptions(
-            **{**base.__dict__, "intrinsics": str(intrinsics), "fps": float(metadata["fps"])}
-        )
+        options = dataclasses.replace(base, intrinsics=str(intrinsics), fps=float(metadata["fps"]))
         source = write_video(frames, tmp / "input.avi", float(metadata["fps"])) if as_video else image_dir
         summary = track_to_file(
             source, tmp / "POSES.npz", options, masks_dir=tmp / "masks", progress=progress, threads=threads

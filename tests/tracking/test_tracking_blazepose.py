@@ -27,7 +27,7 @@ from stg_node.tracking.roi import (
 
 # Stated accuracy of the shipped detector on the synthetic renders (512 px, body ~360 px tall),
 # limb joints (shoulders .. ankles) against the projected SMPL joints. Measured when written:
-# median 5 px; 90th percentile ~14 px.
+# median 5.5 px; 90th percentile ~10-11 px.
 DETECTOR_MEDIAN_PX = 9.0
 DETECTOR_P90_PX = 25.0
 

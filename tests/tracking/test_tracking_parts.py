@@ -271,3 +271,24 @@ def test_network_install_reads_only_the_two_files_checks_them_and_is_idempotent(
         archive.writestr(members["landmarker"][0], landmark_blob)
     with pytest.raises(model_files.PoseModelError, match="checksum mismatch"):
         model_files.install(tmp_path / "other", bad)
+
+
+def test_camera_frame_parameters_move_to_the_world_frame(body):
+    from stg_node.body.params import SmplParams
+    from stg_node.tracking.camera import smpl_to_world
+
+    rng = np.random.default_rng(6)
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    R, t = q * np.sign(np.linalg.det(q)), rng.normal(size=3)
+    camera = SmplParams(
+        poses=rng.normal(0, 0.2, (24, 3)), Rh=rng.normal(size=3), Th=rng.normal(size=3), betas=np.zeros(10)
+    )
+    world = smpl_to_world(camera, R, t)
+
+    def joints(p):
+        out = body(betas=torch.as_tensor(p.betas), poses=torch.as_tensor(p.poses.reshape(1, 72)),
+                   Rh=torch.as_tensor(p.Rh[None]), Th=torch.as_tensor(p.Th[None]))  # fmt: skip
+        return out.joints[0].double().numpy()
+
+    assert np.allclose(joints(world) @ R.T + t, joints(camera), atol=1e-4)
+    assert np.array_equal(world.poses, camera.poses)
