@@ -79,7 +79,9 @@ def matrix_to_quaternion(matrices: torch.Tensor) -> torch.Tensor:
     q_abs4 = torch.stack(
         [1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], dim=-1
     )
-    q_abs = q_abs4.clamp_min(0).sqrt()  # 2 |q_k|
+    # 2 |q_k|; the square root's gradient is kept finite at 0 (an unused candidate would otherwise
+    # send inf * 0 = NaN back through the gather below).
+    q_abs = torch.where(q_abs4 > 0, q_abs4.clamp_min(1e-12).sqrt(), torch.zeros_like(q_abs4))
     candidates = torch.stack(
         [
             torch.stack([q_abs[..., 0] ** 2, m21 - m12, m02 - m20, m10 - m01], dim=-1),

@@ -16,6 +16,7 @@ from stg_node.bus.config import BusConfig, default_url, lane_endpoint
 from stg_node.bus.heartbeat import Heartbeat, NodeMonitor
 from stg_node.bus.messages import (
     REGISTRY,
+    Ack,
     BodyPose,
     Frame,
     GaussianSnapshot,
@@ -34,6 +35,7 @@ __all__ = [
     "DROP_REASONS",
     "LANES",
     "REGISTRY",
+    "Ack",
     "BodyPose",
     "Broker",
     "BrokerRunning",

@@ -50,6 +50,7 @@ class Envelope:
     header: dict
     arrays: dict[str, np.ndarray]
     nbytes: int  # payload: header + buffers (what NodeStatus and stg-topic bw count)
+    frames: list | None = None  # as received, [topic, header, *buffers]: the exact bytes (recorders)
 
     @property
     def type(self) -> str:
@@ -254,7 +255,7 @@ def decode_envelope(frames) -> Envelope:
         arrays[name] = _view(frame, dtype_name, shape, nbytes, name)
         total += nbytes
     header_bytes = memoryview(frames[1]).nbytes
-    return Envelope(topic=topic, header=header, arrays=arrays, nbytes=header_bytes + total)
+    return Envelope(topic=topic, header=header, arrays=arrays, nbytes=header_bytes + total, frames=frames)
 
 
 _expected_cache: dict[str, type[Message] | None] = {}

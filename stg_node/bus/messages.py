@@ -396,3 +396,12 @@ class NodeStatus(Message):
     drops: dict = scalar("map[str,int]", {}, doc="messages dropped per reason (see envelope drop_reasons)")
     errors: int = scalar("int", 0, min=0, unit="1", doc="errors since start")
     last_error: str = scalar("str", "", doc="the latest error, one line")
+
+
+@message(type="Ack", version=1, topic="node/ack", lane="reliable", max_bytes=0)
+class Ack(Message):
+    """A consumer's acknowledgement that it has consumed one message (lockstep playback)."""
+
+    msg_topic: str = scalar("str", doc="full topic of the message consumed")
+    msg_seq: int = scalar("int", min=0, unit="1", doc="header seq of the message consumed")
+    msg_src: str = scalar("str", doc="header src of the message consumed")

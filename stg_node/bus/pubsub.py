@@ -144,6 +144,32 @@ class Publisher:
                 self._read_subscriptions(sock)
         return seq
 
+    def forward(self, frames) -> Envelope:
+        """Send an already encoded message ``[topic, header, *buffers]`` exactly as it is (a
+        recording played back, a bridge): same topic, seq, stamp and src. Its envelope is checked
+        first (MessageError when broken) and so is its type against a standard topic; returns it."""
+        env = decode_envelope(frames)
+        want = self.config.expected_type(env.topic)
+        if want is not None and want.SPEC.type != env.type:
+            raise MessageError(
+                "type_mismatch", f"{env.type} on topic {env.topic!r}, which carries {want.SPEC.type}"
+            )
+        with self._lock:
+            if self._closed:
+                raise RuntimeError("forward() on a closed Publisher")
+            lane = self.config.lane_of(env.topic)
+            sock = self._sockets.get(lane.name)
+            if sock is None:
+                raise ValueError(
+                    f"topic {env.topic!r} travels on lane {lane.name!r}, which this publisher did not open"
+                )
+            send_frames(sock, frames)
+            self.traffic.count(env.topic, env.nbytes)
+            self._published += 1
+            if not self._published % 256:
+                self._read_subscriptions(sock)
+        return env
+
     # -- subscriptions seen (XPUB) ------------------------------------------------------------
 
     def _read_subscriptions(self, sock: zmq.Socket) -> None:

@@ -135,6 +135,18 @@ def per_second(amount: float, seconds: float) -> float:
     return amount / max(seconds, MIN_INTERVAL_S)
 
 
+def format_bytes(nbytes: float | None) -> str:
+    """A byte count for people, in decimal units: ``603B``, ``180.82KB``, ``6.22MB`` (``?``: unknown).
+    The one size format of the bus tools (stg-topic, stg-bag)."""
+    if nbytes is None:
+        return "?"
+    for unit in ("B", "KB", "MB", "GB"):
+        if abs(nbytes) < 1000 or unit == "GB":
+            return f"{nbytes:.2f}{unit}" if unit != "B" else f"{nbytes:.0f}B"
+        nbytes /= 1000
+    return f"{nbytes:.2f}GB"
+
+
 @dataclass(frozen=True)
 class TopicRates:
     """Per-topic rates over one interval (what NodeStatus carries)."""

@@ -22,7 +22,7 @@ import numpy as np
 
 from stg_node.bus.codec import Envelope
 from stg_node.bus.pubsub import Subscriber
-from stg_node.bus.stats import ArrivalWindow, TopicCensus, WindowStats
+from stg_node.bus.stats import ArrivalWindow, TopicCensus, WindowStats, format_bytes
 from stg_node.cli.bus_options import add_bus_options, bus_config
 from stg_node.cli.runner import UsageError, add_log_level_option, run_main
 
@@ -62,14 +62,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 # --- formatting --------------------------------------------------------------------------------
-
-
-def _size(nbytes: float) -> str:
-    for unit in ("B", "KB", "MB", "GB"):
-        if abs(nbytes) < 1000 or unit == "GB":
-            return f"{nbytes:.2f}{unit}" if unit != "B" else f"{nbytes:.0f}B"
-        nbytes /= 1000
-    return f"{nbytes:.2f}GB"
 
 
 def _stamp(stamp_ns: int) -> str:
@@ -139,7 +131,7 @@ def cmd_list(config, args, out) -> int:
                 config.lane_of(topic.topic).name,
                 str(topic.messages),
                 f"{topic.rate_hz:.1f}",
-                _size(topic.mean_bytes),
+                format_bytes(topic.mean_bytes),
                 ",".join(topic.sources),
             )
         )
@@ -204,8 +196,9 @@ def _report(mode: str, window: ArrivalWindow, out) -> None:
         )
     else:
         print(
-            f"average: {_size(stats.bytes_per_s)}/s\n\tmean: {_size(stats.mean_bytes)} "
-            f"min: {_size(stats.min_bytes)} max: {_size(stats.max_bytes)} window: {stats.sized}",
+            f"average: {format_bytes(stats.bytes_per_s)}/s\n\tmean: {format_bytes(stats.mean_bytes)} "
+            f"min: {format_bytes(stats.min_bytes)} max: {format_bytes(stats.max_bytes)} "
+            f"window: {stats.sized}",
             file=out,
             flush=True,
         )

@@ -7,7 +7,7 @@ import time
 import numpy as np
 import zmq
 
-from stg_node.bus import BodyPose, Frame, GaussianSnapshot, RenderedImage, ViewRequest
+from stg_node.bus import Ack, BodyPose, Frame, GaussianSnapshot, RenderedImage, ViewRequest
 from stg_node.bus.config import free_tcp_base_port
 from stg_node.bus.messages import NodeStatus, TrainerMetrics
 
@@ -99,6 +99,7 @@ def sample_messages(seed: int = 0) -> dict[str, object]:
             iteration=100, loss=float("nan"), losses={"l1": 0.1, "ssim": 0.2}, psnr=24.5, it_per_s=3.0
         ),
         "NodeStatus": NodeStatus(node="tracker", published={"body/pose": 10}, drops={"lost": 2}),
+        "Ack": Ack(msg_topic="rig1/camera/frame", msg_seq=41, msg_src="ingest"),
     }
 
 

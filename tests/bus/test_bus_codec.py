@@ -372,6 +372,7 @@ def test_messages_of_each_type_are_registered_once():
         "RenderedImage",
         "TrainerMetrics",
         "NodeStatus",
+        "Ack",
     }
     assert REGISTRY["Frame"] is Frame and REGISTRY["GaussianSnapshot"] is GaussianSnapshot
     assert ViewRequest.SPEC.lane == "reliable"

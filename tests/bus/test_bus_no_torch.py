@@ -17,7 +17,10 @@ CHECK = textwrap.dedent(
     import stg_node.bus
     for info in pkgutil.iter_modules(stg_node.bus.__path__):
         importlib.import_module(f"stg_node.bus.{info.name}")
-    for name in ("topic", "keys", "broker", "bus_options"):
+    import stg_node.bus.recording
+    for info in pkgutil.iter_modules(stg_node.bus.recording.__path__):
+        importlib.import_module(f"stg_node.bus.recording.{info.name}")
+    for name in ("topic", "keys", "broker", "bus_options", "bag"):
         importlib.import_module(f"stg_node.cli.{name}")
     from stg_node.bus import Broker, BusConfig, Publisher, Subscriber, BodyPose
     # Exercise the whole path once, too: encode, send, receive, decode.

@@ -1,0 +1,34 @@
+"""STG-Avatar: animatable Gaussian avatars from a monocular video (docs/AVATAR.md).
+
+Public interface:
+
+- :class:`Trainer` (add_frame / step / snapshot / save / load), driven by ``stg-train`` and by the
+  online trainer node alike; :class:`TrainFrame` is what it learns from;
+- :func:`preset` (``fast``, ``balanced``, ``quality``) -> :class:`TrainConfig`;
+- :class:`AvatarRenderer` (``from_snapshot(msg)``, ``render(camera, smpl, time)``);
+- snapshots and checkpoints: :mod:`stg_node.avatar.snapshot`.
+
+Layout: gaussians (the parameter table), rigid (LBS), spacetime (STG terms), timecode (novel-pose
+time rule), color (MLP / SH), model (composition), losses, densify (strategy), optim, frames,
+trainer, snapshot / checkpoint, renderer, evaluate, animation, export, data_spec, run.
+"""
+
+from stg_node.avatar.config import DensifyConfig, LossConfig, ModelConfig, TrainConfig
+from stg_node.avatar.frames import TrainFrame
+from stg_node.avatar.presets import PRESETS, preset
+from stg_node.avatar.renderer import AvatarRenderer, RenderOutput
+from stg_node.avatar.trainer import StepResult, Trainer
+
+__all__ = [
+    "PRESETS",
+    "AvatarRenderer",
+    "DensifyConfig",
+    "LossConfig",
+    "ModelConfig",
+    "RenderOutput",
+    "StepResult",
+    "TrainConfig",
+    "TrainFrame",
+    "Trainer",
+    "preset",
+]

@@ -1,0 +1,133 @@
+"""Colour of each Gaussian: the paper's light MLP, or plain spherical harmonics.
+
+MLP (STG-Avatar): ``c_i(t) = F(gamma(mu_i(t)), f_i, gamma(theta), SH(d_i))`` where mu_i(t) is the
+Gaussian's canonical centre plus its spacetime offset, gamma a sin/cos positional encoding,
+f_i a learned per-Gaussian feature (the motion/appearance feature f_mot), theta the body pose
+(its 23 local joint rotations, linearly encoded to a few features), and SH(d_i) the real SH
+basis of the viewing direction expressed in the Gaussian's canonical frame (so view dependence
+turns with the body). A sigmoid keeps colours in [0, 1]. About 10-20k weights at the presets'
+sizes, far under the paper's 0.8M bound.
+
+SH: 3DGS's per-Gaussian coefficients, ``rgb = max(0, 0.5 + sum_lm c_lm Y_lm(d))``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+from stg_node.avatar.config import ModelConfig
+
+SH_C0 = 0.28209479177387814
+SH_C1 = 0.4886025119029199
+SH_C2 = (
+    1.0925484305920792,
+    -1.0925484305920792,
+    0.31539156525252005,
+    -1.0925484305920792,
+    0.5462742152960396,
+)
+SH_C3 = (
+    -0.5900435899266435,
+    2.890611442640554,
+    -0.4570457994644658,
+    0.3731763325901154,
+    -0.4570457994644658,
+    1.445305721320277,
+    -0.5900435899266435,
+)
+
+
+def sh_basis(degree: int, dirs: torch.Tensor) -> torch.Tensor:
+    """Real SH basis (3DGS's sign convention) of unit directions ``(N, 3)`` -> ``(N, (degree+1)^2)``."""
+    x, y, z = dirs.unbind(-1)
+    out = [torch.full_like(x, SH_C0)]
+    if degree >= 1:
+        out += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
+    if degree >= 2:
+        xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
+        out += [
+            SH_C2[0] * xy,
+            SH_C2[1] * yz,
+            SH_C2[2] * (2 * zz - xx - yy),
+            SH_C2[3] * xz,
+            SH_C2[4] * (xx - yy),
+        ]
+    if degree >= 3:
+        out += [
+            SH_C3[0] * y * (3 * xx - yy),
+            SH_C3[1] * xy * z,
+            SH_C3[2] * y * (4 * zz - xx - yy),
+            SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy),
+            SH_C3[4] * x * (4 * zz - xx - yy),
+            SH_C3[5] * z * (xx - yy),
+            SH_C3[6] * x * (xx - 3 * yy),
+        ]
+    return torch.stack(out, dim=-1)
+
+
+def sh_color(coeffs: torch.Tensor, dirs: torch.Tensor, degree: int) -> torch.Tensor:
+    """RGB ``(N, 3)`` from SH coefficients ``(N, K, 3)`` using the first ``degree`` bands."""
+    k = (degree + 1) ** 2
+    basis = sh_basis(degree, dirs)  # (N, k)
+    return ((basis[..., None] * coeffs[:, :k]).sum(dim=1) + 0.5).clamp_min(0.0)
+
+
+def positional_encoding(x: torch.Tensor, freqs: int) -> torch.Tensor:
+    """``[x, sin(2^k pi x), cos(2^k pi x)]_{k<freqs}`` for x roughly in [-1, 1]."""
+    if freqs == 0:
+        return x
+    scales = (2.0 ** torch.arange(freqs, dtype=x.dtype, device=x.device)) * math.pi
+    angles = (x[..., None] * scales).flatten(-2)
+    return torch.cat([x, torch.sin(angles), torch.cos(angles)], dim=-1)
+
+
+class ColorMLP(nn.Module):
+    """The light colour MLP; ``bounds`` (2, 3) maps canonical coordinates to [-1, 1] for gamma()."""
+
+    def __init__(self, config: ModelConfig, bounds: torch.Tensor):
+        super().__init__()
+        self.config = config
+        self.register_buffer("bounds", bounds.float().clone())
+        self.pose_encoder = nn.Linear(23 * 9, config.pose_dim) if config.pose_dim > 0 else None
+        in_dim = 3 * (1 + 2 * config.pos_freqs) + config.feature_dim + config.pose_dim
+        in_dim += (config.sh_degree + 1) ** 2
+        layers: list[nn.Module] = []
+        width = in_dim
+        for _ in range(config.mlp_layers):
+            layers += [nn.Linear(width, config.mlp_width), nn.ReLU(inplace=True)]
+            width = config.mlp_width
+        layers.append(nn.Linear(width, 3))
+        self.net = nn.Sequential(*layers)
+        with torch.no_grad():  # start grey: zero output bias and small last layer
+            self.net[-1].weight.mul_(0.1)
+            self.net[-1].bias.zero_()
+        if self.pose_encoder is not None:
+            with torch.no_grad():
+                self.pose_encoder.weight.mul_(0.1)
+
+    def forward(
+        self,
+        canonical_means: torch.Tensor,
+        features: torch.Tensor,
+        pose_key: torch.Tensor,
+        view_dirs: torch.Tensor,
+        sh_degree: int,
+    ) -> torch.Tensor:
+        lo, hi = self.bounds[0], self.bounds[1]
+        x = (canonical_means - lo) / (hi - lo).clamp_min(1e-6) * 2.0 - 1.0
+        parts = [positional_encoding(x, self.config.pos_freqs), features]
+        n = canonical_means.shape[0]
+        if self.pose_encoder is not None:
+            parts.append(self.pose_encoder(pose_key).expand(n, -1))
+        basis = sh_basis(self.config.sh_degree, view_dirs)
+        if sh_degree < self.config.sh_degree:  # bands not yet switched on are fed as zeros
+            keep = (sh_degree + 1) ** 2
+            basis = torch.cat([basis[:, :keep], basis.new_zeros(n, basis.shape[1] - keep)], dim=1)
+        parts.append(basis)
+        return torch.sigmoid(self.net(torch.cat(parts, dim=-1)))
+
+    def num_parameters(self) -> int:
+        return sum(p.numel() for p in self.parameters())

@@ -1,0 +1,197 @@
+"""Every setting of an STG-Avatar model and its training, as plain dataclasses.
+
+Three groups, one dataclass each, composed by :class:`TrainConfig`:
+
+- :class:`ModelConfig`: what the avatar *is* (Gaussian budget, polynomial orders, colour model,
+  which parts are switched on). Its numeric fields travel inside every GaussianSnapshot so a
+  renderer rebuilds the same model from the message alone.
+- :class:`LossConfig`: the weights of the loss terms and the adaptive weighting.
+- :class:`DensifyConfig`: clone/split/prune and the flow-guided densification thresholds.
+
+Presets (fast / balanced / quality) live in :mod:`stg_node.avatar.presets`; ablations are the
+same dataclasses with a switch flipped (``dataclasses.replace``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+COLOR_MODES = ("mlp", "sh")
+SKIN_INIT = ("barycentric", "nearest")
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    num_gaussians: int = 20_000  # initial Gaussians sampled on the canonical (big-pose) body surface
+    max_gaussians: int = 60_000  # densification never grows the model past this
+    init_scale_factor: float = 0.6  # initial scale = factor x mean spacing of the surface samples
+    skin_init: str = "barycentric"  # skinning weights of a sample: barycentric blend or nearest vertex
+    learn_skin_weights: bool = True  # learned per-Gaussian correction of the body's weights
+    # Spacetime Gaussians (non-rigid part). spacetime=False is the "LBS only" ablation.
+    spacetime: bool = True
+    motion_order: int = 2  # n_p: polynomial order of the centre offset (0 = none)
+    rotation_order: int = 1  # n_q: polynomial order of the rotation (0 = static rotation)
+    temporal_opacity: bool = True  # sigma_i(t) = sigma_i exp(-((t - mu_tau)/s)^2)
+    time_unit_s: float = 1.0  # one unit of the normalised time axis, in seconds
+    time_horizon: float = 1.0  # local time is bounded to +-horizon units (tanh), so polynomials stay bounded
+    init_time_scale: float = 1e3  # temporal scale of the initial Gaussians (units): present at all times
+    # Colour: "mlp" (the paper's light MLP) or "sh" (per-Gaussian spherical harmonics).
+    color: str = "mlp"
+    sh_degree: int = 1  # view dependence (SH mode: per-Gaussian coefficients; MLP mode: direction encoding)
+    feature_dim: int = 16  # per-Gaussian appearance feature fed to the MLP (f_mot)
+    mlp_width: int = 64
+    mlp_layers: int = 2  # hidden layers
+    pos_freqs: int = 4  # gamma(mu): sin/cos frequencies of the positional encoding
+    pose_dim: int = 8  # gamma(theta): the body pose is encoded to this many features (0 = no pose input)
+
+    def validate(self) -> None:
+        if self.color not in COLOR_MODES:
+            raise ValueError(f"color must be one of {COLOR_MODES}, got {self.color!r}")
+        if self.skin_init not in SKIN_INIT:
+            raise ValueError(f"skin_init must be one of {SKIN_INIT}, got {self.skin_init!r}")
+        if not 1 <= self.num_gaussians <= self.max_gaussians:
+            raise ValueError(
+                f"need 1 <= num_gaussians <= max_gaussians, got {self.num_gaussians} and {self.max_gaussians}"
+            )
+        if not 0 <= self.motion_order <= 4 or not 0 <= self.rotation_order <= 2:
+            raise ValueError(
+                f"motion_order must be 0..4 and rotation_order 0..2, got {self.motion_order}, "
+                f"{self.rotation_order}"
+            )
+        if not 0 <= self.sh_degree <= 3:
+            raise ValueError(f"sh_degree must be 0..3, got {self.sh_degree}")
+        if self.time_unit_s <= 0 or self.time_horizon <= 0 or self.init_time_scale <= 0:
+            raise ValueError("time_unit_s, time_horizon and init_time_scale must be > 0")
+
+    @property
+    def n_p(self) -> int:
+        """Active order of the motion polynomial (0 when spacetime is off)."""
+        return self.motion_order if self.spacetime else 0
+
+    @property
+    def n_q(self) -> int:
+        return self.rotation_order if self.spacetime else 0
+
+    @property
+    def uses_temporal_opacity(self) -> bool:
+        return self.spacetime and self.temporal_opacity
+
+
+@dataclass(frozen=True)
+class LossConfig:
+    ssim: float = 0.2  # L = (1 - w) L1 + w (1 - SSIM), as 3DGS
+    mask: float = 0.1  # |alpha - mask|
+    flow: float = 0.05  # rendered Gaussian motion vs optical flow (pixels, on valid flow only)
+    temporal: float = 0.1  # offsets at consecutive frames agree (m^2 per Gaussian)
+    motion_sparsity: float = 0.3  # proximal L1 threshold, x the motion learning rate (optim.soft_threshold)
+    motion_smooth: float = 1e-3  # higher polynomial orders cost more (|b_ik| (k - 1))
+    scale: float = 0.01  # penalises scales above scale_max_m
+    scale_max_m: float = 0.03
+    opacity: float = 0.0  # entropy-style push of opacities towards 0 or 1
+    skin: float = 0.01  # keeps the learned skinning correction small
+    pose_refine: float = 1e-3  # keeps per-frame pose corrections small
+    adaptive: bool = True  # balance the auxiliary terms against the photometric term (see losses.py)
+    warmup_iters: int = 300  # auxiliary terms ramp in over these iterations
+
+
+@dataclass(frozen=True)
+class DensifyConfig:
+    enabled: bool = True
+    start_iter: int = 300
+    stop_fraction: float = 0.75  # no densification after this fraction of the iterations
+    interval: int = 200
+    # Mean |dL/dmeans2d| x rendered pixels (AbsGS-style, made independent of the crop's size) that
+    # triggers clone/split: about the top 5 % of Gaussians early in training.
+    grad_threshold: float = 0.3
+    percent_dense: float = 0.01  # scale separating clone (small) from split (large), x body extent
+    prune_opacity: float = 0.02  # harder than 3DGS's 0.005
+    prune_score: float = 0.02  # C_i (1 + gamma W_i) below this is pruned
+    prune_scale_m: float = 0.15  # larger Gaussians are pruned
+    motion_protect_gamma: float = 4.0  # gamma in C_i (1 + gamma W_i)
+    # Flow-guided densification (STG-Avatar).
+    flow_guided: bool = True
+    flow_interval: int = 50  # steps between flow-guided densification rounds
+    region_px: int = 16  # regions are square image tiles of this size
+    error_threshold: float = 0.08  # tau: mean |render - gt| of a region that counts as badly explained
+    # delta: a Gaussian moves fast when its time-integrated flow (running mean of |flow| under it,
+    # px per frame) exceeds max(motion_floor_px, motion_relative x the median flow of the frames):
+    # relative, so a turning subject does not make everything "fast"; floored, so a still one
+    # does not make its breathing "fast".
+    motion_floor_px: float = 1.0
+    motion_relative: float = 1.5
+    motion_min_m: float = 5e-4  # at each density step, motion terms smaller than this (m) are zeroed
+    flow_step: float = 0.5  # Delta: new centre = seed + Delta * (metric flow residual) along v/|v|
+    flow_noise_m: float = 0.005  # sigma of N(0, sigma^2) added to new centres
+    flow_consistency_px: float = 1.5  # reject new Gaussians whose projected motion disagrees with the flow
+    flow_max_new: int = 500  # per flow-guided round
+    new_time_scale: float = 0.25  # temporal scale (units) of Gaussians added along the flow
+    resample_fraction: float = 0.3  # re-sample body parts whose density fell below this x initial
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    preset: str = "custom"
+    model: ModelConfig = field(default_factory=ModelConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    densify: DensifyConfig = field(default_factory=DensifyConfig)
+    iterations: int = 3000
+    # Learning rates (Adam), per parameter group as in 3DGS / SpacetimeGaussians.
+    lr_means: float = 1.6e-4  # x body extent, decayed x0.01 over training
+    lr_scales: float = 5e-3
+    lr_quats: float = 1e-3
+    lr_opacity: float = 5e-2
+    lr_color: float = 2.5e-3  # SH coefficients / per-Gaussian features
+    lr_mlp: float = 1e-3
+    lr_motion: float = 1e-3
+    lr_rot_motion: float = 1e-3
+    lr_time: float = 1e-3
+    lr_skin: float = 1e-3
+    lr_pose: float = 1e-4  # per-frame pose refinement (0 = off)
+    lr_schedule_final: float = 0.1  # every rate but the means' decays to this fraction (cosine)
+    crop_margin_px: int = 16  # render the mask's bounding box plus this margin, not the whole frame
+    full_frame_every: int = 0  # every K-th step renders the whole frame (0 = never)
+    sh_increase_every: int = 500  # SH degree grows by one every this many steps, up to sh_degree
+    checkpoint_every: int = 500
+    log_every: int = 10
+    max_frames: int = 0  # frames kept for training (0 = all); the online trainer bounds this
+
+    def validate(self) -> None:
+        self.model.validate()
+        if self.iterations < 1:
+            raise ValueError(f"iterations must be >= 1, got {self.iterations}")
+        for f in dataclasses.fields(self):
+            if f.name.startswith("lr_") and getattr(self, f.name) < 0:
+                raise ValueError(f"{f.name} must be >= 0, got {getattr(self, f.name)}")
+
+    def replace(self, **changes) -> TrainConfig:
+        """A copy with top-level fields or dotted sub-fields changed: replace(**{"model.color": "sh"})."""
+        top: dict = {}
+        nested: dict[str, dict] = {}
+        for key, value in changes.items():
+            if "." in key:
+                group, name = key.split(".", 1)
+                nested.setdefault(group, {})[name] = value
+            else:
+                top[key] = value
+        for group, values in nested.items():
+            top[group] = dataclasses.replace(getattr(self, group), **values)
+        return dataclasses.replace(self, **top)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> TrainConfig:
+        data = dict(data)
+        groups = {"model": ModelConfig, "loss": LossConfig, "densify": DensifyConfig}
+        kwargs = {}
+        for f in dataclasses.fields(cls):
+            if f.name not in data:
+                continue
+            value = data[f.name]
+            if f.name in groups:
+                known = {g.name for g in dataclasses.fields(groups[f.name])}
+                value = groups[f.name](**{k: v for k, v in value.items() if k in known})
+            kwargs[f.name] = value
+        return cls(**kwargs)

@@ -1,0 +1,129 @@
+"""The loss of one training step, term by term, and the adaptive weighting that balances them.
+
+Terms (each reported by name in StepResult.losses and on trainer/metrics):
+
+- ``l1``, ``ssim``: photometric, ``(1 - w) L1 + w (1 - SSIM)`` on the rendered crop (3DGS).
+  SSIM: 11x11 Gaussian window (sigma 1.5) over the valid region, written here as a depthwise
+  separable convolution in float32; kornia's ``ssim_loss`` computes the same value but took
+  4-5x longer per training step on this CPU (tools/bench_avatar.py --ssim; docs/AVATAR.md).
+- ``mask``: ``|alpha - mask|``, so the silhouette matches and nothing grows into the background.
+- ``flow``: the 2D motion of the Gaussians between this frame and the next (each Gaussian's
+  projected displacement, alpha-blended like a colour) against the DIS optical flow, Charbonnier,
+  over pixels where the flow passed the forward-backward check and the person is opaque.
+- ``temporal``: non-rigid offsets and temporal opacities agree between consecutive frames
+  (offset change in cm plus opacity change), so nothing jitters or pops between frames.
+- sparsity of the motion coefficients is not a loss term but a proximal L1 step after each
+  update (optim.TableOptimizer.soft_threshold), which yields exact zeros; ``motion_smooth``
+  (higher-order coefficients cost more: the motion stays smooth), ``scale``,
+  ``opacity``, ``skin``, ``pose``: regularisers.
+
+**Adaptive weighting.** Auxiliary terms ramp in linearly over ``warmup_iters`` (the geometry
+must roughly fit before flow can be matched), and each auxiliary term's weighted value is
+capped, in running average, at ``AUX_SHARE_MAX`` of the photometric loss: a burst of fast
+motion (large flow residuals) or an early transient cannot dominate the image loss, while the
+configured weights hold in the normal regime. Weights actually applied are reported.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+import torch.nn.functional as F
+
+from stg_node.avatar.config import LossConfig
+
+AUX_SHARE_MAX = 0.5
+EMA_DECAY = 0.98
+CHARBONNIER_EPS = 0.5  # px
+
+
+SSIM_C1 = 0.01**2
+SSIM_C2 = 0.03**2
+_KERNELS: dict = {}
+
+
+def _gaussian_taps(dtype, device) -> torch.Tensor:
+    key = (dtype, device)
+    if key not in _KERNELS:
+        x = torch.arange(11, dtype=torch.float64) - 5
+        k = torch.exp(-0.5 * (x / 1.5) ** 2)
+        _KERNELS[key] = (k / k.sum()).to(dtype=dtype, device=device)
+    return _KERNELS[key]
+
+
+def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Mean SSIM of ``(H, W, C)`` images in [0, 1]: 11x11 Gaussian window (sigma 1.5), valid region,
+    population statistics (3DGS's and torchmetrics' definition)."""
+    c = a.shape[2]
+    x = torch.cat([a, b, a * a, b * b, a * b], dim=2).permute(2, 0, 1)[None]  # (1, 5C, H, W)
+    n = x.shape[1]
+    k = _gaussian_taps(a.dtype, a.device)
+    y = F.conv2d(x, k.view(1, 1, 1, 11).expand(n, 1, 1, 11), groups=n)
+    y = F.conv2d(y, k.view(1, 1, 11, 1).expand(n, 1, 11, 1), groups=n)[0]
+    mu_a, mu_b, aa, bb, ab = y.split(c, dim=0)
+    var_a = aa - mu_a * mu_a
+    var_b = bb - mu_b * mu_b
+    cov = ab - mu_a * mu_b
+    num = (2 * mu_a * mu_b + SSIM_C1) * (2 * cov + SSIM_C2)
+    den = (mu_a * mu_a + mu_b * mu_b + SSIM_C1) * (var_a + var_b + SSIM_C2)
+    return (num / den).mean()
+
+
+def photometric(render: torch.Tensor, target: torch.Tensor, ssim_weight: float) -> tuple[torch.Tensor, ...]:
+    """``(l1, 1 - ssim)`` for ``(H, W, 3)`` images in [0, 1] (at least 11 px each way for SSIM)."""
+    l1 = (render - target).abs().mean()
+    if ssim_weight <= 0 or min(render.shape[0], render.shape[1]) < 11:
+        return l1, render.new_zeros(())
+    return l1, 1.0 - ssim(render, target)
+
+
+def flow_loss(rendered: torch.Tensor, alpha: torch.Tensor, flow: torch.Tensor, valid: torch.Tensor):
+    """Charbonnier distance (px) between rendered (H, W, 2) and observed flow where ``valid`` (H, W)."""
+    use = valid & (alpha[..., 0].detach() > 0.5)
+    if not bool(use.any()):
+        return rendered.new_zeros(())
+    predicted = rendered[use] / alpha[use].clamp_min(0.5)
+    diff = predicted - flow[use]
+    return (diff.pow(2).sum(-1) + CHARBONNIER_EPS**2).sqrt().mean() - CHARBONNIER_EPS
+
+
+@dataclass
+class AdaptiveWeights:
+    """Ramp-in and share cap of the auxiliary terms (see module docstring)."""
+
+    config: LossConfig
+    ema: dict[str, float] = field(default_factory=dict)
+
+    def factor(self, iteration: int) -> float:
+        warm = self.config.warmup_iters
+        return 1.0 if warm <= 0 else min(1.0, iteration / warm)
+
+    def combine(self, terms: dict[str, torch.Tensor], weights: dict[str, float], iteration: int):
+        """Total loss and the weights actually applied."""
+        photo = terms["photo"]
+        self._update("photo", float(photo.detach()))
+        total = photo
+        applied = {}
+        ramp = self.factor(iteration) if self.config.adaptive else 1.0
+        for name, value in terms.items():
+            if name == "photo":
+                continue
+            w = weights.get(name, 0.0)
+            if w <= 0:
+                continue
+            if name in ("flow", "temporal") and self.config.adaptive:
+                w *= ramp
+                mag = self._update(name, float(value.detach()))
+                if mag * w > AUX_SHARE_MAX * self.ema["photo"] and mag > 0:
+                    w = AUX_SHARE_MAX * self.ema["photo"] / mag
+            applied[name] = w
+            total = total + w * value
+        return total, applied
+
+    def _update(self, name: str, value: float) -> float:
+        if not (value == value) or value in (float("inf"), float("-inf")):
+            return self.ema.get(name, 0.0)
+        prev = self.ema.get(name)
+        self.ema[name] = value if prev is None else EMA_DECAY * prev + (1 - EMA_DECAY) * value
+        return self.ema[name]

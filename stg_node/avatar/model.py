@@ -1,0 +1,262 @@
+"""The STG-Avatar model: Gaussian table + rigid LBS + spacetime terms + colour, composed.
+
+``AvatarModel.pose(...)`` turns the canonical table into world-space Gaussians for one body
+pose and one instant (rigid part: :mod:`rigid`; non-rigid part: :mod:`spacetime`; colour:
+:mod:`color`), and :func:`render` splats them into a camera through ``stg_node.splat``.
+Everything a renderer needs lives in the model (the skeleton, not the body mesh), so
+:mod:`snapshot` can rebuild it from a GaussianSnapshot alone.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+from stg_node.avatar import spacetime
+from stg_node.avatar.color import ColorMLP, sh_color
+from stg_node.avatar.config import ModelConfig
+from stg_node.avatar.gaussians import GaussianTable
+from stg_node.avatar.rigid import PosedBones, Skeleton, blend_weights, skin
+from stg_node.avatar.spacetime import TimeAxis
+from stg_node.avatar.timecode import PoseTimeIndex, pose_key
+from stg_node.body import lbs
+from stg_node.splat import rasterize
+from stg_node.splat.constants import ALPHA_MIN
+
+
+@dataclass
+class BodyState:
+    """One frame's body parameters as tensors: poses (1, 24, 3), Rh (1, 3), Th (1, 3)."""
+
+    poses: torch.Tensor
+    Rh: torch.Tensor
+    Th: torch.Tensor
+
+    @classmethod
+    def from_smpl(cls, smpl, device="cpu") -> BodyState:
+        def t(a, shape):
+            return torch.as_tensor(np.asarray(a, np.float32), device=device).reshape(shape)
+
+        return cls(t(smpl.poses, (1, 24, 3)), t(smpl.Rh, (1, 3)), t(smpl.Th, (1, 3)))
+
+
+@dataclass
+class PosedGaussians:
+    """World-space Gaussians ready for the rasterizer (rows: the Gaussians kept, see ``index``)."""
+
+    means: torch.Tensor  # (M, 3) world
+    quats: torch.Tensor  # (M, 4) wxyz world
+    scales: torch.Tensor  # (M, 3)
+    opacities: torch.Tensor  # (M,) including temporal opacity
+    colors: torch.Tensor  # (M, 3)
+    index: torch.Tensor | None  # (M,) rows of the table, or None when every row is kept
+
+
+@dataclass
+class Camera3:
+    """A camera as the rasterizer takes it."""
+
+    viewmat: torch.Tensor  # (4, 4) world -> camera
+    K: torch.Tensor  # (3, 3)
+    width: int
+    height: int
+
+    @classmethod
+    def from_camera(cls, camera, crop: tuple[int, int, int, int] | None = None, device="cpu") -> Camera3:
+        """From a stg_node.data.types.Camera; ``crop`` = (x0, y0, w, h) renders only that window."""
+        K = np.array(camera.K, np.float64, copy=True)
+        width, height = int(camera.width), int(camera.height)
+        if crop is not None:
+            x0, y0, width, height = crop
+            K[0, 2] -= x0
+            K[1, 2] -= y0
+        view = np.eye(4)
+        view[:3, :3] = camera.R
+        view[:3, 3] = np.asarray(camera.t).reshape(3)
+        return cls(
+            torch.as_tensor(view, dtype=torch.float32, device=device),
+            torch.as_tensor(K, dtype=torch.float32, device=device),
+            width,
+            height,
+        )
+
+    @property
+    def center(self) -> torch.Tensor:
+        R, t = self.viewmat[:3, :3], self.viewmat[:3, 3]
+        return -(R.T @ t)
+
+    def project(self, points: torch.Tensor) -> torch.Tensor:
+        """Pixel coordinates ``(N, 2)`` of world points (no culling)."""
+        cam = points @ self.viewmat[:3, :3].T + self.viewmat[:3, 3]
+        pix = cam @ self.K.T
+        return pix[:, :2] / pix[:, 2:3].clamp_min(1e-6)
+
+
+def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Hamilton product of wxyz quaternions ``a * b`` (rotation b, then a)."""
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        dim=-1,
+    )
+
+
+def conjugate(q: torch.Tensor) -> torch.Tensor:
+    return q * torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=q.dtype, device=q.device)
+
+
+def rotate(q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """Rotate vectors ``v (N, 3)`` by unit quaternions ``q (N, 4)``: ``v + 2 w (u x v) + 2 u x (u x v)``."""
+    w, u = q[:, :1], q[:, 1:]
+    uv = torch.linalg.cross(u, v)
+    return v + 2.0 * (w * uv + torch.linalg.cross(u, uv))
+
+
+def _normalise(q: torch.Tensor) -> torch.Tensor:
+    norm = q.norm(dim=-1, keepdim=True)
+    identity = torch.zeros_like(q)
+    identity[..., 0] = 1.0
+    return torch.where(norm > 1e-12, q / norm.clamp_min(1e-12), identity)
+
+
+class AvatarModel(nn.Module):
+    def __init__(
+        self,
+        config: ModelConfig,
+        table: GaussianTable,
+        skeleton: Skeleton,
+        bounds: torch.Tensor,
+        time_axis: TimeAxis | None = None,
+        pose_index: PoseTimeIndex | None = None,
+    ):
+        super().__init__()
+        config.validate()
+        self.config = config
+        self.table = table
+        self.skeleton = skeleton
+        self.register_buffer("bounds", bounds.float().clone())  # (2, 3) canonical body box
+        self.color_mlp = ColorMLP(config, bounds) if config.color == "mlp" else None
+        self.time_axis = time_axis or TimeAxis(unit_s=config.time_unit_s)
+        self.pose_index = pose_index or PoseTimeIndex()
+
+    @property
+    def device(self) -> torch.device:
+        return self.table["means"].device
+
+    @property
+    def extent(self) -> float:
+        """Size of the body (diagonal of its canonical box, metres): the scale of 'large' and 'small'."""
+        return float((self.bounds[1] - self.bounds[0]).norm())
+
+    def skin_weights(self) -> torch.Tensor:
+        return blend_weights(self.table["skin_weights"], self.table.get("skin_delta"))
+
+    def bones(self, body: BodyState) -> PosedBones:
+        return self.skeleton.bones(body.poses, body.Rh, body.Th)
+
+    # --- deformation ---------------------------------------------------------------------------
+    def posed_means(self, bones: PosedBones, u: float) -> torch.Tensor:
+        """World centres only (cheap: the flow loss and densification need the next frame's)."""
+        st = spacetime.evaluate(self.table, u, self.config.time_horizon, temporal_opacity=False)
+        means = self.table["means"] if st.offsets is None else self.table["means"] + st.offsets
+        return skin(means, self.skin_weights(), bones, rotations=False).means
+
+    def pose(
+        self,
+        body: BodyState,
+        u: float,
+        camera_center: torch.Tensor,
+        *,
+        sh_degree: int | None = None,
+        skip_inactive: bool = False,
+        cull_transparent: bool = True,
+        bones: PosedBones | None = None,
+        key: torch.Tensor | None = None,
+    ) -> PosedGaussians:
+        """World-space Gaussians for one body pose at normalised time ``u``, seen from ``camera_center``."""
+        cfg = self.config
+        table = self.table
+        bones = bones or self.bones(body)
+        st = spacetime.evaluate(
+            table,
+            u,
+            cfg.time_horizon,
+            temporal_opacity=cfg.uses_temporal_opacity,
+            skip_inactive=skip_inactive,
+        )
+        opacity = table.opacities()
+        if st.temporal is not None:
+            opacity = opacity * st.temporal
+        index = None
+        if cull_transparent:
+            keep = opacity.detach() >= ALPHA_MIN
+            if not bool(keep.all()):
+                index = keep.nonzero().squeeze(1)
+
+        def rows(t):
+            return t if index is None or t is None else t[index]
+
+        canonical = table["means"] if st.offsets is None else table["means"] + st.offsets
+        canonical = rows(canonical)
+        skinned = skin(canonical, rows(self.skin_weights()), bones)
+        quats = quat_multiply(skinned.quats, _normalise(rows(st.quats)))
+        scales = rows(table.scales())
+        degree = cfg.sh_degree if sh_degree is None else min(sh_degree, cfg.sh_degree)
+        with torch.no_grad():  # the viewing direction in each Gaussian's canonical frame
+            view = skinned.means - camera_center
+            view = view / view.norm(dim=1, keepdim=True).clamp_min(1e-9)
+            view_canonical = rotate(conjugate(skinned.quats), view)
+        if self.color_mlp is not None:
+            if body.poses.requires_grad:  # pose refinement: keep the pose code differentiable
+                key = lbs.axis_angle_to_matrix(body.poses[0, 1:]).reshape(1, 23 * 9)
+            elif key is None:
+                key = torch.as_tensor(pose_key(body.poses.detach().cpu().numpy()), device=self.device)
+            colors = self.color_mlp(canonical, rows(table["features"]), key, view_canonical, degree)
+        else:
+            colors = sh_color(rows(table["sh"]), view_canonical, degree)
+        return PosedGaussians(skinned.means, quats, scales, rows(opacity), colors, index)
+
+
+def render(
+    posed: PosedGaussians,
+    camera: Camera3,
+    *,
+    background=None,
+    backend: str = "auto",
+    extra_channels: torch.Tensor | None = None,
+    render_depth: bool = False,
+):
+    """Splat posed Gaussians; ``extra_channels`` (N_table or M, C) are blended along with RGB."""
+    colors = posed.colors
+    if extra_channels is not None:
+        if posed.index is not None and extra_channels.shape[0] != colors.shape[0]:
+            extra_channels = extra_channels[posed.index]
+        colors = torch.cat([colors, extra_channels], dim=1)
+    if background is not None and extra_channels is not None:
+        bg = torch.as_tensor(background, dtype=colors.dtype, device=colors.device).reshape(-1)
+        if bg.numel() == 1:
+            bg = bg.expand(3)
+        background = torch.cat([bg, bg.new_zeros(extra_channels.shape[1])])
+    return rasterize(
+        posed.means,
+        posed.quats,
+        posed.scales,
+        posed.opacities,
+        colors,
+        camera.viewmat,
+        camera.K,
+        camera.width,
+        camera.height,
+        background=background,
+        backend=backend,
+        render_depth=render_depth,
+    )

@@ -1,0 +1,160 @@
+"""Adam over the Gaussian table's columns (one parameter group each) and the dense modules, with
+row surgery: when densification appends or removes Gaussians, every column *and* its Adam
+moments change together (new rows start with zero moments), as gsplat's strategies do.
+
+Also owns the learning-rate schedule and the proximal L1 step that drives motion coefficients
+to exactly zero.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+from stg_node.avatar.gaussians import GaussianTable
+
+
+class TableOptimizer:
+    """One torch Adam for the table (a group per column) and one for dense modules (MLP, pose)."""
+
+    def __init__(self, table: GaussianTable, lrs: dict[str, float], dense: dict[str, tuple[list, float]]):
+        self.table = table
+        self.base_lrs = dict(lrs)
+        groups = []
+        for name in table.trainable_names():
+            lr = lrs.get(name, 0.0)
+            groups.append({"params": [table[name]], "lr": lr, "name": name})
+        self.adam = torch.optim.Adam(groups, lr=0.0, eps=1e-15)
+        dense_groups = []
+        for name, (params, lr) in dense.items():
+            params = [p for p in params if p.requires_grad]
+            if params:
+                dense_groups.append({"params": params, "lr": lr, "name": name})
+                self.base_lrs[name] = lr
+        self.dense = torch.optim.Adam(dense_groups, lr=0.0, eps=1e-15) if dense_groups else None
+
+    def groups(self):
+        yield from self.adam.param_groups
+        if self.dense is not None:
+            yield from self.dense.param_groups
+
+    def zero_grad(self) -> None:
+        self.adam.zero_grad(set_to_none=True)
+        if self.dense is not None:
+            self.dense.zero_grad(set_to_none=True)
+
+    def step(self) -> None:
+        self.adam.step()
+        if self.dense is not None:
+            self.dense.step()
+
+    def set_schedule(self, progress: float, means_final: float, others_final: float) -> None:
+        """Exponential decay of the means' rate to ``means_final`` x; cosine of the rest to
+        ``others_final`` x."""
+        p = min(max(progress, 0.0), 1.0)
+        cosine = others_final + (1 - others_final) * 0.5 * (1 + math.cos(math.pi * p))
+        for group in self.groups():
+            base = self.base_lrs.get(group["name"], 0.0)
+            factor = means_final**p if group["name"] == "means" else cosine
+            group["lr"] = base * factor
+
+    def lr(self, name: str) -> float:
+        for group in self.groups():
+            if group["name"] == name:
+                return float(group["lr"])
+        return 0.0
+
+    # --- row surgery ---------------------------------------------------------------------------
+    def _replace(self, name: str, new: torch.Tensor, state_fn) -> None:
+        old = self.table[name]
+        param = nn.Parameter(new.detach().clone(), requires_grad=True)
+        for group in self.adam.param_groups:
+            if group["params"][0] is old:
+                state = self.adam.state.pop(old, None)
+                group["params"][0] = param
+                if state:
+                    self.adam.state[param] = {
+                        k: (state_fn(v) if torch.is_tensor(v) and v.dim() > 0 else v)
+                        for k, v in state.items()
+                    }
+                break
+        self.table.params[name] = param
+
+    def append(self, rows: dict[str, torch.Tensor]) -> None:
+        """Append rows (every column must be given) with zero Adam moments."""
+        missing = set(self.table.names()) - set(rows)
+        if missing:
+            raise ValueError(f"append() needs every column; missing {sorted(missing)}")
+        n_new = next(iter(rows.values())).shape[0]
+        if n_new == 0:
+            return
+        for name in self.table.names():
+            cur = self.table[name]
+            new = torch.cat([cur.detach(), rows[name].to(cur.dtype)], dim=0)
+            if name in self.table.trainable_names():
+                self._replace(
+                    name, new, lambda v, n=n_new: torch.cat([v, v.new_zeros((n,) + v.shape[1:])], dim=0)
+                )
+            else:
+                self.table.set_column(name, new)
+
+    def keep(self, mask: torch.Tensor) -> None:
+        """Keep the rows where ``mask`` is true (pruning)."""
+        if bool(mask.all()):
+            return
+        for name in self.table.names():
+            cur = self.table[name]
+            if name in self.table.trainable_names():
+                self._replace(name, cur.detach()[mask], lambda v: v[mask])
+            else:
+                self.table.set_column(name, cur.detach()[mask])
+
+    @torch.no_grad()
+    def freeze_rows(self, name: str, rows: torch.Tensor) -> None:
+        """Zero this step's gradient of ``rows`` of a column: with zero moments they stay exactly put."""
+        if name in self.table and self.table[name].grad is not None:
+            self.table[name].grad[rows] = 0
+
+    # --- proximal L1 ---------------------------------------------------------------------------
+    @torch.no_grad()
+    def soft_threshold(self, name: str, strength: float) -> None:
+        """``x <- sign(x) max(|x| - lr * strength, 0)``: the proximal step of an L1 penalty; exact zeros.
+
+        With Adam every coefficient moves by about ``lr`` per step when its gradient keeps one sign
+        and much less when the gradient is noise, so ``strength`` < 1 zeroes the coefficients whose
+        gradient has no consistent direction (static regions) and spares the rest.
+        """
+        if name not in self.table or strength <= 0:
+            return
+        param = self.table[name]
+        thr = self.lr(name) * strength
+        param.copy_(torch.sign(param) * (param.abs() - thr).clamp_min(0.0))
+
+    @torch.no_grad()
+    def zero_rows(self, name: str, rows: torch.Tensor) -> None:
+        """Set ``rows`` of a column and its Adam moments to zero."""
+        param = self.table[name]
+        param[rows] = 0
+        state = self.adam.state.get(param)
+        if state:
+            for key in ("exp_avg", "exp_avg_sq"):
+                if key in state:
+                    state[key][rows] = 0
+
+    # --- state for checkpoints -----------------------------------------------------------------
+    def table_state(self) -> dict[str, dict[str, torch.Tensor]]:
+        out = {}
+        for group in self.adam.param_groups:
+            state = self.adam.state.get(group["params"][0])
+            if state:
+                out[group["name"]] = state
+        return out
+
+    def load_table_state(self, states: dict[str, dict[str, torch.Tensor]]) -> None:
+        for group in self.adam.param_groups:
+            s = states.get(group["name"])
+            if s is not None:
+                p = group["params"][0]
+                self.adam.state[p] = {k: v.to(p.device) for k, v in s.items()}

@@ -1,0 +1,122 @@
+"""The rigid part of the deformation: linear blend skinning of the Gaussians by the body's bones.
+
+``X_L = sum_b w_b B_b x_c``: each Gaussian's canonical (big-pose) centre is carried to the posed
+world by the blend of its bones' transforms. Its orientation turns with the normalised blend of
+its bones' rotation quaternions (``normalise(sum_b w_b q_b)``, the rotational part of dual
+quaternion skinning, with the 24 joint quaternions put in one hemisphere along the kinematic
+chain): one (N, 24) x (24, 4) product, where the polar factor of the blended matrix
+(stg_node.body.skin_rotations) costs several Newton iterations per Gaussian and its gradient.
+The two agree to first order and exactly for a Gaussian bound to one bone.
+
+:class:`Skeleton` holds only what forward kinematics needs (the subject's rest joints, the
+parent table and the inverse big-pose transforms), not the mesh, so a renderer rebuilds it from
+a GaussianSnapshot alone and a training step never touches the 13k-vertex body.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from stg_node.body import lbs
+from stg_node.body.canonical import big_pose_output
+
+
+@dataclass
+class PosedBones:
+    """One frame's bones, canonical big pose -> world."""
+
+    transforms: torch.Tensor  # (1, 24, 4, 4)
+    quats: torch.Tensor  # (1, 24, 4) wxyz rotations of the transforms, one hemisphere along the chain
+
+    @classmethod
+    def from_transforms(cls, transforms: torch.Tensor, parents: list[int]) -> PosedBones:
+        quats = lbs.matrix_to_quaternion(transforms[..., :3, :3])
+        aligned = [quats[:, 0]]
+        for j in range(1, quats.shape[1]):
+            q = quats[:, j]
+            sign = torch.where((q * aligned[parents[j]]).sum(-1, keepdim=True) < 0, -1.0, 1.0)
+            aligned.append(q * sign)
+        return cls(transforms, torch.stack(aligned, dim=1))
+
+    def detach(self) -> PosedBones:
+        return PosedBones(self.transforms.detach(), self.quats.detach())
+
+
+class Skeleton(torch.nn.Module):
+    """Forward kinematics of the subject's body from its rest joints (no mesh)."""
+
+    def __init__(self, rest_joints: torch.Tensor, parents: torch.Tensor, big_pose_inverse: torch.Tensor):
+        super().__init__()
+        if rest_joints.shape != (24, 3) or parents.shape != (24,) or big_pose_inverse.shape != (24, 4, 4):
+            raise ValueError(
+                "Skeleton needs rest_joints (24, 3), parents (24,), big_pose_inverse (24, 4, 4); got "
+                f"{tuple(rest_joints.shape)}, {tuple(parents.shape)}, {tuple(big_pose_inverse.shape)}"
+            )
+        self.register_buffer("rest_joints", rest_joints.float())
+        self.register_buffer("parents", parents.long())
+        self.register_buffer("big_pose_inverse", big_pose_inverse.float())
+        self.parent_list = [int(p) for p in parents.tolist()]
+
+    @classmethod
+    def from_body(cls, body, betas) -> Skeleton:
+        """The skeleton of ``body`` (a stg_node.body.BodyModel) with shape ``betas``."""
+        with torch.no_grad():
+            big = big_pose_output(body, betas)
+            return cls(big.rest_joints[0], body.parents, lbs.invert_rigid(big.bone_transforms[0]))
+
+    def bones(self, poses: torch.Tensor, Rh: torch.Tensor, Th: torch.Tensor) -> PosedBones:
+        """Canonical -> world transforms for ``poses (B, 24, 3)``, ``Rh (B, 3)``, ``Th (B, 3)``.
+
+        Same convention as stg_node.body (world = R(Rh) @ smpl + Th): equal to
+        ``stg_node.body.canonical_transforms`` without pose blend shapes.
+        """
+        batch = poses.shape[0]
+        rotations = lbs.axis_angle_to_matrix(poses.reshape(batch, 24, 3))
+        rest = self.rest_joints.expand(batch, 24, 3)
+        _, local = lbs.rigid_chain(rotations, rest, self.parents)
+        world = lbs.make_rigid(lbs.axis_angle_to_matrix(Rh), Th)
+        return PosedBones.from_transforms(world[:, None] @ local @ self.big_pose_inverse, self.parent_list)
+
+
+def blend_weights(skin_weights: torch.Tensor, skin_delta: torch.Tensor | None) -> torch.Tensor:
+    """Effective weights: the body's, corrected in log space by the learned delta (rows sum to 1).
+
+    ``w = (w_body + eps) exp(delta) / sum(...)``; eps lets a bone the body gave no weight gain some.
+    Without a delta the body's weights are used unchanged.
+    """
+    if skin_delta is None:
+        return skin_weights
+    w = (skin_weights + 1e-4) * skin_delta.exp()
+    return w / w.sum(dim=1, keepdim=True)
+
+
+@dataclass
+class Skinned:
+    """One frame's skinning of N canonical points."""
+
+    means: torch.Tensor  # (N, 3) world centres
+    quats: torch.Tensor  # (N, 4) unit wxyz: the blended bone rotation of each point
+    blended: torch.Tensor  # (N, 4, 4) the blended transform itself
+
+
+def blend(weights: torch.Tensor, bones: PosedBones) -> torch.Tensor:
+    """Per-point blended transforms ``(N, 4, 4)`` of one frame (one matrix product)."""
+    if bones.transforms.shape[0] != 1:
+        raise ValueError("blend() poses one frame at a time")
+    return (weights @ bones.transforms[0].reshape(24, 16)).reshape(-1, 4, 4)
+
+
+def blend_rotation(weights: torch.Tensor, bones: PosedBones) -> torch.Tensor:
+    """Per-point rotation ``(N, 4)``: the normalised weighted sum of the bones' quaternions."""
+    q = weights @ bones.quats[0]
+    return q / q.norm(dim=1, keepdim=True).clamp_min(1e-12)
+
+
+def skin(means: torch.Tensor, weights: torch.Tensor, bones: PosedBones, rotations: bool = True) -> Skinned:
+    """Centres (and, with ``rotations``, orientations) of canonical points under one frame's bones."""
+    blended = blend(weights, bones)
+    world = (blended[:, :3, :3] @ means[..., None]).squeeze(-1) + blended[:, :3, 3]
+    quats = blend_rotation(weights, bones) if rotations else None
+    return Skinned(world, quats, blended)

@@ -1,0 +1,116 @@
+"""The non-rigid part: Spacetime Gaussians (polynomial motion and rotation in time, temporal opacity).
+
+For Gaussian i at normalised time u (see :class:`TimeAxis`), with local time
+``tau = h tanh((u - mu_i^tau) / h)`` (h = the time horizon):
+
+    offset_i(u)  = sum_{k=1..n_p} b_ik tau^k                 (canonical frame, metres)
+    q_i(u)       = normalise(q_i + sum_{k=1..n_q} c_ik tau^k)
+    sigma_i(u)   = sigma_i exp(-((u - mu_i^tau) / s_i)^2)
+
+**Where the offsets act.** The offset is added to the canonical centre *before* skinning, so
+the posed centre is ``X_L + R_blend(t) offset_i(u)``: the paper's ``X_L + sum b_ik tau^k`` with
+the offset expressed in the Gaussian's own body frame. A swing of the hem learned while the
+subject faced the camera stays a swing of the hem, not a fixed direction in the world, when the
+subject turns or is re-posed; a world-space offset would be wrong as soon as the body rotates.
+
+**Why time is bounded.** Time is counted in fixed units from the first frame (no sequence
+length needed, so a stream of unknown length works) and each polynomial sees the local time
+squashed by tanh into (-h, h): a Gaussian evaluated far from its temporal centre (frame 10,000
+of a stream, or a static Gaussian whose window spans everything) gets a bounded offset, never a
+polynomial blow-up. Near its centre (|u - mu| << h) tanh is the identity to first order, so the
+polynomial is the paper's.
+
+**What costs nothing.** A Gaussian whose motion coefficients are all exactly zero (static
+regions, driven there by the L1 proximal step in training) is skipped when rendering; with
+``skip_inactive`` the polynomial is evaluated only on the active rows.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+
+@dataclass(frozen=True)
+class TimeAxis:
+    """Seconds -> normalised time units: ``u = (t - origin_s) / unit_s``."""
+
+    origin_s: float = 0.0
+    unit_s: float = 1.0
+
+    def __call__(self, t_seconds: float) -> float:
+        return (float(t_seconds) - self.origin_s) / self.unit_s
+
+
+@dataclass
+class SpacetimeState:
+    """What the spacetime terms contribute at one instant (None where a term is off)."""
+
+    offsets: torch.Tensor | None  # (N, 3) canonical-frame offset of each centre
+    quats: torch.Tensor  # (N, 4) rotation at u, unnormalised
+    temporal: torch.Tensor | None  # (N,) temporal opacity factor in (0, 1]
+
+
+def local_time(u: float, t_center: torch.Tensor, horizon: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Raw ``u - mu`` and bounded ``tau = h tanh((u - mu) / h)``."""
+    dt = u - t_center
+    return dt, horizon * torch.tanh(dt / horizon)
+
+
+def polynomial(coeffs: torch.Tensor, tau: torch.Tensor) -> torch.Tensor:
+    """``sum_{k=1..K} coeffs[:, k-1] tau^k``: coeffs (N, K, D), tau (N,) -> (N, D)."""
+    out = coeffs[:, 0] * tau[:, None]
+    power = tau
+    for k in range(1, coeffs.shape[1]):
+        power = power * tau
+        out = out + coeffs[:, k] * power[:, None]
+    return out
+
+
+def evaluate(
+    table, u: float, horizon: float, *, temporal_opacity: bool, skip_inactive: bool = False
+) -> SpacetimeState:
+    """The spacetime terms of every Gaussian of ``table`` at normalised time ``u``."""
+    quats = table["quats"]
+    motion = table.get("motion")
+    rot_motion = table.get("rot_motion")
+    t_center = table.get("t_center")
+    if t_center is None:
+        return SpacetimeState(None, quats, None)
+    dt, tau = local_time(u, t_center, horizon)
+    offsets = None
+    if motion is not None or rot_motion is not None:
+        if skip_inactive:
+            idx = table.motion_active().nonzero().squeeze(1)
+            if motion is not None:
+                offsets = torch.zeros_like(table["means"])
+                if idx.numel():
+                    offsets = offsets.index_put((idx,), polynomial(motion[idx], tau[idx]))
+            if rot_motion is not None and idx.numel():
+                quats = quats.index_put((idx,), quats[idx] + polynomial(rot_motion[idx], tau[idx]))
+        else:
+            if motion is not None:
+                offsets = polynomial(motion, tau)
+            if rot_motion is not None:
+                quats = quats + polynomial(rot_motion, tau)
+    temporal = None
+    if temporal_opacity:
+        scale = table["t_log_scale"].exp()
+        temporal = torch.exp(-((dt / scale) ** 2))
+    return SpacetimeState(offsets, quats, temporal)
+
+
+def velocity(table, u: float, horizon: float) -> torch.Tensor | None:
+    """d offset / du (N, 3) at ``u`` (canonical frame, metres per time unit), or None without motion."""
+    motion = table.get("motion")
+    if motion is None:
+        return None
+    dt, tau = local_time(u, table["t_center"], horizon)
+    dtau = 1.0 - (tau / horizon) ** 2  # d tau / du
+    out = motion[:, 0]
+    power = torch.ones_like(tau)
+    for k in range(1, motion.shape[1]):
+        power = power * tau
+        out = out + (k + 1) * motion[:, k] * power[:, None]
+    return out * dtau[:, None]

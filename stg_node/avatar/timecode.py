@@ -1,0 +1,68 @@
+"""The time code of a pose never seen in training (animation, the novel-pose split).
+
+The spacetime terms are functions of time, but an animation brings poses, not times. Rule: a
+new pose takes the time of the **nearest training frame in pose space**, where the distance
+between two poses is the Frobenius distance between their 23 local joint rotation matrices
+(the root orientation and the global Rh/Th are left out: turning or walking does not change
+what the garment does relative to the body). The spacetime Gaussians then render the
+non-rigid state that the most similar training pose had.
+
+Stability: along an animation the nearest frame can flip back and forth between two distant
+training times whose poses are about equally close, which would make time-local Gaussians
+blink. :meth:`PoseTimeIndex.time_for` therefore keeps the previous choice unless another frame
+is closer by a margin (hysteresis, ``HYSTERESIS`` of the current distance).
+
+The index keeps at most ``capacity`` keys (a stream evicts the oldest half-stride by
+reservoir-style thinning: every other key is dropped when full), so it stays small.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from stg_node.body import lbs
+
+HYSTERESIS = 0.15
+
+
+def pose_key(poses: np.ndarray) -> np.ndarray:
+    """(24, 3) or (B, 24, 3) axis-angle -> (B, 207) flattened local rotation matrices of joints 1..23."""
+    import torch
+
+    p = np.asarray(poses, dtype=np.float32).reshape(-1, 24, 3)
+    mats = lbs.axis_angle_to_matrix(torch.from_numpy(p[:, 1:]))
+    return mats.reshape(p.shape[0], 23 * 9).numpy()
+
+
+class PoseTimeIndex:
+    """Training poses and their normalised times; answers 'which time for this pose'."""
+
+    def __init__(self, capacity: int = 2048):
+        self.capacity = int(capacity)
+        self.keys = np.zeros((0, 23 * 9), np.float32)
+        self.times = np.zeros((0,), np.float32)
+
+    def __len__(self) -> int:
+        return int(self.times.shape[0])
+
+    def add(self, poses: np.ndarray, time_u: float) -> None:
+        if len(self) >= self.capacity:
+            self.keys = self.keys[::2].copy()
+            self.times = self.times[::2].copy()
+        self.keys = np.concatenate([self.keys, pose_key(poses)])
+        self.times = np.concatenate([self.times, np.float32([time_u])])
+
+    def set(self, keys: np.ndarray, times: np.ndarray) -> None:
+        self.keys = np.asarray(keys, np.float32).reshape(-1, 23 * 9)
+        self.times = np.asarray(times, np.float32).reshape(-1)
+
+    def time_for(self, poses: np.ndarray, previous: int | None = None) -> tuple[float, int]:
+        """(time, key index) for one pose; ``previous`` is the index chosen for the last frame."""
+        if len(self) == 0:
+            return 0.0, -1
+        dist = np.linalg.norm(self.keys - pose_key(poses), axis=1)
+        best = int(dist.argmin())
+        if previous is not None and 0 <= previous < len(self):
+            if dist[previous] <= dist[best] * (1.0 + HYSTERESIS) + 1e-6:
+                best = previous
+        return float(self.times[best]), best

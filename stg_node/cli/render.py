@@ -1,0 +1,82 @@
+"""``stg-render``: novel views and animations of a trained avatar, as an MP4 or a folder of PNGs.
+
+    stg-render RUN_DIR -o OUT(.mp4|dir) [--views orbit|dataset] [--poses FILE]
+
+``--views orbit`` (default): a camera circling the subject at the training camera's distance.
+``--views dataset``: every camera of the dataset, tiled in a grid per frame.
+``--poses FILE``: animate with SMPL parameters (``.npz`` with poses/Rh/Th, a ZJU-MoCap
+``new_params`` folder, or a subject folder holding one); the avatar keeps its own body shape
+(the file's betas are ignored) and each pose takes the time code of the nearest training pose,
+kept stable along the sequence (docs/AVATAR.md). Without --poses the training frames are used.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+from stg_node.cli.runner import UsageError, add_log_level_option, run_main
+from stg_node.threads import configure_threads
+
+log = logging.getLogger("stg_node.cli.render")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="stg-render", description="Render a trained STG-Avatar run.")
+    p.add_argument("run", help="run folder written by stg-train")
+    p.add_argument("-o", "--out", required=True, help="output .mp4 file or folder for PNGs")
+    p.add_argument(
+        "--views", default="orbit", choices=("orbit", "dataset"), help="cameras (default %(default)s)"
+    )
+    p.add_argument("--poses", default=None, help="SMPL pose file (.npz) or ZJU-style folder to animate")
+    p.add_argument(
+        "--frames", type=int, default=None, help="number of frames (default: all poses; orbit 120)"
+    )
+    p.add_argument("--size", type=int, default=None, help="image size (default: the dataset's)")
+    p.add_argument("--fps", type=float, default=30.0, help="MP4 frame rate (default %(default)s)")
+    p.add_argument("--data", default=None, help="dataset folder (default: the one the run trained on)")
+    p.add_argument("--backend", default="auto", choices=("auto", "cpu", "cuda", "torch"))
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--threads", default=None)
+    p.add_argument("--no-progress", action="store_true")
+    add_log_level_option(p)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    from stg_node.avatar.snapshot import SnapshotError
+    from stg_node.data.errors import DatasetError
+
+    return run_main(build_parser(), run, argv, expected=(DatasetError, SnapshotError))
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.frames is not None and args.frames < 1:
+        raise UsageError("--frames must be >= 1")
+    out = Path(args.out)
+    if out.suffix and out.suffix.lower() != ".mp4":
+        raise UsageError(f"-o must be a .mp4 file or a folder, got {out}")
+    configure_threads(args.threads)
+    from stg_node.avatar.animation import render_run
+
+    written = render_run(
+        Path(args.run),
+        out,
+        views=args.views,
+        poses=args.poses,
+        frames=args.frames,
+        size=args.size,
+        fps=args.fps,
+        data=args.data,
+        device=args.device,
+        backend=args.backend,
+        show_progress=not args.no_progress,
+    )
+    print(f"wrote {written} frames to {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

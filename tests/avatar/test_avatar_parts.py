@@ -1,0 +1,135 @@
+"""Smaller parts against closed forms: SH basis, the novel-pose time code, Adam row surgery, the
+proximal step, the colour MLP's size, frame crops."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from stg_node.avatar.color import ColorMLP, sh_basis
+from stg_node.avatar.config import ModelConfig
+from stg_node.avatar.frames import crop_box
+from stg_node.avatar.gaussians import GaussianTable
+from stg_node.avatar.optim import TableOptimizer
+from stg_node.avatar.presets import PRESETS, preset
+from stg_node.avatar.timecode import HYSTERESIS, PoseTimeIndex
+
+
+def test_sh_basis_is_orthonormal_on_the_sphere():
+    """The real SH basis (3DGS's signs) integrates to the identity: a Monte-Carlo check of all 16."""
+    gen = torch.Generator().manual_seed(0)
+    d = torch.randn(400_000, 3, generator=gen, dtype=torch.float64)
+    d = d / d.norm(dim=1, keepdim=True)
+    Y = sh_basis(3, d)
+    gram = 4 * math.pi * (Y.T @ Y) / d.shape[0]
+    assert torch.allclose(gram, torch.eye(16, dtype=torch.float64), atol=0.02)
+    # Band 1 is proportional to (-y, z, -x): 3DGS's convention.
+    one = torch.tensor([[0.0, 1.0, 0.0]], dtype=torch.float64)
+    assert sh_basis(1, one)[0, 1] < 0 and abs(float(sh_basis(1, one)[0, 2])) < 1e-12
+
+
+def test_colour_mlp_stays_light_in_every_preset():
+    for name in PRESETS:
+        cfg = preset(name).model
+        mlp = ColorMLP(cfg, torch.tensor([[-1.0, -1, -1], [1, 1, 1]]))
+        assert mlp.num_parameters() < 800_000, name
+        out = mlp(
+            torch.zeros(5, 3),
+            torch.zeros(5, cfg.feature_dim),
+            torch.zeros(1, 207),
+            torch.tensor([[0.0, 0, 1]]).expand(5, 3),
+            cfg.sh_degree,
+        )
+        assert out.shape == (5, 3) and bool(((out >= 0) & (out <= 1)).all())
+
+
+def _pose(angle: float) -> np.ndarray:
+    p = np.zeros((24, 3), np.float32)
+    p[16, 2] = angle  # left shoulder
+    return p
+
+
+def test_novel_pose_takes_the_time_of_the_nearest_training_pose_and_holds_it():
+    index = PoseTimeIndex()
+    for i, angle in enumerate(np.linspace(0, 1.5, 16)):
+        index.add(_pose(angle), float(i))
+    t, k = index.time_for(_pose(0.1))  # closest to angle 0.1 -> key 1 (0.1)
+    assert k == 1 and t == 1.0
+    # Root orientation and translation are ignored: a turned body is the same pose.
+    turned = _pose(0.1)
+    turned[0] = [0.3, 2.0, -0.5]
+    assert index.time_for(turned)[1] == 1
+    # Hysteresis: slightly nearer to key 2 than key 1 keeps key 1 when key 1 was the last choice.
+    between = _pose(0.1 + 0.5 * 0.1 * (1 + HYSTERESIS / 4))
+    assert index.time_for(between)[1] == 2
+    assert index.time_for(between, previous=1)[1] == 1
+    assert index.time_for(_pose(1.5), previous=1)[1] == 15
+
+
+def test_pose_index_thins_itself_to_its_capacity():
+    index = PoseTimeIndex(capacity=8)
+    for i in range(100):
+        index.add(_pose(i / 100), float(i))
+    assert len(index) <= 8 + 1
+    assert index.times[0] == 0.0 and index.times[-1] == 99.0
+
+
+def test_row_surgery_keeps_adam_state_aligned():
+    table = GaussianTable({"means": torch.arange(12.0).reshape(4, 3), "opacity_logits": torch.zeros(4)})
+    opt = TableOptimizer(table, {"means": 0.1, "opacity_logits": 0.1}, {})
+    table["means"].grad = torch.ones(4, 3)
+    table["opacity_logits"].grad = torch.arange(4.0)
+    opt.step()
+    m_before = opt.adam.state[table["means"]]["exp_avg"].clone()
+    opt.keep(torch.tensor([True, False, True, True]))
+    assert table.num == 3
+    assert torch.equal(opt.adam.state[table["means"]]["exp_avg"], m_before[[0, 2, 3]])
+    opt.append({"means": torch.full((2, 3), 7.0), "opacity_logits": torch.zeros(2)})
+    state = opt.adam.state[table["means"]]
+    assert table.num == 5 and torch.equal(state["exp_avg"][3:], torch.zeros(2, 3))
+    assert torch.equal(table["means"][3:], torch.full((2, 3), 7.0))
+    # The optimiser still steps the new parameter objects.
+    table["means"].grad = torch.ones(5, 3)
+    table["opacity_logits"].grad = torch.ones(5)
+    before = table["means"].detach().clone()
+    opt.step()
+    assert not torch.equal(before, table["means"])
+
+
+def test_proximal_step_is_the_soft_threshold():
+    table = GaussianTable(
+        {
+            "means": torch.zeros(3, 3),
+            "motion": torch.tensor([[[0.5, -0.05, 0.0]], [[0.09, 0.0, -2.0]], [[0.0] * 3]]),
+        }
+    )
+    opt = TableOptimizer(table, {"means": 0.0, "motion": 0.1}, {})
+    opt.set_schedule(0.0, 1.0, 1.0)
+    opt.soft_threshold("motion", 1.0)  # threshold = lr x 1 = 0.1
+    expected = torch.tensor([[[0.4, 0.0, 0.0]], [[0.0, 0.0, -1.9]], [[0.0] * 3]])
+    assert torch.allclose(table["motion"], expected)
+    assert table.motion_active().tolist() == [True, True, False]
+
+
+@pytest.mark.parametrize(
+    "mask_box, margin, expected",
+    [((10, 20, 30, 40), 5, (5, 15, 40, 33)), ((0, 0, 8, 8), 16, (0, 0, 24, 24)), (None, 5, (0, 0, 64, 48))],
+)
+def test_crop_is_the_mask_box_plus_margin_inside_the_image(mask_box, margin, expected):
+    mask = np.zeros((48, 64), np.uint8)
+    if mask_box:
+        x, y, w, h = mask_box
+        mask[y : y + h, x : x + w] = 255
+    assert crop_box(mask if mask_box else None, 64, 48, margin) == expected
+
+
+def test_model_config_refuses_nonsense():
+    with pytest.raises(ValueError, match="color"):
+        ModelConfig(color="rainbow").validate()
+    with pytest.raises(ValueError, match="num_gaussians"):
+        ModelConfig(num_gaussians=10, max_gaussians=5).validate()
+    with pytest.raises(ValueError, match="unknown preset"):
+        preset("turbo")

@@ -1,0 +1,232 @@
+"""Speed of the avatar's training step (phase by phase) and of its rendering, with same-run baselines.
+
+    python tools/bench_avatar.py [--data DIR] [--steps 60] [--threads 1] [--gaussians 20000 50000]
+
+1. Training step at the benchmark's 512x512 (the person's crop is rendered): per-phase wall time
+   (data, pose = LBS + spacetime + colour, flow target, render, loss, backward, update, densify),
+   and the whole step against the rasterizer's own forward+backward on the same Gaussians
+   (the baseline: what a step costs beyond splatting).
+2. SSIM loss (forward+backward, a 200x420 crop): ours (depthwise separable) against kornia's.
+3. Rendering a posed avatar at 512x512 (pose + colour + splat) with N Gaussians, with 0 %, 10 %
+   and 100 % of them carrying motion terms; the zero-motion skip against evaluating every row,
+   and against the bare rasterizer (baseline).
+
+The data is generated if --data is not given (stg-synth, 125 frames, 100 for training).
+Figures go to docs/BENCHMARKS.md with this command line and the machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from stg_node.threads import configure_threads  # noqa: E402
+
+
+def _machine() -> str:
+    return f"{platform.machine()}, {torch.get_num_threads()} torch thread(s), {platform.processor() or 'cpu'}"
+
+
+def ensure_data(path: str | None) -> Path:
+    if path:
+        return Path(path)
+    out = Path(tempfile.gettempdir()) / "stg_bench_avatar_synth"
+    if not (out / "synth.json").is_file():
+        from stg_node.data.synth.generate import SynthConfig, generate
+
+        generate(SynthConfig(out=out, num_frames=125, overwrite=True), progress=False)
+    return out
+
+
+def bench_step(data: Path, steps: int, gaussians: int) -> dict:
+    from stg_node.avatar import Trainer, preset
+    from stg_node.avatar.data_spec import DataSpec
+    from stg_node.avatar.model import render
+    from stg_node.avatar.trainer import StepProfile
+
+    config = preset("balanced").replace(
+        **{
+            "model.num_gaussians": gaussians,
+            "model.max_gaussians": gaussians,
+            "densify.start_iter": 10,
+            "densify.interval": 20,
+        }
+    )
+    trainer = Trainer(config, seed=0)
+    t0 = time.perf_counter()
+    trainer.add_frames(DataSpec(str(data), "synthetic").open("train"))
+    load_s = time.perf_counter() - t0
+    for _ in range(5):
+        trainer.step()
+    trainer.profile = StepProfile()
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        trainer.step()
+    step_ms = 1e3 * (time.perf_counter() - t0) / steps
+    phases = trainer.profile.per_step_ms()
+    # Baseline: the rasterizer alone, forward + backward, on the same posed Gaussians and crops.
+    stored = trainer.store.frames[0]
+    from stg_node.avatar.model import BodyState, Camera3
+
+    cam = Camera3.from_camera(stored.frame.camera, stored.crop)
+    with torch.no_grad():
+        posed = trainer.model.pose(BodyState.from_smpl(stored.frame.smpl), 0.0, cam.center)
+    leaves = [
+        t.detach().clone().requires_grad_(True)
+        for t in (posed.means, posed.quats, posed.scales, posed.opacities, posed.colors)
+    ]
+    times = []
+    for _ in range(max(steps // 2, 5)):
+        posed.means, posed.quats, posed.scales, posed.opacities, posed.colors = leaves
+        t = time.perf_counter()
+        image, alpha, _ = render(posed, cam, background=0.0, backend=trainer.backend)
+        (image.sum() + alpha.sum()).backward()
+        times.append(time.perf_counter() - t)
+    raster_ms = 1e3 * statistics.median(times)
+    return {
+        "gaussians": trainer.model.table.num,
+        "load_s": load_s,
+        "step_ms": step_ms,
+        "phases_ms": phases,
+        "raster_fwd_bwd_ms": raster_ms,
+        "step_over_raster": step_ms / raster_ms,
+    }
+
+
+def bench_ssim(repeats: int) -> dict:
+    import kornia
+
+    from stg_node.avatar.losses import ssim
+
+    a = torch.rand(420, 200, 3, requires_grad=True)
+    b = torch.rand(420, 200, 3)
+
+    def ours():
+        (1 - ssim(a, b)).backward()
+
+    def theirs():
+        kornia.losses.ssim_loss(
+            a.permute(2, 0, 1)[None], b.permute(2, 0, 1)[None], 11, padding="valid"
+        ).backward()
+
+    out = {}
+    for name, fn in (("ours", ours), ("kornia", theirs)):
+        for _ in range(3):
+            fn()
+        runs = []
+        for _ in range(repeats):
+            t = time.perf_counter()
+            fn()
+            runs.append(time.perf_counter() - t)
+        out[name] = 1e3 * statistics.median(runs)
+    value_ours = float(ssim(a.detach(), b))
+    value_kornia = 1 - 2 * float(
+        kornia.losses.ssim_loss(
+            a.detach().permute(2, 0, 1)[None], b.permute(2, 0, 1)[None], 11, padding="valid"
+        )
+    )
+    out["agree"] = abs(value_ours - value_kornia)
+    out["kornia_over_ours"] = out["kornia"] / out["ours"]
+    return out
+
+
+def bench_render(data: Path, gaussians: int, repeats: int) -> list[dict]:
+    from stg_node.avatar import AvatarRenderer, preset
+    from stg_node.avatar.data_spec import DataSpec
+    from stg_node.avatar.model import BodyState, Camera3, render
+    from stg_node.avatar.trainer import Trainer
+
+    train = DataSpec(str(data), "synthetic").open("train")
+    sample = train[0]
+    config = preset("balanced").replace(
+        **{"model.num_gaussians": gaussians, "model.max_gaussians": gaussians}
+    )
+    trainer = Trainer(config, seed=0)
+    trainer.add_frame(__import__("stg_node.avatar", fromlist=["TrainFrame"]).TrainFrame.from_sample(sample))
+    model = trainer.model
+    renderer = AvatarRenderer(model)
+    table = model.table
+    gen = torch.Generator().manual_seed(0)
+    rows = []
+    cam = Camera3.from_camera(sample.camera)
+    with torch.no_grad():
+        posed = model.pose(BodyState.from_smpl(sample.smpl), 0.0, cam.center)
+    for fraction in (0.0, 0.1, 1.0):
+        with torch.no_grad():
+            active = torch.rand(table.num, generator=gen) < fraction
+            for name in ("motion", "rot_motion"):
+                table[name].zero_()
+                table[name][active] = 1e-3
+        result = {"gaussians": table.num, "active_fraction": fraction}
+        for skip in (True, False):
+            runs = []
+            for _ in range(repeats + 2):
+                t = time.perf_counter()
+                with torch.no_grad():
+                    p = model.pose(BodyState.from_smpl(sample.smpl), 0.1, cam.center, skip_inactive=skip)
+                    render(p, cam, background=0.0)
+                runs.append(time.perf_counter() - t)
+            result["ms_skip" if skip else "ms_all"] = 1e3 * statistics.median(runs[2:])
+        runs = []
+        for _ in range(repeats + 2):
+            t = time.perf_counter()
+            with torch.no_grad():
+                render(posed, cam, background=0.0)
+            runs.append(time.perf_counter() - t)
+        result["ms_raster_only"] = 1e3 * statistics.median(runs[2:])
+        result["fps_skip"] = 1e3 / result["ms_skip"]
+        rows.append(result)
+    del renderer
+    return rows
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", default=None, help="an stg-synth folder (default: generated once in /tmp)")
+    parser.add_argument("--steps", type=int, default=60)
+    parser.add_argument("--repeats", type=int, default=20)
+    parser.add_argument("--threads", default="1")
+    parser.add_argument("--gaussians", type=int, nargs="+", default=[20000, 50000])
+    parser.add_argument("--skip", nargs="*", default=[], choices=("step", "ssim", "render"))
+    args = parser.parse_args(argv)
+    configure_threads(args.threads)
+    data = ensure_data(args.data)
+    print(f"# machine: {_machine()}")
+    if "ssim" not in args.skip:
+        s = bench_ssim(args.repeats)
+        print(
+            f"ssim fwd+bwd 420x200: ours {s['ours']:.1f} ms, kornia {s['kornia']:.1f} ms "
+            f"(kornia / ours = {s['kornia_over_ours']:.2f}x; values agree to {s['agree']:.1e})"
+        )
+    for n in args.gaussians:
+        if "step" not in args.skip:
+            r = bench_step(data, args.steps, n)
+            phases = ", ".join(f"{k} {v:.1f}" for k, v in r["phases_ms"].items())
+            print(
+                f"step {r['gaussians']} Gaussians: {r['step_ms']:.1f} ms ({1e3 / r['step_ms']:.1f} it/s); "
+                f"rasterizer fwd+bwd alone {r['raster_fwd_bwd_ms']:.1f} ms "
+                f"(step / raster = {r['step_over_raster']:.2f}x); "
+                f"phases ms: {phases}; loading 100 frames + flow {r['load_s']:.1f} s"
+            )
+        if "render" not in args.skip:
+            for r in bench_render(data, n, args.repeats):
+                print(
+                    f"render 512x512 {r['gaussians']} Gaussians, {100 * r['active_fraction']:.0f}% moving: "
+                    f"{r['ms_skip']:.1f} ms ({r['fps_skip']:.1f} FPS) with the zero-motion skip, "
+                    f"{r['ms_all']:.1f} ms evaluating every row (x{r['ms_all'] / r['ms_skip']:.2f}); "
+                    f"rasterizer alone {r['ms_raster_only']:.1f} ms"
+                )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
