@@ -9,7 +9,8 @@ Public interface:
   LiteRT, installed at setup; ``onnx``: a COCO-17 model the user supplies), pluggable through
   the :class:`KeypointDetector` protocol.
 - :func:`track_to_file` / :func:`track_video` (cached): a video file or image folder -> POSES.npz
-  (the format ``stg-track`` writes: poses_file.py) and masks.
+  (the format ``stg-track`` writes: poses_file.py) and masks; :func:`video_to_folder`: the same
+  as a folder-format dataset of the confident frames, for ``stg-train --format video``.
 
 Where it sits: it uses ``body`` (the body model, LBS), ``data`` (types, readers, the synthetic
 benchmark's joint limits) and the foundation helpers (progress, threads); it knows nothing of
@@ -19,7 +20,7 @@ the bus or the node runtime. ``cli`` (``stg-track``) and the tracker node call i
 from stg_node.tracking.camera import DEFAULT_FOV_DEG, Intrinsics, from_fov, load_intrinsics, smpl_to_world
 from stg_node.tracking.detectors import KeypointDetector, make_detector
 from stg_node.tracking.fitting import FitConfig, SmplFitter
-from stg_node.tracking.pipeline import TrackOptions, build_tracker, track_to_file, track_video
+from stg_node.tracking.pipeline import TrackOptions, build_tracker, track_to_file, track_video, video_to_folder
 from stg_node.tracking.poses_file import TrackedPoses, read_poses, write_poses
 from stg_node.tracking.tracker import Tracker, TrackerConfig
 from stg_node.tracking.types import Keypoints, PoseEstimator, SmplParams, TrackEstimate
@@ -46,5 +47,6 @@ __all__ = [
     "smpl_to_world",
     "track_to_file",
     "track_video",
+    "video_to_folder",
     "write_poses",
 ]

@@ -242,3 +242,82 @@ def track_video(
         if staging.exists():
             shutil.rmtree(staging, ignore_errors=True)
     return poses
+
+
+CAMERA_NAME = "camera"
+DEFAULT_MIN_CONFIDENCE = 0.5
+JPEG_QUALITY = 95
+
+
+def video_to_folder(
+    source: str | Path,
+    out: str | Path,
+    options: TrackOptions | None = None,
+    *,
+    min_confidence: float = DEFAULT_MIN_CONFIDENCE,
+    cache_dir: str | Path | None = None,
+    progress: bool = True,
+    threads: int | None = None,
+) -> Path:
+    """A video (or image folder) as a dataset in the folder format (docs/DATASETS.md), for training.
+
+    Tracks ``source`` with :func:`track_video` (cached), then writes under ``out``:
+    ``cameras.json`` (one camera ``"camera"``: the tracking's ``K``, its distortion as ``D``,
+    ``R = I``, ``t = 0``: the world frame is the camera's), ``images/camera/{frame:06d}.jpg``,
+    ``masks/camera/{frame:06d}.png`` and ``poses.npz`` (``poses``, ``Rh``, ``Th``, ``shapes``,
+    ``frames``, ``times``) for the frames whose confidence is at least ``min_confidence``; the
+    others are left out, so a trainer never sees them. Returns ``out``.
+    """
+    from stg_node.tracking.poses_file import read_poses
+
+    if not 0.0 <= min_confidence <= 1.0:
+        raise ValueError(f"min_confidence must lie in [0, 1], got {min_confidence}")
+    options = options or TrackOptions()
+    poses_path = track_video(
+        source, options, cache_dir=cache_dir, masks=True, progress=progress, threads=threads
+    )
+    tracked = read_poses(poses_path)
+    keep = tracked.confidence >= min_confidence
+    if not keep.any():
+        raise ValueError(
+            f"{source}: no frame was tracked with confidence >= {min_confidence} (best "
+            f"{tracked.confidence.max():.2f}); is one person in view, whole and well lit?"
+        )
+    out = Path(out)
+    images = out / "images" / CAMERA_NAME
+    masks = out / "masks" / CAMERA_NAME
+    for folder in (images, masks):
+        folder.mkdir(parents=True, exist_ok=True)
+    wanted = set(tracked.frames[keep].tolist())
+    for frame in open_source(source, options.fps):
+        if frame.index not in wanted:
+            continue
+        name = f"{frame.index:06d}"
+        bgr = cv2.cvtColor(frame.image, cv2.COLOR_RGB2BGR)
+        if not cv2.imwrite(str(images / f"{name}.jpg"), bgr, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY]):
+            raise OSError(f"could not write {images / name}.jpg")
+        shutil.copyfile(poses_path.parent / "masks" / f"{name}.png", masks / f"{name}.png")
+    width, height = tracked.image_size
+    camera = {
+        "K": tracked.K.tolist(),
+        "R": np.eye(3).tolist(),
+        "t": [0.0, 0.0, 0.0],
+        "width": width,
+        "height": height,
+    }
+    if tracked.dist.size:
+        camera["D"] = tracked.dist.tolist()
+    (out / "cameras.json").write_text(
+        json.dumps({"fps": tracked.fps, "cameras": {CAMERA_NAME: camera}}, indent=2)
+    )
+    np.savez(
+        out / "poses.npz",
+        poses=tracked.poses[keep],
+        Rh=tracked.Rh[keep],
+        Th=tracked.Th[keep],
+        shapes=tracked.shapes[keep],
+        frames=tracked.frames[keep],
+        times=tracked.times[keep],
+    )
+    log.info("%s: %d of %d frames confident enough for training -> %s", source, keep.sum(), len(keep), out)
+    return out

@@ -154,3 +154,24 @@ def test_stg_track_on_a_synthetic_video_with_the_shipped_detector(tmp_path, synt
     assert np.allclose(tracked.K, synth_small.K)
     # The person stands about 3.5 m in front of the camera.
     assert np.all((tracked.Th[:, 2] > 2.5) & (tracked.Th[:, 2] < 4.5))
+
+
+def test_video_to_folder_gives_a_folder_dataset_of_the_confident_frames(tmp_path, synth_video, dot_model):
+    from stg_node.data import open_dataset
+
+    options = pipeline.TrackOptions(detector="onnx", pose_model=str(dot_model), mask="mog2")
+    cache = tmp_path / "cache"
+    with pytest.raises(ValueError, match="no frame was tracked"):  # the dot network finds nobody
+        pipeline.video_to_folder(synth_video, tmp_path / "none", options, cache_dir=cache, progress=False)
+    # Pretend the tracker was sure about every other frame: only those become training views.
+    poses = pipeline.track_video(synth_video, options, cache_dir=cache, progress=False)
+    with np.load(poses) as npz:
+        data = dict(npz)
+    data["confidence"] = np.where(np.arange(12) % 2 == 0, 0.9, 0.1).astype(np.float32)
+    np.savez(poses, **data)
+    out = pipeline.video_to_folder(synth_video, tmp_path / "data", options, cache_dir=cache, progress=False)
+    dataset = open_dataset(out, kind="folder", split="all", size=None)
+    assert dataset.frames == [0, 2, 4, 6, 8, 10] and len(dataset) == 6
+    sample = dataset[1]
+    assert sample.index == 2 and sample.image.shape == (256, 256, 3) and sample.mask.shape == (256, 256)
+    assert np.allclose(sample.camera.K, data["K"]) and np.allclose(sample.smpl.Th, data["Th"][2])
