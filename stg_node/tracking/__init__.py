@@ -20,7 +20,13 @@ the bus or the node runtime. ``cli`` (``stg-track``) and the tracker node call i
 from stg_node.tracking.camera import DEFAULT_FOV_DEG, Intrinsics, from_fov, load_intrinsics, smpl_to_world
 from stg_node.tracking.detectors import KeypointDetector, make_detector
 from stg_node.tracking.fitting import FitConfig, SmplFitter
-from stg_node.tracking.pipeline import TrackOptions, build_tracker, track_to_file, track_video, video_to_folder
+from stg_node.tracking.pipeline import (
+    TrackOptions,
+    build_tracker,
+    track_to_file,
+    track_video,
+    video_to_folder,
+)
 from stg_node.tracking.poses_file import TrackedPoses, read_poses, write_poses
 from stg_node.tracking.tracker import Tracker, TrackerConfig
 from stg_node.tracking.types import Keypoints, PoseEstimator, SmplParams, TrackEstimate
