@@ -11,14 +11,14 @@ $(STAMP): pyproject.toml setup.sh
 	./setup.sh --venv $(VENV)
 	touch $@
 
-# Today's main job on the embedded default (the open body): the synthetic benchmark with ground
-# truth that the trainer learns from, plus a contact sheet of it. Becomes `stg-launch
-# launch/demo.yaml` once the nodes exist.
+# The main job on the embedded default (the open body): `stg-launch launch/demo.yaml`, i.e. a
+# synthetic subject generated on the first run, trained online by the node processes, rendered
+# to $(DEMO_OUT)/avatar.mp4 and avatar_sheet.png; ends on its own with a summary.
 DEMO_OUT ?= runs/demo
+DEMO_ARGS ?=
 demo: $(STAMP)
-	$(VENV)/bin/stg-synth --out $(DEMO_OUT) --overwrite
-	$(PY) tools/synth_montage.py --from $(DEMO_OUT) --out $(DEMO_OUT)/montage.png
-	@echo "==> benchmark in $(DEMO_OUT)/ (ZJU-MoCap layout), contact sheet $(DEMO_OUT)/montage.png"
+	$(VENV)/bin/stg-launch launch/demo.yaml out:=$(DEMO_OUT) $(DEMO_ARGS)
+	@echo "==> $(DEMO_OUT)/avatar.mp4, $(DEMO_OUT)/avatar_sheet.png, $(DEMO_OUT)/summary.json"
 
 # The default suite (slow tests excluded; stays under 15 minutes on a 2-core machine).
 test: $(STAMP)

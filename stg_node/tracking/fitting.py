@@ -1,0 +1,544 @@
+"""SMPL fitting to 2D keypoints: a few Levenberg-Marquardt steps per frame, warm-started from the last.
+
+Unknowns per frame: the global rotation (kept as a fixed base rotation times a small update, so
+a body turning round never meets the axis-angle wrap at pi), the translation ``Th`` and the 23
+joint rotations (axis-angle; SMPL's root rotation stays zero, ``Rh`` carries it). During shape
+calibration the body's shape coefficients join them. The cost (each term a residual vector; the
+solver minimises the sum of squares):
+
+- **reprojection**: projected body point minus detected point, in units of
+  ``noise_fraction`` of the person's height in the image (so the balance with the priors does
+  not depend on resolution), times sqrt(weight x detector score), with a Cauchy IRLS weight
+  against outliers (a left/right swap, a hand lost in the background);
+- **world** (when the network gives 3D points, as BlazePose does): the direction of each body
+  segment (upper arm, shin, shoulder line, ...; layouts.WORLD_BONES) minus the network's, unit
+  vectors, in units of ``world_sigma`` (about the sine of the network's typical angular error).
+  Directions, not positions: the network's skeleton has its own size, but it knows whether an
+  arm points towards the camera or away, which the 2D points cannot say;
+- **pose prior** and **joint limits** (priors.py); **temporal**: change since the previous frame
+  in units of the motion a body plausibly makes in that time; **shape prior** while calibrating.
+
+The Jacobian is taken by forward differences on one batched evaluation (parameters + 1 rows of
+the tiny body-point model, ~2 ms), cheaper on a CPU than autograd for 75-85 unknowns.
+
+Initialisation (first frame, or after the person was lost): translation from the ratio of known
+body segment lengths to their image lengths, rotation from the network's 3D points (Kabsch) when
+it has them and from four upright yaw hypotheses always; each is refined over rotation and
+translation alone and the best starts the full fit.
+
+Shape: the first ``calibration_frames`` confident frames fit shape too; their confidence-weighted
+mean is then held for the rest of the sequence. A monocular camera cannot separate a large
+person far away from a small one near: the shape prior (the body's mean) fixes that scale.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from stg_node.body import BodyModel, lbs
+from stg_node.tracking.body_points import BodyKeypoints
+from stg_node.tracking.layouts import KeypointLayout
+from stg_node.tracking.priors import limit_excess, prior_sigma
+from stg_node.tracking.types import Keypoints
+
+log = logging.getLogger(__name__)
+
+NUM_BODY_JOINTS = 23
+GLOBAL_PARAMS = 6  # rotation update (3) + translation (3)
+POSE_PARAMS = NUM_BODY_JOINTS * 3
+MIN_DEPTH_M = 0.1
+# Upright, facing the camera: SMPL's y (up) to the camera's -y (up on screen), z (front) to -z.
+FACING_CAMERA = np.diag([1.0, -1.0, -1.0])
+YAW_HYPOTHESES_DEG = (0.0, 90.0, 180.0, 270.0)
+# A third starting pose for (re)initialisation: standing with the arms down, elbows a little bent.
+RELAXED_POSE = np.zeros(POSE_PARAMS)
+RELAXED_POSE[(16 - 1) * 3 + 2] = -1.1  # left shoulder lowers the arm (z < 0)
+RELAXED_POSE[(17 - 1) * 3 + 2] = 1.1
+RELAXED_POSE[(18 - 1) * 3 + 1] = -0.3  # left elbow flexes (y < 0)
+RELAXED_POSE[(19 - 1) * 3 + 1] = 0.3
+DTYPE = torch.float64
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    iterations: int = 2  # LM steps on a tracked frame
+    init_iterations: int = 12  # LM steps after (re)initialisation
+    global_iterations: int = 6  # rotation + translation steps per initial hypothesis
+    calibration_frames: int = 30  # confident frames that fit shape; their mean is then held
+    calibration_min_confidence: float = 0.6
+    min_keypoint_score: float = 0.3  # detector points below this are ignored
+    min_targets: int = 6  # fewer usable targets: no fit
+    noise_fraction: float = 0.01  # 2D residual unit, as a fraction of the person's image height
+    robust_scale: float = 4.0  # Cauchy scale of the 2D residuals, in those units
+    world_sigma: float = 0.25  # unit-vector difference (~ sin 15 degrees)
+    world_weight: float = 1.0
+    prior_weight: float = 3.0
+    limit_weight: float = 100.0  # per radian outside a joint's range
+    temporal_rad_per_s: float = 3.0  # plausible joint rotation speed (sigma of the temporal term)
+    temporal_m_per_s: float = 1.0  # plausible body speed
+    max_temporal_gap_s: float = 0.5  # longer gaps: no temporal term
+    rescue_units: float = 3.0  # a tracked fit worse than this (RMS, noise units) is redone from scratch
+    rescue_cooldown_s: float = 0.5  # at most one rescue per this time (each costs ~10 frames' fitting)
+    shape_sigma: float = 1.0
+    damping: float = 1e-2
+    step_eps: float = 1e-6  # forward-difference step
+
+    def validate(self) -> None:
+        if self.iterations < 1 or self.init_iterations < 1 or self.global_iterations < 0:
+            raise ValueError("fit iterations must be >= 1 (global_iterations >= 0)")
+        if self.calibration_frames < 0:
+            raise ValueError(f"calibration_frames must be >= 0, got {self.calibration_frames}")
+        for name in ("noise_fraction", "robust_scale", "world_sigma", "shape_sigma", "step_eps"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+
+
+@dataclass(frozen=True)
+class FitResult:
+    """One frame's fitted parameters (camera frame) and how well they explain the keypoints."""
+
+    body_pose: np.ndarray  # (23, 3) axis-angle, joints 1..23
+    Rh: np.ndarray  # (3,) axis-angle about the model origin
+    Th: np.ndarray  # (3,) metres
+    betas: np.ndarray  # (S,)
+    rms_px: float  # weight-averaged RMS reprojection error of the used points, pixels
+    rms_units: float  # the same in units of noise_fraction x person height
+    used_targets: int
+    reinitialised: bool
+
+    @property
+    def poses(self) -> np.ndarray:
+        """(24, 3) SMPL poses with a zero root."""
+        return np.concatenate([np.zeros((1, 3)), self.body_pose], axis=0)
+
+
+@dataclass
+class _Observation:
+    xy: torch.Tensor  # (T, 2) target image points (undistorted pixels)
+    weight: torch.Tensor  # (T,) fit weight x detector score, 0 = unused
+    unit_px: float  # pixels per 2D residual unit
+    world: torch.Tensor | None  # (N, 3) unit directions of the layout's bones, or None
+    world_weight: torch.Tensor | None  # (N,) 0 where a bone end is unusable
+
+
+def _rotation_from_vector(vec: np.ndarray) -> np.ndarray:
+    return lbs.axis_angle_to_matrix(torch.as_tensor(vec, dtype=DTYPE)).numpy()
+
+
+def _vector_from_rotation(rot: np.ndarray) -> np.ndarray:
+    return lbs.matrix_to_axis_angle(torch.as_tensor(rot, dtype=DTYPE)).numpy()
+
+
+def _yaw(deg: float) -> np.ndarray:
+    a = math.radians(deg)
+    return np.array([[math.cos(a), 0.0, math.sin(a)], [0.0, 1.0, 0.0], [-math.sin(a), 0.0, math.cos(a)]])
+
+
+def kabsch(source: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Rotation R minimising sum |R @ (s - mean s) - (t - mean t)|^2 over matched point rows."""
+    a = source - source.mean(axis=0)
+    b = target - target.mean(axis=0)
+    u, _, vt = np.linalg.svd(a.T @ b)
+    d = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
+    return vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+
+
+class SmplFitter:
+    """Fits SMPL parameters to one person's keypoints frame after frame (keeps state between frames)."""
+
+    def __init__(
+        self,
+        body: BodyModel,
+        layout: KeypointLayout,
+        K: np.ndarray,
+        config: FitConfig | None = None,
+        *,
+        betas: np.ndarray | None = None,
+    ):
+        self.config = config or FitConfig()
+        self.config.validate()
+        self.layout = layout
+        K = np.asarray(K, dtype=np.float64)
+        if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise ValueError(f"K must be a finite 3x3 intrinsic matrix with positive focal lengths, got {K}")
+        self.K = K
+        self.model = BodyKeypoints(body, [t.point for t in layout.targets]).to(DTYPE)
+        self.num_betas = self.model.num_betas
+        self._sources = [list(t.sources) for t in layout.targets]
+        self._target_weight = torch.tensor([t.weight for t in layout.targets], dtype=DTYPE)
+        self._bones = layout.bones()
+        bone_index = torch.as_tensor(self._bones, dtype=torch.long).reshape(-1, 2)
+        self._bone_start, self._bone_end = bone_index[:, 0], bone_index[:, 1]
+        sigma = torch.as_tensor(prior_sigma().reshape(-1), dtype=DTYPE)
+        self._prior_scale = math.sqrt(self.config.prior_weight) / sigma
+        self._root_rotation = torch.eye(3, dtype=DTYPE)[None, None]
+        self._fixed_betas = betas is not None
+        self.betas = np.zeros(self.num_betas) if betas is None else self._check_betas(betas)
+        self.reset()
+
+    def _check_betas(self, betas) -> np.ndarray:
+        betas = np.asarray(betas, dtype=np.float64).reshape(-1)
+        if betas.size > self.num_betas or not np.all(np.isfinite(betas)):
+            raise ValueError(f"betas must be at most {self.num_betas} finite values, got {betas.shape}")
+        return np.pad(betas, (0, self.num_betas - betas.size))
+
+    # ---- state ------------------------------------------------------------------------------
+    def reset(self, *, keep_shape: bool = True) -> None:
+        """Forget the tracked pose (the next frame re-initialises); keep the calibrated shape unless told."""
+        self._rotation = FACING_CAMERA.copy()
+        self._translation = np.array([0.0, 0.0, 3.0])
+        self._pose = np.zeros(POSE_PARAMS)
+        self._last_time: float | None = None
+        self._last_rescue: float | None = None
+        self._tracking = False
+        if not keep_shape and not self._fixed_betas:
+            self.betas = np.zeros(self.num_betas)
+            self._calibration: list[tuple[float, np.ndarray]] = []
+            self.calibrated = self.config.calibration_frames == 0
+        elif not hasattr(self, "_calibration"):
+            self._calibration = []
+            self.calibrated = self._fixed_betas or self.config.calibration_frames == 0
+
+    @property
+    def tracking(self) -> bool:
+        return self._tracking
+
+    def lose(self) -> None:
+        """The person is gone: the next fit starts from scratch (shape is kept)."""
+        self._tracking = False
+
+    # ---- observation --------------------------------------------------------------------------
+    def observe(self, keypoints: Keypoints, xy_undistorted: np.ndarray | None = None) -> _Observation | None:
+        """Targets from keypoints (None when too few are usable)."""
+        if keypoints.layout != self.layout.name:
+            raise ValueError(
+                f"keypoints are in layout {keypoints.layout!r}, the fitter expects {self.layout.name!r}"
+            )
+        xy = np.asarray(keypoints.xy if xy_undistorted is None else xy_undistorted, dtype=np.float64)
+        score = np.nan_to_num(np.asarray(keypoints.score, dtype=np.float64), nan=0.0)
+        if xy.shape != (self.layout.num_points, 2):
+            raise ValueError(f"expected {self.layout.num_points} keypoints, got {xy.shape}")
+        ok = np.all(np.isfinite(xy), axis=1) & (score >= self.config.min_keypoint_score)
+        target_xy = np.zeros((len(self._sources), 2))
+        target_score = np.zeros(len(self._sources))
+        for i, sources in enumerate(self._sources):
+            if all(ok[s] for s in sources):
+                target_xy[i] = xy[sources].mean(axis=0)
+                target_score[i] = min(score[s] for s in sources)
+        used = target_score > 0
+        if used.sum() < self.config.min_targets:
+            return None
+        extent = target_xy[used].max(axis=0) - target_xy[used].min(axis=0)
+        person_px = max(float(extent.max()), 1.0)
+        world = world_weight = None
+        if keypoints.world is not None and self._bones:
+            w = np.asarray(keypoints.world, dtype=np.float64)
+            points = np.zeros((len(self._sources), 3))
+            for i, sources in enumerate(self._sources):
+                if target_score[i] > 0 and np.all(np.isfinite(w[sources])):
+                    points[i] = w[sources].mean(axis=0)
+            a, b = np.array(self._bones).T
+            vectors = points[b] - points[a]
+            length = np.linalg.norm(vectors, axis=1)
+            usable = (target_score[a] > 0) & (target_score[b] > 0) & (length > 1e-3)
+            if usable.any():
+                world = torch.as_tensor(vectors / np.maximum(length, 1e-3)[:, None], dtype=DTYPE)
+                bone_score = np.where(usable, np.minimum(target_score[a], target_score[b]), 0.0)
+                world_weight = torch.as_tensor(bone_score, dtype=DTYPE)
+        return _Observation(
+            xy=torch.as_tensor(target_xy, dtype=DTYPE),
+            weight=torch.as_tensor(target_score, dtype=DTYPE) * self._target_weight,
+            unit_px=self.config.noise_fraction * person_px,
+            world=world,
+            world_weight=world_weight,
+        )
+
+    # ---- residuals ------------------------------------------------------------------------------
+    def _points(self, thetas: torch.Tensor, base_rotation: torch.Tensor, betas: torch.Tensor):
+        """Camera-frame points (B, T, 3), the same before translation, and local joint rotations."""
+        batch = thetas.shape[0]
+        rotation = base_rotation @ lbs.axis_angle_to_matrix(thetas[:, :3])
+        pose = thetas[:, GLOBAL_PARAMS : GLOBAL_PARAMS + POSE_PARAMS].reshape(batch, NUM_BODY_JOINTS, 3)
+        body_rotations = lbs.axis_angle_to_matrix(pose)
+        all_rotations = torch.cat([self._root_rotation.expand(batch, 1, 3, 3), body_rotations], dim=1)
+        rotated = self.model.local_points(betas, all_rotations) @ rotation.transpose(1, 2)
+        return rotated + thetas[:, None, 3:6], rotated, pose, body_rotations
+
+    def _residuals(self, thetas, obs: _Observation, ctx: dict) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B, R) residuals, the 2D ones robustly weighted by ``ctx["robust"]``, and the (B, T)
+        per-target 2D residual norms in noise units (what the robust weights are computed from)."""
+        cfg = self.config
+        batch = thetas.shape[0]
+        betas = thetas[:, GLOBAL_PARAMS + POSE_PARAMS :] if ctx["calibrating"] else ctx["betas"]
+        camera, rotated, pose, body_rotations = self._points(thetas, ctx["base_rotation"], betas)
+        K = ctx["K"]
+        depth = camera[..., 2].clamp(min=MIN_DEPTH_M)
+        u = K[0, 0] * camera[..., 0] / depth + K[0, 2]
+        v = K[1, 1] * camera[..., 1] / depth + K[1, 2]
+        diff = (torch.stack([u, v], dim=-1) - obs.xy) / obs.unit_px  # (B, T, 2)
+        norms = diff.norm(dim=-1)
+        parts = [(diff * (obs.weight * ctx["robust"]).sqrt()[:, None]).reshape(batch, -1)]
+        if obs.world is not None and cfg.world_weight > 0:
+            bones = rotated[:, self._bone_end] - rotated[:, self._bone_start]
+            directions = bones / bones.norm(dim=-1, keepdim=True).clamp(min=1e-6)
+            rel = (directions - obs.world) / cfg.world_sigma
+            parts.append((rel * (cfg.world_weight * obs.world_weight).sqrt()[:, None]).reshape(batch, -1))
+        flat_pose = pose.reshape(batch, -1)
+        parts.append(flat_pose * self._prior_scale)
+        parts.append(limit_excess(body_rotations).reshape(batch, -1) * cfg.limit_weight)
+        if ctx["previous"] is not None:
+            prev_pose, rad_sigma, m_sigma = ctx["previous"]
+            parts.append((flat_pose - prev_pose) / rad_sigma)
+            parts.append(thetas[:, :3] / rad_sigma)
+            parts.append((thetas[:, 3:6] - ctx["prev_translation"]) / m_sigma)
+        if ctx["calibrating"]:
+            parts.append(betas / cfg.shape_sigma)
+        return torch.cat(parts, dim=1), norms
+
+    def _solve(self, theta, active: torch.Tensor, obs, ctx, iterations: int) -> tuple[torch.Tensor, float]:
+        """Levenberg-Marquardt over the ``active`` parameter indices; returns (theta, final cost).
+
+        The Jacobian comes from one batched evaluation at theta and at theta + eps along every
+        active parameter (forward differences); a trial step is evaluated together with the next
+        Jacobian, so an accepted step costs one batched evaluation. Cauchy weights from the
+        current 2D residuals re-weight the 2D rows after each accepted step (IRLS). A step is
+        kept only if it lowers the cost; otherwise the damping grows and the step shrinks.
+        """
+        cfg = self.config
+        eps = cfg.step_eps
+        damping = cfg.damping
+        count = int(active.numel())
+        directions = eps * torch.eye(theta.numel(), dtype=DTYPE)[active]
+        num_2d = 2 * obs.xy.shape[0]
+        identity = torch.eye(count, dtype=DTYPE)
+        ctx["robust"] = torch.ones(obs.xy.shape[0], dtype=DTYPE)
+
+        def evaluate(point: torch.Tensor, with_jacobian: bool):
+            batch = torch.cat([point[None], point[None] + directions]) if with_jacobian else point[None]
+            return self._residuals(batch, obs, ctx)
+
+        def reweight(res: torch.Tensor, norms: torch.Tensor) -> torch.Tensor:
+            robust = 1.0 / (1.0 + (norms[0] / cfg.robust_scale) ** 2)
+            res[:, :num_2d] *= (robust / ctx["robust"]).sqrt().repeat_interleave(2)
+            ctx["robust"] = robust
+            return res
+
+        res = reweight(*evaluate(theta, True))
+        cost = float(res[0] @ res[0])
+        for iteration in range(iterations):
+            last = iteration == iterations - 1
+            jac = ((res[1:] - res[0]) / eps).T  # (R, count)
+            hessian = jac.T @ jac
+            gradient = jac.T @ res[0]
+            regulariser = torch.diag(torch.diagonal(hessian)) + 1e-6 * identity
+            accepted = None
+            for _attempt in range(4):
+                step = torch.linalg.solve(hessian + damping * regulariser, -gradient)
+                trial = theta.clone()
+                trial[active] += step
+                trial_res, trial_norms = evaluate(trial, not last)
+                trial_cost = float(trial_res[0] @ trial_res[0])
+                if math.isfinite(trial_cost) and trial_cost < cost:
+                    accepted = (trial, trial_res, trial_norms)
+                    damping = max(damping / 3.0, 1e-7)
+                    break
+                damping *= 10.0
+            if accepted is None:
+                break
+            theta, res, norms = accepted
+            if last:
+                cost = float(res[0] @ res[0])
+                break
+            res = reweight(res, norms)
+            cost = float(res[0] @ res[0])
+            if float(step.abs().max()) < 1e-6:
+                break
+        return theta, cost
+
+    # ---- fitting ----------------------------------------------------------------------------------
+    def fit(
+        self, keypoints: Keypoints, timestamp: float, xy_undistorted: np.ndarray | None = None
+    ) -> FitResult | None:
+        """Fit this frame; None when the keypoints are too few to say anything (state untouched)."""
+        obs = self.observe(keypoints, xy_undistorted)
+        if obs is None:
+            return None
+        cfg = self.config
+        calibrating = not self.calibrated
+        ctx = {
+            "K": torch.as_tensor(self.K, dtype=DTYPE),
+            "betas": torch.as_tensor(self.betas, dtype=DTYPE)[None],
+            "calibrating": calibrating,
+            "previous": None,
+            "robust": torch.ones(obs.xy.shape[0], dtype=DTYPE),
+        }
+        gap = None if self._last_time is None else timestamp - self._last_time
+        reinit = not self._tracking or gap is None or gap < 0 or gap > cfg.max_temporal_gap_s
+        active = torch.arange(GLOBAL_PARAMS + POSE_PARAMS + (self.num_betas if calibrating else 0))
+        rescued = False
+        if reinit:
+            theta, ctx = self._initialise(obs, ctx, active)
+        else:
+            dt = max(gap, 1e-3)
+            ctx["previous"] = (
+                torch.as_tensor(self._pose, dtype=DTYPE),
+                max(cfg.temporal_rad_per_s * dt, 1e-3),
+                max(cfg.temporal_m_per_s * dt, 1e-3),
+            )
+            ctx["prev_translation"] = torch.as_tensor(self._translation, dtype=DTYPE)
+            ctx["base_rotation"] = torch.as_tensor(self._rotation, dtype=DTYPE)
+            theta_np = np.concatenate([np.zeros(3), self._translation, self._pose])
+            if calibrating:
+                theta_np = np.concatenate([theta_np, self.betas])
+            theta, _ = self._solve(torch.as_tensor(theta_np, dtype=DTYPE), active, obs, ctx, cfg.iterations)
+            since = None if self._last_rescue is None else timestamp - self._last_rescue
+            cooled = since is None or not 0 <= since < cfg.rescue_cooldown_s
+            if cooled and self._reprojection_error(theta, obs, ctx)[0] > cfg.rescue_units:
+                self._last_rescue = timestamp
+                # Lost the thread (a fast move, a limb stuck in a mirror pose): start over from
+                # several hypotheses, keep the best, the tracked answer included.
+                tracked = (self._cost(theta, obs, ctx), theta, ctx)
+                fresh, fresh_ctx = self._initialise(obs, dict(ctx, previous=None), active)
+                if self._cost(fresh, obs, fresh_ctx) < tracked[0]:
+                    theta, ctx, rescued = fresh, fresh_ctx, True
+        # Fold the rotation update into the base rotation.
+        rotation = ctx["base_rotation"].numpy() @ _rotation_from_vector(theta[:3].numpy())
+        self._rotation = rotation
+        self._translation = theta[3:6].numpy().copy()
+        self._pose = theta[GLOBAL_PARAMS : GLOBAL_PARAMS + POSE_PARAMS].numpy().copy()
+        betas = theta[GLOBAL_PARAMS + POSE_PARAMS :].numpy().copy() if calibrating else self.betas
+        self._last_time = timestamp
+        self._tracking = True
+        rms_units, rms_px, used = self._reprojection_error(theta, obs, ctx)
+        return FitResult(
+            body_pose=self._pose.reshape(NUM_BODY_JOINTS, 3).copy(),
+            Rh=_vector_from_rotation(rotation),
+            Th=self._translation.copy(),
+            betas=np.asarray(betas, dtype=np.float64).copy(),
+            rms_px=rms_px,
+            rms_units=rms_units,
+            used_targets=used,
+            reinitialised=reinit or rescued,
+        )
+
+    def add_calibration(self, result: FitResult, confidence: float) -> None:
+        """Count a frame's fitted shape towards calibration (only confident frames count)."""
+        if self.calibrated or confidence < self.config.calibration_min_confidence:
+            return
+        self._calibration.append((float(confidence), result.betas.copy()))
+        weights = np.array([c for c, _ in self._calibration])
+        stack = np.stack([b for _, b in self._calibration])
+        self.betas = (weights[:, None] * stack).sum(axis=0) / weights.sum()
+        if len(self._calibration) >= self.config.calibration_frames:
+            self.calibrated = True
+            log.info(
+                "shape calibrated over %d frames: betas %s", len(self._calibration), np.round(self.betas, 2)
+            )
+
+    def _reprojection_error(self, theta, obs, ctx) -> tuple[float, float, int]:
+        with torch.no_grad():
+            ctx = dict(ctx, robust=torch.ones_like(obs.weight))
+            _, norms = self._residuals(theta[None], obs, ctx)
+        weight = obs.weight
+        used = int((weight > 0).sum())
+        mean_sq = float((weight * norms[0] ** 2).sum() / weight.sum().clamp(min=1e-9))
+        rms_units = math.sqrt(mean_sq)
+        return rms_units, rms_units * obs.unit_px, used
+
+    def _initialise(self, obs: _Observation, ctx: dict, active: torch.Tensor) -> tuple[torch.Tensor, dict]:
+        """Fit from scratch: for each starting pose (the current one, the rest pose, arms down),
+        the best of several global rotations after a short rotation + translation refinement, then
+        a full fit; the lowest cost wins. Returns theta and the context (its base rotation)."""
+        cfg = self.config
+        best = None
+        starts = [self._pose, np.zeros(POSE_PARAMS), RELAXED_POSE]
+        seen = []
+        for start in starts:
+            if any(np.allclose(start, other) for other in seen):
+                continue
+            seen.append(start)
+            rotation, translation = self._best_placement(obs, ctx, start)
+            local_ctx = dict(ctx, base_rotation=torch.as_tensor(rotation, dtype=DTYPE))
+            theta_np = np.concatenate([np.zeros(3), translation, start])
+            if ctx["calibrating"]:
+                theta_np = np.concatenate([theta_np, self.betas])
+            theta, _ = self._solve(
+                torch.as_tensor(theta_np, dtype=DTYPE), active, obs, local_ctx, cfg.init_iterations
+            )
+            cost = self._cost(theta, obs, local_ctx)
+            if best is None or cost < best[0]:
+                best = (cost, theta, local_ctx)
+        return best[1], best[2]
+
+    def _cost(self, theta: torch.Tensor, obs: _Observation, ctx: dict) -> float:
+        """The robust (Cauchy) cost of a solution, comparable between solutions of one frame."""
+        with torch.no_grad():
+            plain = dict(ctx, robust=torch.ones_like(obs.weight))
+            res, norms = self._residuals(theta[None], obs, plain)
+            num_2d = 2 * obs.xy.shape[0]
+            c = self.config.robust_scale
+            cauchy = (c * c * torch.log1p((norms[0] / c) ** 2) * obs.weight).sum()
+            return float(cauchy + (res[0, num_2d:] ** 2).sum())
+
+    def _best_placement(
+        self, obs: _Observation, ctx: dict, pose: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Global rotation and translation hypotheses at ``pose``; the best after a short refinement."""
+        cfg = self.config
+        with torch.no_grad():
+            local = self.model(
+                ctx["betas"],
+                torch.as_tensor(pose, dtype=DTYPE).reshape(1, NUM_BODY_JOINTS, 3),
+                torch.zeros(1, 3, dtype=DTYPE),
+                torch.zeros(1, 3, dtype=DTYPE),
+            )[0].numpy()
+        candidates = [FACING_CAMERA @ _yaw(deg) for deg in YAW_HYPOTHESES_DEG]
+        if obs.world is not None:
+            candidate = self._rotation_from_bones(local, obs)
+            if candidate is not None:
+                candidates.insert(0, candidate)
+        best = None
+        global_ctx = dict(ctx, calibrating=False, previous=None)
+        for rotation in candidates:
+            translation = self._initial_translation(local, rotation, obs)
+            theta = torch.as_tensor(np.concatenate([np.zeros(3), translation, pose]), dtype=DTYPE)
+            global_ctx["base_rotation"] = torch.as_tensor(rotation, dtype=DTYPE)
+            theta, cost = self._solve(
+                theta, torch.arange(GLOBAL_PARAMS), obs, global_ctx, max(cfg.global_iterations, 1)
+            )
+            if best is None or cost < best[0]:
+                refined = rotation @ _rotation_from_vector(theta[:3].numpy())
+                best = (cost, refined, theta[3:6].numpy().copy())
+        return best[1], best[2]
+
+    def _rotation_from_bones(self, local: np.ndarray, obs: _Observation) -> np.ndarray | None:
+        """The rotation taking the body's bone directions onto the network's (Kabsch), if enough agree."""
+        usable = obs.world_weight.numpy() > 0
+        if usable.sum() < 3:
+            return None
+        start, end = self._bone_start.numpy(), self._bone_end.numpy()
+        body_dirs = local[end] - local[start]
+        body_dirs /= np.maximum(np.linalg.norm(body_dirs, axis=1, keepdims=True), 1e-9)
+        source = np.concatenate([body_dirs[usable], -body_dirs[usable]])
+        target = np.concatenate([obs.world.numpy()[usable], -obs.world.numpy()[usable]])
+        return kabsch(source, target)
+
+    def _initial_translation(self, local: np.ndarray, rotation: np.ndarray, obs: _Observation) -> np.ndarray:
+        """Depth from the ratio of 3D to 2D spans of the used points; x, y from their centroid."""
+        used = obs.weight.numpy() > 0
+        points = local[used] @ rotation.T
+        xy = obs.xy.numpy()[used]
+        span_3d = np.linalg.norm(points[:, None, :2] - points[None, :, :2], axis=-1).max()
+        span_2d = np.linalg.norm(xy[:, None] - xy[None], axis=-1).max()
+        focal = 0.5 * (self.K[0, 0] + self.K[1, 1])
+        depth = float(np.clip(focal * span_3d / max(span_2d, 1.0), 0.3, 50.0))
+        centre = xy.mean(axis=0)
+        ray = np.array(
+            [(centre[0] - self.K[0, 2]) / self.K[0, 0], (centre[1] - self.K[1, 2]) / self.K[1, 1], 1.0]
+        )
+        return ray * depth - points.mean(axis=0) * np.array([1.0, 1.0, 0.0])

@@ -1,0 +1,323 @@
+"""Offline tracking of a whole video or image folder: what ``stg-track`` and ``stg-train --format video`` run.
+
+- :func:`track_to_file`: input -> POSES.npz (+ optional masks folder), with a progress bar.
+- :func:`track_video`: the same into a cache folder keyed by the input's content and every
+  setting that changes the result, so running it twice on the same video costs one hash.
+  It returns the path of POSES.npz; the masks are ``masks/{frame:06d}.png`` beside it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import shutil
+import tempfile
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+import stg_node
+from stg_node.offline_assets import sha256_file
+from stg_node.progress import progress as progress_bar
+from stg_node.tracking.camera import DEFAULT_FOV_DEG, Intrinsics, from_fov, load_intrinsics
+from stg_node.tracking.poses_file import TrackedPoses, write_poses
+from stg_node.tracking.sources import ImageFolderSource, open_source
+
+log = logging.getLogger(__name__)
+
+ENV_CACHE = "STG_TRACK_CACHE"
+CACHE_FORMAT = 1  # bump when the output of the same input and settings changes
+
+
+@dataclass(frozen=True)
+class TrackOptions:
+    """Everything besides the input that decides the output."""
+
+    intrinsics: str | None = None  # JSON file with K (and dist); None: pinhole from fov_deg
+    fov_deg: float = DEFAULT_FOV_DEG
+    smpl_model: str | None = None  # SMPL .pkl/.npz file or folder; None: the open body
+    detector: str = "blazepose"
+    pose_model: str | None = None  # ONNX file (detector "onnx") or a folder with the BlazePose files
+    mask: str | None = None  # None: "segmentation" for blazepose, "mog2" otherwise
+    plate: str | None = None  # empty-plate image for mask "plate"
+    fps: float | None = None  # frame rate of an image folder (videos carry their own)
+    max_side: int = 512
+    smoothing: bool = True
+
+    def mask_method(self) -> str:
+        if self.mask is not None:
+            return self.mask
+        return "segmentation" if self.detector == "blazepose" else "mog2"
+
+
+@dataclass(frozen=True)
+class TrackSummary:
+    out: Path
+    frames: int
+    confident_frames: int  # confidence >= 0.5
+    mean_confidence: float
+    seconds: float
+
+
+def input_digest(path: str | Path) -> str:
+    """SHA-256 of a video file's bytes, or of an image folder's image names and bytes."""
+    path = Path(path)
+    digest = hashlib.sha256()
+    if path.is_dir():
+        for file in ImageFolderSource(path).files:
+            digest.update(file.name.encode() + b"\0")
+            sha256_file(file, digest)
+    else:
+        sha256_file(path, digest)
+    return digest.hexdigest()
+
+
+def _options_digest(options: TrackOptions) -> str:
+    described = asdict(options)
+    described["mask"] = options.mask_method()
+    for key in ("intrinsics", "smpl_model", "pose_model", "plate"):
+        value = described[key]
+        if value is not None and Path(value).is_file():
+            described[key] = {"name": Path(value).name, "sha256": sha256_file(Path(value)).hexdigest()}
+    described["stg_node"] = stg_node.__version__
+    described["format"] = CACHE_FORMAT
+    return hashlib.sha256(json.dumps(described, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def cache_root() -> Path:
+    if os.environ.get(ENV_CACHE):
+        return Path(os.environ[ENV_CACHE]).expanduser()
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "stg_node" / "track"
+
+
+def build_tracker(options: TrackOptions, width: int, height: int, threads: int | None = None):
+    """The Tracker for frames of ``width x height`` and these options (loads the networks)."""
+    from stg_node.body import load_body_model
+    from stg_node.tracking.detectors import make_detector
+    from stg_node.tracking.masks import make_masker
+    from stg_node.tracking.tracker import Tracker, TrackerConfig
+
+    intrinsics = camera_for(options, width, height)
+    body = load_body_model(options.smpl_model)
+    detector = make_detector(options.detector, model=options.pose_model, threads=threads)
+    plate = None
+    if options.plate is not None:
+        from stg_node.data.io import read_image
+
+        plate = read_image(options.plate)
+    masker = make_masker(options.mask_method(), plate=plate)
+    config = TrackerConfig(max_side=options.max_side, smoothing=options.smoothing)
+    return Tracker(detector, body, intrinsics, config, masker), body
+
+
+def camera_for(options: TrackOptions, width: int, height: int) -> Intrinsics:
+    if options.intrinsics is not None:
+        return load_intrinsics(options.intrinsics, width, height)
+    return from_fov(width, height, options.fov_deg)
+
+
+def track_to_file(
+    input_path: str | Path,
+    out: str | Path,
+    options: TrackOptions | None = None,
+    *,
+    masks_dir: str | Path | None = None,
+    progress: bool = True,
+    threads: int | None = None,
+) -> TrackSummary:
+    """Track every frame of a video or image folder; write POSES.npz (and masks when asked)."""
+    import time
+
+    options = options or TrackOptions()
+    source = open_source(input_path, options.fps)
+    tracker, body = build_tracker(options, source.width, source.height, threads)
+    if masks_dir is not None:
+        masks_dir = Path(masks_dir)
+        masks_dir.mkdir(parents=True, exist_ok=True)
+    rows: dict[str, list] = {
+        k: [] for k in ("poses", "Rh", "Th", "shapes", "confidence", "frames", "times", "rms")
+    }
+    t0 = time.perf_counter()
+    bar = progress_bar(total=len(source) or None, unit="frame", desc="stg-track", enabled=progress)
+    try:
+        for frame in source:
+            estimate = tracker.estimate(frame.image, frame.timestamp)
+            smpl = estimate.smpl
+            rows["poses"].append(np.asarray(smpl.poses, np.float32).reshape(72))
+            rows["Rh"].append(smpl.Rh)
+            rows["Th"].append(smpl.Th)
+            rows["shapes"].append(smpl.betas)
+            rows["confidence"].append(estimate.confidence)
+            rows["frames"].append(frame.index)
+            rows["times"].append(frame.timestamp)
+            rows["rms"].append(estimate.reprojection_px)
+            if masks_dir is not None:
+                path = masks_dir / f"{frame.index:06d}.png"
+                if not cv2.imwrite(str(path), estimate.mask):
+                    raise OSError(f"could not write the mask {path}")
+            bar.update(1)
+            bar.set_postfix(conf=f"{estimate.confidence:.2f}", refresh=False)
+    finally:
+        bar.close()
+    if not rows["poses"]:
+        raise ValueError(f"{input_path}: no frames to track")
+    tracked = TrackedPoses(
+        poses=np.stack(rows["poses"]),
+        Rh=np.stack(rows["Rh"]),
+        Th=np.stack(rows["Th"]),
+        shapes=np.stack(rows["shapes"]),
+        confidence=np.asarray(rows["confidence"], np.float32),
+        frames=np.asarray(rows["frames"], np.int64),
+        times=np.asarray(rows["times"], np.float64),
+        K=tracker.intrinsics.K,
+        dist=np.zeros(0) if tracker.intrinsics.dist is None else tracker.intrinsics.dist,
+        image_size=(source.width, source.height),
+        fps=source.fps,
+        body=str(body.name),
+        reprojection_px=np.asarray(rows["rms"], np.float32),
+    )
+    # Shape calibration converges during the first frames: give every row the final shape.
+    tracked.shapes[:] = tracker.fitter.betas.astype(np.float32)
+    write_poses(out, tracked)
+    confidence = tracked.confidence
+    return TrackSummary(
+        out=Path(out),
+        frames=len(tracked),
+        confident_frames=int((confidence >= 0.5).sum()),
+        mean_confidence=float(confidence.mean()),
+        seconds=time.perf_counter() - t0,
+    )
+
+
+def track_video(
+    path: str | Path,
+    options: TrackOptions | None = None,
+    *,
+    cache_dir: str | Path | None = None,
+    masks: bool = True,
+    progress: bool = True,
+    threads: int | None = None,
+) -> Path:
+    """Track ``path`` once and cache the result; returns ``CACHE/<key>/POSES.npz``.
+
+    The key hashes the input's bytes and every option (files by content), so an edited video or
+    another setting tracks anew. ``masks``: also write ``masks/{frame:06d}.png`` beside it. The
+    cache entry appears atomically (built in a temporary folder, then renamed).
+    """
+    options = options or TrackOptions()
+    path = Path(path)
+    root = Path(cache_dir) if cache_dir is not None else cache_root()
+    key = hashlib.sha256(f"{input_digest(path)}:{_options_digest(options)}:{masks}".encode()).hexdigest()[:24]
+    entry = root / key
+    poses = entry / "POSES.npz"
+    if poses.is_file():
+        log.info("tracking of %s found in the cache: %s", path, poses)
+        return poses
+    root.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{key}.", dir=root))
+    try:
+        track_to_file(
+            path,
+            staging / "POSES.npz",
+            options,
+            masks_dir=staging / "masks" if masks else None,
+            progress=progress,
+            threads=threads,
+        )
+        (staging / "source.json").write_text(
+            json.dumps({"input": str(path.resolve()), "options": asdict(options)}, indent=2, default=str)
+            + "\n"
+        )
+        try:
+            os.replace(staging, entry)
+        except OSError:
+            if not poses.is_file():  # a concurrent run may have filled it first: keep theirs
+                raise
+    finally:
+        if staging.exists():
+            shutil.rmtree(staging, ignore_errors=True)
+    return poses
+
+
+CAMERA_NAME = "camera"
+DEFAULT_MIN_CONFIDENCE = 0.5
+JPEG_QUALITY = 95
+
+
+def video_to_folder(
+    source: str | Path,
+    out: str | Path,
+    options: TrackOptions | None = None,
+    *,
+    min_confidence: float = DEFAULT_MIN_CONFIDENCE,
+    cache_dir: str | Path | None = None,
+    progress: bool = True,
+    threads: int | None = None,
+) -> Path:
+    """A video (or image folder) as a dataset in the folder format (docs/DATASETS.md), for training.
+
+    Tracks ``source`` with :func:`track_video` (cached), then writes under ``out``:
+    ``cameras.json`` (one camera ``"camera"``: the tracking's ``K``, its distortion as ``D``,
+    ``R = I``, ``t = 0``: the world frame is the camera's), ``images/camera/{frame:06d}.jpg``,
+    ``masks/camera/{frame:06d}.png`` and ``poses.npz`` (``poses``, ``Rh``, ``Th``, ``shapes``,
+    ``frames``, ``times``) for the frames whose confidence is at least ``min_confidence``; the
+    others are left out, so a trainer never sees them. Returns ``out``.
+    """
+    from stg_node.tracking.poses_file import read_poses
+
+    if not 0.0 <= min_confidence <= 1.0:
+        raise ValueError(f"min_confidence must lie in [0, 1], got {min_confidence}")
+    options = options or TrackOptions()
+    poses_path = track_video(
+        source, options, cache_dir=cache_dir, masks=True, progress=progress, threads=threads
+    )
+    tracked = read_poses(poses_path)
+    keep = tracked.confidence >= min_confidence
+    if not keep.any():
+        raise ValueError(
+            f"{source}: no frame was tracked with confidence >= {min_confidence} (best "
+            f"{tracked.confidence.max():.2f}); is one person in view, whole and well lit?"
+        )
+    out = Path(out)
+    images = out / "images" / CAMERA_NAME
+    masks = out / "masks" / CAMERA_NAME
+    for folder in (images, masks):
+        folder.mkdir(parents=True, exist_ok=True)
+    wanted = set(tracked.frames[keep].tolist())
+    for frame in open_source(source, options.fps):
+        if frame.index not in wanted:
+            continue
+        name = f"{frame.index:06d}"
+        bgr = cv2.cvtColor(frame.image, cv2.COLOR_RGB2BGR)
+        if not cv2.imwrite(str(images / f"{name}.jpg"), bgr, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY]):
+            raise OSError(f"could not write {images / name}.jpg")
+        shutil.copyfile(poses_path.parent / "masks" / f"{name}.png", masks / f"{name}.png")
+    width, height = tracked.image_size
+    camera = {
+        "K": tracked.K.tolist(),
+        "R": np.eye(3).tolist(),
+        "t": [0.0, 0.0, 0.0],
+        "width": width,
+        "height": height,
+    }
+    if tracked.dist.size:
+        camera["D"] = tracked.dist.tolist()
+    (out / "cameras.json").write_text(
+        json.dumps({"fps": tracked.fps, "cameras": {CAMERA_NAME: camera}}, indent=2)
+    )
+    np.savez(
+        out / "poses.npz",
+        poses=tracked.poses[keep],
+        Rh=tracked.Rh[keep],
+        Th=tracked.Th[keep],
+        shapes=tracked.shapes[keep],
+        frames=tracked.frames[keep],
+        times=tracked.times[keep],
+    )
+    log.info("%s: %d of %d frames confident enough for training -> %s", source, keep.sum(), len(keep), out)
+    return out

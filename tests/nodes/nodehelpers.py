@@ -1,0 +1,101 @@
+"""Helpers for the node tests: nodes in threads, waiting, processes from this checkout."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+from tests.bus.bushelpers import wait_until  # one helper for every suite
+
+ROOT = Path(__file__).resolve().parents[2]
+
+__all__ = [
+    "ROOT",
+    "NodeThread",
+    "child_env",
+    "ignore_sigint",
+    "launch_file",
+    "pid_alive",
+    "spawn",
+    "wait_until",
+]
+
+
+class NodeThread:
+    """A Node executing in a thread (no signal handlers: stopped with node.stop())."""
+
+    def __init__(self, node):
+        self.node = node
+        self.code: int | None = None
+        self.thread = threading.Thread(target=self._run, name=f"node-{node.name}", daemon=True)
+
+    def _run(self) -> None:
+        self.code = self.node.execute()
+
+    def __enter__(self) -> NodeThread:
+        self.thread.start()
+        return self
+
+    def stop(self, timeout: float = 10.0) -> int | None:
+        self.node.stop()
+        self.thread.join(timeout)
+        assert not self.thread.is_alive(), f"node {self.node.name} did not stop"
+        return self.code
+
+    def __exit__(self, *exc) -> None:
+        if self.thread.is_alive():
+            self.stop()
+
+
+def child_env(**extra) -> dict[str, str]:
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONUNBUFFERED": "1", "STG_THREADS": "1"}
+    env.update(extra)
+    return env
+
+
+def ignore_sigint() -> None:
+    """preexec_fn: start the child as a background job would, with SIGINT ignored."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def spawn(args: list[str], **kwargs) -> subprocess.Popen:
+    """``python ARGS`` from this checkout, output captured as text."""
+    return subprocess.Popen(
+        [sys.executable, *args],
+        cwd=ROOT,
+        env=kwargs.pop("env", None) or child_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        **kwargs,
+    )
+
+
+def pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    # a zombie is dead for our purpose (its parent has not reaped it yet)
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().split(") ", 1)[1][0] != "Z"
+    except OSError:
+        return False
+    return True
+
+
+def launch_file(folder: Path, body: str) -> Path:
+    """``folder``/t.yaml: a launch file on a private ipc bus in ``folder`` (arg ``bus``), then ``body``
+    (YAML: ``nodes:``, ``env:`` ...; dedented)."""
+    import textwrap
+
+    path = folder / "t.yaml"
+    path.write_text(
+        f'args: {{bus: "ipc://{folder}/bus"}}\nbus: {{url: $(arg bus)}}\n' + textwrap.dedent(body)
+    )
+    return path

@@ -1,0 +1,186 @@
+"""stg-launch at run time: order and readiness, respawn with backoff, required nodes, escalation,
+node-prefixed output, exit codes, and no orphans after Ctrl-C."""
+
+from __future__ import annotations
+
+import io
+import re
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+
+from nodehelpers import ignore_sigint, launch_file, pid_alive, spawn, wait_until
+
+from stg_node.launch import read_launch
+from stg_node.launch.process import OutputSink
+from stg_node.launch.supervisor import Launcher
+
+PY = sys.executable
+ECHO = "tests.nodes.sample_nodes:Echo"
+
+
+def launch(tmp_path: Path, body: str, **overrides) -> tuple[int, str, Launcher]:
+    """Run a launch file in this process; (exit code, node output, launcher)."""
+    path = launch_file(tmp_path, body)
+    out = io.StringIO()
+    launcher = Launcher(read_launch(path, overrides), sink=OutputSink(out, color=False))
+    code = launcher.run()
+    return code, out.getvalue(), launcher
+
+
+def test_a_required_node_ends_the_launch_and_output_is_prefixed(tmp_path):
+    code, out, launcher = launch(
+        tmp_path,
+        f"""
+        nodes:
+          - {{name: quick, cmd: [{PY}, -c, "print('hello'); print('world')"], required: true, after: [slow]}}
+          - {{name: slow, cmd: [sleep, "60"], ready: "delay:0.3"}}
+        """,
+    )
+    assert code == 0
+    assert "[quick] hello\n[quick] world\n" in out
+    quick, slow = launcher.states
+    assert slow.proc.runs[0].returncode == -signal.SIGINT  # stopped by the launch, a clean end
+    assert quick.proc.runs[0].started - slow.proc.runs[0].started >= 0.3  # waited for readiness
+
+
+def test_readiness_by_heartbeat_orders_the_start(tmp_path):
+    code, out, launcher = launch(
+        tmp_path,
+        f"""
+        nodes:
+          - {{name: second, cmd: [echo, go], after: [first], required: true}}
+          - {{name: first, kind: {ECHO}, params: {{setup_s: 1.0}}}}
+        """,
+    )
+    assert code == 0, out
+    second, first = launcher.states
+    # the heartbeat only comes once setup (1 s) is over
+    assert second.proc.runs[0].started - first.proc.runs[0].started > 1.0
+    assert "[second] go" in out
+
+
+def test_respawn_backs_off_and_a_node_out_of_respawns_fails_the_launch(tmp_path):
+    code, out, launcher = launch(
+        tmp_path,
+        f"""
+        nodes:
+          - name: crashy
+            cmd: [{PY}, -c, "import sys; print('run'); sys.exit(3)"]
+            respawn: true
+            respawn_delay: 0.2
+            max_respawns: 3
+        """,
+    )
+    assert code == 1
+    runs = launcher.states[0].proc.runs
+    assert [r.returncode for r in runs] == [3, 3, 3, 3]
+    gaps = [b.started - a.ended for a, b in zip(runs, runs[1:], strict=False)]
+    for gap, want in zip(gaps, [0.2, 0.4, 0.8], strict=True):  # doubling delays
+        assert want - 0.02 <= gap <= want + 0.5, gaps
+    assert "no respawns left" in " ".join(launcher.states[0].problems)
+
+
+def test_a_node_that_fails_before_others_can_start_ends_the_launch(tmp_path):
+    code, out, launcher = launch(
+        tmp_path,
+        """
+        nodes:
+          - {name: setup, cmd: ["false"], ready: exit}
+          - {name: main, cmd: [sleep, "60"], after: [setup]}
+        """,
+    )
+    assert code == 1
+    assert launcher.states[1].proc is None  # never started
+    assert "setup failed before it was ready" in (launcher._ending or "")
+
+
+def test_a_one_shot_step_gates_the_next_and_everything_ending_ends_the_launch(tmp_path):
+    marker = tmp_path / "made"
+    code, out, launcher = launch(
+        tmp_path,
+        f"""
+        nodes:
+          - {{name: make, cmd: [touch, {marker}], ready: exit}}
+          - {{name: use, cmd: [ls, {marker}], after: [make]}}
+        """,
+    )
+    assert code == 0 and f"[use] {marker}" in out
+
+
+def test_escalation_sigint_then_sigterm_then_sigkill(tmp_path):
+    stubborn = (
+        "import signal, time; signal.signal(signal.SIGINT, signal.SIG_IGN); "
+        "signal.signal(signal.SIGTERM, signal.SIG_IGN); print('up', flush=True); time.sleep(60)"
+    )
+    polite = "import time\ntry:\n    time.sleep(60)\nexcept KeyboardInterrupt:\n    print('bye', flush=True)"
+    path = launch_file(
+        tmp_path,
+        f"""
+            nodes:
+              - {{name: stubborn, cmd: [{PY}, -c, "{stubborn}"], sigint_timeout: 0.3, sigterm_timeout: 0.3}}
+              - name: polite
+                cmd: [{PY}, -c, {polite!r}]
+        """,
+    )
+    out = io.StringIO()
+    launcher = Launcher(read_launch(path), sink=OutputSink(out, color=False))
+    threading.Timer(1.5, launcher.request_stop).start()
+    start = time.monotonic()
+    code = launcher.run()
+    assert code == 1  # a node that had to be killed is a failure
+    stubborn_state, polite_state = launcher.states
+    assert stubborn_state.proc.runs[0].returncode == -signal.SIGKILL
+    assert "had to be killed" in " ".join(stubborn_state.problems)
+    assert polite_state.proc.runs[0].returncode == 0 and "[polite] bye" in out.getvalue()
+    assert time.monotonic() - start < 10
+
+
+def test_sigint_on_the_launch_leaves_no_process_behind(tmp_path):
+    """stg-launch in the background (SIGINT inherited ignored), with nodes that start children
+    of their own; Ctrl-C ends it with exit 0, and no pid it started survives."""
+    path = launch_file(
+        tmp_path,
+        f"""
+            nodes:
+              - {{name: node, kind: {ECHO}, params: {{child: true}}}}
+              - {{name: shell, cmd: [sh, -c, "sleep 300 & echo grandchild $!; wait"]}}
+        """,
+    )
+    proc = spawn(["-m", "stg_node.cli.launch", str(path), "--no-color"], preexec_fn=ignore_sigint)
+    lines: list[str] = []
+
+    def ready():
+        line = proc.stdout.readline()
+        lines.append(line)
+        return sum("grandchild" in x for x in lines) == 2 and any("node is ready" in x for x in lines)
+
+    assert wait_until(ready, timeout=60, step=0), "".join(lines)
+    pids = [int(p) for p in re.findall(r"(?:pid |grandchild )(\d+)", "".join(lines))]
+    assert len(pids) >= 4  # two nodes, two grandchildren
+    proc.send_signal(signal.SIGINT)
+    rest, _ = proc.communicate(timeout=30)
+    assert proc.returncode == 0, "".join(lines) + rest
+    assert wait_until(lambda: not any(pid_alive(p) for p in pids), timeout=5), [
+        p for p in pids if pid_alive(p)
+    ]
+
+
+def test_a_launcher_killed_outright_takes_its_nodes_with_it(tmp_path):
+    path = launch_file(
+        tmp_path, f"nodes:\n  - {{name: node, kind: {ECHO}}}\n  - {{name: sleeper, cmd: [sleep, '300']}}\n"
+    )
+    proc = spawn(["-m", "stg_node.cli.launch", str(path), "--no-color"])
+    lines: list[str] = []
+
+    def ready():
+        lines.append(proc.stdout.readline())
+        return any("node is ready" in x for x in lines)
+
+    assert wait_until(ready, timeout=60, step=0), "".join(lines)
+    pids = [int(p) for p in re.findall(r"started \w+: pid (\d+)", "".join(lines))]
+    proc.kill()  # SIGKILL: no chance to clean up
+    proc.communicate(timeout=10)
+    assert wait_until(lambda: not any(pid_alive(p) for p in pids), timeout=10)

@@ -1,0 +1,212 @@
+"""The renderer node on a fake avatar: default and requested views, latency fields, hot swaps."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+from fake_avatar import BODY_RADIUS_M, TrainConfig, Trainer, project
+from nodehelpers import NodeThread, wait_until
+from sample_nodes import pose
+
+from stg_node.bus import Bus, BusConfig, Frame, Subscriber, ViewRequest
+from stg_node.bus.messages import NodeStatus, RenderedImage
+from stg_node.data.types import Camera
+from stg_node.nodes.params import parse_params
+from stg_node.nodes.renderer import RendererNode, RendererParams
+from stg_node.nodes.views import orbit_camera
+
+FAKE = "tests.nodes.fake_avatar"
+K = np.array([[100.0, 0, 32], [0, 100.0, 32], [0, 0, 1]])
+
+
+def renderer(bus_url, **params) -> RendererNode:
+    values = {"avatar": FAKE, "idle_rate_hz": 20, "default_view": "train", "size": 64, **params}
+    return RendererNode(
+        "renderer", parse_params(RendererParams, values), BusConfig(url=bus_url), heartbeat_s=0.1
+    )
+
+
+def snapshot(iteration: int, color=(0.2, 0.4, 0.6), load_s: float = 0.0):
+    trainer = Trainer(TrainConfig(load_s=load_s))
+    trainer.iteration = iteration
+    msg = trainer.snapshot()
+    msg.arrays["color"] = np.array([color], np.float32)
+    msg.model_version = iteration
+    return msg
+
+
+def body_at(th) -> object:
+    p = pose(5)
+    p.Th = np.asarray(th, np.float32)
+    return p
+
+
+def train_frame() -> Frame:
+    return Frame(
+        index=0, image=np.zeros((64, 64, 3), np.uint8), K=K, R=np.eye(3), t=np.array([0.0, 0.0, 3.0])
+    )
+
+
+def wait_subscribed(bus: Bus, *topics: str) -> None:
+    for topic in topics:
+        assert bus.publisher.wait_for_subscribers(topic, 15), topic
+
+
+def disc_center(image: RenderedImage) -> tuple[float, float]:
+    ys, xs = np.nonzero(image.alpha)
+    return xs.mean() + 0.5, ys.mean() + 0.5
+
+
+def test_default_view_renders_the_live_pose_from_the_training_camera(broker, bus_url):
+    node = renderer(bus_url)
+    with Subscriber(BusConfig(url=bus_url), ["avatar/image"]) as images, NodeThread(node):
+        with Bus(bus_url, node="pipeline", heartbeat_s=0) as bus:
+            wait_subscribed(bus, "avatar/snapshot", "body/pose", "camera/frame")
+            bus.publish(snapshot(3))
+            bus.publish(train_frame())
+            time.sleep(0.3)
+            seq = bus.publish(body_at([0.1, -0.05, 0.0]), stamp_ns=time.time_ns())
+            got = None
+            deadline = time.monotonic() + 10
+            while time.monotonic() < deadline and (got is None or got.pose_seq != seq):
+                got = images.recv(timeout=1)
+    assert got is not None and got.pose_seq == seq
+    assert got.snapshot_version == 3 and got.request_id == -1
+    u, v, depth = project(
+        Camera(K=K, R=np.eye(3), t=np.array([0, 0, 3.0]), width=64, height=64), [0.1, -0.05, 0]
+    )
+    cu, cv = disc_center(got)
+    assert (cu, cv) == pytest.approx((u, v), abs=0.6)  # independent: the pinhole projection of the body root
+    assert (got.alpha > 0).sum() == pytest.approx(np.pi * (100 * BODY_RADIUS_M / depth) ** 2, rel=0.15)
+    np.testing.assert_allclose(got.image[int(cv), int(cu)], [51, 102, 153], atol=1)
+    assert got.render_ms > 0 and 0 <= got.latency_ms < 5000 and got.source_stamp_ns > 0
+
+
+def test_one_shot_and_standing_view_requests(broker, bus_url):
+    node = renderer(bus_url, idle_rate_hz=10)
+    R = orbit_camera(
+        Camera(K=K, R=np.eye(3), t=np.array([0, 0, 3.0]), width=64, height=64), np.zeros(3), 0.3
+    ).R
+    K2 = np.array([[100.0, 0, 24], [0, 100.0, 20], [0, 0, 1]])
+    oneshot = ViewRequest(
+        request_id=42,
+        width=48,
+        height=40,
+        follow_live=False,
+        K=K2,
+        R=R,
+        t=np.array([0, 0, 2.0]),
+        poses=np.zeros((24, 3), np.float32),
+        Th=np.array([0.05, 0.0, 0.2], np.float32),
+    )
+    standing = ViewRequest(
+        request_id=7, width=32, height=32, follow_live=True, K=K, R=np.eye(3), t=np.array([0, 0, 4.0])
+    )
+    with Subscriber(BusConfig(url=bus_url), ["avatar/image"], keep_last=False) as images, NodeThread(node):
+        with Bus(bus_url, node="robot", heartbeat_s=0) as robot:
+            wait_subscribed(robot, "avatar/snapshot", "avatar/view", "body/pose")
+            robot.publish(snapshot(1))
+            robot.publish(body_at([0, 0, 0]))
+            stamp = time.time_ns()
+            robot.publish(oneshot, stamp_ns=stamp)
+            got = {}
+
+            def seen():
+                msg = images.recv(timeout=0.2)
+                if msg is not None:
+                    got.setdefault(msg.request_id, msg)
+                return 42 in got
+
+            assert wait_until(seen, 10, step=0)
+            robot.publish(standing)
+            assert wait_until(lambda: seen() and 7 in got, 10, step=0)
+            got.pop(-1, None)
+            time.sleep(0.3)  # with a standing view, no default views any more
+            while (msg := images.recv(timeout=0.1)) is not None:
+                assert msg.request_id == 7
+    shot = got[42]
+    assert shot.image.shape == (40, 48, 3) and shot.request_src == "robot" and shot.pose_seq == -1
+    assert shot.source_stamp_ns == stamp and shot.latency_ms >= 0
+    u, v, _ = project(Camera(K=K2, R=R, t=np.array([0, 0, 2.0]), width=48, height=40), [0.05, 0, 0.2])
+    assert 12 < u < 36 and 8 < v < 32  # the disc lies inside the image
+    assert disc_center(shot) == pytest.approx((u, v), abs=0.6)
+    np.testing.assert_allclose(shot.R, R)
+    assert got[7].image.shape == (32, 32, 3)
+
+
+def test_snapshots_are_swapped_without_a_pause_and_bad_ones_are_refused(broker, bus_url):
+    node = renderer(bus_url, idle_rate_hz=50, max_rate_hz=50)
+    with (
+        Subscriber(BusConfig(url=bus_url), ["avatar/image", "node/status"], keep_last=False) as sub,
+        NodeThread(node),
+    ):
+        with Bus(bus_url, node="trainer", heartbeat_s=0) as trainer:
+            wait_subscribed(trainer, "avatar/snapshot", "body/pose")
+            trainer.publish(snapshot(1, color=(1.0, 0.0, 0.0)))
+            trainer.publish(body_at([0, 0, 0]))
+            arrivals = []  # (time, snapshot version)
+            drops = {}
+
+            def until(predicate, timeout=10.0):
+                deadline = time.monotonic() + timeout
+                while time.monotonic() < deadline:
+                    msg = sub.recv(timeout=0.1)
+                    if isinstance(msg, RenderedImage):
+                        arrivals.append((time.monotonic(), msg.snapshot_version))
+                    elif isinstance(msg, NodeStatus) and msg.node == "renderer":
+                        drops.update(msg.drops)
+                    if predicate():
+                        return True
+                return False
+
+            assert until(lambda: len(arrivals) > 10)
+            t_publish = time.monotonic()
+            trainer.publish(snapshot(2, color=(0.0, 1.0, 0.0), load_s=0.4))  # a slow load
+            assert until(lambda: arrivals[-1][1] == 2)
+            bad = snapshot(3)
+            bad.format = "other/9"
+            trainer.publish(bad)
+            assert until(lambda: drops.get("bad_snapshot") == 1)
+            assert until(lambda: len(arrivals) > 0 and arrivals[-1][0] > time.monotonic() - 0.05)
+    during = [t for t, v in arrivals if t_publish < t and v == 1]
+    assert len(during) >= 8  # the old snapshot kept rendering through the 0.4 s load
+    times = np.array([t for t, _ in arrivals if t > t_publish - 0.2])
+    assert np.diff(times).max() < 0.25  # no hitch at the swap (50 Hz nominal, a loaded CI machine)
+    assert arrivals[-1][1] == 2  # the bad snapshot was not swapped in
+
+
+def test_the_renderer_keeps_serving_when_the_trainer_is_gone_and_on_a_late_start(broker, bus_url):
+    """The broker latches the snapshot: a renderer (re)started later renders at once. (The broker
+    latches what reaches it, i.e. what someone subscribed to when it was published: here a
+    previous renderer.)"""
+    with (
+        Subscriber(BusConfig(url=bus_url), ["avatar/snapshot"]),
+        Bus(bus_url, node="trainer", heartbeat_s=0) as trainer,
+    ):
+        wait_subscribed(trainer, "avatar/snapshot")
+        trainer.publish(snapshot(9))
+        time.sleep(0.3)
+    node = renderer(bus_url)  # the trainer is gone now
+    with Subscriber(BusConfig(url=bus_url), ["avatar/image"]) as images, NodeThread(node):
+        with Bus(bus_url, node="tracker", heartbeat_s=0) as tracker:
+            wait_subscribed(tracker, "body/pose")
+            tracker.publish(body_at([0, 0, 0]))
+            got = [images.recv(timeout=5) for _ in range(3)]
+    assert all(g is not None and g.snapshot_version == 9 for g in got), got
+
+
+def test_orbit_keeps_distance_and_height_and_looks_at_the_body():
+    train = Camera(K=K, R=np.eye(3), t=np.array([0.0, 0.0, 3.0]), width=64, height=64)
+    center = np.array([0.2, 0.0, 0.0])
+    for angle in np.linspace(0, 2 * np.pi, 7):
+        cam = orbit_camera(train, center, angle)
+        position = -cam.R.T @ cam.t
+        assert np.linalg.norm(position - center) == pytest.approx(
+            np.linalg.norm(np.array([0, 0, -3.0]) - center)
+        )
+        assert position[1] == pytest.approx(0.0, abs=1e-9)  # height along the image's up axis kept
+        np.testing.assert_allclose(cam.R @ cam.R.T, np.eye(3), atol=1e-12)
+        u, v, _ = project(cam, center)
+        assert (u, v) == pytest.approx(project(train, center)[:2], abs=1e-6)

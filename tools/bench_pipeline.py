@@ -1,0 +1,376 @@
+#!/usr/bin/env python3
+"""The running system's figures: pose-to-pixels latency, snapshot hot-swap pause, memory on a long stream.
+
+Every node runs as its own process under stg-launch's supervisor (a private ipc bus); this tool
+watches from outside over the bus.
+
+1. latency: the renderer alone, with a snapshot made by a few training steps on the data. (a)
+   one-shot ViewRequests (a pose and a camera in, follow_live false): time from the request's
+   publication to the receipt of the RenderedImage that answers it; (b) BodyPoses into a
+   standing view: publication of the pose to receipt of the image rendered for it (pose_seq).
+   One in flight at a time; median and p95 over --requests. Target: <= 50 ms at 256 x 256.
+2. hot swap: the renderer renders a standing view on poses at --swap-rate Hz while a new snapshot
+   arrives every 2 s; the pause is the longest gap between images within 0.5 s after a new
+   snapshot is published, minus the median gap elsewhere (0 = no hitch).
+3. memory: ingest (dataset replay in a loop at --stream-rate Hz, i.e. sped up), tracker, trainer
+   and renderer for --stream-s seconds; resident memory (VmRSS) of each process sampled every
+   second; the growth over the second half of the run, in MB per hour of stream time.
+
+    python tools/bench_pipeline.py --data runs/demo/subject [--avatar stg_node.avatar] [--json out.json]
+    python tools/bench_pipeline.py --data DIR --avatar tests.nodes.fake_avatar --quick    # smoke run
+
+Figures go to docs/BENCHMARKS.md only from an idle machine (the lead's final run).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import platform
+import statistics
+import sys
+import tempfile
+import textwrap
+import threading
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+import numpy as np  # noqa: E402
+
+from stg_node.bus import Bus, BusConfig, Subscriber, ViewRequest  # noqa: E402
+from stg_node.bus.messages import NodeStatus, RenderedImage  # noqa: E402
+from stg_node.launch import read_launch  # noqa: E402
+from stg_node.launch.process import OutputSink  # noqa: E402
+from stg_node.launch.supervisor import Launcher  # noqa: E402
+from stg_node.nodes.convert import pose_message, resized_camera  # noqa: E402
+
+
+class QuietSink(OutputSink):
+    """Node output to a file (the bench prints its own table)."""
+
+    def __init__(self, path: Path):
+        self._file = path.open("w")
+        super().__init__(self._file, color=False)
+
+    def close(self) -> None:
+        super().close()
+        self._file.close()
+
+
+def start_launch(workdir: Path, name: str, nodes_yaml: str) -> tuple[Launcher, threading.Thread, str]:
+    url = f"ipc://{workdir}/{name}"
+    path = workdir / f"{name}.yaml"
+    path.write_text(
+        f'bus: {{url: "{url}"}}\nenv: {{STG_THREADS: "1"}}\nnodes:\n' + textwrap.indent(nodes_yaml, "  ")
+    )
+    launcher = Launcher(read_launch(path), sink=QuietSink(workdir / f"{name}.log"))
+    thread = threading.Thread(target=launcher.run, name=f"launch-{name}", daemon=True)
+    thread.start()
+    return launcher, thread, url
+
+
+def stop_launch(launcher: Launcher, thread: threading.Thread) -> None:
+    launcher.request_stop("bench done")
+    thread.join(60)
+    launcher.sink.close()
+
+
+def wait_ready(url: str, names: set[str], timeout: float = 120.0) -> dict[str, int]:
+    pids: dict[str, int] = {}
+    with Subscriber(BusConfig(url=url), ["node/status"]) as sub:
+        deadline = time.monotonic() + timeout
+        while not names <= set(pids) and time.monotonic() < deadline:
+            msg = sub.recv(timeout=0.5)
+            if isinstance(msg, NodeStatus) and msg.state == "running" and msg.node in names:
+                pids[msg.node] = msg.pid
+    if not names <= set(pids):
+        raise SystemExit(f"bench: nodes {sorted(names - set(pids))} did not come up within {timeout:g} s")
+    return pids
+
+
+def make_snapshot(avatar: str, data: str, steps: int, size: int, version: int):
+    """A snapshot from ``steps`` training steps on the first frames of ``data`` (the nodes' adapter)."""
+    from stg_node.nodes.avatar_adapter import TrainerAdapter
+    from stg_node.nodes.sources import DatasetSource
+
+    source = DatasetSource(data, size=size)
+    trainer = TrainerAdapter.create(module=avatar, preset="fast")
+    first = None
+    for i, frame in enumerate(source.frames()):
+        first = first or frame
+        trainer.add_frame(
+            index=frame.index,
+            time=frame.time,
+            image=frame.image,
+            mask=frame.mask,
+            camera=frame.camera,
+            smpl=source.dataset.smpl(frame.index),
+        )
+        if i >= 7:
+            break
+    for _ in range(steps):
+        trainer.step()
+    return trainer.snapshot(version), first, source.dataset.smpl(first.index)
+
+
+@contextlib.contextmanager
+def renderer_session(args, workdir: Path, name: str):
+    """A renderer alone under the launcher; yields (bus to publish on, subscriber of avatar/image)."""
+    nodes = f"""
+    - name: renderer
+      kind: renderer
+      params: {{avatar: {args.avatar}, device: {args.device}, default_view: none,
+                 idle_rate_hz: 0, max_rate_hz: 1000}}
+    """
+    launcher, thread, url = start_launch(workdir, name, textwrap.dedent(nodes))
+    try:
+        wait_ready(url, {"renderer"})
+        with (
+            Bus(url, node="bench", heartbeat_s=0) as bus,
+            Subscriber(BusConfig(url=url), ["avatar/image"]) as images,
+        ):
+            for topic in ("avatar/snapshot", "avatar/view", "body/pose"):
+                bus.publisher.wait_for_subscribers(topic, 30)
+            yield bus, images
+    finally:
+        stop_launch(launcher, thread)
+
+
+def percentile(values: list[float], q: float) -> float:
+    return float(np.percentile(np.asarray(values), q)) if values else float("nan")
+
+
+def bench_latency(args, workdir: Path) -> dict:
+    snap, frame, smpl = make_snapshot(args.avatar, args.data, args.train_steps, args.size, 1)
+    camera = resized_camera(frame.camera, args.size)
+    oneshot, live = [], []
+    with renderer_session(args, workdir, "latency") as (bus, images):
+        bus.publish(snap)
+        pose = pose_message(smpl)
+        request = ViewRequest(
+            request_id=0,
+            width=camera.width,
+            height=camera.height,
+            follow_live=False,
+            K=camera.K,
+            R=camera.R,
+            t=camera.t,
+            poses=pose.poses,
+            Rh=pose.Rh,
+            Th=pose.Th,
+        )
+        total = args.requests + 5
+        for i in range(total):  # (a) one-shot requests
+            request.request_id = i + 1
+            sent = time.time_ns()
+            bus.publish(request, stamp_ns=sent)
+            while (msg := images.recv(timeout=10)) is not None and msg.request_id != i + 1:
+                pass
+            if msg is None:
+                raise SystemExit("bench: no answer to a view request within 10 s")
+            if i >= 5:  # warm-up
+                oneshot.append((time.time_ns() - sent) / 1e6)
+        standing = ViewRequest(
+            request_id=10_000,
+            width=camera.width,
+            height=camera.height,
+            follow_live=True,
+            K=camera.K,
+            R=camera.R,
+            t=camera.t,
+        )
+        bus.publish(standing)
+        time.sleep(0.5)
+        for i in range(total):  # (b) poses into the standing view
+            sent = time.time_ns()
+            seq = bus.publish(pose, stamp_ns=sent)
+            while (msg := images.recv(timeout=10)) is not None and msg.pose_seq != seq:
+                pass
+            if msg is None:
+                raise SystemExit("bench: no image for a pose within 10 s")
+            if i >= 5:
+                live.append((time.time_ns() - sent) / 1e6)
+            time.sleep(0.01)
+    return {
+        "size": [camera.width, camera.height],
+        "request_ms_median": statistics.median(oneshot),
+        "request_ms_p95": percentile(oneshot, 95),
+        "pose_ms_median": statistics.median(live),
+        "pose_ms_p95": percentile(live, 95),
+        "samples": len(oneshot),
+    }
+
+
+def bench_swap(args, workdir: Path) -> dict:
+    snaps = [make_snapshot(args.avatar, args.data, args.train_steps, args.size, v)[0] for v in (1, 2)]
+    _, frame, smpl = make_snapshot(args.avatar, args.data, 1, args.size, 0)
+    camera = resized_camera(frame.camera, args.size)
+    arrivals: list[float] = []
+    swaps: list[float] = []
+    with renderer_session(args, workdir, "swap") as (bus, images):
+        bus.publish(snaps[0])
+        bus.publish(
+            ViewRequest(
+                request_id=1, width=camera.width, height=camera.height, K=camera.K, R=camera.R, t=camera.t
+            )
+        )
+        pose = pose_message(smpl)
+        period = 1.0 / args.swap_rate
+        start = time.monotonic()
+        next_swap = start + 2.0
+        version = 1
+        stop = threading.Event()
+
+        def collect():
+            while not stop.is_set():
+                msg = images.recv(timeout=0.1)
+                if isinstance(msg, RenderedImage):
+                    arrivals.append(time.monotonic())
+
+        reader = threading.Thread(target=collect, daemon=True)
+        reader.start()
+        while time.monotonic() - start < args.swap_s:
+            bus.publish(pose, stamp_ns=time.time_ns())
+            if time.monotonic() >= next_swap:
+                version += 1
+                snap = snaps[version % 2]
+                snap.model_version = version
+                bus.publish(snap)
+                swaps.append(time.monotonic())
+                next_swap += 2.0
+            time.sleep(period)
+        stop.set()
+        reader.join(2)
+    times = np.asarray(arrivals)
+    gaps = np.diff(times)
+    near = np.zeros(len(gaps), bool)
+    for s in swaps:
+        near |= (times[1:] > s) & (times[:-1] < s + 0.5)
+    base = float(np.median(gaps[~near])) if (~near).any() else float("nan")
+    worst = float(gaps[near].max()) if near.any() else float("nan")
+    return {
+        "swaps": len(swaps),
+        "median_gap_ms": base * 1e3,
+        "worst_gap_near_swap_ms": worst * 1e3,
+        "pause_ms": max(0.0, worst - base) * 1e3,
+        "images": len(arrivals),
+    }
+
+
+def rss_mb(pid: int) -> float:
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return float("nan")
+
+
+def bench_memory(args, workdir: Path) -> dict:
+    nodes = f"""
+    - name: tracker
+      kind: tracker
+      params: {{path: {args.data}}}
+    - name: trainer
+      kind: trainer
+      params: {{avatar: {args.avatar}, device: {args.device}, preset: fast,
+                 max_frames: 64, snapshot_every_s: 5}}
+    - name: renderer
+      kind: renderer
+      params: {{avatar: {args.avatar}, device: {args.device}, size: {args.size}}}
+    - name: ingest
+      kind: ingest
+      params: {{path: {args.data}, size: {args.size}, rate_hz: {args.stream_rate}, loop: true}}
+      after: [tracker, trainer]
+    """
+    launcher, thread, url = start_launch(workdir, "memory", textwrap.dedent(nodes))
+    samples: dict[str, list[tuple[float, float]]] = {}
+    try:
+        pids = wait_ready(url, {"ingest", "tracker", "trainer", "renderer"})
+        start = time.monotonic()
+        while (elapsed := time.monotonic() - start) < args.stream_s:
+            for name, pid in pids.items():
+                samples.setdefault(name, []).append((elapsed, rss_mb(pid)))
+            time.sleep(1.0)
+    finally:
+        stop_launch(launcher, thread)
+    speedup = args.stream_rate / 30.0  # stream seconds per wall second, for a 30 fps camera
+    out = {"stream_minutes": args.stream_s * speedup / 60, "nodes": {}}
+    for name, points in samples.items():
+        t, mb = np.array(points).T
+        half = t >= t[-1] / 2
+        slope = (
+            float(np.polyfit(t[half], mb[half], 1)[0]) if half.sum() >= 2 else float("nan")
+        )  # MB per wall s
+        out["nodes"][name] = {
+            "start_mb": float(mb[0]),
+            "end_mb": float(mb[-1]),
+            "peak_mb": float(np.nanmax(mb)),
+            "mb_per_stream_hour": slope * 3600 / speedup,
+        }
+    return out
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--data", required=True, help="a dataset folder (e.g. stg-synth output) to train and stream from"
+    )
+    parser.add_argument(
+        "--avatar", default="stg_node.avatar", help="the avatar implementation (package name)"
+    )
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--size", type=int, default=256, help="image size (longer side)")
+    parser.add_argument("--train-steps", type=int, default=200, help="steps before the latency snapshot")
+    parser.add_argument("--requests", type=int, default=100, help="latency samples per kind")
+    parser.add_argument("--swap-s", type=float, default=20.0, help="seconds of the hot-swap run")
+    parser.add_argument(
+        "--swap-rate", type=float, default=30.0, help="poses per second during the hot-swap run"
+    )
+    parser.add_argument("--stream-s", type=float, default=360.0, help="wall seconds of the memory run")
+    parser.add_argument(
+        "--stream-rate", type=float, default=300.0, help="frames per second of the sped-up stream"
+    )
+    parser.add_argument(
+        "--only", choices=("latency", "swap", "memory"), action="append", help="run only these"
+    )
+    parser.add_argument("--quick", action="store_true", help="a smoke run: few samples, short runs")
+    parser.add_argument("--json", type=Path, help="also write the results here")
+    args = parser.parse_args()
+    if args.quick:
+        args.train_steps, args.requests, args.swap_s, args.stream_s = 5, 10, 5.0, 8.0
+    os.environ.setdefault("STG_THREADS", "1")
+    results = {
+        "machine": f"{platform.node()} {platform.machine()} {os.cpu_count()} cpus",
+        "avatar": args.avatar,
+    }
+    with tempfile.TemporaryDirectory(prefix="stgbench-") as tmp:
+        workdir = Path(tmp)
+        for name, fn in (("latency", bench_latency), ("swap", bench_swap), ("memory", bench_memory)):
+            if args.only and name not in args.only:
+                continue
+            results[name] = fn(args, workdir)
+            print(f"{name}: {json.dumps(results[name], indent=None)}", flush=True)
+    lat = results.get("latency")
+    if lat:
+        ok = "meets" if lat["request_ms_median"] <= 50 else "misses"
+        print(
+            f"pose-to-pixels at {lat['size'][0]}x{lat['size'][1]}: request {lat['request_ms_median']:.1f} ms "
+            f"(p95 {lat['request_ms_p95']:.1f}), pose {lat['pose_ms_median']:.1f} ms: {ok} the 50 ms target"
+        )
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
