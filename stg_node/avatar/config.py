@@ -83,7 +83,8 @@ class LossConfig:
     ssim: float = 0.2  # L = (1 - w) L1 + w (1 - SSIM), as 3DGS
     mask: float = 0.1  # |alpha - mask|
     flow: float = 0.05  # rendered Gaussian motion vs optical flow (pixels, on valid flow only)
-    temporal: float = 0.1  # offsets at consecutive frames agree (m^2 per Gaussian)
+    temporal: float = 0.1  # offsets (cm) and temporal opacities at consecutive frames agree
+    rigidity: float = 0.05  # neighbouring Gaussians move together (cm; rigidity.py)
     motion_sparsity: float = 0.3  # proximal L1 threshold, x the motion learning rate (optim.soft_threshold)
     motion_smooth: float = 1e-3  # higher polynomial orders cost more (|b_ik| (k - 1))
     scale: float = 0.01  # penalises scales above scale_max_m

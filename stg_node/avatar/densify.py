@@ -420,17 +420,20 @@ class DensifyStrategy:
     def _gate_motion(self, ctx: StepContext, grads: torch.Tensor) -> dict[str, int]:
         """Decide which Gaussians may move, so motion terms exist only where the scene needs them.
 
-        A static Gaussian becomes dynamic when it sits on sustained motion (``W_i > delta``) and the
-        image still pulls on it (mean screen gradient above half the clone threshold). A dynamic one
-        whose motion terms stayed below ``motion_min_m`` (metres at |tau| = 1) since the last density
-        step goes back to static: its terms and their Adam moments become exact zeros.
+        A static Gaussian becomes dynamic when it moves at all (``W_i`` above ``motion_floor_px``) and
+        the image still pulls on it (mean screen gradient above half the clone threshold): the rigid
+        part does not explain it. A dynamic one whose motion terms stayed below ``motion_min_m``
+        (metres at |tau| = 1) since the last density step goes back to static: its terms and their
+        Adam moments become exact zeros.
         """
         table = ctx.model.table
         gate = table.motion_gate()
         if gate is None:
             return {}
-        delta = self.motion_threshold(ctx.trainer)
-        activate = ~gate & (self.flow_w > delta) & (grads > 0.5 * self.config.grad_threshold)
+        # Moving at all (the absolute floor, not the relative delta: cloth moves with the torso, not
+        # faster than the limbs) and still badly explained by the rigid part.
+        moving = self.flow_w > self.config.motion_floor_px
+        activate = ~gate & moving & (grads > 0.5 * self.config.grad_threshold)
         amplitude = torch.zeros(table.num, device=gate.device)
         if "motion" in table:
             amplitude = amplitude + table["motion"].norm(dim=-1).sum(dim=1)

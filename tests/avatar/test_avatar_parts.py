@@ -150,8 +150,24 @@ def test_temporal_split_spreads_copies_of_an_always_on_gaussian_over_the_trainin
     model.table["motion_gate"].data[rows] = 1.0
     hot = torch.zeros(model.table.num, dtype=torch.bool)
     hot[rows] = True
-    ctx = StepContext(0, model, trainer.optimizer, {}, None, None, (0, 0, 1, 1), None, None, None, None, None,
-                      0.0, None, None, trainer)
+    ctx = StepContext(
+        0,
+        model,
+        trainer.optimizer,
+        {},
+        None,
+        None,
+        (0, 0, 1, 1),
+        None,
+        None,
+        None,
+        None,
+        None,
+        0.0,
+        None,
+        None,
+        trainer,
+    )
     sources, new = d._temporal_split_rows(ctx, hot, torch.ones(model.table.num), room=1000)
     times = sorted(model.time_axis(f.frame.time) for f in trainer.store.frames)
     span = times[-1] - times[0]
