@@ -183,3 +183,30 @@ def test_temporal_split_spreads_copies_of_an_always_on_gaussian_over_the_trainin
     # Not dynamic, no split; no room, no split.
     model.table["motion_gate"].data[rows] = 0.0
     assert d._temporal_split_rows(ctx, hot, torch.ones(model.table.num), room=1000) is None
+
+
+def test_rigidity_pulls_a_dynamic_gaussian_towards_its_neighbours_motion():
+    from stg_node.avatar.rigidity import NeighbourGraph
+
+    means = torch.tensor([[0.0, 0, 0], [0.01, 0, 0], [0.02, 0, 0], [1.0, 0, 0], [1.01, 0, 0]])
+    table = GaussianTable(
+        {
+            "means": means,
+            "motion_gate": torch.tensor([1.0, 0, 0, 0, 0]),
+            "t_center": torch.zeros(5),
+        }
+    )
+    graph = NeighbourGraph(k=2)
+    offsets = torch.zeros(5, 3)
+    offsets[0] = torch.tensor([0.03, 0.0, -0.01])  # 3 cm and 1 cm away from its static neighbours
+    loss = graph.loss(table, offsets, None)
+    assert graph.rows.tolist() == [0] and sorted(graph.neighbours[0].tolist()) == [1, 2]
+    assert float(loss) == pytest.approx(4.0)  # |3| + |1| cm, for each of the two neighbours
+    # Presence weights: a neighbour absent at this instant does not count.
+    temporal = torch.tensor([1.0, 1.0, 0.0, 1.0, 1.0])
+    offsets[2] = torch.tensor([5.0, 0, 0])
+    assert float(graph.loss(table, offsets, temporal)) == pytest.approx(4.0)
+    # The graph follows the table: new dynamic rows are picked up.
+    table["motion_gate"].data[3] = 1.0
+    graph.loss(table, offsets, None)
+    assert graph.rows.tolist() == [0, 3] and 4 in graph.neighbours[1].tolist()
