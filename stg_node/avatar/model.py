@@ -38,7 +38,9 @@ class BodyState:
     @classmethod
     def from_smpl(cls, smpl, device="cpu") -> BodyState:
         def t(a, shape):
-            return torch.as_tensor(np.asarray(a, np.float32), device=device).reshape(shape)
+            return torch.as_tensor(np.array(a, np.float32), device=device).reshape(
+                shape
+            )  # a copy: bus arrays are read-only
 
         return cls(t(smpl.poses, (1, 24, 3)), t(smpl.Rh, (1, 3)), t(smpl.Th, (1, 3)))
 

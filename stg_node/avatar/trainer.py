@@ -159,7 +159,7 @@ class Trainer:
     # --- model -----------------------------------------------------------------------------------
     def _initialize(self, frame: TrainFrame) -> None:
         cfg = self.config.model
-        betas = torch.as_tensor(np.asarray(frame.smpl.betas, np.float32), device=self.device)[None]
+        betas = torch.as_tensor(np.array(frame.smpl.betas, np.float32), device=self.device)[None]
         with torch.no_grad():
             vertices = big_pose_output(self.body, betas).vertices[0]
         skeleton = Skeleton.from_body(self.body, betas)
