@@ -120,7 +120,7 @@ class Launcher:
     def _open_bus(self) -> None:
         bus = self.spec.bus
         if self.start_broker:
-            self._broker = Broker([bus.url, *bus.broker_urls], keys=bus.keys).start()
+            self._broker = Broker([bus.url, *bus.broker_urls], keys=bus.keys, lanes=bus.lanes).start()
         namespaces = sorted({s.spec.namespace for s in self.states if s.spec.entry.kind is not None})
         topics = [f"/{ns}/node/status" if ns else "/node/status" for ns in namespaces]
         if topics:
