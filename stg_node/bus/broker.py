@@ -64,8 +64,9 @@ class Broker:
     ``keys``: CURVE key directory; tcp endpoints then admit only authorised keys (ipc too
     with ``curve_on_ipc``). ``latched``: the topic names to cache (default: the standard
     latched topics); ``lanes``: lane overrides as in BusConfig (a launch file's ``bus.lanes``),
-    so the broker pulls a latched topic moved to another lane on that lane. Use as a context manager (runs in a thread) or call
-    :meth:`run` in the main thread (returns on :meth:`stop` or Ctrl-C).
+    so the broker pulls a latched topic moved to another lane on that lane. Use as a context
+    manager (runs in a thread) or call :meth:`run` in the main thread (returns on :meth:`stop`
+    or Ctrl-C).
     """
 
     def __init__(
