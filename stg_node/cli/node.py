@@ -118,9 +118,7 @@ def run(args: argparse.Namespace) -> int:
     name_process(name)
     with StopSignals() as stop:  # the first SIGINT/SIGTERM ends the loop, teardown still runs
         try:
-            node = cls(
-                name, params, config, remap=remap, heartbeat_s=args.heartbeat, stop=stop, ack=args.ack
-            )
+            node = cls(name, params, config, remap=remap, heartbeat_s=args.heartbeat, stop=stop, ack=args.ack)
         except KeyboardInterrupt:
             return 0
         except (OSError, ValueError) as exc:  # e.g. the bus URL cannot be reached

@@ -404,7 +404,7 @@ class _Reader:
                 (*key, "params"), f"{label}: params are for kind nodes; pass args to module/cmd nodes"
             )
         if entry.kind is None and entry.ack:
-            raise doc.error((*key, "ack"), f"{label}: ack is for kind nodes (the node runtime sends the Acks)")
+            raise doc.error((*key, "ack"), f"{label}: ack is for kind nodes (their runtime sends the Acks)")
         if not NAMESPACE_PATTERN.match(entry.namespace):
             raise doc.error(
                 (*key, "namespace"), f"{label}: namespace {entry.namespace!r} is not a valid topic prefix"

@@ -1,5 +1,6 @@
 """Substitutions in launch-file strings: ``$(arg NAME)``, ``$(env NAME [DEFAULT])``, ``$(exists PATH)``,
-``$(nonempty TEXT)``, ``$(dirname)``, ``$(python)``. They nest (``$(exists $(arg out)/subject)``); inner ones first.
+``$(nonempty TEXT)``, ``$(dirname)``, ``$(python)``. They nest (``$(exists $(arg out)/subject)``);
+inner ones first.
 
 | form | value |
 |---|---|

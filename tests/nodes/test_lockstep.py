@@ -209,7 +209,8 @@ def test_launch_files_pass_ack_to_kind_nodes_only(tmp_path):
     good = tmp_path / "good.yaml"
     good.write_text(
         "nodes:\n"
-        "  - {name: t, kind: trainer, params: {avatar: tests.nodes.fake_avatar}, ack: [camera/frame, body/pose]}\n"
+        "  - {name: t, kind: trainer, params: {avatar: tests.nodes.fake_avatar},\n"
+        "     ack: [camera/frame, body/pose]}\n"
     )
     spec = read_launch(good)
     cmd = spec.nodes[0].command(spec.bus)

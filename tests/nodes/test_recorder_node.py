@@ -15,7 +15,7 @@ from nodehelpers import ROOT, NodeThread, launch_file
 from sample_nodes import pose
 
 from stg_node.bus import BusConfig, encode
-from stg_node.bus.recording.format import META_END, META_LAUNCH, MESSAGE_ENCODING
+from stg_node.bus.recording.format import MESSAGE_ENCODING, META_END, META_LAUNCH
 from stg_node.launch import read_launch
 from stg_node.launch.process import OutputSink
 from stg_node.launch.supervisor import Launcher
