@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -57,16 +58,30 @@ def play(path, bus_url, lockstep: Lockstep) -> object:
     return Player(BagReader(path), config=BusConfig(url=bus_url), rate=0, lockstep=lockstep).run()
 
 
-def collect(sub: Subscriber, stop: threading.Event, into: list) -> threading.Thread:
-    def run():
-        while not stop.is_set():
+def lockstep_run(node, path, bus_url, watch: list[str], expect: int):
+    """Play ``path`` in lockstep into ``node`` (running in a thread); the player's stats and the
+    messages on ``watch`` in the order an independent subscriber received them (``expect`` of them,
+    and whatever else came within half a second)."""
+    seen: list = []
+    done = threading.Event()
+
+    def receive(sub):
+        while not done.is_set():
             msg = sub.recv(timeout=0.05)
             if msg is not None:
-                into.append(msg)
+                seen.append(msg)
 
-    thread = threading.Thread(target=run, daemon=True)
-    thread.start()
-    return thread
+    with Subscriber(BusConfig(url=bus_url), watch, keep_last=False) as sub, NodeThread(node):
+        receiver = threading.Thread(target=receive, args=(sub,), daemon=True)
+        receiver.start()
+        try:
+            stats = play(path, bus_url, Lockstep(timeout_s=10))
+            assert wait_until(lambda: len(seen) >= expect), seen
+            time.sleep(0.5)  # anything beyond what was expected (a step too many) would show now
+        finally:
+            done.set()
+            receiver.join()
+    return stats, seen
 
 
 def test_a_hooks_node_acknowledges_each_message_after_its_handler_returned(broker, bus_url, tmp_path):
@@ -75,17 +90,7 @@ def test_a_hooks_node_acknowledges_each_message_after_its_handler_returned(broke
         for i in range(6):
             bag.write_message(pose(i), T0 + i * 10**7, src="tracker")
     echo = Echo("echo", EchoParams(), BusConfig(url=bus_url), heartbeat_s=0, ack=["body/pose"])
-    seen: list = []
-    stop = threading.Event()
-    with (
-        Subscriber(BusConfig(url=bus_url), ["trainer/metrics", "node/ack"], keep_last=False) as watch,
-        NodeThread(echo),
-    ):
-        collector = collect(watch, stop, seen)
-        stats = play(path, bus_url, Lockstep(timeout_s=10))
-        assert wait_until(lambda: len(seen) >= 12)
-        stop.set()
-        collector.join()
+    stats, seen = lockstep_run(echo, path, bus_url, ["trainer/metrics", "node/ack"], 12)
     assert (stats.published, stats.acks, stats.stray_acks) == (6, 6, 0)
     # Echo publishes a metrics message per pose in its handler; the runtime acks after it returns
     kinds = [(type(m).__name__, m.iteration if hasattr(m, "iteration") else m.msg_seq) for m in seen]
@@ -125,18 +130,7 @@ def test_trainer_steps_exactly_n_times_per_frame_under_lockstep(broker, bus_url,
     node = TrainerNode(
         "trainer", params, BusConfig(url=bus_url), heartbeat_s=0, ack=["camera/frame", "body/pose"]
     )
-    seen: list = []
-    stop = threading.Event()
-    with (
-        Subscriber(BusConfig(url=bus_url), ["trainer/metrics", "node/ack"], keep_last=False) as watch,
-        NodeThread(node) as running,
-    ):
-        collector = collect(watch, stop, seen)
-        stats = play(path, bus_url, Lockstep(timeout_s=10))
-        assert wait_until(lambda: len(seen) >= 5 * 3 + 10)
-        running.stop()
-        stop.set()
-        collector.join()
+    stats, seen = lockstep_run(node, path, bus_url, ["trainer/metrics", "node/ack"], 5 * 3 + 10)
     assert (stats.published, stats.acks, stats.stray_acks) == (10, 10, 0)
     # each frame is acknowledged when stored (its pose is still to come); each pose after the three
     # steps it brought, whose metrics precede its Ack
@@ -180,17 +174,7 @@ def test_renderer_acknowledges_a_view_request_after_publishing_its_image(broker,
     node = RendererNode(
         "renderer", params, BusConfig(url=bus_url), heartbeat_s=0, ack=["avatar/view", "avatar/snapshot"]
     )
-    seen: list = []
-    stop = threading.Event()
-    with (
-        Subscriber(BusConfig(url=bus_url), ["avatar/image", "node/ack"], keep_last=False) as watch,
-        NodeThread(node),
-    ):
-        collector = collect(watch, stop, seen)
-        stats = play(path, bus_url, Lockstep(timeout_s=10))
-        assert wait_until(lambda: len(seen) >= 7)
-        stop.set()
-        collector.join()
+    stats, seen = lockstep_run(node, path, bus_url, ["avatar/image", "node/ack"], 7)
     assert (stats.published, stats.acks, stats.stray_acks) == (4, 4, 0)
     images = {m.request_id: m for m in seen if type(m).__name__ == "RenderedImage"}
     acks = [m for m in seen if type(m).__name__ == "Ack"]
