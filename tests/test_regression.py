@@ -131,3 +131,18 @@ def test_goldens_are_small_and_complete():
 def test_the_command_line_reports_a_missing_golden_as_bad_usage(tmp_path, capsys):
     assert regression.main(["--golden", str(tmp_path / "none")]) == 2
     assert "does not exist" in capsys.readouterr().err
+
+
+def test_the_command_line_exits_1_on_a_regression_and_says_how_to_rebless(tmp_path, monkeypatch, capsys):
+    meta, golden, views = golden_views()
+    shifted = {i: regression.Render(np.roll(r.image, 2, axis=0), r.alpha) for i, r in golden.items()}
+    failing = regression.compare(FAST, shifted, regression.GOLDEN_ROOT / "fast", views)
+
+    def fake_run(variant, work, **options):  # the comparison of a run whose renders moved
+        return regression.Outcome(variant.name, False, failing, work, regression.GOLDEN_ROOT / "fast")
+
+    monkeypatch.setattr(regression, "run_variant", fake_run)
+    assert regression.main(["--variant", "fast"]) == 1
+    captured = capsys.readouterr()
+    assert "fast: FAIL (tolerance: PSNR >= 40 dB)" in captured.out
+    assert "re-bless with --bless" in captured.err

@@ -437,7 +437,8 @@ def run_variant(
     return Outcome(variant.name, False, comparison, work, golden_dir)
 
 
-def report(outcome: Outcome, out=sys.stdout) -> None:
+def report(outcome: Outcome, out=None) -> None:
+    out = out or sys.stdout
     if outcome.blessed:
         print(f"{outcome.variant}: golden written to {outcome.golden_dir}", file=out)
         return
