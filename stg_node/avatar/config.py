@@ -83,7 +83,8 @@ class LossConfig:
     ssim: float = 0.2  # L = (1 - w) L1 + w (1 - SSIM), as 3DGS
     mask: float = 0.1  # |alpha - mask|
     flow: float = 0.05  # rendered Gaussian motion vs optical flow (pixels, on valid flow only)
-    temporal: float = 0.1  # offsets at consecutive frames agree (m^2 per Gaussian)
+    temporal: float = 0.1  # offsets (cm) and temporal opacities at consecutive frames agree
+    rigidity: float = 0.05  # neighbouring Gaussians move together (cm; rigidity.py)
     motion_sparsity: float = 0.3  # proximal L1 threshold, x the motion learning rate (optim.soft_threshold)
     motion_smooth: float = 1e-3  # higher polynomial orders cost more (|b_ik| (k - 1))
     scale: float = 0.01  # penalises scales above scale_max_m
@@ -127,6 +128,11 @@ class DensifyConfig:
     flow_max_new: int = 500  # per flow-guided round
     new_time_scale: float = 0.25  # temporal scale (units) of Gaussians added along the flow
     resample_fraction: float = 0.3  # re-sample body parts whose density fell below this x initial
+    # Temporal split: a dynamic Gaussian that the image still pulls on is replaced by copies on
+    # shorter temporal windows (spacetime densification), down to min_time_scale (time units).
+    temporal_split: bool = True
+    temporal_split_max: int = 6  # copies of a Gaussian present at all times
+    min_time_scale: float = 0.06
 
 
 @dataclass(frozen=True)

@@ -111,9 +111,10 @@ class FrameStore:
 
     def add(self, frame: TrainFrame) -> StoredFrame:
         frame.check()
-        image = frame.image
         if frame.mask is not None:
-            image = np.where(frame.mask[..., None] > 127, image, 0).astype(np.uint8)
+            image = np.where(frame.mask[..., None] > 127, frame.image, 0).astype(np.uint8)
+        else:  # a writable copy (frames from the bus are read-only views)
+            image = np.array(frame.image)
         crop = crop_box(frame.mask, int(frame.camera.width), int(frame.camera.height), self.crop_margin)
         stored = StoredFrame(frame, crop, image)
         prev = self._last

@@ -166,7 +166,7 @@ def new_columns(
     else:
         feats = torch.zeros(n, config.feature_dim, dtype=dtype, device=device)
         if generator is not None:
-            feats.normal_(0.0, 0.1, generator=generator)
+            feats.copy_(torch.randn(feats.shape, generator=generator, dtype=dtype) * 0.1)
         cols["features"] = feats
     if config.learn_skin_weights:
         cols["skin_delta"] = torch.zeros(n, skin_weights.shape[1], dtype=dtype, device=device)

@@ -38,7 +38,9 @@ class BodyState:
     @classmethod
     def from_smpl(cls, smpl, device="cpu") -> BodyState:
         def t(a, shape):
-            return torch.as_tensor(np.asarray(a, np.float32), device=device).reshape(shape)
+            return torch.as_tensor(np.array(a, np.float32), device=device).reshape(
+                shape
+            )  # a copy: bus arrays are read-only
 
         return cls(t(smpl.poses, (1, 24, 3)), t(smpl.Rh, (1, 3)), t(smpl.Th, (1, 3)))
 
@@ -164,6 +166,17 @@ class AvatarModel(nn.Module):
         return self.skeleton.bones(body.poses, body.Rh, body.Th)
 
     # --- deformation ---------------------------------------------------------------------------
+    def spacetime(self, u: float, *, skip_inactive: bool = False) -> spacetime.SpacetimeState:
+        """The spacetime terms of every Gaussian at normalised time ``u`` (None where a term is off)."""
+        cfg = self.config
+        return spacetime.evaluate(
+            self.table,
+            u,
+            cfg.time_horizon,
+            temporal_opacity=cfg.uses_temporal_opacity,
+            skip_inactive=skip_inactive,
+        )
+
     def posed_means(self, bones: PosedBones, u: float) -> torch.Tensor:
         """World centres only (cheap: the flow loss and densification need the next frame's)."""
         st = spacetime.evaluate(self.table, u, self.config.time_horizon, temporal_opacity=False)
@@ -181,18 +194,13 @@ class AvatarModel(nn.Module):
         cull_transparent: bool = True,
         bones: PosedBones | None = None,
         key: torch.Tensor | None = None,
+        state: spacetime.SpacetimeState | None = None,
     ) -> PosedGaussians:
         """World-space Gaussians for one body pose at normalised time ``u``, seen from ``camera_center``."""
         cfg = self.config
         table = self.table
         bones = bones or self.bones(body)
-        st = spacetime.evaluate(
-            table,
-            u,
-            cfg.time_horizon,
-            temporal_opacity=cfg.uses_temporal_opacity,
-            skip_inactive=skip_inactive,
-        )
+        st = state or self.spacetime(u, skip_inactive=skip_inactive)
         opacity = table.opacities()
         if st.temporal is not None:
             opacity = opacity * st.temporal

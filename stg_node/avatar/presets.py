@@ -37,7 +37,7 @@ def preset(name: str) -> TrainConfig:
                 num_gaussians=30_000, max_gaussians=100_000, sh_degree=2, feature_dim=24, mlp_width=96
             ),
             densify=DensifyConfig(interval=200, flow_max_new=1000),
-            iterations=8000,
+            iterations=6000,
             lr_pose=5e-5,
         )
     raise ValueError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")

@@ -1,7 +1,8 @@
 """The non-rigid part: Spacetime Gaussians (polynomial motion and rotation in time, temporal opacity).
 
 For Gaussian i at normalised time u (see :class:`TimeAxis`), with local time
-``tau = h tanh((u - mu_i^tau) / h)`` (h = the time horizon):
+``tau = tanh((u - mu_i^tau) / w_i)``, ``w_i = min(s_i, h)`` (its temporal scale, at most the time
+horizon h):
 
     offset_i(u)  = sum_{k=1..n_p} b_ik tau^k                 (canonical frame, metres)
     q_i(u)       = normalise(q_i + sum_{k=1..n_q} c_ik tau^k)
@@ -13,12 +14,16 @@ the offset expressed in the Gaussian's own body frame. A swing of the hem learne
 subject faced the camera stays a swing of the hem, not a fixed direction in the world, when the
 subject turns or is re-posed; a world-space offset would be wrong as soon as the body rotates.
 
-**Why time is bounded.** Time is counted in fixed units from the first frame (no sequence
-length needed, so a stream of unknown length works) and each polynomial sees the local time
-squashed by tanh into (-h, h): a Gaussian evaluated far from its temporal centre (frame 10,000
-of a stream, or a static Gaussian whose window spans everything) gets a bounded offset, never a
-polynomial blow-up. Near its centre (|u - mu| << h) tanh is the identity to first order, so the
-polynomial is the paper's.
+**Why time is bounded, and why in units of the window.** Time is counted in fixed units from
+the first frame (no sequence length needed, so a stream of unknown length works). Each
+polynomial sees its local time in units of its own temporal window, squashed by tanh into
+(-1, 1): a Gaussian evaluated far from its temporal centre (frame 10,000 of a stream, or a
+static Gaussian whose window spans everything) gets an offset bounded by ``sum_k |b_ik|``, never
+a polynomial blow-up, and a coefficient means the same travel (metres at the edge of the
+window) whether the window lasts 0.1 s or the whole sequence, so one learning rate fits both.
+Near its centre (|u - mu| << w) tanh is the identity to first order, so the polynomial is the
+paper's in the rescaled time ``(u - mu) / w``. The window enters tau without gradient: the
+temporal scale is learned through the temporal opacity.
 
 **What costs nothing.** A Gaussian whose motion coefficients are all exactly zero (static
 regions, driven there by the L1 proximal step in training) is skipped when rendering; with
@@ -52,10 +57,17 @@ class SpacetimeState:
     temporal: torch.Tensor | None  # (N,) temporal opacity factor in (0, 1]
 
 
-def local_time(u: float, t_center: torch.Tensor, horizon: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Raw ``u - mu`` and bounded ``tau = h tanh((u - mu) / h)``."""
+def window(table, horizon: float) -> torch.Tensor:
+    """``w_i = min(s_i, h)``, without gradient (see the module docstring)."""
+    return table["t_log_scale"].detach().exp().clamp_max(horizon)
+
+
+def local_time(
+    u: float, t_center: torch.Tensor, width: torch.Tensor | float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Raw ``u - mu`` and bounded ``tau = tanh((u - mu) / w)``."""
     dt = u - t_center
-    return dt, horizon * torch.tanh(dt / horizon)
+    return dt, torch.tanh(dt / width)
 
 
 def polynomial(coeffs: torch.Tensor, tau: torch.Tensor) -> torch.Tensor:
@@ -78,7 +90,7 @@ def evaluate(
     t_center = table.get("t_center")
     if t_center is None:
         return SpacetimeState(None, quats, None)
-    dt, tau = local_time(u, t_center, horizon)
+    dt, tau = local_time(u, t_center, window(table, horizon))
     offsets = None
     if motion is not None or rot_motion is not None:
         if skip_inactive:
@@ -106,8 +118,9 @@ def velocity(table, u: float, horizon: float) -> torch.Tensor | None:
     motion = table.get("motion")
     if motion is None:
         return None
-    dt, tau = local_time(u, table["t_center"], horizon)
-    dtau = 1.0 - (tau / horizon) ** 2  # d tau / du
+    w = window(table, horizon)
+    dt, tau = local_time(u, table["t_center"], w)
+    dtau = (1.0 - tau**2) / w  # d tau / du
     out = motion[:, 0]
     power = torch.ones_like(tau)
     for k in range(1, motion.shape[1]):

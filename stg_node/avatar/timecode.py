@@ -29,7 +29,7 @@ def pose_key(poses: np.ndarray) -> np.ndarray:
     """(24, 3) or (B, 24, 3) axis-angle -> (B, 207) flattened local rotation matrices of joints 1..23."""
     import torch
 
-    p = np.asarray(poses, dtype=np.float32).reshape(-1, 24, 3)
+    p = np.array(poses, dtype=np.float32).reshape(-1, 24, 3)  # a copy: bus arrays are read-only
     mats = lbs.axis_angle_to_matrix(torch.from_numpy(p[:, 1:]))
     return mats.reshape(p.shape[0], 23 * 9).numpy()
 

@@ -32,6 +32,7 @@ from stg_node.avatar.gaussians import init_table
 from stg_node.avatar.model import AvatarModel, BodyState, Camera3, render
 from stg_node.avatar.optim import TableOptimizer
 from stg_node.avatar.rigid import Skeleton
+from stg_node.avatar.rigidity import NeighbourGraph
 from stg_node.avatar.spacetime import TimeAxis
 from stg_node.body.canonical import big_pose_output
 
@@ -135,6 +136,7 @@ class Trainer:
             None  # (slots, 75) per-frame pose (72) and Th (3) correction
         )
         self.pose_slots: dict[int, int] = {}
+        self.neighbours = NeighbourGraph()  # local rigidity of the non-rigid motion
         self.profile: StepProfile | None = None  # set to a StepProfile to time the phases of each step
 
     # --- frames ----------------------------------------------------------------------------------
@@ -157,7 +159,7 @@ class Trainer:
     # --- model -----------------------------------------------------------------------------------
     def _initialize(self, frame: TrainFrame) -> None:
         cfg = self.config.model
-        betas = torch.as_tensor(np.asarray(frame.smpl.betas, np.float32), device=self.device)[None]
+        betas = torch.as_tensor(np.array(frame.smpl.betas, np.float32), device=self.device)[None]
         with torch.no_grad():
             vertices = big_pose_output(self.body, betas).vertices[0]
         skeleton = Skeleton.from_body(self.body, betas)
@@ -276,7 +278,10 @@ class Trainer:
         u = self.model.time_axis(stored.frame.time)
         bones, key = self._frame_bones(stored, body, "now")
         timer.mark("data")
-        posed = self.model.pose(body, u, camera.center, sh_degree=sh_degree, bones=bones, key=key)
+        state = self.model.spacetime(u)
+        posed = self.model.pose(
+            body, u, camera.center, sh_degree=sh_degree, bones=bones, key=key, state=state
+        )
         timer.mark("pose")
 
         terms: dict[str, torch.Tensor] = {}
@@ -305,12 +310,15 @@ class Trainer:
             terms["flow"] = L.flow_loss(image[..., 3:5], alpha, fwd, valid)
         table = self.model.table
         if c.loss.temporal > 0 and "t_center" in table and stored.next_time is not None:
-            terms["temporal"] = self._temporal_term(u, self.model.time_axis(stored.next_time))
+            terms["temporal"] = self._temporal_term(state, self.model.time_axis(stored.next_time))
+        if c.loss.rigidity > 0 and state.offsets is not None:
+            terms["rigidity"] = self.neighbours.loss(table, state.offsets, state.temporal)
         terms.update(self._regularisers(body))
         weights = {
             "mask": c.loss.mask,
             "flow": c.loss.flow,
             "temporal": c.loss.temporal,
+            "rigidity": c.loss.rigidity,
             "motion_smooth": c.loss.motion_smooth,
             "scale": c.loss.scale,
             "opacity": c.loss.opacity,
@@ -398,11 +406,9 @@ class Trainer:
             cache = stored.extras[which] = (bones, key)
         return cache
 
-    def _temporal_term(self, u: float, u_next: float) -> torch.Tensor:
+    def _temporal_term(self, now: spacetime.SpacetimeState, u_next: float) -> torch.Tensor:
         table = self.model.table
-        h = self.config.model.time_horizon
-        now = spacetime.evaluate(table, u, h, temporal_opacity=self.config.model.uses_temporal_opacity)
-        nxt = spacetime.evaluate(table, u_next, h, temporal_opacity=self.config.model.uses_temporal_opacity)
+        nxt = self.model.spacetime(u_next)
         out = table["means"].new_zeros(())
         if now.offsets is not None:
             out = out + 100.0 * (nxt.offsets - now.offsets).abs().sum(1).mean()

@@ -133,3 +133,80 @@ def test_model_config_refuses_nonsense():
         ModelConfig(num_gaussians=10, max_gaussians=5).validate()
     with pytest.raises(ValueError, match="unknown preset"):
         preset("turbo")
+
+
+def test_temporal_split_spreads_copies_of_an_always_on_gaussian_over_the_training_time(tiny_frames):
+    """Spacetime densification: a dynamic Gaussian present at all times becomes copies on short
+    windows, centred evenly over the frames' time range, each crossing its neighbour at ~half opacity."""
+    from conftest import small_config
+
+    from stg_node.avatar.densify import StepContext
+    from stg_node.avatar.trainer import Trainer
+
+    trainer = Trainer(small_config(), seed=0)
+    trainer.add_frames(tiny_frames)
+    model, d = trainer.model, trainer.densifier
+    rows = torch.tensor([3, 7])
+    model.table["motion_gate"].data[rows] = 1.0
+    hot = torch.zeros(model.table.num, dtype=torch.bool)
+    hot[rows] = True
+    ctx = StepContext(
+        0,
+        model,
+        trainer.optimizer,
+        {},
+        None,
+        None,
+        (0, 0, 1, 1),
+        None,
+        None,
+        None,
+        None,
+        None,
+        0.0,
+        None,
+        None,
+        trainer,
+    )
+    sources, new = d._temporal_split_rows(ctx, hot, torch.ones(model.table.num), room=1000)
+    times = sorted(model.time_axis(f.frame.time) for f in trainer.store.frames)
+    span = times[-1] - times[0]
+    k = new["means"].shape[0] // 2
+    assert sorted(sources.tolist()) == [3, 7] and 2 <= k <= d.config.temporal_split_max
+    centres = new["t_center"][:k]
+    spacing = span / k
+    expected = times[0] + (torch.arange(k) + 0.5) * spacing
+    assert torch.allclose(centres, expected.float(), atol=1e-5)
+    scale = new["t_log_scale"][:k].exp()
+    assert torch.allclose(scale, torch.full((k,), max(0.6 * spacing, d.config.min_time_scale)), rtol=1e-5)
+    assert torch.equal(new["means"][:k], model.table["means"][3].expand(k, 3))
+    # Not dynamic, no split; no room, no split.
+    model.table["motion_gate"].data[rows] = 0.0
+    assert d._temporal_split_rows(ctx, hot, torch.ones(model.table.num), room=1000) is None
+
+
+def test_rigidity_pulls_a_dynamic_gaussian_towards_its_neighbours_motion():
+    from stg_node.avatar.rigidity import NeighbourGraph
+
+    means = torch.tensor([[0.0, 0, 0], [0.01, 0, 0], [0.02, 0, 0], [1.0, 0, 0], [1.01, 0, 0]])
+    table = GaussianTable(
+        {
+            "means": means,
+            "motion_gate": torch.tensor([1.0, 0, 0, 0, 0]),
+            "t_center": torch.zeros(5),
+        }
+    )
+    graph = NeighbourGraph(k=2)
+    offsets = torch.zeros(5, 3)
+    offsets[0] = torch.tensor([0.03, 0.0, -0.01])  # 3 cm and 1 cm away from its static neighbours
+    loss = graph.loss(table, offsets, None)
+    assert graph.rows.tolist() == [0] and sorted(graph.neighbours[0].tolist()) == [1, 2]
+    assert float(loss) == pytest.approx(4.0)  # |3| + |1| cm, for each of the two neighbours
+    # Presence weights: a neighbour absent at this instant does not count.
+    temporal = torch.tensor([1.0, 1.0, 0.0, 1.0, 1.0])
+    offsets[2] = torch.tensor([5.0, 0, 0])
+    assert float(graph.loss(table, offsets, temporal)) == pytest.approx(4.0)
+    # The graph follows the table: new dynamic rows are picked up.
+    table["motion_gate"].data[3] = 1.0
+    graph.loss(table, offsets, None)
+    assert graph.rows.tolist() == [0, 3] and 4 in graph.neighbours[1].tolist()

@@ -166,3 +166,25 @@ def test_bad_frames_are_refused_with_a_clear_error(tiny_frames):
         trainer.add_frame(dataclasses.replace(frame, time=float("nan")))
     with pytest.raises(RuntimeError, match="add_frame"):
         trainer.step()
+
+
+def test_read_only_frames_from_the_bus_train_without_warnings(tiny_frames):
+    """Frames decoded from bus messages are read-only numpy views; the trainer copies what it keeps."""
+    import dataclasses
+    import warnings
+
+    from stg_node.body.params import SmplParams
+
+    def frozen(a):
+        a = np.array(a)
+        a.setflags(write=False)
+        return a
+
+    frames = []
+    for f in tiny_frames[:3]:
+        smpl = SmplParams(frozen(f.smpl.poses), frozen(f.smpl.Rh), frozen(f.smpl.Th), frozen(f.smpl.betas))
+        frames.append(dataclasses.replace(f, image=frozen(f.image), mask=None, smpl=smpl))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        trainer = _train(frames, small_config(iterations=3), steps=3)
+    assert trainer.skipped_steps == 0
