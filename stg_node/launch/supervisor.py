@@ -210,7 +210,7 @@ class Launcher:
             return
         state.phase = "running"
         state.ready = spec.ready == "started"
-        state.started_at = now
+        state.started_at = state.proc.runs[-1].started  # the process's own start: delays count from it
         again = f" (respawn {state.respawns})" if state.respawns else ""
         log.info("started %s%s: pid %d", spec.name, again, pid)
 

@@ -138,7 +138,7 @@ def test_model_config_refuses_nonsense():
 def test_temporal_split_spreads_copies_of_an_always_on_gaussian_over_the_training_time(tiny_frames):
     """Spacetime densification: a dynamic Gaussian present at all times becomes copies on short
     windows, centred evenly over the frames' time range, each crossing its neighbour at ~half opacity."""
-    from conftest import small_config
+    from avatar_helpers import small_config
 
     from stg_node.avatar.densify import StepContext
     from stg_node.avatar.trainer import Trainer

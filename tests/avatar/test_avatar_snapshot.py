@@ -6,7 +6,7 @@ import dataclasses
 
 import numpy as np
 import pytest
-from conftest import small_config
+from avatar_helpers import small_config
 
 from stg_node.avatar.renderer import AvatarRenderer
 from stg_node.avatar.snapshot import (

@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from conftest import small_config
+from avatar_helpers import small_config
 
 from stg_node.avatar import losses as L
 from stg_node.avatar.renderer import AvatarRenderer
