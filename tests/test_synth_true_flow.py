@@ -44,7 +44,9 @@ def test_a_sideways_translation_moves_every_pixel_by_f_d_over_z():
     assert out.covered[inside].all()
     assert out.covered.sum() <= (F * 0.6 / 2.0 + 2) ** 2
     np.testing.assert_allclose(
-        out.flow[out.covered], np.broadcast_to([F * 0.1 / 2.0, -F * 0.05 / 2.0], (out.covered.sum(), 2)), atol=1e-4
+        out.flow[out.covered],
+        np.broadcast_to([F * 0.1 / 2.0, -F * 0.05 / 2.0], (out.covered.sum(), 2)),
+        atol=1e-4,
     )
     assert (out.flow[~out.covered] == 0).all()
 
@@ -96,7 +98,9 @@ def tiny_dance(tmp_path_factory):
 
     out = tmp_path_factory.mktemp("true_flow") / "dance"
     generate(
-        SynthConfig(out=out, num_frames=4, size=96, motion="dance", num_novel_views=1, view_every=2, supersample=1),
+        SynthConfig(
+            out=out, num_frames=4, size=96, motion="dance", num_novel_views=1, view_every=2, supersample=1
+        ),
         progress=False,
     )
     return out

@@ -1,6 +1,6 @@
 """The speed/accuracy trade, measured: every preset and ablation of STG-Avatar on the synthetic benchmark.
 
-    python tools/tradeoff.py            # the full grid (hours on a CPU): docs/BENCHMARKS.md + docs/tradeoff_pareto.png
+    python tools/tradeoff.py            # the full grid (hours on a CPU): docs/BENCHMARKS.md + the Pareto PNG
     python tools/tradeoff.py --quick    # a reduced grid in minutes (tiny images, few iterations), into --out
     python tools/tradeoff.py --list     # the configurations, without running anything
 
@@ -32,7 +32,8 @@ measures everything again. The report (:mod:`tradeoff_report`) goes between mark
 Pareto plot ``--plot``.
 
 ``--quick`` shrinks everything (96 x 96 images, 30 frames, 2 held-out cameras, iterations / 25,
-Gaussian budgets / 10, every iteration-valued schedule scaled alike) so the grid runs in minutes;
+Gaussian budgets / 10, every iteration-valued schedule scaled alike, pixel-valued thresholds with
+the image) so the grid runs in minutes;
 its numbers show the pipeline works, not how the method performs.
 """
 
@@ -104,6 +105,13 @@ ITERATION_KEYS = (
     "log_every",
 )
 GAUSSIAN_KEYS = ("model.num_gaussians", "model.max_gaussians", "densify.flow_max_new")
+# Settings in pixels of the 512 x 512 benchmark (scaled with the image width), and whether integer.
+PIXEL_KEYS = {
+    "densify.motion_floor_px": False,
+    "densify.region_px": True,
+    "densify.flow_consistency_px": False,
+    "crop_margin_px": True,
+}
 
 
 def _get(config, dotted: str):
@@ -114,14 +122,18 @@ def _get(config, dotted: str):
 
 
 def scaled(config, scale: Scale):
-    """``config`` with its iteration counts and Gaussian budgets multiplied by the scale's factors."""
-    if scale.iteration_factor == 1.0 and scale.gaussian_factor == 1.0:
+    """``config`` with its iteration counts, Gaussian budgets and pixel sizes scaled to ``scale``."""
+    pixel_factor = scale.size / 512.0
+    if scale.iteration_factor == 1.0 and scale.gaussian_factor == 1.0 and pixel_factor == 1.0:
         return config
     changes = {}
     for key in ITERATION_KEYS:
         changes[key] = max(1, round(_get(config, key) * scale.iteration_factor))
     for key in GAUSSIAN_KEYS:
         changes[key] = max(1, round(_get(config, key) * scale.gaussian_factor))
+    for key, integer in PIXEL_KEYS.items():
+        value = _get(config, key) * pixel_factor
+        changes[key] = max(2, round(value)) if integer else value
     return config.replace(**changes)
 
 
@@ -156,40 +168,78 @@ def grid(base: str = "fast") -> list[Configuration]:
     full = f"preset_{base}"
     rows = [Configuration(f"preset_{p}", f"{p} (preset)", "preset", "dance", p) for p in PRESETS]
     ablations = [
-        Configuration(f"full_{base}", f"full model (= {base}: n_p={n_p}, n_q={n_q}, MLP, flow-guided)",
-                      "ablation", "dance", base, alias_of=full),  # fmt: skip
-        Configuration("lbs_only", "LBS only (no spacetime, no flow-guided densification)", "ablation",
-                      "dance", base, {"model.spacetime": False, "densify.flow_guided": False}),  # fmt: skip
-        Configuration("no_flow_densify", "no flow-guided densification", "ablation", "dance", base,
-                      {"densify.flow_guided": False}),  # fmt: skip
-        Configuration("sh_color", "SH colour instead of the MLP", "ablation", "dance", base,
-                      {"model.color": "sh"}),  # fmt: skip
+        Configuration(
+            f"full_{base}",
+            f"full model (= {base}: n_p={n_p}, n_q={n_q}, MLP, flow-guided)",
+            "ablation",
+            "dance",
+            base,
+            alias_of=full,
+        ),
+        Configuration(
+            "lbs_only",
+            "LBS only (no spacetime, no flow-guided densification)",
+            "ablation",
+            "dance",
+            base,
+            {"model.spacetime": False, "densify.flow_guided": False},
+        ),
+        Configuration(
+            "no_flow_densify",
+            "no flow-guided densification",
+            "ablation",
+            "dance",
+            base,
+            {"densify.flow_guided": False},
+        ),
+        Configuration(
+            "sh_color", "SH colour instead of the MLP", "ablation", "dance", base, {"model.color": "sh"}
+        ),
     ]
     for order in range(4):
         name = f"n_p{order}"
         if order == n_p:
-            ablations.append(Configuration(name, f"n_p = {order} (= {base})", "ablation", "dance", base, alias_of=full))
+            ablations.append(
+                Configuration(name, f"n_p = {order} (= {base})", "ablation", "dance", base, alias_of=full)
+            )
         else:
             ablations.append(
-                Configuration(name, f"n_p = {order}", "ablation", "dance", base, {"model.motion_order": order})
+                Configuration(
+                    name, f"n_p = {order}", "ablation", "dance", base, {"model.motion_order": order}
+                )
             )
     for order in range(2):
         name = f"n_q{order}"
         if order == n_q:
-            ablations.append(Configuration(name, f"n_q = {order} (= {base})", "ablation", "dance", base, alias_of=full))
+            ablations.append(
+                Configuration(name, f"n_q = {order} (= {base})", "ablation", "dance", base, alias_of=full)
+            )
         else:
             ablations.append(
-                Configuration(name, f"n_q = {order}", "ablation", "dance", base, {"model.rotation_order": order})
+                Configuration(
+                    name, f"n_q = {order}", "ablation", "dance", base, {"model.rotation_order": order}
+                )
             )
     for name, factor, word in (("budget_half", 0.5, "halved"), ("budget_double", 2.0, "doubled")):
-        changes = {"model.num_gaussians": round(budget[0] * factor), "model.max_gaussians": round(budget[1] * factor)}
+        changes = {
+            "model.num_gaussians": round(budget[0] * factor),
+            "model.max_gaussians": round(budget[1] * factor),
+        }
         label = f"Gaussian budget {word} (initial and maximum x{factor:g})"
         ablations.append(Configuration(name, label, "ablation", "dance", base, changes))
     rows += ablations
     rows.append(Configuration(f"still_{base}", f"still subject, {base} preset", "economy", "still", base))
     rows.append(Configuration(f"mixed_{base}", f"mixed subject, {base} preset", "subject", "mixed", base))
-    rows.append(Configuration("mixed_lbs_only", "mixed subject, LBS only", "subject", "mixed", base,
-                              {"model.spacetime": False, "densify.flow_guided": False}))  # fmt: skip
+    rows.append(
+        Configuration(
+            "mixed_lbs_only",
+            "mixed subject, LBS only",
+            "subject",
+            "mixed",
+            base,
+            {"model.spacetime": False, "densify.flow_guided": False},
+        )
+    )
     return rows
 
 
@@ -244,9 +294,9 @@ def fast_regions(folder: Path, scale: Scale) -> dict[str, dict[tuple[int, str], 
         with np.load(cache) as stored:
             for key in stored.files:
                 split, frame, camera = key.split("|")
-                regions[split][(int(frame), camera)] = np.unpackbits(stored[key])[: scale.size**2].reshape(
-                    scale.size, scale.size
-                ).astype(bool)
+                regions[split][(int(frame), camera)] = (
+                    np.unpackbits(stored[key])[: scale.size**2].reshape(scale.size, scale.size).astype(bool)
+                )
         return regions
     meta = read_metadata(folder)
     faces = load_body_model().faces.cpu().numpy()
@@ -298,7 +348,11 @@ def train_run(row: Configuration, config, data: Path, run_dir: Path, scale: Scal
         }
     )
     trainer = Trainer(
-        config, device=args.device, backend=args.backend, seed=args.seed, flow_cache=FlowCache(data / "flow_cache")
+        config,
+        device=args.device,
+        backend=args.backend,
+        seed=args.seed,
+        flow_cache=FlowCache(data / "flow_cache"),
     )
     started = time.perf_counter()
     trainer.add_frames(spec.open("train"))
@@ -446,7 +500,11 @@ def measure(row: Configuration, scale: Scale, args, regions_by_subject: dict, da
     if result_file.is_file() and not args.fresh:
         stored = json.loads(result_file.read_text())
         if stored.get("fingerprint") == key:
+            log.info(
+                "%s: reusing the result in %s (same settings; --fresh measures again)", row.name, result_file
+            )
             return stored
+    log.info("%s: training %d iterations on the %s subject", row.name, config.iterations, row.subject)
     run_dir = Path(args.out) / "runs" / row.name
     summary = train_run(row, config, data[row.subject], run_dir, scale, args)
     scores = evaluate_run(run_dir, regions_by_subject[row.subject], scale)
@@ -482,20 +540,42 @@ def build_parser() -> argparse.ArgumentParser:
         description="Train every STG-Avatar preset and ablation on the synthetic benchmark; write the "
         "trade-off table into docs/BENCHMARKS.md and a Pareto plot.",
     )
-    p.add_argument("--quick", action="store_true", help="a reduced grid in minutes (tiny images, few iterations)")
-    p.add_argument("--out", default=None, help="runs, results and (default) the data cache "
-                   "(default runs/tradeoff, or runs/tradeoff_quick with --quick)")  # fmt: skip
-    p.add_argument("--data-cache", default=None, help="where the synthetic subjects are generated (default OUT/data)")
-    p.add_argument("--docs", default=None, help="markdown file the section goes into "
-                   "(default docs/BENCHMARKS.md; with --quick, OUT/BENCHMARKS_quick.md)")  # fmt: skip
-    p.add_argument("--plot", default=None, help="Pareto plot PNG (default docs/tradeoff_pareto.png; "
-                   "with --quick, OUT/tradeoff_pareto_quick.png)")  # fmt: skip
-    p.add_argument("--base", default="fast", help="the preset the ablations flip switches of (default %(default)s)")
-    p.add_argument("--only", nargs="+", default=None, metavar="NAME", help="measure only these configurations")
+    p.add_argument(
+        "--quick", action="store_true", help="a reduced grid in minutes (tiny images, few iterations)"
+    )
+    p.add_argument(
+        "--out",
+        default=None,
+        help="runs, results and (default) the data cache "
+        "(default runs/tradeoff, or runs/tradeoff_quick with --quick)",
+    )
+    p.add_argument(
+        "--data-cache", default=None, help="where the synthetic subjects are generated (default OUT/data)"
+    )
+    p.add_argument(
+        "--docs",
+        default=None,
+        help="markdown file the section goes into "
+        "(default docs/BENCHMARKS.md; with --quick, OUT/BENCHMARKS_quick.md)",
+    )
+    p.add_argument(
+        "--plot",
+        default=None,
+        help="Pareto plot PNG (default docs/tradeoff_pareto.png; "
+        "with --quick, OUT/tradeoff_pareto_quick.png)",
+    )
+    p.add_argument(
+        "--base", default="fast", help="the preset the ablations flip switches of (default %(default)s)"
+    )
+    p.add_argument(
+        "--only", nargs="+", default=None, metavar="NAME", help="measure only these configurations"
+    )
     p.add_argument("--fresh", action="store_true", help="measure again even where a result exists")
     p.add_argument("--list", action="store_true", help="print the configurations and exit")
     p.add_argument("--seed", type=int, default=0, help="training seed (default %(default)s)")
-    p.add_argument("--backend", default="auto", choices=("auto", "cpu", "cuda", "torch"), help="splatting backend")
+    p.add_argument(
+        "--backend", default="auto", choices=("auto", "cpu", "cuda", "torch"), help="splatting backend"
+    )
     p.add_argument("--device", default="cpu", help="torch device for training (default %(default)s)")
     p.add_argument("--threads", default=None, help="CPU threads (default: STG_THREADS or 1)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
@@ -533,8 +613,16 @@ def run(args: argparse.Namespace, argv: list[str]) -> int:
     out = Path(args.out or ("runs/tradeoff_quick" if args.quick else "runs/tradeoff"))
     args.out = str(out)
     cache = Path(args.data_cache) if args.data_cache else out / "data"
-    docs = Path(args.docs) if args.docs else (out / "BENCHMARKS_quick.md" if args.quick else REPO / "docs/BENCHMARKS.md")
-    plot = Path(args.plot) if args.plot else (out / "tradeoff_pareto_quick.png" if args.quick else REPO / "docs/tradeoff_pareto.png")
+    docs = (
+        Path(args.docs)
+        if args.docs
+        else (out / "BENCHMARKS_quick.md" if args.quick else REPO / "docs/BENCHMARKS.md")
+    )
+    plot = (
+        Path(args.plot)
+        if args.plot
+        else (out / "tradeoff_pareto_quick.png" if args.quick else REPO / "docs/tradeoff_pareto.png")
+    )
     selected = [r for r in rows if not r.alias_of and (not args.only or r.name in args.only)]
     subjects = sorted({r.subject for r in selected}, key=SUBJECTS.index)
     data, regions = {}, {}
@@ -555,7 +643,9 @@ def run(args: argparse.Namespace, argv: list[str]) -> int:
         stored = Path(args.out) / "results" / f"{row.name}.json"
         if stored.is_file():
             record = json.loads(stored.read_text())
-            if record.get("fingerprint") == fingerprint(row.config(scale), row, scale, args.seed, args.backend):
+            if record.get("fingerprint") == fingerprint(
+                row.config(scale), row, scale, args.seed, args.backend
+            ):
                 results[row.name] = record
     context = tradeoff_report.ReportContext(
         command=command_line(argv),

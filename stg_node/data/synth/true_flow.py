@@ -63,7 +63,8 @@ def true_flow(vertices: np.ndarray, other_vertices: np.ndarray, faces, camera: C
     other = torch.as_tensor(np.asarray(other_vertices, np.float64))
     if now.ndim != 2 or now.shape[1] != 3 or now.shape != other.shape:
         raise ValueError(
-            f"vertices and other_vertices must both be (V, 3), got {tuple(now.shape)} and {tuple(other.shape)}"
+            "vertices and other_vertices must both be (V, 3), got "
+            f"{tuple(now.shape)} and {tuple(other.shape)}"
         )
     faces_t = torch.as_tensor(np.asarray(faces), dtype=torch.int64)
     if faces_t.numel() and int(faces_t.max()) >= now.shape[0]:
