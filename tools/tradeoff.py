@@ -26,8 +26,8 @@ as a run folder ``stg-eval`` / ``stg-render`` open (``--out/runs/NAME``), and is
   image width), the squared errors of those pixels pooled over the split's views.
 
 Each configuration's result is kept in ``--out/results/NAME.json`` with a fingerprint of its
-settings: a re-run (or a run resumed after Ctrl-C) skips what is already measured; ``--fresh``
-measures everything again. The report (:mod:`tradeoff_report`) goes between marker comments in
+settings and data: a re-run (or a run resumed after Ctrl-C) skips what is already measured;
+``--fresh`` generates the subjects and measures everything again. The report (:mod:`tradeoff_report`) goes between marker comments in
 ``--docs`` (re-runs replace the section) with the command line and the machine, beside the
 Pareto plot ``--plot``.
 
@@ -196,30 +196,18 @@ def grid(base: str = "fast") -> list[Configuration]:
             "sh_color", "SH colour instead of the MLP", "ablation", "dance", base, {"model.color": "sh"}
         ),
     ]
-    for order in range(4):
-        name = f"n_p{order}"
-        if order == n_p:
-            ablations.append(
-                Configuration(name, f"n_p = {order} (= {base})", "ablation", "dance", base, alias_of=full)
-            )
-        else:
-            ablations.append(
-                Configuration(
-                    name, f"n_p = {order}", "ablation", "dance", base, {"model.motion_order": order}
+    for symbol, key, orders, current in (
+        ("n_p", "model.motion_order", range(4), n_p),
+        ("n_q", "model.rotation_order", range(2), n_q),
+    ):
+        for order in orders:
+            name, label = f"{symbol}{order}", f"{symbol} = {order}"
+            if order == current:  # the base itself: the same run, shown again in its series
+                ablations.append(
+                    Configuration(name, f"{label} (= {base})", "ablation", "dance", base, alias_of=full)
                 )
-            )
-    for order in range(2):
-        name = f"n_q{order}"
-        if order == n_q:
-            ablations.append(
-                Configuration(name, f"n_q = {order} (= {base})", "ablation", "dance", base, alias_of=full)
-            )
-        else:
-            ablations.append(
-                Configuration(
-                    name, f"n_q = {order}", "ablation", "dance", base, {"model.rotation_order": order}
-                )
-            )
+            else:
+                ablations.append(Configuration(name, label, "ablation", "dance", base, {key: order}))
     for name, factor, word in (("budget_half", 0.5, "halved"), ("budget_double", 2.0, "doubled")):
         changes = {
             "model.num_gaussians": round(budget[0] * factor),
@@ -248,19 +236,24 @@ def subject_folder(cache: Path, subject: str, scale: Scale, seed: int) -> Path:
     return cache / f"{subject}_{scale.frames}f_{scale.size}px_v{scale.views}e{scale.view_every}_s{seed}"
 
 
-def ensure_subject(cache: Path, subject: str, scale: Scale, seed: int = 0) -> Path:
-    """The synthetic subject's folder, generated once (deterministic: same seed, same files)."""
+def ensure_subject(cache: Path, subject: str, scale: Scale, seed: int = 0, fresh: bool = False) -> Path:
+    """The synthetic subject's folder, generated once (deterministic: same seed, same files);
+    ``fresh`` generates it again (and drops the fast regions computed from the old one)."""
     from stg_node.data.synth.generate import SynthConfig, generate
     from stg_node.data.synth.writer import read_metadata
 
     out = subject_folder(cache, subject, scale, seed)
     try:
         meta = read_metadata(out)
-        if meta["motion"] == subject and meta["num_frames"] == scale.frames:
+        wanted = (subject, scale.frames, [scale.size, scale.size], scale.view_every, seed)
+        found = (meta["motion"], meta["num_frames"], meta["size"], meta["view_every"], meta["seed"])
+        if found == wanted and not fresh:
             return out
     except (FileNotFoundError, ValueError, KeyError):
         pass
     log.info("generating the %s subject into %s", subject, out)
+    for stale in out.glob("fast_regions_*.npz"):
+        stale.unlink()
     generate(
         SynthConfig(
             out=out,
@@ -313,9 +306,17 @@ def fast_regions(folder: Path, scale: Scale) -> dict[str, dict[tuple[int, str], 
 
 
 # --- measuring one configuration ----------------------------------------------------------------
-def fingerprint(config, row: Configuration, scale: Scale, seed: int, backend: str) -> str:
+def data_id(folder: Path) -> str:
+    """What identifies a generated subject: a hash of its synth.json (seed, motion, cameras, garment...)."""
+    meta = Path(folder) / "synth.json"
+    return hashlib.sha256(meta.read_bytes()).hexdigest()[:12] if meta.is_file() else "missing"
+
+
+def fingerprint(config, row: Configuration, scale: Scale, seed: int, backend: str, data: str) -> str:
+    """The settings a result depends on; a stored result with another fingerprint is measured again."""
     record = {
         "version": RESULT_VERSION,
+        "data": data,
         "config": config.to_dict(),
         "subject": row.subject,
         "scale": dataclasses.asdict(scale),
@@ -495,7 +496,7 @@ def measure(row: Configuration, scale: Scale, args, regions_by_subject: dict, da
     from stg_node.avatar.run import write_json
 
     config = row.config(scale)
-    key = fingerprint(config, row, scale, args.seed, args.backend)
+    key = fingerprint(config, row, scale, args.seed, args.backend, data_id(data[row.subject]))
     result_file = Path(args.out) / "results" / f"{row.name}.json"
     if result_file.is_file() and not args.fresh:
         stored = json.loads(result_file.read_text())
@@ -570,7 +571,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--only", nargs="+", default=None, metavar="NAME", help="measure only these configurations"
     )
-    p.add_argument("--fresh", action="store_true", help="measure again even where a result exists")
+    p.add_argument(
+        "--fresh",
+        action="store_true",
+        help="generate the subjects and measure again even where results exist",
+    )
     p.add_argument("--list", action="store_true", help="print the configurations and exit")
     p.add_argument("--seed", type=int, default=0, help="training seed (default %(default)s)")
     p.add_argument(
@@ -627,7 +632,7 @@ def run(args: argparse.Namespace, argv: list[str]) -> int:
     subjects = sorted({r.subject for r in selected}, key=SUBJECTS.index)
     data, regions = {}, {}
     for subject in progress(subjects, desc="subjects", unit="subject", enabled=not args.no_progress):
-        data[subject] = ensure_subject(cache, subject, scale)
+        data[subject] = ensure_subject(cache, subject, scale, fresh=args.fresh)
         regions[subject] = fast_regions(data[subject], scale)
     results = {}
     bar = progress(desc="configurations", unit="config", total=len(selected), enabled=not args.no_progress)
@@ -643,9 +648,9 @@ def run(args: argparse.Namespace, argv: list[str]) -> int:
         stored = Path(args.out) / "results" / f"{row.name}.json"
         if stored.is_file():
             record = json.loads(stored.read_text())
-            if record.get("fingerprint") == fingerprint(
-                row.config(scale), row, scale, args.seed, args.backend
-            ):
+            folder = subject_folder(cache, row.subject, scale, 0)
+            key = fingerprint(row.config(scale), row, scale, args.seed, args.backend, data_id(folder))
+            if record.get("fingerprint") == key:
                 results[row.name] = record
     context = tradeoff_report.ReportContext(
         command=command_line(argv),
