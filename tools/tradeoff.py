@@ -27,9 +27,9 @@ as a run folder ``stg-eval`` / ``stg-render`` open (``--out/runs/NAME``), and is
 
 Each configuration's result is kept in ``--out/results/NAME.json`` with a fingerprint of its
 settings and data: a re-run (or a run resumed after Ctrl-C) skips what is already measured;
-``--fresh`` generates the subjects and measures everything again. The report (:mod:`tradeoff_report`) goes between marker comments in
-``--docs`` (re-runs replace the section) with the command line and the machine, beside the
-Pareto plot ``--plot``.
+``--fresh`` generates the subjects and measures everything again. The report
+(:mod:`tradeoff_report`) goes between marker comments in ``--docs`` (re-runs replace the
+section) with the command line and the machine, beside the Pareto plot ``--plot``.
 
 ``--quick`` shrinks everything (96 x 96 images, 30 frames, 2 held-out cameras, iterations / 25,
 Gaussian budgets / 10, every iteration-valued schedule scaled alike, pixel-valued thresholds with
