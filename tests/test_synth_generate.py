@@ -188,6 +188,19 @@ def test_cli_writes_a_benchmark_and_reports_bad_arguments(tmp_path, capsys):
     assert "moonwalk" in capsys.readouterr().err
 
 
+def test_cli_offers_every_motion_including_the_still_subject(tmp_path, capsys):
+    from stg_node.cli.synth import build_parser, main
+
+    help_text = build_parser().format_help()
+    for motion in ("mixed", "turn", "walk", "wave", "dance", "still"):
+        assert motion in help_text
+    out = tmp_path / "still"
+    argv = ["--out", str(out), "--frames", "3", "--size", "32", "--views", "0", "--motion", "still"]
+    assert main([*argv, "--no-progress"]) == 0
+    meta = writer.read_metadata(out)
+    assert meta["motion"] == "still" and [s["name"] for s in meta["motion_segments"]] == ["still", "still"]
+
+
 def test_metadata_reader_rejects_foreign_folders(tmp_path):
     with pytest.raises(FileNotFoundError, match="synth.json"):
         writer.read_metadata(tmp_path)

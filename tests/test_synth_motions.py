@@ -123,3 +123,32 @@ def test_rotation_helpers_agree_with_scipy():
     euler = rng.uniform(-1.2, 1.2, size=(50, 3))
     scipy_zyx = Rotation.from_euler("ZYX", euler[:, ::-1]).as_matrix()
     np.testing.assert_allclose(euler_zyx_to_matrix(euler), scipy_zyx, atol=1e-12)
+
+
+def _joint_speeds_deg_s(seq) -> np.ndarray:
+    """(N-1, 24) angular speed of every joint's local rotation, degrees per second."""
+    rot = axis_angle_to_matrix(seq.poses.astype(np.float64))
+    rel = np.einsum("tjik,tjil->tjkl", rot[:-1], rot[1:])
+    return np.degrees(np.linalg.norm(matrix_to_axis_angle(rel), axis=-1)) * seq.fps
+
+
+def test_still_subject_breathes_and_turns_its_head_and_nothing_moves_fast():
+    still = make_motion("still", FRAMES, FPS, np.random.default_rng(7), NOVEL_START)
+    dance = make_motion("dance", FRAMES, FPS, np.random.default_rng(7), NOVEL_START)
+    still_speed, dance_speed = _joint_speeds_deg_s(still), _joint_speeds_deg_s(dance)
+    assert still_speed.max() < 30.0  # slow head turns at most; a dance swings elbows at ~500 deg/s
+    assert np.median(dance_speed.max(axis=1)) > 10 * still_speed.max()
+    neck_turn = np.ptp(still.euler_deg[:, JOINT_INDEX["neck"], 1])
+    assert 10.0 < neck_turn < 2 * 15.0 + 1e-9  # small head turns
+    arms = [JOINT_INDEX[f"{s}_{j}"] for s in ("left", "right") for j in ("shoulder", "elbow", "wrist")]
+    assert still_speed[:, arms].max() < 1e-6  # the arms hang still
+
+
+def test_still_subject_breathes_at_a_resting_rate():
+    """The chest's dominant frequency (FFT of the spine's extension over 40 s) is 12-18 breaths a minute."""
+    seq = make_motion("still", 1200, FPS, np.random.default_rng(5))
+    chest = seq.euler_deg[:, JOINT_INDEX["spine2"], 0]
+    spectrum = np.abs(np.fft.rfft(chest - chest.mean()))
+    freqs = np.fft.rfftfreq(chest.size, 1 / FPS)
+    assert 0.2 - 0.03 <= freqs[spectrum.argmax()] <= 0.3 + 0.03
+    assert 0.5 < np.ptp(chest) < 3.0  # about a degree of extension, not a bow

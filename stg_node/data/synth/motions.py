@@ -1,4 +1,4 @@
-"""Procedural SMPL motion sequences for the synthetic benchmark: turn, walk, wave, dance, mixed.
+"""Procedural SMPL motion sequences for the synthetic benchmark: turn, walk, wave, dance, still, mixed.
 
 Each motion is a set of smooth functions of time (sums of sinusoids whose amplitudes and
 phases are drawn from a seeded generator and slowly modulated, so no two seconds repeat
@@ -23,6 +23,8 @@ Motions (``--motion``):
 - ``walk``: a walking gait on a circle of 0.4-0.5 m radius (one circle for the whole sequence).
 - ``wave``: standing, turning slowly, one arm raised and waving at about 2 Hz.
 - ``dance``: fast (about 2 beats/s) bouncing, twisting, large arm swings, swaying.
+- ``still``: standing nearly still: breathing, small slow head turns (a scene that needs almost
+  no non-rigid modelling; the coverage rule below still turns it once, rigidly).
 - ``mixed`` (default): turn, walk, wave and dance in turn over the training range.
 
 Held-out poses: the last ``novel_pose_start..`` frames use a fresh parameter draw of the
@@ -47,7 +49,7 @@ from stg_node.data.synth.joint_limits import (
 )
 from stg_node.data.synth.rotations import axis_rotation, euler_zyx_to_matrix, matrix_to_axis_angle
 
-MOTIONS = ("mixed", "turn", "walk", "wave", "dance")
+MOTIONS = ("mixed", "turn", "walk", "wave", "dance", "still")
 DEFAULT_MOTION = "mixed"
 CROSSFADE_SECONDS = 0.5
 DEFAULT_NUM_BETAS = 10  # SMPL's usual shape space
@@ -334,6 +336,38 @@ def _dance(t: np.ndarray, rng: np.random.Generator, style: _Style) -> _Drive:
     return _Drive(euler, yaw_rate, speed, root, sway)
 
 
+def _still(t: np.ndarray, rng: np.random.Generator, style: _Style) -> _Drive:
+    """Standing nearly still: breathing, small slow head turns, a faint weight shift; no turning of its own.
+
+    What moves: the chest and shoulders with each breath (12-18 breaths a minute: about 1.5 deg of
+    spine extension and 2 deg of collar lift), the head turning slowly left and right (up to about
+    15 deg) and nodding a little, and a weight shift of about 1 deg at the hips. Arms hang relaxed.
+    The sequence's coverage rule still turns the whole body through a revolution over the training
+    range (a turntable, rigid: the root rotation ``Rh`` carries it, skinning explains it exactly).
+    """
+    n = t.shape[0]
+    euler = _relaxed(n)
+    yaw_rate, speed, root, sway = _zeros(t)
+    breath_freq = rng.uniform(0.2, 0.3)
+    phases = rng.uniform(0, 2 * np.pi, size=5)
+    breath = 0.5 - 0.5 * np.cos(2 * np.pi * breath_freq * t + phases[0])  # 0 exhaled .. 1 inhaled
+    breath = breath * _modulation(t, rng, 0.15)
+    euler[:, JOINT_INDEX["spine2"], 0] = -0.8 * breath  # the chest lifts (extension) on the in-breath
+    euler[:, JOINT_INDEX["spine3"], 0] = -0.7 * breath
+    _set_left(euler, "collar", np.stack([np.zeros(n), np.zeros(n), 2.0 * breath], axis=-1))
+    _mirror_pair(euler, "collar")
+    turn_amp = rng.uniform(10.0, 15.0)
+    euler[:, JOINT_INDEX["neck"], 1] = turn_amp * np.sin(2 * np.pi * rng.uniform(0.08, 0.14) * t + phases[1])
+    euler[:, JOINT_INDEX["head"], 0] = 3.0 * np.sin(2 * np.pi * rng.uniform(0.1, 0.2) * t + phases[2])
+    shift = 1.0 * np.sin(2 * np.pi * rng.uniform(0.05, 0.1) * t + phases[3])
+    euler[:, JOINT_INDEX["left_hip"], 2] = shift
+    euler[:, JOINT_INDEX["right_hip"], 2] = shift  # both legs lean the same way: a weight shift
+    root[:, 2] = -0.5 * shift
+    euler[:, JOINT_INDEX["left_knee"], 0] = 3.0
+    euler[:, JOINT_INDEX["right_knee"], 0] = 3.0
+    return _Drive(euler, yaw_rate, speed, root, sway)
+
+
 def _walk_wave(t: np.ndarray, rng: np.random.Generator, style: _Style) -> _Drive:
     """Walking while waving: lower body and root from a walk, arms and head from a wave."""
     lower = _walk(t, rng, style)
@@ -343,7 +377,14 @@ def _walk_wave(t: np.ndarray, rng: np.random.Generator, style: _Style) -> _Drive
     return _Drive(euler, lower.yaw_rate, lower.speed, lower.root, lower.sway, walking=True)
 
 
-_PRIMITIVES = {"turn": _turn, "walk": _walk, "wave": _wave, "dance": _dance, "walk+wave": _walk_wave}
+_PRIMITIVES = {
+    "turn": _turn,
+    "walk": _walk,
+    "wave": _wave,
+    "dance": _dance,
+    "still": _still,
+    "walk+wave": _walk_wave,
+}
 
 
 def _segment_plan(motion: str, num_frames: int, novel_pose_start: int) -> list[tuple[str, int, int]]:

@@ -107,6 +107,22 @@ def write_frame_vertices(out: Path, frame: int, vertices: np.ndarray) -> None:
     np.save(folder / f"{frame}.npy", np.asarray(vertices, dtype=np.float32))
 
 
+def read_frame_vertices(folder: Path, frame: int) -> np.ndarray:
+    """``new_vertices/{frame}.npy`` of a generated benchmark: (V, 3) float32 ground-truth world vertices."""
+    from stg_node.data.errors import DatasetError
+    from stg_node.safe_load import load_npy
+
+    path = Path(folder) / VERTICES_DIR / f"{frame}.npy"
+    if not path.is_file():
+        raise DatasetError(
+            path, "is missing", f"the ground-truth vertices stg-synth writes for frame {frame}"
+        )
+    vertices = np.asarray(load_npy(path))
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or not np.isfinite(vertices).all():
+        raise DatasetError(path, f"holds an array of shape {vertices.shape}", "finite (V, 3) vertices")
+    return vertices.astype(np.float32, copy=False)
+
+
 def _imwrite(path: Path, array: np.ndarray) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     if not cv2.imwrite(str(path), array, [cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESSION]):

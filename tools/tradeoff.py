@@ -1,0 +1,681 @@
+"""The speed/accuracy trade, measured: every preset and ablation of STG-Avatar on the synthetic benchmark.
+
+    python tools/tradeoff.py            # the full grid (hours on a CPU): docs/BENCHMARKS.md + the Pareto PNG
+    python tools/tradeoff.py --quick    # a reduced grid in minutes (tiny images, few iterations), into --out
+    python tools/tradeoff.py --list     # the configurations, without running anything
+
+What runs. Synthetic subjects are generated deterministically (``stg_node.data.synth.generate``,
+seed 0) into ``--data-cache``: ``dance`` (fast, garment dynamics: the main subject), ``still``
+(standing, breathing: the model-economy check) and the default ``mixed``; 125 frames at
+512 x 512, so frames 0-99 train (camera 1) and 100-124 are held-out poses; 8 held-out cameras
+render every 10th frame. Every configuration trains with :class:`stg_node.avatar.Trainer`
+through the public API only (``preset(...)``, ``TrainConfig.replace`` with dotted keys), is saved
+as a run folder ``stg-eval`` / ``stg-render`` open (``--out/runs/NAME``), and is scored:
+
+- training time (optimisation steps only; loading frames and optical flow, computed once per
+  subject, are reported apart) and it/s;
+- render FPS at the dataset's size (pose + colour + splat, median of repeated renders of
+  held-out views) on the CPU, and on CUDA when ``torch.cuda.is_available()``; the same renders
+  with the zero-motion skip turned off (the skip's gain);
+- Gaussians, the fraction (and count) with active motion terms, model size;
+- PSNR / SSIM / LPIPS on the novel-view and novel-pose splits (``stg-eval``'s protocol:
+  :func:`stg_node.avatar.evaluate.evaluate_split`);
+- PSNR on the fast-moving regions only: pixels whose true motion (the benchmark's ground-truth
+  vertices of this frame and the next, projected into the evaluation camera and rasterized:
+  :mod:`stg_node.data.synth.true_flow`) exceeds 5 px per frame at 512 x 512 (scaled with the
+  image width), the squared errors of those pixels pooled over the split's views.
+
+Each configuration's result is kept in ``--out/results/NAME.json`` with a fingerprint of its
+settings and data: a re-run (or a run resumed after Ctrl-C) skips what is already measured;
+``--fresh`` generates the subjects and measures everything again. The report
+(:mod:`tradeoff_report`) goes between marker comments in ``--docs`` (re-runs replace the
+section) with the command line and the machine, beside the Pareto plot ``--plot``.
+
+``--quick`` shrinks everything (96 x 96 images, 30 frames, 2 held-out cameras, iterations / 25,
+Gaussian budgets / 10, every iteration-valued schedule scaled alike, pixel-valued thresholds with
+the image) so the grid runs in minutes;
+its numbers show the pipeline works, not how the method performs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import datetime
+import hashlib
+import json
+import logging
+import math
+import os
+import platform
+import statistics
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+log = logging.getLogger("tradeoff")
+
+RESULT_VERSION = 1
+SUBJECTS = ("dance", "still", "mixed")
+LPIPS_NET = "alex"
+
+
+# --- the scale of a run ------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Scale:
+    """Data and schedule sizes: the full grid or the quick one."""
+
+    name: str
+    size: int  # square image size, generated and evaluated
+    frames: int  # frames generated (80 % train)
+    views: int  # held-out cameras
+    view_every: int  # held-out cameras render every K-th frame
+    supersample: int
+    iteration_factor: float  # x every iteration count and iteration-valued schedule
+    gaussian_factor: float  # x every Gaussian budget
+    render_repeats: int  # timed renders per view for the FPS figures
+    render_views: int  # views the FPS is timed on
+
+    @property
+    def fast_threshold_px(self) -> float:
+        from stg_node.data.synth.true_flow import FAST_FLOW_PX_AT_512
+
+        return FAST_FLOW_PX_AT_512 * self.size / 512.0
+
+
+FULL = Scale("full", 512, 125, 8, 10, 2, 1.0, 1.0, 5, 4)
+QUICK = Scale("quick", 96, 30, 2, 6, 1, 1 / 25, 1 / 10, 2, 2)
+
+# Settings counted in iterations (scaled by Scale.iteration_factor) and in Gaussians
+# (Scale.gaussian_factor). TrainConfig.replace raises on a name that no longer exists, so a
+# renamed setting fails loudly here rather than silently keeping its full-size value.
+ITERATION_KEYS = (
+    "iterations",
+    "loss.warmup_iters",
+    "densify.start_iter",
+    "densify.interval",
+    "densify.flow_interval",
+    "sh_increase_every",
+    "checkpoint_every",
+    "log_every",
+)
+GAUSSIAN_KEYS = ("model.num_gaussians", "model.max_gaussians", "densify.flow_max_new")
+# Settings in pixels of the 512 x 512 benchmark (scaled with the image width), and whether integer.
+PIXEL_KEYS = {
+    "densify.motion_floor_px": False,
+    "densify.region_px": True,
+    "densify.flow_consistency_px": False,
+    "crop_margin_px": True,
+}
+
+
+def _get(config, dotted: str):
+    value = config
+    for part in dotted.split("."):
+        value = getattr(value, part)
+    return value
+
+
+def scaled(config, scale: Scale):
+    """``config`` with its iteration counts, Gaussian budgets and pixel sizes scaled to ``scale``."""
+    pixel_factor = scale.size / 512.0
+    if scale.iteration_factor == 1.0 and scale.gaussian_factor == 1.0 and pixel_factor == 1.0:
+        return config
+    changes = {}
+    for key in ITERATION_KEYS:
+        changes[key] = max(1, round(_get(config, key) * scale.iteration_factor))
+    for key in GAUSSIAN_KEYS:
+        changes[key] = max(1, round(_get(config, key) * scale.gaussian_factor))
+    for key, integer in PIXEL_KEYS.items():
+        value = _get(config, key) * pixel_factor
+        changes[key] = max(2, round(value)) if integer else value
+    return config.replace(**changes)
+
+
+# --- the grid ----------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Configuration:
+    """One row of the table: a preset, possibly with switches flipped, trained on one subject."""
+
+    name: str  # file names and --only
+    label: str  # the table's first column
+    group: str  # "preset", "ablation", "economy", "subject"
+    subject: str  # synthetic motion
+    preset: str
+    changes: dict = field(default_factory=dict)  # dotted TrainConfig keys -> values
+    alias_of: str | None = None  # the same run as another row (shown again for the reader)
+
+    def config(self, scale: Scale):
+        from stg_node.avatar import preset
+
+        return scaled(preset(self.preset).replace(**self.changes), scale)
+
+
+def grid(base: str = "fast") -> list[Configuration]:
+    """Every configuration: the presets, the ablations on ``base``, the still subject, the mixed one."""
+    from stg_node.avatar import PRESETS, preset
+
+    if base not in PRESETS:
+        raise ValueError(f"--base must be one of {', '.join(PRESETS)}, got {base!r}")
+    b = preset(base)
+    n_p, n_q = b.model.motion_order, b.model.rotation_order
+    budget = (b.model.num_gaussians, b.model.max_gaussians)
+    full = f"preset_{base}"
+    rows = [Configuration(f"preset_{p}", f"{p} (preset)", "preset", "dance", p) for p in PRESETS]
+    ablations = [
+        Configuration(
+            f"full_{base}",
+            f"full model (= {base}: n_p={n_p}, n_q={n_q}, MLP, flow-guided)",
+            "ablation",
+            "dance",
+            base,
+            alias_of=full,
+        ),
+        Configuration(
+            "lbs_only",
+            "LBS only (no spacetime, no flow-guided densification)",
+            "ablation",
+            "dance",
+            base,
+            {"model.spacetime": False, "densify.flow_guided": False},
+        ),
+        Configuration(
+            "no_flow_densify",
+            "no flow-guided densification",
+            "ablation",
+            "dance",
+            base,
+            {"densify.flow_guided": False},
+        ),
+        Configuration(
+            "sh_color", "SH colour instead of the MLP", "ablation", "dance", base, {"model.color": "sh"}
+        ),
+    ]
+    for symbol, key, orders, current in (
+        ("n_p", "model.motion_order", range(4), n_p),
+        ("n_q", "model.rotation_order", range(2), n_q),
+    ):
+        for order in orders:
+            name, label = f"{symbol}{order}", f"{symbol} = {order}"
+            if order == current:  # the base itself: the same run, shown again in its series
+                ablations.append(
+                    Configuration(name, f"{label} (= {base})", "ablation", "dance", base, alias_of=full)
+                )
+            else:
+                ablations.append(Configuration(name, label, "ablation", "dance", base, {key: order}))
+    for name, factor, word in (("budget_half", 0.5, "halved"), ("budget_double", 2.0, "doubled")):
+        changes = {
+            "model.num_gaussians": round(budget[0] * factor),
+            "model.max_gaussians": round(budget[1] * factor),
+        }
+        label = f"Gaussian budget {word} (initial and maximum x{factor:g})"
+        ablations.append(Configuration(name, label, "ablation", "dance", base, changes))
+    rows += ablations
+    rows.append(Configuration(f"still_{base}", f"still subject, {base} preset", "economy", "still", base))
+    rows.append(Configuration(f"mixed_{base}", f"mixed subject, {base} preset", "subject", "mixed", base))
+    rows.append(
+        Configuration(
+            "mixed_lbs_only",
+            "mixed subject, LBS only",
+            "subject",
+            "mixed",
+            base,
+            {"model.spacetime": False, "densify.flow_guided": False},
+        )
+    )
+    return rows
+
+
+# --- data ---------------------------------------------------------------------------------------
+def subject_folder(cache: Path, subject: str, scale: Scale, seed: int) -> Path:
+    return cache / f"{subject}_{scale.frames}f_{scale.size}px_v{scale.views}e{scale.view_every}_s{seed}"
+
+
+def ensure_subject(cache: Path, subject: str, scale: Scale, seed: int = 0, fresh: bool = False) -> Path:
+    """The synthetic subject's folder, generated once (deterministic: same seed, same files);
+    ``fresh`` generates it again (and drops the fast regions computed from the old one)."""
+    from stg_node.data.synth.generate import SynthConfig, generate
+    from stg_node.data.synth.writer import read_metadata
+
+    out = subject_folder(cache, subject, scale, seed)
+    try:
+        meta = read_metadata(out)
+        wanted = (subject, scale.frames, [scale.size, scale.size], scale.view_every, seed)
+        found = (meta["motion"], meta["num_frames"], meta["size"], meta["view_every"], meta["seed"])
+        if found == wanted and not fresh:
+            return out
+    except (FileNotFoundError, ValueError, KeyError):
+        pass
+    log.info("generating the %s subject into %s", subject, out)
+    for stale in out.glob("fast_regions_*.npz"):
+        stale.unlink()
+    generate(
+        SynthConfig(
+            out=out,
+            seed=seed,
+            num_frames=scale.frames,
+            size=scale.size,
+            motion=subject,
+            num_novel_views=scale.views,
+            view_every=scale.view_every,
+            supersample=scale.supersample,
+            overwrite=True,
+        ),
+        progress=False,
+    )
+    return out
+
+
+def fast_regions(folder: Path, scale: Scale) -> dict[str, dict[tuple[int, str], object]]:
+    """Per split, (frame, camera name) -> (H, W) bool fast-moving pixels; cached beside the data."""
+    import numpy as np
+
+    from stg_node.avatar.data_spec import DataSpec
+    from stg_node.body import load_body_model
+    from stg_node.data.synth.true_flow import benchmark_true_flow, fast_region
+    from stg_node.data.synth.writer import read_metadata
+
+    threshold = scale.fast_threshold_px
+    cache = folder / f"fast_regions_{threshold:.3f}px.npz"
+    regions: dict[str, dict] = {"novel_view": {}, "novel_pose": {}}
+    if cache.is_file():
+        with np.load(cache) as stored:
+            for key in stored.files:
+                split, frame, camera = key.split("|")
+                regions[split][(int(frame), camera)] = (
+                    np.unpackbits(stored[key])[: scale.size**2].reshape(scale.size, scale.size).astype(bool)
+                )
+        return regions
+    meta = read_metadata(folder)
+    faces = load_body_model().faces.cpu().numpy()
+    spec = DataSpec(str(folder), "synthetic", size=scale.size)
+    packed = {}
+    for split in regions:
+        for sample in spec.open(split):
+            flow = benchmark_true_flow(folder, sample.index, sample.camera, faces, int(meta["num_frames"]))
+            region = fast_region(flow, threshold)
+            regions[split][(sample.index, sample.camera.name)] = region
+            packed[f"{split}|{sample.index}|{sample.camera.name}"] = np.packbits(region)
+    np.savez_compressed(cache, **packed)
+    return regions
+
+
+# --- measuring one configuration ----------------------------------------------------------------
+def data_id(folder: Path) -> str:
+    """What identifies a generated subject: a hash of its synth.json (seed, motion, cameras, garment...)."""
+    meta = Path(folder) / "synth.json"
+    return hashlib.sha256(meta.read_bytes()).hexdigest()[:12] if meta.is_file() else "missing"
+
+
+def fingerprint(config, row: Configuration, scale: Scale, seed: int, backend: str, data: str) -> str:
+    """The settings a result depends on; a stored result with another fingerprint is measured again."""
+    record = {
+        "version": RESULT_VERSION,
+        "data": data,
+        "config": config.to_dict(),
+        "subject": row.subject,
+        "scale": dataclasses.asdict(scale),
+        "seed": seed,
+        "backend": backend,
+    }
+    return hashlib.sha256(json.dumps(record, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def train_run(row: Configuration, config, data: Path, run_dir: Path, scale: Scale, args) -> dict:
+    """Train one configuration into a run folder (the layout stg-train writes); its training figures."""
+    from stg_node.avatar import Trainer
+    from stg_node.avatar.data_spec import DataSpec
+    from stg_node.avatar.run import RunDir, write_json
+    from stg_node.avatar.snapshot import write_snapshot_file
+    from stg_node.data.flow import FlowCache
+    from stg_node.progress import progress
+
+    run = RunDir(run_dir)
+    spec = DataSpec(str(data.resolve()), "synthetic", size=scale.size)
+    run.write_config(
+        {
+            "config": config.to_dict(),
+            "data": spec.to_dict(),
+            "body_model": "open",
+            "seed": args.seed,
+            "backend": args.backend,
+            "device": args.device,
+            "versions": {"tool": "tools/tradeoff.py", "configuration": row.name},
+        }
+    )
+    trainer = Trainer(
+        config,
+        device=args.device,
+        backend=args.backend,
+        seed=args.seed,
+        flow_cache=FlowCache(data / "flow_cache"),
+    )
+    started = time.perf_counter()
+    trainer.add_frames(spec.open("train"))
+    prep_s = time.perf_counter() - started
+    bar = progress(desc=f"train {row.name}", unit="it", total=config.iterations, enabled=not args.no_progress)
+    while trainer.iteration < config.iterations:
+        result = trainer.step()
+        bar.update(1)
+        if result.iteration % config.log_every == 0:
+            bar.set_postfix(psnr=f"{result.psnr:.2f}", gaussians=result.num_gaussians, refresh=False)
+    bar.close()
+    trainer.save(run.checkpoint)
+    write_snapshot_file(run.avatar, trainer.snapshot())
+    stats = trainer.stats()
+    summary = {
+        "finished": True,
+        "iterations": trainer.iteration,
+        "train_seconds": trainer.train_seconds,
+        "prep_seconds": prep_s,
+        "skipped_steps": trainer.skipped_steps,
+        "frames": len(trainer.store),
+        "preset": config.preset,
+        **stats,
+        "active_motion_count": round(stats["active_motion_fraction"] * stats["gaussians"]),
+        "densify": dict(trainer.densifier.counts),
+    }
+    write_json(run.summary, summary)
+    return summary
+
+
+def _render_ms(renderer, samples, corrections, repeats: int, *, skip: bool = True) -> float:
+    """Median wall time (ms) of pose + colour + splat for ``samples`` at their own size."""
+    import torch
+
+    from stg_node.avatar.loading import corrected
+    from stg_node.avatar.model import BodyState, Camera3, render
+
+    runs = []
+    for sample in samples:
+        smpl = corrected(sample.smpl, corrections.get(sample.index))
+        for i in range(repeats + 1):
+            if skip:
+                out = renderer.render(sample.camera, smpl, sample.time)
+                ms = out.render_ms
+            else:  # the same work with every row's polynomial evaluated (the skip's baseline)
+                t0 = time.perf_counter()
+                with torch.no_grad():
+                    cam = Camera3.from_camera(sample.camera, device=renderer.device)
+                    u = renderer.time_for(smpl, sample.time)
+                    posed = renderer.model.pose(BodyState.from_smpl(smpl, renderer.device), u, cam.center)
+                    image, _, _ = render(posed, cam, background=0.0, backend=renderer.backend)
+                    image.cpu()
+                ms = (time.perf_counter() - t0) * 1e3
+            if i:  # the first render of a view warms caches
+                runs.append(ms)
+    return statistics.median(runs)
+
+
+def evaluate_run(run_dir: Path, regions: dict, scale: Scale) -> dict:
+    """Quality on both held-out splits (stg-eval's protocol), fast-region PSNR, render speed."""
+    import numpy as np
+    import torch
+
+    from stg_node.avatar import AvatarRenderer
+    from stg_node.avatar.evaluate import evaluate_split
+    from stg_node.avatar.loading import load_run_renderer
+    from stg_node.avatar.snapshot import read_snapshot_file
+    from stg_node.data.metrics import psnr
+
+    run, renderer, corrections, _ = load_run_renderer(run_dir)
+    spec = run.data_spec()
+    out: dict = {}
+    for split in ("novel_view", "novel_pose"):
+        dataset = spec.open(split)
+        report, kept = evaluate_split(
+            renderer,
+            dataset,
+            split=split,
+            lpips_nets=(LPIPS_NET,),
+            pose_corrections=corrections if split == "novel_view" else None,
+            show_progress=False,
+            keep_images=len(dataset),
+        )
+        pred_px, gt_px, body_px = [], [], 0
+        for index, camera, pred, gt in kept:
+            region = regions[split][(index, camera)]
+            pred_px.append(pred[region])
+            gt_px.append(gt[region])
+            body_px += int((gt.sum(-1) > 0).sum())
+        fast = np.concatenate(pred_px), np.concatenate(gt_px)
+        out[split] = {
+            "psnr": report["psnr"],
+            "ssim": report["ssim"],
+            "lpips": report["lpips"].get(LPIPS_NET, math.nan),
+            "views": report["views"],
+            "fast_pixels": int(fast[0].shape[0]),
+            "fast_fraction_of_body": fast[0].shape[0] / max(body_px, 1),
+            "fast_psnr": psnr(fast[0][None], fast[1][None]) if fast[0].shape[0] else math.nan,
+            "protocol": report["protocol"],
+        }
+    samples = [spec.open("novel_view")[i] for i in range(scale.render_views)]
+    render = {
+        "cpu_ms": _render_ms(renderer, samples, corrections, scale.render_repeats),
+        "cpu_ms_no_skip": _render_ms(renderer, samples, corrections, scale.render_repeats, skip=False),
+        "cuda_ms": None,
+        "cuda_ms_no_skip": None,
+    }
+    if torch.cuda.is_available():
+        gpu = AvatarRenderer.from_snapshot(read_snapshot_file(run.avatar), device="cuda", backend="cuda")
+        render["cuda_ms"] = _render_ms(gpu, samples, corrections, scale.render_repeats)
+        render["cuda_ms_no_skip"] = _render_ms(gpu, samples, corrections, scale.render_repeats, skip=False)
+    out["render"] = render
+    return out
+
+
+def machine() -> dict:
+    import torch
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    record = {
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "threads": torch.get_num_threads(),
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
+    }
+    return record
+
+
+def measure(row: Configuration, scale: Scale, args, regions_by_subject: dict, data: dict) -> dict:
+    """Train and score one configuration, or read its result if already measured with these settings."""
+    from stg_node.avatar.run import write_json
+
+    config = row.config(scale)
+    key = fingerprint(config, row, scale, args.seed, args.backend, data_id(data[row.subject]))
+    result_file = Path(args.out) / "results" / f"{row.name}.json"
+    if result_file.is_file() and not args.fresh:
+        stored = json.loads(result_file.read_text())
+        if stored.get("fingerprint") == key:
+            log.info(
+                "%s: reusing the result in %s (same settings; --fresh measures again)", row.name, result_file
+            )
+            return stored
+    log.info("%s: training %d iterations on the %s subject", row.name, config.iterations, row.subject)
+    run_dir = Path(args.out) / "runs" / row.name
+    summary = train_run(row, config, data[row.subject], run_dir, scale, args)
+    scores = evaluate_run(run_dir, regions_by_subject[row.subject], scale)
+    result = {
+        "name": row.name,
+        "label": row.label,
+        "group": row.group,
+        "subject": row.subject,
+        "preset": row.preset,
+        "changes": row.changes,
+        "fingerprint": key,
+        "config": config.to_dict(),
+        "scale": scale.name,
+        "seed": args.seed,
+        "run_dir": str(run_dir),
+        "train": summary,
+        "it_per_s": summary["iterations"] / max(summary["train_seconds"], 1e-9),
+        **scores,
+        "machine": machine(),
+        "date": datetime.date.today().isoformat(),
+    }
+    result_file.parent.mkdir(parents=True, exist_ok=True)
+    write_json(result_file, result)
+    return result
+
+
+# --- the command -------------------------------------------------------------------------------
+def build_parser() -> argparse.ArgumentParser:
+    from stg_node.cli.runner import add_log_level_option
+
+    p = argparse.ArgumentParser(
+        prog="tradeoff.py",
+        description="Train every STG-Avatar preset and ablation on the synthetic benchmark; write the "
+        "trade-off table into docs/BENCHMARKS.md and a Pareto plot.",
+    )
+    p.add_argument(
+        "--quick", action="store_true", help="a reduced grid in minutes (tiny images, few iterations)"
+    )
+    p.add_argument(
+        "--out",
+        default=None,
+        help="runs, results and (default) the data cache "
+        "(default runs/tradeoff, or runs/tradeoff_quick with --quick)",
+    )
+    p.add_argument(
+        "--data-cache", default=None, help="where the synthetic subjects are generated (default OUT/data)"
+    )
+    p.add_argument(
+        "--docs",
+        default=None,
+        help="markdown file the section goes into "
+        "(default docs/BENCHMARKS.md; with --quick, OUT/BENCHMARKS_quick.md)",
+    )
+    p.add_argument(
+        "--plot",
+        default=None,
+        help="Pareto plot PNG (default docs/tradeoff_pareto.png; "
+        "with --quick, OUT/tradeoff_pareto_quick.png)",
+    )
+    p.add_argument(
+        "--base", default="fast", help="the preset the ablations flip switches of (default %(default)s)"
+    )
+    p.add_argument(
+        "--only", nargs="+", default=None, metavar="NAME", help="measure only these configurations"
+    )
+    p.add_argument(
+        "--fresh",
+        action="store_true",
+        help="generate the subjects and measure again even where results exist",
+    )
+    p.add_argument("--list", action="store_true", help="print the configurations and exit")
+    p.add_argument("--seed", type=int, default=0, help="training seed (default %(default)s)")
+    p.add_argument(
+        "--backend", default="auto", choices=("auto", "cpu", "cuda", "torch"), help="splatting backend"
+    )
+    p.add_argument("--device", default="cpu", help="torch device for training (default %(default)s)")
+    p.add_argument("--threads", default=None, help="CPU threads (default: STG_THREADS or 1)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    add_log_level_option(p)
+    return p
+
+
+def command_line(argv: list[str]) -> str:
+    return " ".join(["python tools/tradeoff.py", *argv])
+
+
+def run(args: argparse.Namespace, argv: list[str]) -> int:
+    import tradeoff_report
+
+    from stg_node.cli.runner import UsageError
+    from stg_node.progress import progress
+    from stg_node.threads import configure_threads
+
+    scale = QUICK if args.quick else FULL
+    try:
+        rows = grid(args.base)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from exc
+    names = {r.name for r in rows}
+    if args.only:
+        unknown = sorted(set(args.only) - names)
+        if unknown:
+            raise UsageError(f"--only: unknown configuration(s) {', '.join(unknown)}; see --list")
+    if args.list:
+        for row in rows:
+            target = f"= {row.alias_of}" if row.alias_of else f"{row.preset} {row.changes or ''}"
+            print(f"{row.name:18s} {row.subject:6s} {row.group:8s} {target}")
+        return 0
+    configure_threads(args.threads)
+    out = Path(args.out or ("runs/tradeoff_quick" if args.quick else "runs/tradeoff"))
+    args.out = str(out)
+    cache = Path(args.data_cache) if args.data_cache else out / "data"
+    docs = (
+        Path(args.docs)
+        if args.docs
+        else (out / "BENCHMARKS_quick.md" if args.quick else REPO / "docs/BENCHMARKS.md")
+    )
+    plot = (
+        Path(args.plot)
+        if args.plot
+        else (out / "tradeoff_pareto_quick.png" if args.quick else REPO / "docs/tradeoff_pareto.png")
+    )
+    selected = [r for r in rows if not r.alias_of and (not args.only or r.name in args.only)]
+    subjects = sorted({r.subject for r in selected}, key=SUBJECTS.index)
+    data, regions = {}, {}
+    for subject in progress(subjects, desc="subjects", unit="subject", enabled=not args.no_progress):
+        data[subject] = ensure_subject(cache, subject, scale, fresh=args.fresh)
+        regions[subject] = fast_regions(data[subject], scale)
+    results = {}
+    bar = progress(desc="configurations", unit="config", total=len(selected), enabled=not args.no_progress)
+    for row in selected:
+        bar.set_postfix(config=row.name, refresh=True)
+        results[row.name] = measure(row, scale, args, regions, data)
+        bar.update(1)
+    bar.close()
+    # Rows measured earlier with the same settings (a partial --only run) join the report.
+    for row in rows:
+        if row.alias_of or row.name in results:
+            continue
+        stored = Path(args.out) / "results" / f"{row.name}.json"
+        if stored.is_file():
+            record = json.loads(stored.read_text())
+            folder = subject_folder(cache, row.subject, scale, 0)
+            key = fingerprint(row.config(scale), row, scale, args.seed, args.backend, data_id(folder))
+            if record.get("fingerprint") == key:
+                results[row.name] = record
+    context = tradeoff_report.ReportContext(
+        command=command_line(argv),
+        machine=machine(),
+        scale=dataclasses.asdict(scale),
+        fast_threshold_px=scale.fast_threshold_px,
+        base=args.base,
+        date=datetime.date.today().isoformat(),
+        plot=plot,
+        docs=docs,
+    )
+    report = tradeoff_report.build(rows, results, context)
+    (out / "results.json").write_text(json.dumps(report.records, indent=1, default=float))
+    tradeoff_report.write_plot(report, plot)
+    tradeoff_report.write_section(docs, report.markdown)
+    print(report.markdown)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    from stg_node.cli.runner import run_main
+
+    argv = list(sys.argv[1:] if argv is None else argv)
+    return run_main(build_parser(), lambda args: run(args, argv), argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
