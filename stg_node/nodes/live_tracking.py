@@ -32,9 +32,9 @@ log = logging.getLogger(__name__)
 #: Gap between tracked frames after which the SMPL fit starts afresh (FitConfig.max_temporal_gap_s,
 #: 0.5 s for videos). Live, the gap is the tracker's own lag: a fresh start costs 0.4-1 s on this
 #: CPU, so with 0.5 s one slow frame makes the next gap too long, and the tracker re-initialises
-#: on every frame from then on (a 30 fps camera at 256 px on a busy 2-core box: 27 of 150 frames
-#: tracked, every one after the first slow one a fresh start, against 74 with 2 s;
-#: tools/bench_track.py --live). A lost person still re-initialises (the detector says so).
+#: on every frame from then on (a simulated 30 fps camera at 256 px on a busy 2-core box: 27 of
+#: 150 frames tracked, every one after the first slow one a fresh start, against 74 with 2 s;
+#: docs/BENCHMARKS.md#tracking). A lost person still re-initialises (the detector says so).
 LIVE_MAX_GAP_S = 2.0
 
 
@@ -48,13 +48,17 @@ class LiveTrackingParams:
         None, doc="onnx: the ONNX file; blazepose: a folder with its two .tflite files (default: installed)"
     )
     mask: Literal["segmentation", "plate", "mog2", "knn", "depth", "none"] = param(
-        "segmentation", doc="person mask: the network's segmentation, an empty plate, a background model, depth"
+        "segmentation",
+        doc="person mask: the network's segmentation, an empty plate, a background model, depth",
     )
     plate: str | None = param(None, doc="mask plate: an image of the empty scene at the camera's size")
     max_side: int = param(512, min=0, unit="px", doc="detect and mask on frames scaled to this long side")
     smoothing: bool = param(True, doc="One-Euro smoothing of the parameters over time")
     max_gap_s: float = param(
-        LIVE_MAX_GAP_S, min=0.0, unit="s", doc="a longer time since the last tracked frame starts the fit afresh"
+        LIVE_MAX_GAP_S,
+        min=0.0,
+        unit="s",
+        doc="a longer time since the last tracked frame starts the fit afresh",
     )
 
     def validate(self) -> None:
@@ -100,7 +104,9 @@ class TrackingEstimator:
         if self.tracker is not None and key == self._camera_key:
             return self.tracker
         if not (K[0, 0] > 0 and K[1, 1] > 0 and np.allclose(K[2], [0.0, 0.0, 1.0])):
-            raise ValueError(f"frame {frame.index}: K is not a pinhole matrix with positive focal lengths: {K}")
+            raise ValueError(
+                f"frame {frame.index}: K is not a pinhole matrix with positive focal lengths: {K}"
+            )
         if self.tracker is not None:
             log.info("the camera changed (%dx%d, K): building the tracker again", width, height)
         intrinsics = Intrinsics(K.copy(), None, width, height, "frame")

@@ -15,7 +15,7 @@ import time
 
 import numpy as np
 import pytest
-from fixtures.videos import synthetic_clip, truth_mask, truth_smpl
+from fixtures.videos import truth_mask, truth_smpl
 from nodehelpers import ROOT, NodeThread, ignore_sigint, spawn, wait_until
 
 from stg_node.bus import BusConfig, Frame, Subscriber
@@ -23,19 +23,14 @@ from stg_node.bus.messages import BodyPose, NodeStatus, RenderedImage, TrainerMe
 from stg_node.nodes.ingest import IngestNode, IngestParams
 from stg_node.nodes.params import parse_params
 from stg_node.nodes.renderer import RendererNode, RendererParams
-from stg_node.nodes.trainer import TrainerNode, TrainerParams
 from stg_node.nodes.tracker import TrackerNode, TrackerParams
+from stg_node.nodes.trainer import TrainerNode, TrainerParams
 from tests.tracking.trackhelpers import needs_blazepose
 
 pytestmark = needs_blazepose
 
 FAKE = "tests.nodes.fake_avatar"
 RAW = "raw/camera/frame"
-
-
-@pytest.fixture(scope="module")
-def clip(tmp_path_factory):
-    return synthetic_clip(tmp_path_factory.mktemp("live") / "clip")
 
 
 def _iou(mask: np.ndarray, truth: np.ndarray) -> float:
@@ -75,8 +70,12 @@ def test_a_video_through_the_live_pipeline_gives_poses_masks_and_avatar_images(b
         "tracker",
         parse_params(
             TrackerParams,
-            {"mode": "live", "estimator_params": {"max_side": "256"}, "input_topic": RAW,
-             "frame_topic": "camera/frame"},
+            {
+                "mode": "live",
+                "estimator_params": {"max_side": "256"},
+                "input_topic": RAW,
+                "frame_topic": "camera/frame",
+            },
         ),  # fmt: skip
         config,
         heartbeat_s=0.2,
@@ -85,14 +84,22 @@ def test_a_video_through_the_live_pipeline_gives_poses_masks_and_avatar_images(b
         "trainer",
         parse_params(
             TrainerParams,
-            {"avatar": FAKE, "preset": "slow", "snapshot_every_s": 0.3, "metrics_every": 5, "min_confidence": 0.5},
+            {
+                "avatar": FAKE,
+                "preset": "slow",
+                "snapshot_every_s": 0.3,
+                "metrics_every": 5,
+                "min_confidence": 0.5,
+            },
         ),
         config,
         heartbeat_s=0.2,
     )
     renderer = RendererNode(
         "renderer",
-        parse_params(RendererParams, {"avatar": FAKE, "default_view": "train", "size": 64, "idle_rate_hz": 5}),
+        parse_params(
+            RendererParams, {"avatar": FAKE, "default_view": "train", "size": 64, "idle_rate_hz": 5}
+        ),
         config,
         heartbeat_s=0,
     )
@@ -101,8 +108,15 @@ def test_a_video_through_the_live_pipeline_gives_poses_masks_and_avatar_images(b
         "ingest",
         parse_params(
             IngestParams,
-            {"source": "video", "path": str(clip.video), "calibration": str(clip.calibration),
-             "rate_hz": 8, "loop": True, "max_frames": frames_total, "wait_subscribers_s": 30},
+            {
+                "source": "video",
+                "path": str(clip.video),
+                "calibration": str(clip.calibration),
+                "rate_hz": 8,
+                "loop": True,
+                "max_frames": frames_total,
+                "wait_subscribers_s": 30,
+            },
         ),  # fmt: skip
         config,
         remap={"camera/frame": RAW},
