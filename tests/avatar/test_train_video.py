@@ -7,11 +7,10 @@ import json
 
 import numpy as np
 import pytest
-from fixtures.videos import synthetic_clip
+from fixtures.videos import count_tracking_runs, synthetic_clip
 
 from stg_node.cli import render as render_cli
 from stg_node.cli import train as train_cli
-from stg_node.tracking import pipeline
 from tests.tracking.trackhelpers import needs_blazepose
 
 FAST = ["--preset", "fast", "--size", "128", "--no-progress"]
@@ -66,14 +65,7 @@ def test_camera_options_belong_to_videos_and_bad_input_exits_1(tmp_path, clip, m
 
 @needs_blazepose
 def test_a_video_becomes_an_avatar_with_two_commands(tmp_path, clip, monkeypatch):
-    calls = []
-    real = pipeline.track_to_file
-
-    def counting(*args, **kwargs):
-        calls.append(args[0])
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(pipeline, "track_to_file", counting)
+    calls = count_tracking_runs(monkeypatch)
     run = tmp_path / "run"
     argv = ["--data", str(clip.video), "--format", "video", "--out", str(run), "--iters", "6",
             "--intrinsics", str(clip.calibration), *FAST]  # fmt: skip

@@ -10,7 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from fixtures.videos import write_video
+from fixtures.videos import count_tracking_runs, write_video
 from tiny_onnx import dot_heatmap_model
 from trackhelpers import needs_blazepose
 
@@ -109,14 +109,7 @@ def test_broken_poses_files_are_refused(tmp_path):
 
 
 def test_track_video_caches_by_content_and_options(tmp_path, monkeypatch, synth_video, dot_model):
-    calls = []
-    real = pipeline.track_to_file
-
-    def counting(*args, **kwargs):
-        calls.append(args[0])
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(pipeline, "track_to_file", counting)
+    calls = count_tracking_runs(monkeypatch)
     options = pipeline.TrackOptions(detector="onnx", pose_model=str(dot_model), mask="none")
     cache = tmp_path / "cache"
     first = pipeline.track_video(synth_video, options, cache_dir=cache, progress=False)
