@@ -3,9 +3,10 @@
 Terms (each reported by name in StepResult.losses and on trainer/metrics):
 
 - ``l1``, ``ssim``: photometric, ``(1 - w) L1 + w (1 - SSIM)`` on the rendered crop (3DGS).
-  SSIM: 11x11 Gaussian window (sigma 1.5) over the valid region, written here as a depthwise
-  separable convolution in float32; kornia's ``ssim_loss`` computes the same value but took
-  4-5x longer per training step on this CPU (tools/bench_avatar.py --ssim; docs/AVATAR.md).
+  SSIM: 11x11 Gaussian window (sigma 1.5) over the valid region. Float32 CPU images go to the
+  C++ kernel with its analytic backward (``stg_node.splat.image_ops.ssim``); everything else
+  (CUDA, float64, no compiler) to ``ssim_torch``, a depthwise separable convolution, which is
+  also the kernel's test oracle. Speeds: tools/bench_avatar.py (the ssim section), docs/AVATAR.md.
 - ``mask``: ``|alpha - mask|``, so the silhouette matches and nothing grows into the background.
 - ``flow``: the 2D motion of the Gaussians between this frame and the next (each Gaussian's
   projected displacement, alpha-blended like a colour) against the DIS optical flow, Charbonnier,
@@ -32,29 +33,35 @@ import torch
 import torch.nn.functional as F
 
 from stg_node.avatar.config import LossConfig
+from stg_node.splat import image_ops
+from stg_node.splat.image_ops import SSIM_C1, SSIM_C2
 
 AUX_SHARE_MAX = 0.5
 EMA_DECAY = 0.98
 CHARBONNIER_EPS = 0.5  # px
 
 
-SSIM_C1 = 0.01**2
-SSIM_C2 = 0.03**2
 _KERNELS: dict = {}
 
 
 def _gaussian_taps(dtype, device) -> torch.Tensor:
     key = (dtype, device)
     if key not in _KERNELS:
-        x = torch.arange(11, dtype=torch.float64) - 5
-        k = torch.exp(-0.5 * (x / 1.5) ** 2)
-        _KERNELS[key] = (k / k.sum()).to(dtype=dtype, device=device)
+        _KERNELS[key] = torch.tensor(image_ops.gaussian_taps(), dtype=dtype, device=device)
     return _KERNELS[key]
 
 
 def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Mean SSIM of ``(H, W, C)`` images in [0, 1]: 11x11 Gaussian window (sigma 1.5), valid region,
-    population statistics (3DGS's and torchmetrics' definition)."""
+    population statistics (3DGS's and torchmetrics' definition). The C++ kernel where it applies
+    (float32 CPU tensors, see image_ops.ssim_kernel_applies), else ``ssim_torch``."""
+    if image_ops.ssim_kernel_applies(a, b):
+        return image_ops.ssim(a, b)
+    return ssim_torch(a, b)
+
+
+def ssim_torch(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``ssim`` in torch (depthwise separable convolutions, autograd): any device and dtype."""
     c = a.shape[2]
     x = torch.cat([a, b, a * a, b * b, a * b], dim=2).permute(2, 0, 1)[None]  # (1, 5C, H, W)
     n = x.shape[1]

@@ -12,6 +12,16 @@ subscriber only. So a late joiner receives the cached model at once and nobody e
 it twice. When there is nothing to replay, that next send is a one-frame empty message
 (a no-op that only whole-bus subscribers, prefix "", can receive; receivers ignore it).
 
+The cache must hold the latest value even when nobody listens: publishers filter on their
+side (PUB/SUB sends a message only to peers subscribed to it), so an upstream socket that
+only forwarded its subscribers' subscriptions would never see a snapshot published while no
+renderer runs, and a renderer started later would get nothing. So the upstream (XSUB)
+socket of every lane that carries a latched topic subscribes to everything itself. Those
+lanes carry only large, rare messages (bulk: snapshots); the keep-last camera lane is never
+pulled that way. A publisher of a latched topic therefore always sees a subscriber (the
+broker): what it sends is never lost, and a subscriber whose subscription is still on its
+way gets the latest value on arrival, as any late joiner.
+
 The broker publishes its own NodeStatus (src ``broker``) every ``status_period_s`` with
 per-topic rates and bandwidth of everything it forwards.
 """
@@ -41,6 +51,7 @@ LATCHED_TOPICS = frozenset(name for name, cls in TOPIC_TYPES.items() if cls.SPEC
 _BATCH = 256  # messages forwarded per socket before looking at the others again
 _MAX_TOPICS_TRACKED = 1024
 NOOP = b""
+SUBSCRIBE_ALL = b"\x01"  # an XSUB subscription message: 1, then the (empty) prefix
 
 
 class BrokerRunning(RuntimeError):
@@ -51,8 +62,11 @@ class Broker:
     """XSUB/XPUB proxy for every lane of every URL in ``urls``; see the module docstring.
 
     ``keys``: CURVE key directory; tcp endpoints then admit only authorised keys (ipc too
-    with ``curve_on_ipc``). Use as a context manager (runs in a thread) or call
-    :meth:`run` in the main thread (returns on :meth:`stop` or Ctrl-C).
+    with ``curve_on_ipc``). ``latched``: the topic names to cache (default: the standard
+    latched topics); ``lanes``: lane overrides as in BusConfig (a launch file's ``bus.lanes``),
+    so the broker pulls a latched topic moved to another lane on that lane. Use as a context
+    manager (runs in a thread) or call :meth:`run` in the main thread (returns on :meth:`stop`
+    or Ctrl-C).
     """
 
     def __init__(
@@ -65,16 +79,21 @@ class Broker:
         namespace: str = "",
         status_period_s: float = 1.0,
         latched=None,
+        lanes: dict[str, str] | None = None,
         context: zmq.Context | None = None,
     ):
         if isinstance(urls, str):
             urls = [urls]
         self.urls = list(urls or [default_url()])
-        self.configs = [BusConfig(url=u, keys=keys, curve_on_ipc=curve_on_ipc) for u in self.urls]
+        self.configs = [
+            BusConfig(url=u, keys=keys, curve_on_ipc=curve_on_ipc, lanes=dict(lanes or {})) for u in self.urls
+        ]
         self.node = node
         self.status_topic = join_namespace(namespace, "node/status")
         self.status_period_s = status_period_s
         self.latched = frozenset(latched) if latched is not None else LATCHED_TOPICS
+        #: lanes whose upstream subscribes to everything, so the cache sees every latched message
+        self.latch_lanes = frozenset(self.configs[0].lane_of(name).name for name in self.latched)
         self.traffic = Traffic()
         self.cache: dict[bytes, list] = {}  # latched topic -> last message's frames
         self._own_context = context is None
@@ -100,6 +119,8 @@ class Broker:
             xsub = sockets.make_socket(self._context, zmq.XSUB, lane)
             xpub = sockets.make_socket(self._context, zmq.XPUB, lane)
             xpub.setsockopt(zmq.XPUB_MANUAL_LAST_VALUE, 1)
+            if lane.name in self.latch_lanes:
+                xsub.send(SUBSCRIBE_ALL)  # resent by libzmq to every publisher that connects later
             self._lanes.append((xsub, xpub))
             for config in self.configs:
                 for sock, side in ((xsub, "in"), (xpub, "out")):

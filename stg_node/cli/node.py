@@ -6,7 +6,8 @@
     python -m stg_node.nodes --list                      # the node kinds
 
 ``--params`` takes JSON (or ``@file.json``); ``--param k=v`` (repeatable) wins over it, its value
-parsed as the parameter's type. ``--remap from:=to`` renames a topic for this node. Exit codes:
+parsed as the parameter's type. ``--remap from:=to`` renames a topic for this node; ``--ack TOPIC``
+acknowledges each message taken from TOPIC on node/ack (lockstep playback). Exit codes:
 0 stopped cleanly (also on SIGINT/SIGTERM), 1 the node failed, 2 bad usage or bad parameters.
 """
 
@@ -45,6 +46,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--lane", action="append", default=[], metavar="TOPIC=LANE", help="move a topic to another lane"
     )
     parser.add_argument("--heartbeat", type=float, default=1.0, metavar="S", help="NodeStatus period")
+    parser.add_argument(
+        "--ack",
+        action="append",
+        default=[],
+        metavar="TOPIC",
+        help="lockstep: publish an Ack on node/ack for each message of TOPIC (as subscribed; '*': all) "
+        "once handled (repeatable)",
+    )
     add_log_level_option(parser)
     parser.add_argument("--list", action="store_true", help="list the node kinds and exit")
     parser.add_argument("--describe", action="store_true", help="print the kind's parameters and exit")
@@ -109,7 +118,7 @@ def run(args: argparse.Namespace) -> int:
     name_process(name)
     with StopSignals() as stop:  # the first SIGINT/SIGTERM ends the loop, teardown still runs
         try:
-            node = cls(name, params, config, remap=remap, heartbeat_s=args.heartbeat, stop=stop)
+            node = cls(name, params, config, remap=remap, heartbeat_s=args.heartbeat, stop=stop, ack=args.ack)
         except KeyboardInterrupt:
             return 0
         except (OSError, ValueError) as exc:  # e.g. the bus URL cannot be reached

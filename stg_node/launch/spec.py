@@ -78,6 +78,11 @@ class NodeEntry:
     sigint_timeout: float = param(5.0, min=0.0, unit="s", doc="on shutdown: wait after SIGINT before SIGTERM")
     sigterm_timeout: float = param(5.0, min=0.0, unit="s", doc="then wait after SIGTERM before SIGKILL")
     heartbeat: float = param(1.0, min=0.05, unit="s", doc="NodeStatus period (kind nodes)")
+    ack: list[str] = param(
+        [],
+        doc="kind nodes, lockstep: publish an Ack on node/ack for each message taken from these "
+        "topics (as the node subscribes them; '*': all) once handled, for stg-bag play --lockstep",
+    )
     cwd: str | None = param(None, doc="working folder (default: where stg-launch runs)")
     if_: bool = param(True, doc="(written `if:`) start the node only if true")
     unless: bool = param(False, doc="skip the node if true")
@@ -154,6 +159,8 @@ class NodeSpec:
             cmd = [sys.executable, "-m", "stg_node.nodes", e.kind, "--name", self.name]
             cmd += ["--params", json.dumps(dataclasses.asdict(self.params)), "--bus", bus.url]
             cmd += ["--heartbeat", str(e.heartbeat)]
+            for topic in e.ack:
+                cmd += ["--ack", topic]
             if self.namespace:
                 cmd += ["--namespace", self.namespace]
             if bus.keys:
@@ -396,6 +403,8 @@ class _Reader:
             raise doc.error(
                 (*key, "params"), f"{label}: params are for kind nodes; pass args to module/cmd nodes"
             )
+        if entry.kind is None and entry.ack:
+            raise doc.error((*key, "ack"), f"{label}: ack is for kind nodes (their runtime sends the Acks)")
         if not NAMESPACE_PATTERN.match(entry.namespace):
             raise doc.error(
                 (*key, "namespace"), f"{label}: namespace {entry.namespace!r} is not a valid topic prefix"

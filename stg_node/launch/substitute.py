@@ -1,11 +1,13 @@
 """Substitutions in launch-file strings: ``$(arg NAME)``, ``$(env NAME [DEFAULT])``, ``$(exists PATH)``,
-``$(dirname)``, ``$(python)``. They nest (``$(exists $(arg out)/subject)``); inner ones first.
+``$(nonempty TEXT)``, ``$(dirname)``, ``$(python)``. They nest (``$(exists $(arg out)/subject)``);
+inner ones first.
 
 | form | value |
 |---|---|
 | ``$(arg NAME)`` | the launch argument (command line ``NAME:=VALUE``, include ``args:``, or its default) |
 | ``$(env NAME)`` / ``$(env NAME DEFAULT)`` | an environment variable; an error if unset and no default |
 | ``$(exists PATH)`` | ``true`` if the file or folder exists, else ``false`` (for ``if:`` / ``unless:``) |
+| ``$(nonempty TEXT)`` | ``true`` if TEXT is not empty, else ``false``: ``if: $(nonempty $(arg record))`` |
 | ``$(dirname)`` | the folder of the launch file being read (for paths relative to it) |
 | ``$(python)`` | the Python interpreter running stg-launch |
 """
@@ -74,11 +76,15 @@ def _evaluate(expr: str, scope: Scope) -> str:
         if not path.is_absolute():
             path = Path.cwd() / path
         return "true" if path.exists() else "false"
+    if verb == "nonempty":
+        return "true" if rest else "false"
     if verb == "dirname":
         return str(scope.dirname)
     if verb == "python":
         return sys.executable
-    raise SubstitutionError(f"unknown substitution $({expr}); use arg, env, exists, dirname or python")
+    raise SubstitutionError(
+        f"unknown substitution $({expr}); use arg, env, exists, nonempty, dirname or python"
+    )
 
 
 def substitute(text: str, scope: Scope) -> str:

@@ -33,7 +33,7 @@ from stg_node.bus import Broker, BrokerRunning, Subscriber
 from stg_node.bus.messages import NodeStatus
 from stg_node.launch.process import ChildProcess, OutputSink
 from stg_node.launch.spec import LaunchSpec, NodeSpec
-from stg_node.nodes.runtime import ENV_PARENT_PID, ENV_RESPAWN
+from stg_node.nodes.runtime import ENV_LAUNCH_FILE, ENV_PARENT_PID, ENV_RESPAWN
 
 log = logging.getLogger("stg_node.launch")
 
@@ -120,7 +120,7 @@ class Launcher:
     def _open_bus(self) -> None:
         bus = self.spec.bus
         if self.start_broker:
-            self._broker = Broker([bus.url, *bus.broker_urls], keys=bus.keys).start()
+            self._broker = Broker([bus.url, *bus.broker_urls], keys=bus.keys, lanes=bus.lanes).start()
         namespaces = sorted({s.spec.namespace for s in self.states if s.spec.entry.kind is not None})
         topics = [f"/{ns}/node/status" if ns else "/node/status" for ns in namespaces]
         if topics:
@@ -192,6 +192,7 @@ class Launcher:
         env["STG_BUS"] = self.spec.bus.url
         env["STG_NAMESPACE"] = spec.namespace
         env[ENV_PARENT_PID] = str(os.getpid())
+        env[ENV_LAUNCH_FILE] = str(Path(self.spec.path).resolve())
         if self.spec.bus.keys:
             env["STG_BUS_KEYS"] = self.spec.bus.keys
         return env

@@ -10,6 +10,7 @@ Each node is its own OS process, started by ``stg-launch`` or by hand:
 | tracker | :mod:`.tracker` | body/pose per frame: a dataset's SMPL fits, or live (:mod:`.live_tracking`: pose, mask, confidence) |
 | trainer | :mod:`.trainer` | trains the avatar online; avatar/snapshot, trainer/metrics, checkpoints |
 | renderer | :mod:`.renderer` | renders avatar/view requests or default views on avatar/image |
+| recorder | :mod:`.recorder` | records the bus into an MCAP file (stg-bag record as a node) |
 
 :mod:`.runtime` is the node base class and event loop, :mod:`.params` the typed parameters.
 Node modules import heavy packages (torch, OpenCV, depthai) only when a node starts, so that
@@ -26,6 +27,7 @@ NODE_KINDS = {
     "tracker": "stg_node.nodes.tracker:TrackerNode",
     "trainer": "stg_node.nodes.trainer:TrainerNode",
     "renderer": "stg_node.nodes.renderer:RendererNode",
+    "recorder": "stg_node.nodes.recorder:RecorderNode",
 }
 
 

@@ -13,6 +13,9 @@
 - Each RenderedImage carries the pose's / request's seq and stamp, the snapshot version,
   ``render_ms`` and ``latency_ms`` (source stamp to publication).
 - ``record_dir``: default-view images are written there; an MP4 and a contact sheet at the end.
+- Acknowledgements (the runtime's ``ack``, for lockstep replay): a one-shot avatar/view once its
+  image is published; a standing view, a pose or a frame when taken in; a snapshot once the
+  loader is done with it (swapped in, refused, or replaced by a newer one).
 
 All calls into the avatar package go through :mod:`.avatar_adapter`.
 """
@@ -158,6 +161,7 @@ class RendererNode(Node):
         self.views = self.subscribe("avatar/view")
         self.frames = self.subscribe("camera/frame")  # keep-last: the training camera
         self._waiting_logged = False
+        self.loading_snapshots: list[GaussianSnapshot] = []  # acknowledged when the loader is idle
 
     # -- snapshots ---------------------------------------------------------------------------------------
 
@@ -173,11 +177,16 @@ class RendererNode(Node):
         )
 
     def _swap(self) -> None:
+        idle = not self.loader.busy  # before take(): then every snapshot loaded is in what it returns
         built = self.loader.take()
         if built is not None and (self.current is None or built.version >= self.current.version):
             self.current = built
             self.swaps += 1
             self.log.info("rendering snapshot v%d", built.version)
+        if self.loading_snapshots and idle:
+            for msg in self.loading_snapshots:
+                self.acknowledge(msg)
+            self.loading_snapshots.clear()
 
     # -- input --------------------------------------------------------------------------------------------
 
@@ -185,12 +194,17 @@ class RendererNode(Node):
         while (msg := self.snapshots.recv(timeout=0)) is not None:
             if self.current is None or msg.model_version >= self.current.version:
                 self.loader.submit(msg)
+                self.loading_snapshots.append(msg)
+            else:
+                self.acknowledge(msg)
         msg = self.poses.recv(timeout=0)
         if msg is not None:
             self.pose, self.new_pose = msg, True
+            self.acknowledge(msg)
         frame: Frame | None = self.frames.recv(timeout=0)
         if frame is not None:
             self.train_camera = frame_camera(frame)
+            self.acknowledge(frame)
         now = time.monotonic()
         for _ in range(256):
             req = self.views.recv(timeout=0)
@@ -198,9 +212,10 @@ class RendererNode(Node):
                 break
             if req.follow_live:
                 self.standing[req.header.src] = StandingView(req, now)
+                self.acknowledge(req)
             else:
                 if len(self.oneshots) >= self.params.max_oneshot:
-                    self.oneshots.popleft()
+                    self.acknowledge(self.oneshots.popleft())  # dropped: nothing more will come of it
                     self.drop("oneshot_overflow")
                 self.oneshots.append(req)
         ttl = self.params.view_ttl_s
@@ -300,7 +315,9 @@ class RendererNode(Node):
             return False
         rendered = False
         while self.oneshots and not self.stopping:
-            self._render_oneshot(self.oneshots.popleft())
+            request = self.oneshots.popleft()
+            self._render_oneshot(request)
+            self.acknowledge(request)
             rendered = True
         now = time.monotonic()
         if self.pose is not None and self._due(now):

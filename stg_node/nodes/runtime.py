@@ -21,6 +21,13 @@ explicitly (the first asks for a graceful stop, a second aborts), and a shutdown
 runs :meth:`Node.teardown` (flush what the node owes: a checkpoint, a video) before the bus
 closes. :func:`run_node` is the process entry (``python -m stg_node.nodes KIND``); exit code
 0 for a clean stop (also by signal), 1 when the node failed.
+
+Lockstep acknowledgements (``ack``: topic names, as the node subscribes them, or ``*``): the
+node publishes an :class:`~stg_node.bus.Ack` on ``node/ack`` naming each message it has
+finished with on those topics, so ``stg-bag play --lockstep`` sends the next message only
+then. Nodes on the hooks get it after :meth:`Node.on_message` returns; a node with its own
+loop calls :meth:`Node.acknowledge` where it has finished with a message (the trainer after
+the steps a frame is owed, the renderer after the image a request asked for).
 """
 
 from __future__ import annotations
@@ -29,13 +36,13 @@ import logging
 import multiprocessing
 import os
 import time
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from typing import ClassVar
 
 import zmq
 
-from stg_node.bus import Bus, BusConfig, Heartbeat, Message, Subscriber
+from stg_node.bus import Ack, Bus, BusConfig, Envelope, Heartbeat, Message, Subscriber
 from stg_node.nodes.params import NoParams
 from stg_node.signals import StopSignals
 
@@ -43,8 +50,12 @@ from stg_node.signals import StopSignals
 ENV_PARENT_PID = "STG_LAUNCH_PID"
 #: Set by stg-launch: how many times this node has been respawned in this launch (0: first start).
 ENV_RESPAWN = "STG_RESPAWN"
+#: Set by stg-launch: the launch file that started this node (the recorder stores it).
+ENV_LAUNCH_FILE = "STG_LAUNCH_FILE"
 #: How long the event loop waits at most before looking at the stop flag again.
 POLL_S = 0.1
+#: In ``ack``: acknowledge messages of every topic the node subscribes.
+ACK_ALL = "*"
 
 
 class NodeError(RuntimeError):
@@ -82,6 +93,7 @@ class Node:
         remap: dict[str, str] | None = None,
         heartbeat_s: float = 1.0,
         stop: StopSignals | None = None,
+        ack: Iterable[str] = (),
     ):
         self.name = name
         self.params = params if params is not None else self.Params()
@@ -92,6 +104,9 @@ class Node:
         self._closing = False
         self._owed = False
         self._subscribers: list[tuple[Subscriber, dict[str, str]]] = []
+        self._names: dict[str, str] = {}  # full topic -> the name it was subscribed as
+        self.ack_topics = frozenset(ack)
+        self.acks_sent = 0
         self._poller = zmq.Poller()
         parent = os.environ.get(ENV_PARENT_PID, "")
         self._parent_pid = int(parent) if parent.isdigit() else None
@@ -116,6 +131,7 @@ class Node:
         sub = self.bus.subscribe(*(self.topic(t) for t in topics), **options)
         names = {self.bus.config.topic(self.topic(t)): t for t in topics}
         self._subscribers.append((sub, names))
+        self._names.update(names)
         for sock in sub.sockets:
             self._poller.register(sock, zmq.POLLIN)
         return sub
@@ -124,6 +140,39 @@ class Node:
         seq = self.bus.publish(msg, self.topic(topic or msg.SPEC.topic), stamp_ns=stamp_ns)
         self._owed = self._closing
         return seq
+
+    # -- lockstep acknowledgements ------------------------------------------------------------------
+
+    def acks(self, name: str) -> bool:
+        """Whether this node acknowledges the messages it takes from topic ``name`` (as subscribed)."""
+        return name in self.ack_topics or (ACK_ALL in self.ack_topics and name in self._names.values())
+
+    def acknowledge(self, msg: Message | Envelope, name: str | None = None) -> bool:
+        """Say that this node has finished with ``msg`` (an Ack naming its topic, seq and src on
+        node/ack) if acknowledgements were asked for its topic; True if one was sent. ``name``:
+        the topic as subscribed (default: looked up from the message's full topic)."""
+        if not self.ack_topics:
+            return False
+        if isinstance(msg, Envelope):
+            topic, seq, src = msg.topic, int(msg.header.get("seq", -1)), str(msg.header.get("src", ""))
+        else:
+            topic, seq, src = msg.header.topic, msg.header.seq, msg.header.src
+        if not self.acks(name if name is not None else self._names.get(topic, topic)) or seq < 0:
+            return False
+        self.publish(Ack(msg_topic=topic, msg_seq=seq, msg_src=src))
+        self.acks_sent += 1
+        return True
+
+    def _check_ack_topics(self) -> None:
+        subscribed = set(self._names.values())
+        for name in sorted(self.ack_topics - {ACK_ALL} - subscribed):
+            self.log.warning(
+                "ack: this node does not subscribe %r (it subscribes %s); nothing on it will be acknowledged",
+                name,
+                ", ".join(sorted(subscribed)) or "nothing",
+            )
+        if self.ack_topics:
+            self.log.info("acknowledging %s on node/ack (lockstep)", ", ".join(sorted(self.ack_topics)))
 
     # -- state --------------------------------------------------------------------------------------
 
@@ -235,6 +284,7 @@ class Node:
                 self.on_tick()
             else:
                 self.on_message(event.topic, event.message)
+                self.acknowledge(event.message, event.topic)
 
     # -- life cycle -----------------------------------------------------------------------------------
 
@@ -242,6 +292,7 @@ class Node:
         """setup, heartbeat, run, teardown, close; the exit code (0 ok, 1 failed)."""
         try:
             self.setup()
+            self._check_ack_topics()
             if self.heartbeat is not None:
                 # A launcher waits for this first heartbeat: give its subscription a moment to
                 # reach us (PUB/SUB drops what is sent before), then beat.

@@ -7,6 +7,12 @@
   the person, saw two, or fitted badly), counted as drops ``low_confidence``: the frame and its
   pose never reach the avatar.
 - Steps whenever it holds ``min_frames`` frames; trainer/metrics every ``metrics_every`` steps.
+  With ``steps_per_frame`` N > 0 it steps exactly N times per new frame and then waits: the
+  model then depends only on the frames and their order, not on how fast they came, which is
+  what a lockstep replay (``stg-bag play --lockstep``) needs to reproduce a run exactly.
+- Acknowledgements (the runtime's ``ack``, for lockstep replay): a frame or pose that waits for
+  its partner is acknowledged when stored; the one that completes a pair once the frame is in
+  the trainer and, with ``steps_per_frame``, once its N steps are done (and their metrics out).
 - avatar/snapshot every ``snapshot_every`` iterations and/or ``snapshot_every_s`` seconds, and at
   the end (latched by the broker: a renderer started later gets it at once).
 - Checkpoints to ``checkpoint_dir`` every ``checkpoint_every_s`` s and at the end, atomically
@@ -50,6 +56,12 @@ class TrainerParams:
         0.5, min=0.0, max=1.0, doc="skip frames whose pose's tracker confidence is below this"
     )
     min_frames: int = param(1, min=1, doc="frames needed before the first step")
+    steps_per_frame: int = param(
+        0,
+        min=0,
+        doc="0: train continuously; N: exactly N steps per new frame, then wait for the next "
+        "(deterministic under lockstep replay)",
+    )
     pending: int = param(256, min=1, doc="frames / poses waiting for their partner, at most")
     metrics_every: int = param(1, min=1, doc="publish trainer/metrics every N steps")
     snapshot_every: int = param(0, min=0, doc="publish avatar/snapshot every N iterations (0: off)")
@@ -144,6 +156,8 @@ class TrainerNode(Node):
             )
             self.iteration = 0
         self.pairs = FramePairs(p.pending)
+        self.owed_steps = 0  # steps_per_frame: steps still owed to the frames received
+        self.owed_acks: list = []  # messages acknowledged once the steps they brought are done
         self.frames_in_buffer = 0
         self.frames_added = 0
         self.frames_unsure = 0  # skipped: pose confidence below min_confidence
@@ -173,8 +187,15 @@ class TrainerNode(Node):
                 if msg is None:
                     break
                 pair = add(msg)
-                if pair is not None:
-                    self._add(*pair)
+                if pair is None:
+                    self.acknowledge(msg)  # stored until its partner comes: done with it for now
+                    continue
+                self._add(*pair)
+                if self.params.steps_per_frame and self.frames_in_buffer >= self.params.min_frames:
+                    self.owed_steps += self.params.steps_per_frame
+                    self.owed_acks.append(msg)
+                else:
+                    self.acknowledge(msg)
 
     def _add(self, frame, pose) -> None:
         self.trainer.add_frame(
@@ -244,15 +265,24 @@ class TrainerNode(Node):
 
     # -- loop -----------------------------------------------------------------------------------------
 
+    def _settle_acks(self) -> None:
+        for msg in self.owed_acks:
+            self.acknowledge(msg)
+        self.owed_acks.clear()
+
     def run(self) -> None:
         p = self.params
         while not self.stopping:
             self._take_input()
-            if self.frames_in_buffer < p.min_frames:
+            if self.frames_in_buffer < p.min_frames or (p.steps_per_frame and not self.owed_steps):
                 self.wait_for_messages(0.1)
                 continue
             info = self.trainer.step()
+            if p.steps_per_frame:
+                self.owed_steps -= 1  # a skipped step counts too: the next one is another draw
             if info.skipped:
+                if p.steps_per_frame and not self.owed_steps:
+                    self._settle_acks()
                 self.wait_for_messages(0.01)
                 continue
             self.iteration = info.iteration
@@ -266,10 +296,13 @@ class TrainerNode(Node):
                 self._snapshot()
             if p.checkpoint_every_s and now - self.last_checkpoint_time >= p.checkpoint_every_s:
                 self._save_checkpoint()
+            if not self.owed_steps:
+                self._settle_acks()
             if p.iters and self.iteration >= p.iters:
                 self.finished = True
                 self.log.info("reached %d iterations", p.iters)
                 break
+        self._settle_acks()  # stopped or done: nothing more will be done for them
 
     def teardown(self) -> None:
         if getattr(self, "trainer", None) is None or self.iteration == 0:

@@ -27,7 +27,12 @@ def test_late_joiner_gets_the_latest_snapshot_at_once_and_only_once(url, broker,
         Publisher(config, node="trainer", context=ctx) as pub,
         Subscriber(config, [GaussianSnapshot], context=ctx) as early,
     ):
+        # The broker subscribes to every latched message itself, so the publisher sees a
+        # subscriber at once; snapshot 0 arriving (live or from the cache) shows that early's
+        # own subscription is in place before the ones it must see live.
         assert pub.wait_for_subscribers("avatar/snapshot")
+        pub.publish(_snapshot(0))
+        assert early.recv(timeout=5).model_version == 0
         pub.publish(_snapshot(1))
         pub.publish(_snapshot(2))
         assert [m.model_version for m in early.messages(timeout=0.5)] == [1, 2]
@@ -35,7 +40,7 @@ def test_late_joiner_gets_the_latest_snapshot_at_once_and_only_once(url, broker,
         with Subscriber(config, [GaussianSnapshot], context=ctx) as late:
             first = late.recv(timeout=5)
             waited = time.monotonic() - start
-            assert first.model_version == 2 and first.header.seq == 1
+            assert first.model_version == 2 and first.header.seq == 2
             np.testing.assert_array_equal(first.arrays["xyz"], _snapshot(2).arrays["xyz"])
             assert late.recv(timeout=0.3) is None  # exactly one cached model
             assert early.recv(timeout=0.3) is None  # nobody else saw it again
@@ -44,6 +49,61 @@ def test_late_joiner_gets_the_latest_snapshot_at_once_and_only_once(url, broker,
             assert early.recv(timeout=5).model_version == 3
     assert waited < 2.0
     assert early.traffic.duplicates == 0 and late.traffic.drops == {}
+
+
+def test_a_snapshot_published_while_nobody_listens_is_latched(ipc_url, ctx):
+    """Issue 13's gap: publishers filter on their side, so the broker's upstream socket must
+    subscribe to latched lanes itself; a renderer started after the trainer's last snapshot
+    still gets it. Also after a whole-bus subscriber came and went (its "" unsubscription
+    must not cancel the broker's own)."""
+    config = BusConfig(url=ipc_url)
+    with Broker(ipc_url, status_period_s=0) as broker, Publisher(config, node="trainer", context=ctx) as pub:
+        passerby = ctx.socket(zmq.SUB)
+        passerby.connect(config.endpoint("bulk", "out"))
+        passerby.subscribe(b"")
+        time.sleep(0.3)
+        passerby.close(linger=0)
+        time.sleep(0.3)  # the "" unsubscription reaches the broker and is forwarded (or not)
+        pub.wait_for_subscribers("avatar/snapshot", timeout=2)  # the broker itself, if anyone
+        pub.publish(_snapshot(9))
+        assert wait_until(lambda: b"avatar/snapshot" in broker.cache)
+        raw = ctx.socket(zmq.SUB)  # raw pyzmq: the late renderer
+        raw.connect(config.endpoint("bulk", "out"))
+        raw.subscribe(b"avatar/snapshot")
+        frames = recv_raw(raw)
+        raw.close(linger=0)
+        with Subscriber(config, [GaussianSnapshot], context=ctx) as late:
+            got = late.recv(timeout=5)
+    header = msgpack.unpackb(frames[1].buffer)
+    assert (frames[0].bytes, header["model_version"], header["src"]) == (b"avatar/snapshot", 9, "trainer")
+    assert got is not None and got.model_version == 9
+    np.testing.assert_array_equal(got.arrays["xyz"], _snapshot(9).arrays["xyz"])
+
+
+def test_the_camera_lane_is_not_pulled_without_subscribers(ipc_url, ctx):
+    """Only lanes that carry latched topics subscribe upstream on their own: a camera frame
+    with nobody listening stays at its publisher (PUB-side filtering), never crossing to the broker."""
+    config = BusConfig(url=ipc_url)
+    with Broker(ipc_url, status_period_s=0) as broker, Publisher(config, context=ctx) as pub:
+        assert broker.latch_lanes == {"bulk"}
+        assert pub.wait_for_subscribers("avatar/snapshot", timeout=5)
+        assert not pub.has_subscribers("camera/frame") and not pub.has_subscribers("body/pose")
+        pub.publish(sample_messages()["Frame"])
+        pub.publish(sample_messages()["BodyPose"])
+        time.sleep(0.3)
+        assert "camera/frame" not in broker.traffic.messages and "body/pose" not in broker.traffic.messages
+
+
+def test_a_latched_topic_moved_to_another_lane_is_pulled_there(ipc_url, ctx):
+    config = BusConfig(url=ipc_url, lanes={"avatar/snapshot": "reliable"})
+    with Broker(ipc_url, status_period_s=0, lanes={"avatar/snapshot": "reliable"}) as broker:
+        assert broker.latch_lanes == {"reliable"}
+        with Publisher(config, context=ctx) as pub:
+            assert pub.wait_for_subscribers("avatar/snapshot", timeout=5)
+            pub.publish(_snapshot(3))
+            assert wait_until(lambda: b"avatar/snapshot" in broker.cache)
+            with Subscriber(config, [GaussianSnapshot], context=ctx) as late:
+                assert late.recv(timeout=5).model_version == 3
 
 
 def test_raw_late_joiner_gets_the_latched_snapshot(ipc_url, ctx):

@@ -29,7 +29,7 @@ from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
 import stg_node
-from stg_node.bus import BusConfig, Envelope, decode_envelope
+from stg_node.bus import BusConfig, Envelope, Message, decode_envelope, encode
 from stg_node.bus.recording.format import (
     MESSAGE_ENCODING,
     META_END,
@@ -130,6 +130,7 @@ class BagWriter:
         self._extra_metadata = {str(k): str(v) for k, v in (metadata or {}).items()}
         self._launch = self._read_launch(launch_file)
         self._end_info = end_info
+        self._written_seq: dict[tuple[str, str], int] = {}  # write_message's numbering
         self._file = None
         self._mcap: McapFile | None = None
         self._closed = False
@@ -270,6 +271,30 @@ class BagWriter:
             raise RecordingError(f"not a valid bus message: {exc}") from None
         self.write(env, log_time_ns)
         return env
+
+    def write_message(
+        self,
+        msg: Message,
+        log_time_ns: int,
+        *,
+        src: str,
+        topic: str | None = None,
+        stamp_ns: int | None = None,
+    ) -> int:
+        """Write a typed message as a publisher named ``src`` would have sent it on ``topic`` (default:
+        its standard topic): numbered per (topic, src) from 0 as a Publisher numbers, stamped
+        ``stamp_ns`` (default ``log_time_ns``). For sessions made offline (a synthetic regression
+        session); returns the message's seq (also set in ``msg.header.seq``)."""
+        topic = topic or msg.SPEC.topic
+        seq = self._written_seq.get((topic, src), 0)
+        frames = encode(
+            msg, topic=topic, seq=seq, src=src, stamp_ns=log_time_ns if stamp_ns is None else stamp_ns
+        )
+        self.write_frames(frames, log_time_ns)
+        self._written_seq[(topic, src)] = seq + 1
+        msg.header.seq, msg.header.src, msg.header.topic = seq, src, topic
+        msg.header.stamp_ns = log_time_ns if stamp_ns is None else stamp_ns
+        return seq
 
     def maybe_flush(self, now: float | None = None) -> bool:
         """Write the chunk in progress to disk if ``flush_interval_s`` passed since the last flush."""

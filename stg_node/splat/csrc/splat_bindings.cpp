@@ -1,4 +1,5 @@
-// torch operator wrappers for the CPU splat kernels (splat_kernels.h). Registered with
+// torch operator wrappers for the CPU splat kernels (splat_kernels.h) and the image-space
+// kernels of splatting losses (image_filter.h). Registered with
 // TORCH_LIBRARY (no pybind11), so the extension compiles quickly and is called through
 // torch.ops.<namespace>.*; the namespace is passed in as STG_SPLAT_NS by the build so that a
 // rebuilt extension (new sources or flags) never clashes with an older one in one process.
@@ -9,6 +10,7 @@
 #include <tuple>
 #include <vector>
 
+#include "image_filter.h"
 #include "splat_kernels.h"
 
 #ifndef STG_SPLAT_NS
@@ -250,6 +252,83 @@ at::Tensor count_isect(const at::Tensor& bbox, const at::Tensor& visible, int64_
     return out;
 }
 
+void check_image(const at::Tensor& t, const char* name) {
+    TORCH_CHECK(t.device().is_cpu(), name, " must be a CPU tensor");
+    TORCH_CHECK(t.scalar_type() == at::kFloat, name, " must be float32, got ", t.scalar_type());
+    TORCH_CHECK(t.is_contiguous(), name, " must be contiguous");
+    TORCH_CHECK(t.dim() == 3, name, " must be an (H, W, C) image, got shape ", t.sizes());
+}
+
+// The window's taps as float32, after checking their count against the compiled window.
+std::vector<float> window_taps(c10::ArrayRef<double> taps) {
+    TORCH_CHECK(static_cast<int64_t>(taps.size()) == stg_image::kWindow, "the window must have ",
+                stg_image::kWindow, " taps (compiled in), got ", taps.size());
+    return std::vector<float>(taps.begin(), taps.end());
+}
+
+void check_ssim_images(const at::Tensor& a, const at::Tensor& b) {
+    check_image(a, "a");
+    check_image(b, "b");
+    TORCH_CHECK(a.sizes() == b.sizes(), "a and b must have the same shape, got ", a.sizes(), " and ",
+                b.sizes());
+    TORCH_CHECK(a.size(0) >= stg_image::kWindow && a.size(1) >= stg_image::kWindow,
+                "SSIM needs images of at least ", stg_image::kWindow, "x", stg_image::kWindow,
+                " pixels (the window), got ", a.size(0), "x", a.size(1));
+    TORCH_CHECK(a.size(2) >= 1, "images need at least one channel");
+}
+
+// (mean SSIM as a float64 scalar, d_mu, d_var, d_cov): the maps are (Ho, Wo, C), the derivatives
+// of the mean (so already divided by the number of windows); empty unless want_grad.
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> ssim_fwd(const at::Tensor& a, const at::Tensor& b,
+                                                                    c10::ArrayRef<double> taps, double c1,
+                                                                    double c2, bool want_grad,
+                                                                    int64_t threads) {
+    check_ssim_images(a, b);
+    TORCH_CHECK(threads >= 1, "threads must be >= 1");
+    const std::vector<float> k = window_taps(taps);
+    const int64_t H = a.size(0), W = a.size(1), C = a.size(2);
+    const int64_t Ho = H - stg_image::kWindow + 1, Wo = W - stg_image::kWindow + 1;
+    const double count = static_cast<double>(Ho * Wo * C);
+    at::Tensor rows = at::empty({Ho}, a.options().dtype(at::kDouble));
+    const auto shape = want_grad ? std::vector<int64_t>{Ho, Wo, C} : std::vector<int64_t>{0};
+    at::Tensor d_mu = at::empty(shape, a.options());
+    at::Tensor d_var = at::empty(shape, a.options());
+    at::Tensor d_cov = at::empty(shape, a.options());
+    stg_image::ssim_forward(a.data_ptr<float>(), b.data_ptr<float>(), H, W, C, k.data(),
+                            static_cast<float>(c1), static_cast<float>(c2), static_cast<float>(1.0 / count),
+                            static_cast<int>(threads), rows.data_ptr<double>(),
+                            want_grad ? d_mu.data_ptr<float>() : nullptr,
+                            want_grad ? d_var.data_ptr<float>() : nullptr,
+                            want_grad ? d_cov.data_ptr<float>() : nullptr);
+    const double* r = rows.data_ptr<double>();
+    double total = 0.0;
+    for (int64_t q = 0; q < Ho; ++q) total += r[q];  // in row order: the same at any thread count
+    at::Tensor value = at::empty({}, a.options().dtype(at::kDouble));
+    *value.data_ptr<double>() = total / count;
+    return {value, d_mu, d_var, d_cov};
+}
+
+at::Tensor ssim_bwd(const at::Tensor& a, const at::Tensor& b, c10::ArrayRef<double> taps, const at::Tensor& d_mu,
+                    const at::Tensor& d_var, const at::Tensor& d_cov, double grad, int64_t threads) {
+    check_ssim_images(a, b);
+    TORCH_CHECK(threads >= 1, "threads must be >= 1");
+    const std::vector<float> k = window_taps(taps);
+    const int64_t H = a.size(0), W = a.size(1), C = a.size(2);
+    const int64_t Ho = H - stg_image::kWindow + 1, Wo = W - stg_image::kWindow + 1;
+    for (const at::Tensor* d : {&d_mu, &d_var, &d_cov}) {
+        check_image(*d, "an SSIM derivative map");
+        TORCH_CHECK(d->size(0) == Ho && d->size(1) == Wo && d->size(2) == C,
+                    "SSIM derivative maps must be (", Ho, ", ", Wo, ", ", C, "), got ", d->sizes());
+    }
+    at::Tensor grad_a = at::empty_like(a);
+    stg_image::ssim_backward(a.data_ptr<float>(), b.data_ptr<float>(), H, W, C, k.data(),
+                             d_mu.data_ptr<float>(), d_var.data_ptr<float>(), d_cov.data_ptr<float>(),
+                             static_cast<float>(grad), static_cast<int>(threads), grad_a.data_ptr<float>());
+    return grad_a;
+}
+
+int64_t image_window() { return stg_image::kWindow; }
+
 int64_t tile_size() { return stg_splat::kTileSize; }
 
 int64_t num_settings() { return stg_splat::kNumSettings; }
@@ -259,6 +338,13 @@ int64_t num_settings() { return stg_splat::kNumSettings; }
 TORCH_LIBRARY(STG_SPLAT_NS, m) {
     m.def("tile_size() -> int", &tile_size);
     m.def("num_settings() -> int", &num_settings);
+    m.def("image_window() -> int", &image_window);
+    m.def("ssim_fwd(Tensor a, Tensor b, float[] taps, float c1, float c2, bool want_grad, int threads) -> "
+          "(Tensor, Tensor, Tensor, Tensor)",
+          &ssim_fwd);
+    m.def("ssim_bwd(Tensor a, Tensor b, float[] taps, Tensor d_mu, Tensor d_var, Tensor d_cov, float grad, "
+          "int threads) -> Tensor",
+          &ssim_bwd);
     m.def("count_intersections(Tensor bbox, Tensor visible, int width, int height, int max_per_chunk) -> Tensor",
           &count_isect);
     m.def(

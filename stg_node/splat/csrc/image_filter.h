@@ -1,0 +1,38 @@
+// CPU image-space kernels that splatting losses need: SSIM with a separable Gaussian window
+// over the 'valid' region, and its analytic backward. Plain C++17 + OpenMP on raw arrays (no
+// torch headers), like splat_kernels.h; splat_bindings.cpp wraps it for torch and
+// stg_node/splat/image_ops.py is the Python side (taps and constants come from there).
+//
+// Images are (H, W, C) float32, row-major with interleaved channels, so one image row is W*C
+// contiguous floats and a horizontal tap is an offset of C floats.
+#pragma once
+
+#include <cstdint>
+
+namespace stg_image {
+
+// Taps of the separable window; the taps themselves arrive from Python (image_ops.py owns the
+// window's size and sigma) and the bindings check their count against this.
+constexpr int kWindow = 11;
+
+// Mean SSIM over the valid region: per channel, the window statistics mu_a, mu_b, E[a^2],
+// E[b^2], E[ab] (population), then
+//   S = (2 mu_a mu_b + c1)(2 cov + c2) / ((mu_a^2 + mu_b^2 + c1)(var_a + var_b + c2)).
+// Writes row_sums[q] = sum of S over output row q (Ho = H - kWindow + 1 rows, Wo*C values per
+// row, Wo = W - kWindow + 1), each row summed in double. If d_mu is not null, also writes the
+// derivatives of `scale * S` with respect to the window statistics of `a`, as (Ho, Wo*C) maps:
+//   d_mu  = d(scale S)/d mu_a     (E[a^2] and E[ab] held fixed)
+//   d_var = d(scale S)/d E[a^2]   (= d/d var_a)
+//   d_cov = d(scale S)/d E[ab]    (= d/d cov)
+// so that d(scale S)/da = T(d_mu) + 2 a T(d_var) + b T(d_cov), T the transposed window filter.
+void ssim_forward(const float* a, const float* b, int64_t height, int64_t width, int64_t channels,
+                  const float* taps, float c1, float c2, float scale, int threads, double* row_sums,
+                  float* d_mu, float* d_var, float* d_cov);
+
+// grad_a (H, W*C) = g * (T(d_mu) + 2 a T(d_var) + b T(d_cov)), with T the 'full' (transposed
+// 'valid') separable filter of the (Ho, Wo*C) maps that ssim_forward wrote.
+void ssim_backward(const float* a, const float* b, int64_t height, int64_t width, int64_t channels,
+                   const float* taps, const float* d_mu, const float* d_var, const float* d_cov, float g,
+                   int threads, float* grad_a);
+
+}  // namespace stg_image
