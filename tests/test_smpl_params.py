@@ -144,6 +144,23 @@ def test_body_pose_refuses_what_it_cannot_carry():
         BodyPose.from_smpl({"poses": np.zeros((24, 3))})
 
 
+def test_smplx_fits_become_the_nearest_smpl_parameters_the_bus_carries():
+    """The shared joints and the placement carry over, the hands rest, the shape is SMPL's mean."""
+    from stg_node.body import smplx_as_smpl
+
+    fit = _params(model="smplx")
+    converted = smplx_as_smpl(fit)
+    assert converted.model == "smpl" and fit.model == "smplx"  # the input is left alone
+    assert np.array_equal(converted.poses[:22], fit.poses[:22]) and not converted.poses[22:].any()
+    assert np.array_equal(converted.Rh, fit.Rh) and np.array_equal(converted.Th, fit.Th)
+    assert np.array_equal(converted.betas, np.zeros(10, np.float32))
+    assert BodyPose.from_smpl(converted).to_smpl().model == "smpl"
+    assert smplx_as_smpl(converted) is converted  # SMPL stays as it is
+    assert smplx_as_smpl(fit, num_betas=16).betas.shape == (16,)
+    with pytest.raises(ValueError, match="num_betas"):
+        smplx_as_smpl(fit, num_betas=0)
+
+
 # --- the synthetic benchmark, the dataset loader, the body and the bus agree --------------------
 
 

@@ -4,6 +4,7 @@ Public interface (everything else is an implementation detail):
 
 - :class:`SmplParams` / :class:`SmplSequence` (:mod:`stg_node.body.params`): SMPL parameters of
   one frame or of a sequence, numpy only (the one type for them across the project);
+  :func:`smplx_as_smpl` turns an SMPL-X fit (THuman4.0) into the nearest SMPL parameters;
 - :func:`load_body_model` -> :class:`BodyModel`, whose forward gives a :class:`BodyOutput`
   (vertices, joints, bone transforms in world space, ZJU-MoCap's ``Rh``/``Th`` convention);
 - :func:`skin_points` / :func:`skin_rotations`: skin arbitrary points and orientations
@@ -44,6 +45,7 @@ _EXPORTS = {
     "save_smpl_params": "motion",
     "SmplParams": "params",
     "SmplSequence": "params",
+    "smplx_as_smpl": "params",
     "SMPL_JOINT_NAMES": "smpl_io",
     "SMPL_PARENTS": "smpl_io",
     "BodyModelError": "smpl_io",

@@ -170,3 +170,33 @@ class SmplSequence:
     def __iter__(self):
         for index in range(len(self)):
             yield self.frame(index)
+
+
+#: SMPL-X and SMPL share the pelvis and the 21 body joints that follow it in SMPL order (0-21);
+#: SMPL's joints 22 and 23 are its hands, which SMPL-X models with finger joints instead.
+SHARED_BODY_JOINTS = 22
+#: Shape coefficients of the mean-shape betas an SMPL-X fit is given when converted (SMPL's count).
+SMPL_NUM_BETAS = 10
+
+
+def smplx_as_smpl(params: SmplParams, num_betas: int = SMPL_NUM_BETAS) -> SmplParams:
+    """SMPL-X parameters (``model="smplx"``, THuman4.0's fits) as the nearest SMPL ones.
+
+    The global orientation and the 21 body joints are the same joints with the same parent
+    chain in both models, so ``poses[:22]``, ``Rh`` and ``Th`` carry over; SMPL's hand joints
+    (22, 23) are set to rest. The betas do not: SMPL-X's shape space is another PCA basis, so
+    its coefficients on an SMPL body give an unrelated shape; they become ``num_betas`` zeros
+    (SMPL's mean shape). Not corrected (it needs the SMPL-X model file, which we do not ship):
+    the two templates put the pelvis a few centimetres apart, so the SMPL body sits where
+    SMPL's mean pelvis is, not exactly where the fit's pelvis was. SMPL parameters come back
+    unchanged.
+    """
+    if params.model == "smpl":
+        return params
+    if params.model != "smplx":
+        raise ValueError(f"smplx_as_smpl converts SMPL-X parameters, got {params.model!r} ones")
+    if num_betas < 1:
+        raise ValueError(f"num_betas must be at least 1, got {num_betas}")
+    poses = np.array(params.poses, dtype=np.float32)
+    poses[SHARED_BODY_JOINTS:] = 0.0
+    return SmplParams(poses, params.Rh, params.Th, np.zeros(num_betas, np.float32), "smpl")

@@ -233,7 +233,8 @@ class BodyPose(Message):
         ``fields`` sets the rest (``frame_seq``, ``frame_index``, ``time``, ``confidence``, ``joints``).
 
         The wire has no body-model tag, so parameters of another model (THuman4.0's SMPL-X fits,
-        ``model="smplx"``) are refused rather than passed on as SMPL's.
+        ``model="smplx"``) are refused rather than passed on as SMPL's; the sender converts them
+        (``stg_node.body.smplx_as_smpl``, as the tracker node's replay does).
         """
         from stg_node.body.params import SmplParams
 
@@ -242,7 +243,7 @@ class BodyPose(Message):
         if params.model != "smpl":
             raise ValueError(
                 f"BodyPose carries SMPL parameters; these are {params.model!r} parameters, whose betas "
-                "mean something else (convert them to SMPL first)"
+                "mean something else (stg_node.body.smplx_as_smpl gives the nearest SMPL ones)"
             )
         return cls(poses=params.poses, Rh=params.Rh, Th=params.Th, betas=params.betas, **fields)
 

@@ -3,6 +3,12 @@
     stg-train --data DIR --format zju|synthetic|thuman|video --out RUN_DIR [--preset fast|balanced|quality]
               [--smpl-model FILE] [--train-frames A:B] [--train-camera NAME] [--iters N]
               [--backend auto|cpu|cuda|torch] [--threads T] [--seed S] [--resume]
+    stg-train --data VIDEO --format video --out RUN_DIR [--intrinsics FILE.json | --fov DEG] [...]
+
+``--format video`` takes a video file (or a folder of images): it is tracked first (stg-track's
+SMPL fit and person masks, cached by content; stg_node/avatar/video.py) into the folder format
+under ``RUN_DIR/video_data``, then trained like any dataset, so a phone video becomes an avatar
+with ``stg-train`` alone.
 
 The run folder layout is in stg_node/avatar/run.py; docs/AVATAR.md explains the method and
 every preset. Exit codes (docs/CLI.md): 0 trained, 1 the training failed (bad data), 2 bad usage,
@@ -72,6 +78,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", default=None, help="CPU threads (default: STG_THREADS or 1)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default %(default)s)")
     p.add_argument("--resume", action="store_true", help="continue from RUN_DIR's last checkpoint")
+    camera = p.add_mutually_exclusive_group()
+    camera.add_argument(
+        "--intrinsics",
+        default=None,
+        metavar="FILE.json",
+        help='--format video: the camera, JSON with "K" (3x3) and optionally "dist" (OpenCV)',
+    )
+    camera.add_argument(
+        "--fov",
+        type=float,
+        default=None,
+        metavar="DEG",
+        help="--format video: horizontal field of view without a calibration (default 65)",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_log_level_option(p)
     return p
@@ -81,8 +101,11 @@ def main(argv: list[str] | None = None) -> int:
     from stg_node.avatar.snapshot import SnapshotError
     from stg_node.body import BodyModelError
     from stg_node.data.errors import DatasetError
+    from stg_node.tracking.model_files import PoseModelError
+    from stg_node.tracking.runtime import RunnerError
 
-    return run_main(build_parser(), run, argv, expected=(DatasetError, BodyModelError, SnapshotError))
+    expected = (DatasetError, BodyModelError, SnapshotError, PoseModelError, RunnerError)
+    return run_main(build_parser(), run, argv, expected=expected)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -96,6 +119,12 @@ def run(args: argparse.Namespace) -> int:
         frames = parse_frame_range(args.train_frames)
     except ValueError as exc:
         raise UsageError(str(exc)) from exc
+    if args.format != "video" and (args.intrinsics is not None or args.fov is not None):
+        raise UsageError("--intrinsics and --fov describe the camera of a video: only with --format video")
+    if args.fov is not None and not 1.0 <= args.fov <= 170.0:
+        raise UsageError(f"--fov must be between 1 and 170 degrees, got {args.fov}")
+    if args.format == "video" and not Path(args.data).exists():
+        raise CommandFailed(f"--data {args.data}: no such video file or image folder")
     if args.format != "video" and not Path(args.data).is_dir():
         raise CommandFailed(f"--data {args.data}: no such folder")
     configure_threads(args.threads)
@@ -128,7 +157,16 @@ def _train(args, frames, stop: StopSignals) -> int:
     if args.format == "video":
         from stg_node.avatar.video import prepare_video
 
-        data_root = str(prepare_video(args.data, run.path / "video_data", smpl_model=args.smpl_model))
+        data_root = str(
+            prepare_video(
+                args.data,
+                run.path / "video_data",
+                smpl_model=args.smpl_model,
+                intrinsics=args.intrinsics,
+                fov_deg=args.fov,
+                progress=not args.no_progress,
+            )
+        )
     spec = DataSpec(str(Path(data_root).resolve()), args.format, frames, args.train_camera, args.size)
     device = _device(args)
     flow_cache = FlowCache(run.flow_cache)

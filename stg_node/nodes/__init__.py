@@ -7,7 +7,7 @@ Each node is its own OS process, started by ``stg-launch`` or by hand:
 | kind | module | what it does |
 |---|---|---|
 | ingest | :mod:`.ingest` | replays a dataset, a video file, a V4L2 camera or an OAK camera on camera/frame |
-| tracker | :mod:`.tracker` | body/pose per frame (a dataset's SMPL fits, or a live estimator) |
+| tracker | :mod:`.tracker` | body/pose per frame: a dataset's SMPL fits, or live (:mod:`.live_tracking`) |
 | trainer | :mod:`.trainer` | trains the avatar online; avatar/snapshot, trainer/metrics, checkpoints |
 | renderer | :mod:`.renderer` | renders avatar/view requests or default views on avatar/image |
 | recorder | :mod:`.recorder` | records the bus into an MCAP file (stg-bag record as a node) |

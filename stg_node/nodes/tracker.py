@@ -1,24 +1,37 @@
-"""The tracker node: an SMPL body pose for each camera/frame, on body/pose.
+"""The tracker node: an SMPL body pose for each camera/frame, on body/pose (and the person mask).
 
-Behind the small :class:`PoseEstimator` protocol (``estimate(frame) -> PoseEstimate`` or None),
-so a live estimator (images -> SMPL) plugs in where the replay one is today:
+Behind the small :class:`PoseEstimator` protocol (``estimate(frame) -> PoseEstimate`` or None):
 
 - ``mode: replay``: :class:`ReplayEstimator` returns the dataset's own SMPL fit of the frame,
   matched by the frame's index and checked by its time stamp (a frame whose time differs from
   the dataset's time of that index by more than ``max_time_error_s`` is not this dataset's:
-  dropped and counted as ``mismatch``).
-- ``mode: live``: ``estimator: package.module:Class``, built with ``estimator_params`` as
-  keyword arguments, any object with an ``estimate`` method.
+  dropped and counted as ``mismatch``). SMPL-X fits (THuman4.0) are sent as their nearest SMPL
+  parameters (:func:`stg_node.body.params.smplx_as_smpl`: the shared joints, the mean shape).
+- ``mode: live``: an estimator that looks at the image. By default the built-in one,
+  :class:`stg_node.nodes.live_tracking.TrackingEstimator` (BlazePose + SMPL fit + smoothing +
+  a person mask, ``stg_node.tracking``), configured by ``estimator_params``; or
+  ``estimator: package.module:Class``, built with ``estimator_params`` as keyword arguments,
+  any object with an ``estimate`` method.
 
-Each BodyPose names its frame (``frame_seq``, ``frame_index``) and carries the frame's stamp,
-so the trainer pairs them and the renderer's latency counts from the camera.
+Each BodyPose names its frame (``frame_seq``, ``frame_index``), carries the frame's stamp and the
+estimator's confidence, so the trainer pairs them (and skips unsure ones) and the renderer's
+latency counts from the camera.
+
+The person mask travels where proto/ puts it, in a Frame (BodyPose has no image-sized arrays):
+with ``frame_topic`` set, the tracker republishes each frame it tracked, with the estimator's
+mask, on that topic, and the pose names that message. The live launch files remap the ingest's
+output to ``raw/camera/frame`` and give the tracker ``input_topic: raw/camera/frame,
+frame_topic: camera/frame``, so everything downstream reads camera/frame as in a replay, now
+with masks (docs/NODES.md, "tracker").
 """
 
 from __future__ import annotations
 
 import importlib
 from dataclasses import dataclass
-from typing import Any, Literal, NamedTuple, Protocol, runtime_checkable
+from typing import Any, Literal, Protocol, runtime_checkable
+
+import numpy as np
 
 from stg_node.bus import Frame
 from stg_node.data.types import SmplParams
@@ -26,34 +39,54 @@ from stg_node.nodes.convert import pose_message
 from stg_node.nodes.params import param
 from stg_node.nodes.runtime import Node
 
+#: The estimator ``mode: live`` uses when ``estimator`` is empty.
+BUILTIN_ESTIMATOR = "stg_node.nodes.live_tracking:TrackingEstimator"
 
-class PoseEstimate(NamedTuple):
-    """What an estimator returns for one frame (unpacks as ``smpl, confidence``)."""
 
-    smpl: SmplParams
+@dataclass(frozen=True)
+class PoseEstimate:
+    """What an estimator returns for one frame."""
+
+    smpl: SmplParams  # in the frame's world (the Frame's R, t map it into the camera)
     confidence: float  # 0..1
+    mask: np.ndarray | None = None  # (H, W) uint8 0/255 person mask of the frame, if the estimator makes one
 
 
 @runtime_checkable
 class PoseEstimator(Protocol):
     def estimate(self, frame: Frame) -> PoseEstimate | tuple[SmplParams, float] | None:
         """The body in ``frame`` (a camera/frame message: image, K, R, t, index, time), or None
-        when there is no person to fit."""
+        when there is no person to fit. A plain ``(smpl, confidence)`` pair is accepted too."""
 
 
 class EstimateMismatch(ValueError):
     """The frame does not belong to the replayed dataset (index unknown or time stamp off)."""
 
 
+def as_estimate(result) -> PoseEstimate | None:
+    """An estimator's answer as a PoseEstimate (None stays None); TypeError for anything else."""
+    if result is None or isinstance(result, PoseEstimate):
+        return result
+    if isinstance(result, tuple) and len(result) == 2 and isinstance(result[0], SmplParams):
+        return PoseEstimate(result[0], float(result[1]))
+    raise TypeError(
+        f"an estimator returns PoseEstimate, (SmplParams, confidence) or None, got {type(result).__name__}"
+    )
+
+
 class ReplayEstimator:
     """The dataset's own SMPL parameters for each frame, by index, checked by time stamp."""
 
-    def __init__(self, dataset, max_time_error_s: float = 0.002):
+    def __init__(self, dataset, max_time_error_s: float = 0.002, log=None):
         self.dataset = dataset
         self.frames = set(dataset.all_frames)
         self.max_time_error_s = max_time_error_s
+        self.log = log
+        self.converted = 0  # SMPL-X fits sent as SMPL
 
     def estimate(self, frame: Frame) -> PoseEstimate:
+        from stg_node.body.params import smplx_as_smpl
+
         if frame.index not in self.frames:
             raise EstimateMismatch(f"frame index {frame.index} is not in {self.dataset.root}")
         expected = self.dataset.time(frame.index)
@@ -62,7 +95,18 @@ class ReplayEstimator:
                 f"frame {frame.index} has time {frame.time:.4f} s, "
                 f"the dataset's frame {frame.index} is at {expected:.4f} s"
             )
-        return PoseEstimate(self.dataset.smpl(frame.index), 1.0)
+        smpl = self.dataset.smpl(frame.index)
+        if smpl.model != "smpl":
+            if not self.converted and self.log is not None:
+                self.log.warning(
+                    "%s ships %s fits: sending the nearest SMPL parameters (the 22 shared joints; "
+                    "SMPL-X betas dropped for SMPL's mean shape; see docs/NODES.md, tracker)",
+                    self.dataset.root,
+                    smpl.model.upper(),
+                )
+            self.converted += 1
+            smpl = smplx_as_smpl(smpl)
+        return PoseEstimate(smpl, 1.0)
 
 
 @dataclass
@@ -75,15 +119,30 @@ class TrackerParams:
     max_time_error_s: float = param(
         0.002, min=0.0, unit="s", doc="replay: frame time vs dataset time tolerance"
     )
-    estimator: str = param("", doc="live: package.module:Class implementing PoseEstimator")
-    estimator_params: dict[str, Any] = param({}, doc="live: keyword arguments for the estimator")
-    min_confidence: float = param(0.0, min=0.0, max=1.0, doc="drop estimates below this confidence")
+    estimator: str = param(
+        "", doc="live: package.module:Class implementing PoseEstimator (empty: the built-in tracker)"
+    )
+    estimator_params: dict[str, Any] = param(
+        {}, doc="live: keyword arguments for the estimator (the built-in one's: table below)"
+    )
+    min_confidence: float = param(
+        0.0, min=0.0, max=1.0, doc="drop estimates below this confidence (the trainer has its own threshold)"
+    )
+    input_topic: str = param("camera/frame", doc="the frames to track")
+    frame_topic: str = param(
+        "", doc="republish each tracked frame with the estimator's person mask here (empty: off)"
+    )
+    latest_only: bool | None = param(
+        None, doc="track only the newest frame (no backlog) or every frame in order; default: live yes"
+    )
 
     def validate(self) -> None:
         if self.mode == "replay" and not self.path:
             raise ValueError("mode replay needs path (the dataset the ingest node replays)")
-        if self.mode == "live" and ":" not in self.estimator:
-            raise ValueError("mode live needs estimator: package.module:Class")
+        if self.mode == "live" and self.estimator and ":" not in self.estimator:
+            raise ValueError("estimator must look like package.module:Class (empty: the built-in tracker)")
+        if self.frame_topic and self.frame_topic == self.input_topic:
+            raise ValueError(f"frame_topic and input_topic are both {self.input_topic!r}: a loop")
 
 
 def open_replay_dataset(path: str, kind: str = "auto"):
@@ -110,7 +169,7 @@ def load_estimator(target: str, options: dict) -> PoseEstimator:
 
 
 class TrackerNode(Node):
-    """Publishes body/pose for every camera/frame it receives."""
+    """Publishes body/pose for every camera/frame it receives (and the frame with its mask)."""
 
     kind = "tracker"
     Params = TrackerParams
@@ -119,18 +178,20 @@ class TrackerNode(Node):
         p = self.params
         if p.mode == "replay":
             self.estimator: PoseEstimator = ReplayEstimator(
-                open_replay_dataset(p.path, p.dataset_kind), p.max_time_error_s
+                open_replay_dataset(p.path, p.dataset_kind), p.max_time_error_s, self.log
             )
         else:
-            self.estimator = load_estimator(p.estimator, p.estimator_params)
-        # every frame that reaches us, in order (keep_last=False): a pose per frame for the trainer
-        self.subscribe("camera/frame", keep_last=False)
+            self.estimator = load_estimator(p.estimator or BUILTIN_ESTIMATOR, p.estimator_params)
+        latest_only = p.mode == "live" if p.latest_only is None else p.latest_only
+        # replay: every frame, in order (a pose per frame for the trainer; the ingest paces);
+        # live: the newest frame, so a tracker slower than the camera lags by one frame, not a queue
+        self.subscribe(p.input_topic, keep_last=latest_only)
         self._mismatch_logged = False
         self._error_logged = False
 
     def on_message(self, topic: str, msg) -> None:
         try:
-            result = self.estimator.estimate(msg)
+            result = as_estimate(self.estimator.estimate(msg))
         except EstimateMismatch as exc:
             self.drop("mismatch")
             if not self._mismatch_logged:
@@ -147,8 +208,30 @@ class TrackerNode(Node):
         if result is None:
             self.drop("no_person")
             return
-        smpl, confidence = result
-        if confidence < self.params.min_confidence:
+        if result.confidence < self.params.min_confidence:
             self.drop("low_confidence")
             return
-        self.publish(pose_message(smpl, frame=msg, confidence=confidence), stamp_ns=msg.header.stamp_ns)
+        frame = msg
+        if self.params.frame_topic:
+            frame = self._republish(msg, result.mask)
+        self.publish(
+            pose_message(result.smpl, frame=frame, confidence=result.confidence),
+            stamp_ns=msg.header.stamp_ns,
+        )
+
+    def _republish(self, msg: Frame, mask: np.ndarray | None) -> Frame:
+        """``msg`` with the estimator's mask (else its own) on ``frame_topic``; the sent Frame, whose
+        header carries the seq the pose must name."""
+        frame = Frame(
+            index=msg.index,
+            time=msg.time,
+            camera_id=msg.camera_id,
+            image=msg.image,
+            mask=mask if mask is not None else msg.mask,
+            depth=msg.depth,
+            K=msg.K,
+            R=msg.R,
+            t=msg.t,
+        )
+        frame.header.seq = self.publish(frame, self.params.frame_topic, stamp_ns=msg.header.stamp_ns)
+        return frame

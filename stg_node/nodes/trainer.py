@@ -3,6 +3,9 @@
 - Pairs each frame with its pose (BodyPose names its frame: ``frame_index`` and ``frame_seq``);
   unpaired messages wait in bounded tables (``pending``), so memory stays flat on an endless
   stream; the avatar trainer itself keeps at most ``max_frames`` frames (it evicts).
+- Skips frames whose pose has a confidence below ``min_confidence`` (a live tracker that lost
+  the person, saw two, or fitted badly), counted as drops ``low_confidence``: the frame and its
+  pose never reach the avatar.
 - Steps whenever it holds ``min_frames`` frames; trainer/metrics every ``metrics_every`` steps.
   With ``steps_per_frame`` N > 0 it steps exactly N times per new frame and then waits: the
   model then depends only on the frames and their order, not on how fast they came, which is
@@ -49,6 +52,9 @@ class TrainerParams:
     seed: int = param(0, doc="random seed")
     iters: int = param(0, min=0, doc="stop after this many iterations (0: train until stopped)")
     max_frames: int = param(64, min=1, doc="frames the trainer keeps (older ones are evicted)")
+    min_confidence: float = param(
+        0.5, min=0.0, max=1.0, doc="skip frames whose pose's tracker confidence is below this"
+    )
     min_frames: int = param(1, min=1, doc="frames needed before the first step")
     steps_per_frame: int = param(
         0,
@@ -76,6 +82,7 @@ class FramePairs:
         self.limit = limit
         self.frames: OrderedDict = OrderedDict()
         self.poses: OrderedDict = OrderedDict()
+        self.rejected: OrderedDict = OrderedDict()  # keys of frames whose pose was refused
         self.evicted_frames = 0
 
     @staticmethod
@@ -90,6 +97,8 @@ class FramePairs:
 
     def add_frame(self, frame):
         key = (frame.index, frame.header.seq)
+        if self.rejected.pop(key, None) is not None:
+            return None
         pose = self.poses.pop(key, None)
         if pose is not None:
             return frame, pose
@@ -103,6 +112,12 @@ class FramePairs:
             return frame, pose
         self._bounded(self.poses, key, pose, self.limit)  # poses of frames we never took: expected
         return None
+
+    def reject(self, pose) -> None:
+        """``pose``'s frame is not wanted: drop it if it waits, else drop it when it comes."""
+        key = (pose.frame_index, pose.frame_seq)
+        if self.frames.pop(key, None) is None:
+            self._bounded(self.rejected, key, True, self.limit)
 
 
 class TrainerNode(Node):
@@ -145,6 +160,7 @@ class TrainerNode(Node):
         self.owed_acks: list = []  # messages acknowledged once the steps they brought are done
         self.frames_in_buffer = 0
         self.frames_added = 0
+        self.frames_unsure = 0  # skipped: pose confidence below min_confidence
         self.last: StepInfo | None = None
         self.published_version = -1
         self.finished = False
@@ -156,8 +172,16 @@ class TrainerNode(Node):
 
     # -- input ----------------------------------------------------------------------------------------
 
+    def _add_pose(self, pose):
+        if pose.confidence < self.params.min_confidence:
+            self.pairs.reject(pose)
+            self.frames_unsure += 1
+            self.drop("low_confidence")
+            return None
+        return self.pairs.add_pose(pose)
+
     def _take_input(self) -> None:
-        for sub, add in ((self.poses, self.pairs.add_pose), (self.frames, self.pairs.add_frame)):
+        for sub, add in ((self.poses, self._add_pose), (self.frames, self.pairs.add_frame)):
             for _ in range(1024):
                 msg = sub.recv(timeout=0)
                 if msg is None:
@@ -205,6 +229,7 @@ class TrainerNode(Node):
                 extra={
                     "frames_added": float(self.frames_added),
                     "frames_buffered": float(self.frames_in_buffer),
+                    "frames_low_confidence": float(self.frames_unsure),
                 },
             )
         )
@@ -290,6 +315,7 @@ class TrainerNode(Node):
             "psnr": None if self.last is None else self.last.psnr,
             "num_gaussians": None if self.last is None else self.last.num_gaussians,
             "frames_added": self.frames_added,
+            "frames_low_confidence": self.frames_unsure,
             "finished": self.finished,
             "resumed_from": self.resumed_from,
         }

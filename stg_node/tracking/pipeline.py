@@ -24,6 +24,7 @@ import stg_node
 from stg_node.offline_assets import sha256_file
 from stg_node.progress import progress as progress_bar
 from stg_node.tracking.camera import DEFAULT_FOV_DEG, Intrinsics, from_fov, load_intrinsics
+from stg_node.tracking.fitting import FitConfig
 from stg_node.tracking.poses_file import TrackedPoses, write_poses
 from stg_node.tracking.sources import ImageFolderSource, open_source
 
@@ -95,14 +96,31 @@ def cache_root() -> Path:
     return Path(base) / "stg_node" / "track"
 
 
-def build_tracker(options: TrackOptions, width: int, height: int, threads: int | None = None):
-    """The Tracker for frames of ``width x height`` and these options (loads the networks)."""
+def build_tracker(
+    options: TrackOptions,
+    width: int,
+    height: int,
+    threads: int | None = None,
+    *,
+    intrinsics: Intrinsics | None = None,
+    fit: FitConfig | None = None,
+):
+    """The Tracker for frames of ``width x height`` and these options (loads the networks).
+
+    ``intrinsics``: the camera, when the caller knows it (the tracker node: a camera/frame's
+    ``K``); else from ``options`` (a calibration file or the field of view). ``fit``: the SMPL
+    fit's settings (default: FitConfig())."""
     from stg_node.body import load_body_model
     from stg_node.tracking.detectors import make_detector
     from stg_node.tracking.masks import make_masker
     from stg_node.tracking.tracker import Tracker, TrackerConfig
 
-    intrinsics = camera_for(options, width, height)
+    if intrinsics is None:
+        intrinsics = camera_for(options, width, height)
+    elif (intrinsics.width, intrinsics.height) != (width, height):
+        raise ValueError(
+            f"intrinsics are for {intrinsics.width}x{intrinsics.height} frames, not {width}x{height}"
+        )
     body = load_body_model(options.smpl_model)
     detector = make_detector(options.detector, model=options.pose_model, threads=threads)
     plate = None
@@ -111,7 +129,7 @@ def build_tracker(options: TrackOptions, width: int, height: int, threads: int |
 
         plate = read_image(options.plate)
     masker = make_masker(options.mask_method(), plate=plate)
-    config = TrackerConfig(max_side=options.max_side, smoothing=options.smoothing)
+    config = TrackerConfig(max_side=options.max_side, smoothing=options.smoothing, fit=fit or FitConfig())
     return Tracker(detector, body, intrinsics, config, masker), body
 
 

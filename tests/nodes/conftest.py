@@ -22,3 +22,11 @@ def bus_url():
 def broker(bus_url):
     with Broker(bus_url, status_period_s=0.2) as running:
         yield running
+
+
+@pytest.fixture(scope="session")
+def clip(tmp_path_factory):
+    """A 20-frame MJPG video (16 frames of a synthetic subject, 4 black) with its camera and truth."""
+    from fixtures.videos import synthetic_clip
+
+    return synthetic_clip(tmp_path_factory.mktemp("live") / "clip")

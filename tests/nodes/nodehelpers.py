@@ -7,6 +7,7 @@ import signal
 import subprocess
 import sys
 import threading
+from dataclasses import dataclass
 from pathlib import Path
 
 from tests.bus.bushelpers import wait_until  # one helper for every suite
@@ -15,11 +16,13 @@ ROOT = Path(__file__).resolve().parents[2]
 
 __all__ = [
     "ROOT",
+    "LaunchRun",
     "NodeThread",
     "child_env",
     "ignore_sigint",
     "launch_file",
     "pid_alive",
+    "run_launch",
     "spawn",
     "wait_until",
 ]
@@ -99,3 +102,43 @@ def launch_file(folder: Path, body: str) -> Path:
         f'args: {{bus: "ipc://{folder}/bus"}}\nbus: {{url: $(arg bus)}}\n' + textwrap.dedent(body)
     )
     return path
+
+
+@dataclass
+class LaunchRun:
+    code: int  # stg-launch's exit code
+    log: str  # its output (every node's lines, prefixed)
+    client_code: int | None = None  # tools/robot_client.py's, when one ran
+    client_output: str = ""
+
+
+def run_launch(
+    launch_args: list[str],
+    *,
+    timeout: float,
+    client_args: list[str] | None = None,
+    client_timeout: float = 300.0,
+) -> LaunchRun:
+    """``stg-launch LAUNCH_ARGS --no-color`` from this checkout, started as a background job would be
+    (SIGINT ignored), with ``tools/robot_client.py CLIENT_ARGS`` beside it when given; waits for the
+    client, then for the launch to end on its own (a SIGINT after ``timeout`` s)."""
+    launch = spawn(["-m", "stg_node.cli.launch", *launch_args, "--no-color"], preexec_fn=ignore_sigint)
+    output: list[str] = []
+    reader = threading.Thread(target=lambda: output.extend(iter(launch.stdout.readline, "")), daemon=True)
+    reader.start()
+    run = LaunchRun(code=-1, log="")
+    try:
+        if client_args is not None:
+            client = spawn([str(ROOT / "tools" / "robot_client.py"), *client_args])
+            run.client_output, _ = client.communicate(timeout=client_timeout)
+            run.client_code = client.returncode
+            if client.returncode != 0:
+                return run
+        launch.wait(timeout=timeout)
+    finally:
+        if launch.poll() is None:
+            launch.send_signal(signal.SIGINT)
+            launch.wait(timeout=60)
+        reader.join(5)
+        run.code, run.log = launch.returncode, "".join(output)
+    return run

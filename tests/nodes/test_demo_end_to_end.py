@@ -4,41 +4,26 @@ and recorded by its recorder node (record:=FILE), read back with the mcap packag
 from __future__ import annotations
 
 import json
-import signal
-import threading
 
 import pytest
 from mcap.reader import make_reader
-from nodehelpers import ROOT, ignore_sigint, spawn
+from nodehelpers import ROOT, run_launch
 
 
 @pytest.mark.slow
 def test_the_demo_trains_renders_serves_a_robot_and_ends_with_a_summary(tmp_path):
     out, robot, recording = tmp_path / "demo", tmp_path / "robot", tmp_path / "demo.mcap"
     url = f"ipc://{tmp_path}/bus"
-    launch = spawn(
-        ["-m", "stg_node.cli.launch", str(ROOT / "launch" / "demo.yaml"), f"out:={out}", f"bus:={url}",
-         "frames:=20", "size:=96", "iters:=150", f"record:={recording}", "--no-color"],
-        preexec_fn=ignore_sigint,
+    run = run_launch(
+        [str(ROOT / "launch" / "demo.yaml"), f"out:={out}", f"bus:={url}", "frames:=20", "size:=96",
+         "iters:=150", f"record:={recording}"],
+        timeout=600,  # the demo ends on its own
+        client_args=["--bus", url, "--out", str(robot), "--count", "8", "--width", "64", "--height", "48",
+                     "--timeout", "240"],
     )  # fmt: skip
-    output: list[str] = []
-    reader = threading.Thread(target=lambda: output.extend(iter(launch.stdout.readline, "")), daemon=True)
-    reader.start()
-    try:
-        client = spawn(
-            [str(ROOT / "tools" / "robot_client.py"), "--bus", url, "--out", str(robot), "--count", "8",
-             "--width", "64", "--height", "48", "--timeout", "240"],
-        )  # fmt: skip
-        client_out, _ = client.communicate(timeout=300)
-        assert client.returncode == 0, client_out + "".join(output)[-3000:]
-        launch.wait(timeout=600)  # the demo ends on its own
-    finally:
-        if launch.poll() is None:
-            launch.send_signal(signal.SIGINT)
-            launch.wait(timeout=60)
-        reader.join(5)
-    log = "".join(output)
-    assert launch.returncode == 0, log[-3000:]
+    assert run.client_code == 0, run.client_output + run.log[-3000:]
+    log = run.log
+    assert run.code == 0, log[-3000:]
     summary = json.loads((out / "summary.json").read_text())
     assert summary["iterations"] == 150 and summary["finished"] and summary["num_gaussians"] > 0
     assert summary["psnr"] > 12.0  # a 20-frame subject after 150 steps; far above a blank image

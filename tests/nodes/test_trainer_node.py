@@ -126,3 +126,51 @@ def test_a_stopped_trainer_flushes_a_final_snapshot_and_checkpoint(broker, bus_u
     assert snap is not None and snap.model_version == node.iteration > 0
     assert (tmp_path / "trainer.ckpt").is_file()
     assert json.loads((tmp_path / "trainer.json").read_text())["iteration"] == node.iteration
+
+
+def test_a_refused_pose_keeps_its_frame_out_in_either_order():
+    pairs = FramePairs(limit=4)
+    for order in ("frame first", "pose first"):
+        f, p = frame(3), pose(3)
+        f.header.seq = p.frame_seq = 20 if order == "frame first" else 21
+        if order == "frame first":
+            assert pairs.add_frame(f) is None
+            pairs.reject(p)
+        else:
+            pairs.reject(p)
+            assert pairs.add_frame(f) is None
+        assert not pairs.frames and not pairs.rejected, order
+    for i in range(100):  # refusals of frames that never come stay bounded too
+        q = pose(i)
+        q.frame_seq = 500 + i
+        pairs.reject(q)
+    assert len(pairs.rejected) == 4
+
+
+def test_frames_tracked_with_low_confidence_never_reach_the_avatar(broker, bus_url):
+    """Unsure frames are bright, sure ones dark: the fake avatar's colour (the mean of the frames it
+    holds) shows which reached it."""
+    node = trainer(bus_url, min_confidence=0.6, snapshot_every_s=0, metrics_every=1)
+    with Subscriber(BusConfig(url=bus_url), ["trainer/metrics", "avatar/snapshot", "node/status"]) as sub:
+        with Bus(bus_url, node="feeder", heartbeat_s=0) as feeder, NodeThread(node) as run:
+            for topic in ("camera/frame", "body/pose"):
+                assert feeder.publisher.wait_for_subscribers(topic, 10)
+            for i in range(8):
+                sure = i % 2 == 0
+                seq = feeder.publish(frame(i, 60 if sure else 250))
+                p = pose(i)
+                p.frame_seq, p.confidence = seq, (0.9 if sure else 0.3)
+                feeder.publish(p)
+                time.sleep(0.02)
+            assert wait_until(lambda: node.frames_added == 4 and node.frames_unsure == 4, timeout=10)
+            assert run.stop() == 0
+        messages, deadline = [], time.monotonic() + 1.0  # the broker's own status never stops
+        while time.monotonic() < deadline:
+            if (msg := sub.recv(timeout=0.1)) is not None:
+                messages.append(msg)
+    snapshot = [m for m in messages if isinstance(m, GaussianSnapshot)][-1]
+    np.testing.assert_allclose(snapshot.arrays["color"], [[60 / 255] * 3], rtol=1e-6)
+    metrics = [m for m in messages if isinstance(m, TrainerMetrics)][-1]
+    assert metrics.extra["frames_added"] == 4 and metrics.extra["frames_low_confidence"] == 4
+    statuses = [m for m in messages if getattr(m, "node", "") == "trainer"]
+    assert statuses and statuses[-1].drops.get("low_confidence") == 4

@@ -10,6 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from fixtures.videos import count_tracking_runs, write_video
 from tiny_onnx import dot_heatmap_model
 from trackhelpers import needs_blazepose
 
@@ -21,19 +22,10 @@ from stg_node.tracking.poses_file import PosesFileError, read_poses
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def _video(path: Path, frames: list[np.ndarray], fps: float = 30.0) -> Path:
-    height, width = frames[0].shape[:2]
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), fps, (width, height))
-    for frame in frames:
-        writer.write(frame[..., ::-1])
-    writer.release()
-    return path
-
-
 @pytest.fixture(scope="module")
 def synth_video(tmp_path_factory, synth_small):
     frames = [cv2.imread(str(p))[..., ::-1] for p in sorted((synth_small.folder / "Camera_B1").glob("*.png"))]
-    return _video(tmp_path_factory.mktemp("video") / "clip.avi", frames[:12])
+    return write_video(tmp_path_factory.mktemp("video") / "clip.avi", frames[:12])
 
 
 @pytest.fixture(scope="module")
@@ -117,14 +109,7 @@ def test_broken_poses_files_are_refused(tmp_path):
 
 
 def test_track_video_caches_by_content_and_options(tmp_path, monkeypatch, synth_video, dot_model):
-    calls = []
-    real = pipeline.track_to_file
-
-    def counting(*args, **kwargs):
-        calls.append(args[0])
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(pipeline, "track_to_file", counting)
+    calls = count_tracking_runs(monkeypatch)
     options = pipeline.TrackOptions(detector="onnx", pose_model=str(dot_model), mask="none")
     cache = tmp_path / "cache"
     first = pipeline.track_video(synth_video, options, cache_dir=cache, progress=False)
