@@ -6,7 +6,7 @@ horizon h):
 
     offset_i(u)  = sum_{k=1..n_p} b_ik tau^k                 (canonical frame, metres)
     q_i(u)       = normalise(q_i + sum_{k=1..n_q} c_ik tau^k)
-    sigma_i(u)   = sigma_i exp(-((u - mu_i^tau) / s_i)^2)
+    sigma_i(u)   = sigma_i exp(-((u - mu_i^tau) / s_i)^2)      (1 for s_i >= PERSISTENT_SCALE)
 
 **Where the offsets act.** The offset is added to the canonical centre *before* skinning, so
 the posed centre is ``X_L + R_blend(t) offset_i(u)``: the paper's ``X_L + sum b_ik tau^k`` with
@@ -35,6 +35,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+
+
+# A temporal window this wide (time units) or wider means "present at all times": such Gaussians
+# (the body's initial ones, 1000 units) get no temporal opacity at all, so an avatar trained online
+# for hours does not fade out of its own stream (docs/STABILITY.md).
+PERSISTENT_SCALE = 100.0
 
 
 @dataclass(frozen=True)
@@ -110,6 +116,7 @@ def evaluate(
     if temporal_opacity:
         scale = table["t_log_scale"].exp()
         temporal = torch.exp(-((dt / scale) ** 2))
+        temporal = torch.where(scale >= PERSISTENT_SCALE, torch.ones_like(temporal), temporal)
     return SpacetimeState(offsets, quats, temporal)
 
 
