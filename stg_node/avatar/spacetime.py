@@ -36,7 +36,6 @@ from dataclasses import dataclass
 
 import torch
 
-
 # A temporal window this wide (time units) or wider means "present at all times": such Gaussians
 # (the body's initial ones, 1000 units) get no temporal opacity at all, so an avatar trained online
 # for hours does not fade out of its own stream (docs/STABILITY.md).
