@@ -201,3 +201,72 @@ class TrainConfig:
                 value = groups[f.name](**{k: v for k, v in value.items() if k in known})
             kwargs[f.name] = value
         return cls(**kwargs)
+
+
+def apply_settings(config: TrainConfig, items) -> TrainConfig:
+    """``config`` with ``KEY=VALUE`` settings applied (``model.spacetime=false``, ``iterations=800``).
+
+    Values are read as YAML scalars and must have the type of the setting they replace (an int
+    is accepted for a float), so a typo fails here with the known names rather than deep in a run.
+    Raises ValueError.
+    """
+    import yaml
+
+    changes = {}
+    for item in items:
+        key, sep, text = str(item).partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise ValueError(f"{item!r}: expected KEY=VALUE, e.g. model.spacetime=false")
+        current = _setting(config, key)
+        try:
+            value = yaml.safe_load(text)
+        except yaml.YAMLError as exc:
+            raise ValueError(f"{key}: cannot read the value {text!r}") from exc
+        changes[key] = _same_type(key, value, current)
+    try:
+        return config.replace(**changes)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(str(exc)) from exc
+
+
+def _setting(config: TrainConfig, key: str):
+    """The current value of a top-level or ``group.name`` setting; ValueError naming the known ones."""
+    head, _, rest = key.partition(".")
+    top = {f.name: getattr(config, f.name) for f in dataclasses.fields(config)}
+    if head not in top:
+        raise ValueError(f"unknown setting {key!r}; known: {', '.join(sorted(top))}")
+    value = top[head]
+    group = dataclasses.is_dataclass(value)
+    if group and not rest:
+        names = ", ".join(f"{head}.{f.name}" for f in dataclasses.fields(value))
+        raise ValueError(f"{key!r} is a group; set one of its fields: {names}")
+    if not group and rest:
+        raise ValueError(f"unknown setting {key!r}: {head} has no fields")
+    if rest:
+        fields = {f.name for f in dataclasses.fields(value)}
+        if rest not in fields:
+            known = ", ".join(f"{head}.{name}" for name in sorted(fields))
+            raise ValueError(f"unknown setting {key!r}; known in {head}: {known}")
+        value = getattr(value, rest)
+    return value
+
+
+def _same_type(key: str, value, current):
+    if current is None:
+        return value
+    if isinstance(current, bool):
+        ok = isinstance(value, bool)
+    elif isinstance(current, int):
+        ok = isinstance(value, int) and not isinstance(value, bool)
+    elif isinstance(current, float):
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+        value = float(value) if ok else value
+    elif isinstance(current, tuple):
+        ok = isinstance(value, list)
+        value = tuple(value) if ok else value
+    else:
+        ok = isinstance(value, type(current))
+    if not ok:
+        raise ValueError(f"{key}: expected {type(current).__name__} (now {current!r}), got {value!r}")
+    return value

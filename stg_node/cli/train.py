@@ -75,6 +75,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--size", type=int, default=512, help="image size the frames are loaded at (default %(default)s)"
     )
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="change one setting of the preset, e.g. model.spacetime=false or model.max_gaussians=60000 "
+        "(repeatable; names in stg_node/avatar/config.py; a new run only)",
+    )
     p.add_argument("--threads", default=None, help="CPU threads (default: STG_THREADS or 1)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default %(default)s)")
     p.add_argument("--resume", action="store_true", help="continue from RUN_DIR's last checkpoint")
@@ -127,6 +135,16 @@ def run(args: argparse.Namespace) -> int:
         raise CommandFailed(f"--data {args.data}: no such video file or image folder")
     if args.format != "video" and not Path(args.data).is_dir():
         raise CommandFailed(f"--data {args.data}: no such folder")
+    from stg_node.avatar.config import apply_settings
+    from stg_node.avatar.presets import preset
+    from stg_node.avatar.run import RunDir
+
+    try:
+        args.config = apply_settings(preset(args.preset), args.set)
+    except ValueError as exc:
+        raise UsageError(f"--set: {exc}") from exc
+    if args.set and args.resume and RunDir(Path(args.out)).checkpoint.is_file():
+        raise UsageError(f"--set changes a new run's settings; {args.out} resumes with its own (config.json)")
     configure_threads(args.threads)
     with StopSignals() as stop:
         return _train(args, frames, stop)
@@ -144,7 +162,6 @@ def _device(args) -> str:
 
 def _train(args, frames, stop: StopSignals) -> int:
     from stg_node.avatar.data_spec import DataSpec
-    from stg_node.avatar.presets import preset
     from stg_node.avatar.run import RunDir, write_json
     from stg_node.avatar.trainer import Trainer
     from stg_node.avatar.training_log import TrainingLog
@@ -186,7 +203,7 @@ def _train(args, frames, stop: StopSignals) -> int:
     else:
         if args.resume:
             log.warning("--resume: no checkpoint in %s yet; starting from scratch", run.path)
-        config = preset(args.preset)
+        config = args.config
         if args.iters is not None:
             config = config.replace(iterations=args.iters)
         trainer = Trainer(
