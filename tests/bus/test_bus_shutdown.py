@@ -24,6 +24,12 @@ def _ignore_sigint() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # as a shell does for a job started with '&'
 
 
+def _default_sigint() -> None:
+    # A foreground start, even when the suite itself runs as a background job (which would hand
+    # the child SIGINT ignored, and Python then installs no KeyboardInterrupt handler).
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _spawn(args: list[str], ready: str, background: bool = False) -> subprocess.Popen:
     """Start a Python program from this checkout and wait (at most 30 s) until it prints ``ready``.
 
@@ -35,7 +41,7 @@ def _spawn(args: list[str], ready: str, background: bool = False) -> subprocess.
         env=env,
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
-        preexec_fn=_ignore_sigint if background else None,
+        preexec_fn=_ignore_sigint if background else _default_sigint,
     )
     deadline = time.monotonic() + 30
     seen = b""
