@@ -163,7 +163,7 @@ def test_frames_tracked_with_low_confidence_never_reach_the_avatar(broker, bus_u
                 feeder.publish(p)
                 # one pair at a time: camera/frame is keep-last, so a pair sent while the node is
                 # busy may replace the one before it (a counted drop, not what this test is about)
-                assert wait_until(lambda: node.frames_added + node.frames_unsure == i + 1, timeout=10)
+                assert wait_until(lambda n=i + 1: node.frames_added + node.frames_unsure == n, timeout=10)
             assert node.frames_added == 4 and node.frames_unsure == 4
             assert run.stop() == 0
         messages, deadline = [], time.monotonic() + 1.0  # the broker's own status never stops
