@@ -165,6 +165,18 @@ def test_quick_run_of_one_configuration_writes_table_and_plot(tmp_path):
     assert (
         stg_eval([str(run_dir), "--split", "novel_view", "--json", "--lpips", "none", "--no-progress"]) == 0
     )
+    # A result whose renders were timed another way is re-timed on the next run, not trained again.
+    stored = tmp_path / "out" / "results" / "preset_fast.json"
+    record = json.loads(stored.read_text())
+    assert record["render"]["method"] == tradeoff.RENDER_METHOD
+    record["render"] = {"cpu_ms": -1.0, "cpu_ms_no_skip": -1.0, "cuda_ms": None, "cuda_ms_no_skip": None}
+    stored.write_text(json.dumps(record))
+    again = _run_tool(tmp_path, "--only", "preset_fast")
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert "timing its renders again" in again.stderr and "training" not in again.stderr
+    retimed = json.loads(stored.read_text())
+    assert retimed["render"]["method"] == tradeoff.RENDER_METHOD and retimed["render"]["cpu_ms"] > 0
+    assert retimed["novel_view"] == record["novel_view"]  # the scores are kept
 
 
 def test_bad_usage_is_refused(tmp_path):
