@@ -78,6 +78,20 @@ def spawn(args: list[str], **kwargs) -> subprocess.Popen:
     )
 
 
+def describe_pids(pids) -> dict[int, str]:
+    """State and command line of each pid still alive: what a failed no-orphans check reports."""
+    out = {}
+    for pid in pids:
+        if pid_alive(pid):
+            try:
+                stat = Path(f"/proc/{pid}/stat").read_text().split(") ", 1)[1].split()
+                cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+                out[pid] = f"state {stat[0]}, parent {stat[1]}: {cmd.strip()}"
+            except OSError:
+                continue
+    return out
+
+
 def pid_alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)

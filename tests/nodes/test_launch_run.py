@@ -11,7 +11,7 @@ import threading
 import time
 from pathlib import Path
 
-from nodehelpers import ignore_sigint, launch_file, pid_alive, spawn, wait_until
+from nodehelpers import describe_pids, ignore_sigint, launch_file, pid_alive, spawn, wait_until
 
 from stg_node.launch import read_launch
 from stg_node.launch.process import OutputSink
@@ -183,4 +183,4 @@ def test_a_launcher_killed_outright_takes_its_nodes_with_it(tmp_path):
     pids = [int(p) for p in re.findall(r"started \w+: pid (\d+)", "".join(lines))]
     proc.kill()  # SIGKILL: no chance to clean up
     proc.communicate(timeout=10)
-    assert wait_until(lambda: not any(pid_alive(p) for p in pids), timeout=10)
+    assert wait_until(lambda: not any(pid_alive(p) for p in pids), timeout=10), describe_pids(pids)
