@@ -161,6 +161,17 @@ def bench_render(data: Path, gaussians: int, repeats: int) -> list[dict]:
     cam = Camera3.from_camera(sample.camera)
     with torch.no_grad():
         posed = model.pose(BodyState.from_smpl(sample.smpl), 0.0, cam.center)
+
+    def pose_and_render(skip: bool):
+        body = BodyState.from_smpl(sample.smpl)
+        return render(model.pose(body, 0.1, cam.center, skip_inactive=skip), cam, background=0.0)
+
+    # The three alternate run by run, so load on a shared machine falls on each alike.
+    cases = {
+        "ms_skip": lambda: pose_and_render(True),
+        "ms_all": lambda: pose_and_render(False),
+        "ms_raster_only": lambda: render(posed, cam, background=0.0),
+    }
     for fraction in (0.0, 0.1, 1.0):
         with torch.no_grad():
             active = torch.rand(table.num, generator=gen) < fraction
@@ -168,20 +179,6 @@ def bench_render(data: Path, gaussians: int, repeats: int) -> list[dict]:
                 table[name].zero_()
                 table[name][active] = 1e-3
         result = {"gaussians": table.num, "active_fraction": fraction}
-        # The three alternate run by run, so load on a shared machine falls on each alike.
-        cases = {
-            "ms_skip": lambda: render(
-                model.pose(BodyState.from_smpl(sample.smpl), 0.1, cam.center, skip_inactive=True),
-                cam,
-                background=0.0,
-            ),
-            "ms_all": lambda: render(
-                model.pose(BodyState.from_smpl(sample.smpl), 0.1, cam.center, skip_inactive=False),
-                cam,
-                background=0.0,
-            ),
-            "ms_raster_only": lambda: render(posed, cam, background=0.0),
-        }
         runs = {name: [] for name in cases}
         for _ in range(repeats + 2):
             for name, case in cases.items():

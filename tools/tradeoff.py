@@ -416,15 +416,18 @@ def _render_ms(renderer, samples, corrections, repeats: int) -> tuple[float, flo
     return statistics.median(runs[True]), statistics.median(runs[False])
 
 
-def measure_render(run_dir: Path, scale: Scale) -> dict:
-    """Render time of a trained run on the CPU (and CUDA when present), with and without the skip."""
+def measure_render(run_dir: Path, scale: Scale, loaded=None) -> dict:
+    """Render time of a trained run on the CPU (and CUDA when present), with and without the skip.
+
+    ``loaded``: what ``load_run_renderer(run_dir)`` returned, when the caller has it already.
+    """
     import torch
 
     from stg_node.avatar import AvatarRenderer
     from stg_node.avatar.loading import load_run_renderer
     from stg_node.avatar.snapshot import read_snapshot_file
 
-    run, renderer, corrections, _ = load_run_renderer(run_dir)
+    run, renderer, corrections, _ = loaded or load_run_renderer(run_dir)
     dataset = run.data_spec().open("novel_view")
     samples = [dataset[i] for i in range(scale.render_views)]
     out = {"method": RENDER_METHOD, "cuda_ms": None, "cuda_ms_no_skip": None}
@@ -443,7 +446,8 @@ def evaluate_run(run_dir: Path, regions: dict, scale: Scale) -> dict:
     from stg_node.avatar.loading import load_run_renderer
     from stg_node.data.metrics import psnr
 
-    run, renderer, corrections, _ = load_run_renderer(run_dir)
+    loaded = load_run_renderer(run_dir)
+    run, renderer, corrections, _ = loaded
     spec = run.data_spec()
     out: dict = {}
     for split in ("novel_view", "novel_pose"):
@@ -474,7 +478,7 @@ def evaluate_run(run_dir: Path, regions: dict, scale: Scale) -> dict:
             "fast_psnr": psnr(fast[0][None], fast[1][None]) if fast[0].shape[0] else math.nan,
             "protocol": report["protocol"],
         }
-    out["render"] = measure_render(run_dir, scale)
+    out["render"] = measure_render(run_dir, scale, loaded)
     return out
 
 
