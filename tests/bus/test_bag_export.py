@@ -16,8 +16,8 @@ from mcap_protobuf.decoder import DecoderFactory
 from scipy.spatial.transform import Rotation
 
 from stg_node.bus import BodyPose, Frame, encode
+from stg_node.bus.foxglove_views import quaternion_xyzw
 from stg_node.bus.recording import BagReader, BagWriter, bag_info
-from stg_node.bus.recording.foxglove import quaternion_xyzw
 from stg_node.cli import bag as bag_cli
 
 RNG = np.random.default_rng(3)
