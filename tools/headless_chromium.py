@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import base64
+import contextlib
 import itertools
 import json
 import os
@@ -107,9 +108,17 @@ class HeadlessChromium:
         with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=10) as response:
             targets = json.load(response)
         page = next(t for t in targets if t.get("type") == "page")
-        self.ws = connect(page["webSocketDebuggerUrl"], max_size=None, open_timeout=10)
+        self._stack = contextlib.ExitStack()  # the CDP connection as a context (websockets >= 17.1)
+        self.ws = self._stack.enter_context(
+            connect(page["webSocketDebuggerUrl"], max_size=None, open_timeout=10)
+        )
         self.call("Page.enable")
         self.call("Runtime.enable")
+        # The viewport exactly width x height (a headless window keeps room for browser UI).
+        self.call(
+            "Emulation.setDeviceMetricsOverride",
+            {"width": self.width, "height": self.height, "deviceScaleFactor": 1, "mobile": False},
+        )
         return self
 
     @property
@@ -134,7 +143,7 @@ class HeadlessChromium:
             except Exception:  # it may be gone already; the group kill below still runs
                 pass
             try:
-                self.ws.close()
+                self._stack.close()
             except Exception:
                 pass
             self.ws = None

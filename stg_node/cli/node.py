@@ -47,8 +47,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--lane", action="append", default=[], metavar="TOPIC=LANE", help="move a topic to another lane"
     )
-    parser.add_argument("--port", type=int, metavar="N", help="servers (foxglove, web): same as --param port=N")
-    parser.add_argument("--host", metavar="ADDR", help="servers (foxglove, web): same as --param host=ADDR")
+    parser.add_argument("--port", type=int, metavar="N", help="foxglove, web: same as --param port=N")
+    parser.add_argument("--host", metavar="ADDR", help="foxglove, web: same as --param host=ADDR")
     parser.add_argument("--heartbeat", type=float, default=1.0, metavar="S", help="NodeStatus period")
     parser.add_argument(
         "--ack",

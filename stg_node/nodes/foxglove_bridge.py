@@ -143,6 +143,7 @@ class FoxgloveNode(Node):
             sdk_log.setLevel(logging.INFO)
         foxglove.set_log_level("INFO")  # the SDK's own lines (clients, overflows) into our log
 
+        self.drained: list = []  # (name, Subscriber) of lossless topics, drained whole each round
         self.channels: dict[str, object] = {}  # view channel -> foxglove channel
         self.served: dict[str, type] = {}  # full bus topic -> message type
         for name in p.topics:
@@ -152,7 +153,9 @@ class FoxgloveNode(Node):
             full = self.bus.config.topic(self.topic(name))
             self.served[full] = cls
             self._advertise(full, cls)
-            self.subscribe(name, keep_last=True if cls in KEEP_LAST_TYPES else None)
+            sub = self.subscribe(name, keep_last=True if cls in KEEP_LAST_TYPES else None)
+            if cls not in KEEP_LAST_TYPES:
+                self.drained.append((name, sub))
         try:
             self.server = foxglove.start_server(
                 name=f"stg_node {self.name}",
@@ -179,6 +182,18 @@ class FoxgloveNode(Node):
                 p.host,
                 self.server.port,
             )
+
+    def run(self) -> None:
+        """The runtime's loop, but lossless topics (node/status: one topic for every node) drained
+        whole each round, where one message per round would let them fall behind the images."""
+        for event in self.events(self.tick_s):
+            if event.kind == "tick":
+                self.on_tick()
+                continue
+            self.on_message(event.topic, event.message)
+            for name, sub in self.drained:
+                while not self.stopping and (msg := sub.recv(timeout=0)) is not None:
+                    self.on_message(name, msg)
 
     def _advertise(self, full_topic: str, cls: type) -> None:
         """Create every view channel of a topic now, so clients can subscribe before data flows."""

@@ -166,8 +166,19 @@ class WebNode(Node):
         self.subscribe("avatar/image", keep_last=True)
         self.subscribe("camera/frame", keep_last=True)
         self.subscribe("body/pose", keep_last=True)
-        self.subscribe("node/status")
+        self.statuses = self.subscribe("node/status")
         self.subscribe("trainer/metrics", keep_last=True)
+
+    def run(self) -> None:
+        """The runtime's loop, but node/status drained whole each round: it is one topic for every
+        node, taken one message per round behind the images it would fall behind."""
+        for event in self.events(self.tick_s):
+            if event.kind == "tick":
+                self.on_tick()
+                continue
+            self.on_message(event.topic, event.message)
+            while (status := self.statuses.recv(timeout=0)) is not None:
+                self.on_message("node/status", status)
 
     # -- messages ------------------------------------------------------------------------------------------
 
@@ -253,7 +264,10 @@ class WebNode(Node):
         joints = self.skeleton.joints(pose)
         K, R, t, w, h = camera
         uv, front = project_points(joints, K, R, t)
-        points = [[round(float(u), 1), round(float(v), 1)] if ok else None for (u, v), ok in zip(uv, front)]
+        points = [
+            [round(float(u), 1), round(float(v), 1)] if ok else None
+            for (u, v), ok in zip(uv, front, strict=True)
+        ]
         self.server.publish(
             "skeleton",
             {
@@ -309,7 +323,8 @@ class WebNode(Node):
             age = client["report"].get("avatar") or {}
             if age.get("shown"):
                 self.log.info(
-                    "page %s (client %d): %d avatar frames shown, frame age p50 %.0f ms, p95 %.0f ms; %d dropped",
+                    "page %s (client %d): %d avatar frames shown, frame age p50 %.0f ms, p95 %.0f ms; "
+                    "%d dropped",
                     client["report"].get("page", "?"),
                     client["id"],
                     age["shown"],

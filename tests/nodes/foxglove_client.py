@@ -15,6 +15,7 @@ the protocol itself.
 from __future__ import annotations
 
 import base64
+import contextlib
 import json
 import struct
 import time
@@ -49,11 +50,19 @@ class FoxgloveClient:
     def __init__(self, url: str, *, max_queue: int | None = 16, timeout: float = 10.0):
         from websockets.sync.client import connect
 
+        self._stack = contextlib.ExitStack()  # the connection as a context (websockets >= 17.1 wants it)
         deadline = time.monotonic() + timeout
         while True:  # the server may still be starting
             try:
-                self.ws = connect(url, subprotocols=list(SUBPROTOCOLS), max_size=None, max_queue=max_queue,
-                                  open_timeout=5)  # fmt: skip
+                self.ws = self._stack.enter_context(
+                    connect(
+                        url,
+                        subprotocols=list(SUBPROTOCOLS),
+                        max_size=None,
+                        max_queue=max_queue,
+                        open_timeout=5,
+                    )
+                )
                 break
             except OSError:
                 if time.monotonic() > deadline:
@@ -119,7 +128,7 @@ class FoxgloveClient:
                 return got
 
     def close(self) -> None:
-        self.ws.close()
+        self._stack.close()
 
     def __enter__(self) -> FoxgloveClient:
         return self
