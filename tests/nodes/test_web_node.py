@@ -127,7 +127,8 @@ def test_a_token_is_required_beyond_this_machine_and_checked_everywhere(monkeypa
         with page(port, ["status"], headers=cookie) as ws:
             ws.send(json.dumps({"op": "ping", "t": 1.5}))
             pong, _ = unpack(ws.recv(timeout=10))
-            assert pong["stream"] == "pong" and pong["t"] == 1.5 and abs(pong["server_ns"] - time.time_ns()) < 5e9
+            assert pong["stream"] == "pong" and pong["t"] == 1.5
+            assert abs(pong["server_ns"] - time.time_ns()) < 5e9
         with page(port, ["status"], query=f"?token={TOKEN}"):
             pass
     finally:
@@ -188,7 +189,7 @@ def test_a_page_gets_the_streams_it_asked_for_and_only_those_are_encoded(broker,
                     got.setdefault(meta["stream"], []).append((meta, payload))
     assert {"avatar", "status"} <= set(got) and "camera" not in got and "mask" not in got
     meta, jpeg = got["avatar"][-1]
-    assert meta["width"] == 64 and meta["height"] == 48 and meta["src"] == "renderer" and 0 <= meta["seq"] <= seq
+    assert (meta["width"], meta["height"], meta["src"]) == (64, 48, "renderer") and 0 <= meta["seq"] <= seq
     assert abs(meta["stamp_ns"] - time.time_ns()) < 60e9
     decoded = cv2.cvtColor(cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
     assert np.abs(decoded.astype(int) - image).mean() < 4
@@ -213,7 +214,7 @@ def test_a_page_that_stops_reading_loses_frames_counted_and_slows_nobody(broker,
         assert wait_until(lambda: node.server is not None and node.server.port, timeout=20)
         assert bus.publisher.wait_for_subscribers("avatar/image", 15)
         port = node.server.port
-        with page(port, ["avatar"], max_queue=1) as stalled, page(port, ["avatar"]) as healthy:
+        with page(port, ["avatar"], max_queue=1), page(port, ["avatar"]) as healthy:  # the first never reads
             assert wait_until(lambda: len(node.server.clients) == 2, timeout=10)
             # The stalled page never reads again; the healthy one reads everything that comes.
             healthy_seen: list[int] = []
@@ -240,4 +241,5 @@ def test_a_page_that_stops_reading_loses_frames_counted_and_slows_nobody(broker,
                         newer.append(seq)
             assert len(newer) >= 5 and newer == sorted(newer)
             # Counted where an operator looks: the node's NodeStatus drops.
-            assert wait_until(lambda: node.heartbeat.traffic.snapshot()["drops"].get("slow_client", 0) >= 3, 5)
+            drops = node.heartbeat.traffic.snapshot()["drops"]
+            assert drops.get("slow_client", 0) >= 3, drops
