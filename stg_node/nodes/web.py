@@ -138,9 +138,7 @@ class WebNode(Node):
         p = self.params
         try:
             token = token_policy(p.host)
-            self.server = WebServer(
-                p.host, p.port, token=token, on_drop=lambda n: self.drop("slow_client", n)
-            )
+            self.server = WebServer(p.host, p.port, token=token)
             port = self.server.start()
         except WebServerError as exc:
             raise NodeError(str(exc)) from exc
@@ -162,6 +160,7 @@ class WebNode(Node):
         self.nodes: dict[str, dict] = {}
         self.metrics: TrainerMetrics | None = None
         self.next_status = 0.0
+        self.drops_counted = 0  # server.drops already in our NodeStatus
         self.next_report = time.monotonic() + p.report_every_s
         self.subscribe("avatar/image", keep_last=True)
         self.subscribe("camera/frame", keep_last=True)
@@ -285,6 +284,10 @@ class WebNode(Node):
     # -- periodic ------------------------------------------------------------------------------------------
 
     def on_tick(self) -> None:
+        drops = self.server.drops  # counted in the server's thread; moved into NodeStatus here
+        if drops > self.drops_counted:
+            self.drop("slow_client", drops - self.drops_counted)
+            self.drops_counted = drops
         now = time.monotonic()
         if now >= self.next_status and self.server.wants("status"):
             self.next_status = now + self.params.status_period_s

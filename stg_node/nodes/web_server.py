@@ -6,7 +6,7 @@ to the ones it shows. :meth:`WebServer.publish` (thread-safe, called from the no
 hands a stream's newest message to every client that wants it. Nothing queues: each client has
 one slot per stream; a message that replaces one its client has not yet taken (the client, or
 its network, is slower than the stream) is dropped and counted, per client and in total
-(``on_drop``, which the node turns into NodeStatus drops ``slow_client``). A client's sender
+(:attr:`WebServer.drops`, which the node reports as NodeStatus drops ``slow_client``). A client's sender
 waits on its own socket only (``send`` waits while more than ``write_limit`` bytes are
 unsent), so a stalled or vanished client slows nobody; keepalive pings close a dead one.
 
@@ -36,7 +36,6 @@ import os
 import struct
 import threading
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from http import HTTPStatus
 from pathlib import Path
@@ -130,14 +129,12 @@ class WebServer:
         *,
         token: str | None = None,
         static_dir: Path = STATIC_DIR,
-        on_drop: Callable[[int], None] | None = None,
     ):
         self.host = host
         self.port = port
         self.token = token
         self.static_dir = static_dir
         self.static_files = {p.name for p in static_dir.iterdir() if p.is_file()}
-        self.on_drop = on_drop
         self.clients: dict[int, Client] = {}
         self.drops = 0
         self.sent = 0
@@ -236,10 +233,7 @@ class WebServer:
                     dropped += 1
                 client.slots[stream] = message
                 client.ready.set()
-        if dropped:
-            self.drops += dropped
-            if self.on_drop is not None:
-                self.on_drop(dropped)
+        self.drops += dropped
 
     def stats(self) -> dict:
         """Clients and what they reported (for /stats.json, the operator page and the node's log)."""

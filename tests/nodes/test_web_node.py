@@ -241,5 +241,4 @@ def test_a_page_that_stops_reading_loses_frames_counted_and_slows_nobody(broker,
                         newer.append(seq)
             assert len(newer) >= 5 and newer == sorted(newer)
             # Counted where an operator looks: the node's NodeStatus drops.
-            drops = node.heartbeat.traffic.snapshot()["drops"]
-            assert drops.get("slow_client", 0) >= 3, drops
+            assert wait_until(lambda: node.heartbeat.traffic.snapshot()["drops"].get("slow_client", 0) >= 3)
