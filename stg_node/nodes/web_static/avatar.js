@@ -17,7 +17,11 @@ const live = new Live(["avatar"], {
 view = new FrameView(live, canvas);
 fitCanvas(canvas, view);
 live.reports.push(() => ({ avatar: view.stats() }));
-window.stgStats = { get avatar() { return view.stats(); }, get clockRttMs() { return live.bestRttMs; } };
+window.stgStats = {
+  get avatar() { return view.stats(); },
+  get clockRttMs() { return live.bestRttMs; },
+  reset: () => view.reset(),
+};
 
 setInterval(() => {
   if (stats.classList.contains("hidden")) return;

@@ -5,7 +5,7 @@
 
 const PING_EVERY_MS = 2000;
 const FIRST_PINGS = 5; // quick pings at start: a clock offset before the first frames
-const AGES_KEPT = 240; // frame ages kept for the percentiles
+const AGES_KEPT = 2000; // frame ages kept for the percentiles (about a minute at 30 fps)
 const REPORT_EVERY_MS = 2000;
 
 function epochMs() {
@@ -183,6 +183,14 @@ export class FrameView {
 
   redraw() {
     this.schedule();
+  }
+
+  // Start the counts and ages afresh (a benchmark's measuring window).
+  reset() {
+    this.shown = 0;
+    this.skipped = 0;
+    this.ages = [];
+    this.shownTimes = [];
   }
 
   stats() {
