@@ -155,7 +155,6 @@ class WebNode(Node):
             )
         self.steady = SteadyView()
         self.cameras: OrderedDict[int, tuple[np.ndarray, np.ndarray, np.ndarray, int, int]] = OrderedDict()
-        self.latest_camera: tuple | None = None
         self.skeleton = None  # live_scene.BodySkeleton, when a page shows the skeleton
         self.nodes: dict[str, dict] = {}
         self.metrics: TrainerMetrics | None = None
@@ -164,20 +163,23 @@ class WebNode(Node):
         self.next_report = time.monotonic() + p.report_every_s
         self.subscribe("avatar/image", keep_last=True)
         self.subscribe("camera/frame", keep_last=True)
-        self.subscribe("body/pose", keep_last=True)
+        # Every pose (small, lossless): the pose of a frame comes after it, and a keep-last pose
+        # would be overtaken by the next before the frame it belongs to is matched.
+        self.poses = self.subscribe("body/pose", keep_last=False)
         self.statuses = self.subscribe("node/status")
         self.subscribe("trainer/metrics", keep_last=True)
 
     def run(self) -> None:
-        """The runtime's loop, but node/status drained whole each round: it is one topic for every
-        node, taken one message per round behind the images it would fall behind."""
+        """The runtime's loop, but node/status and body/pose drained whole each round: taken one
+        message per round beside the images, they would fall behind."""
         for event in self.events(self.tick_s):
             if event.kind == "tick":
                 self.on_tick()
                 continue
             self.on_message(event.topic, event.message)
-            while (status := self.statuses.recv(timeout=0)) is not None:
-                self.on_message("node/status", status)
+            for name, sub in (("node/status", self.statuses), ("body/pose", self.poses)):
+                while not self.stopping and (msg := sub.recv(timeout=0)) is not None:
+                    self.on_message(name, msg)
 
     # -- messages ------------------------------------------------------------------------------------------
 
@@ -234,7 +236,6 @@ class WebNode(Node):
         self.cameras[msg.header.seq] = camera
         while len(self.cameras) > RECENT_FRAMES:
             self.cameras.popitem(last=False)
-        self.latest_camera = camera
         meta = {
             "seq": msg.header.seq,
             "stamp_ns": msg.header.stamp_ns,
@@ -251,8 +252,8 @@ class WebNode(Node):
     def _skeleton(self, pose: BodyPose) -> None:
         if not self.server.wants("skeleton"):
             return
-        camera = self.cameras.get(pose.frame_seq, self.latest_camera)
-        if camera is None:
+        camera = self.cameras.get(pose.frame_seq)  # the camera of the very frame the pose is of
+        if camera is None:  # a frame we skipped (keep-last) or of another rig: no picture to go on
             return
         if self.skeleton is None:
             from stg_node.nodes.live_scene import BodySkeleton

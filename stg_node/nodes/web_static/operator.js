@@ -5,19 +5,37 @@ import { FrameView, Live, fitCanvas, fmt, text } from "/static/stg.js";
 const $ = (id) => document.getElementById(id);
 const showMask = $("show-mask");
 const showSkeleton = $("show-skeleton");
-let mask = null; // {bitmap, meta}
-let skeleton = null; // skeleton stream message
+// Masks and skeletons by the seq of the camera frame they belong to: a frame shows its own
+// (the pose of a frame arrives after it, and with several cameras consecutive frames differ).
+const KEPT = 16;
+const masks = new Map(); // frame seq -> ImageBitmap
+const skeletons = new Map(); // frame seq -> skeleton stream message
 let avatarView = null;
 let cameraView = null;
 
 const token = new URLSearchParams(location.search).get("token");
 if (token) $("screen-link").href = `/avatar?token=${encodeURIComponent(token)}`;
 
+function keep(map, key, value, release) {
+  map.set(key, value);
+  while (map.size > KEPT) {
+    const [oldest, old] = map.entries().next().value;
+    if (release) release(old);
+    map.delete(oldest);
+  }
+}
+
+function showing(seq) {
+  return cameraView.current && cameraView.current.meta.seq === seq;
+}
+
 function drawOverlay(ctx, box, meta) {
   const scaleX = box.w / meta.width, scaleY = box.h / meta.height;
-  if (showMask.checked && mask && mask.meta.width === meta.width) {
-    ctx.drawImage(mask.bitmap, box.x, box.y, box.w, box.h);
+  const mask = masks.get(meta.seq);
+  if (showMask.checked && mask) {
+    ctx.drawImage(mask, box.x, box.y, box.w, box.h);
   }
+  const skeleton = skeletons.get(meta.seq);
   if (showSkeleton.checked && skeleton && skeleton.width === meta.width) {
     const pts = skeleton.points;
     ctx.lineWidth = Math.max(2, box.w / 200);
@@ -44,14 +62,13 @@ const live = new Live(["avatar", "camera", "mask", "skeleton", "status"], {
   camera: (meta, bytes) => cameraView.push(meta, bytes),
   mask: (meta, bytes) => {
     createImageBitmap(new Blob([bytes], { type: "image/png" })).then((bitmap) => {
-      if (mask) mask.bitmap.close();
-      mask = { bitmap, meta };
-      cameraView.redraw();
+      keep(masks, meta.seq, bitmap, (old) => old.close());
+      if (showing(meta.seq)) cameraView.redraw();
     });
   },
   skeleton: (meta) => {
-    skeleton = meta;
-    cameraView.redraw();
+    keep(skeletons, meta.frame_seq, meta);
+    if (showing(meta.frame_seq)) cameraView.redraw();
   },
   status: (meta) => showStatus(meta),
 });

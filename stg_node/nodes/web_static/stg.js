@@ -3,8 +3,9 @@
 // Plain ES module: no build step, no third-party code.
 "use strict";
 
-const PING_EVERY_MS = 2000;
+const PING_EVERY_MS = 1000;
 const FIRST_PINGS = 5; // quick pings at start: a clock offset before the first frames
+const CLOCK_SAMPLES = 30; // the offset is that of the quickest round trip among the last these
 const AGES_KEPT = 2000; // frame ages kept for the percentiles (about a minute at 30 fps)
 const REPORT_EVERY_MS = 2000;
 
@@ -25,6 +26,7 @@ export class Live {
     this.handlers = handlers;
     this.offsetMs = 0; // server clock - this clock
     this.bestRttMs = Infinity;
+    this.clockSamples = []; // [rtt, offset] of the last pings
     this.pings = 0;
     this.connected = false;
     this.reports = []; // functions returning {name: stats} for the server's /stats.json
@@ -43,6 +45,7 @@ export class Live {
     ws.onopen = () => {
       this.connected = true;
       this.bestRttMs = Infinity;
+      this.clockSamples = [];
       this.pings = 0;
       ws.send(JSON.stringify({ op: "subscribe", streams: this.streams }));
       this.ping();
@@ -63,15 +66,17 @@ export class Live {
     setTimeout(() => this.ping(), this.pings < FIRST_PINGS ? 200 : PING_EVERY_MS);
   }
 
-  // NTP-style: the server's clock is read halfway through the round trip; the shortest trip wins,
-  // re-measured now and then so that a drifting clock is followed.
+  // NTP-style: the server's clock is taken as read halfway through the round trip, which is off
+  // by at most half the trip: the quickest trip among the last CLOCK_SAMPLES wins (a busy machine
+  // delays some), and old samples leave the window, so a drifting clock is followed.
   pong(msg) {
     const now = epochMs();
     const rtt = now - msg.t;
-    if (rtt <= this.bestRttMs * 1.5 || this.pings % 15 === 0) {
-      this.bestRttMs = Math.min(this.bestRttMs, rtt);
-      this.offsetMs = msg.server_ns / 1e6 - (msg.t + now) / 2;
-    }
+    this.clockSamples.push([rtt, msg.server_ns / 1e6 - (msg.t + now) / 2]);
+    if (this.clockSamples.length > CLOCK_SAMPLES) this.clockSamples.shift();
+    const best = this.clockSamples.reduce((a, b) => (b[0] < a[0] ? b : a));
+    this.bestRttMs = best[0];
+    this.offsetMs = best[1];
   }
 
   serverNowMs() {
