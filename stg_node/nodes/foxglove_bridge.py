@@ -130,7 +130,10 @@ class FoxgloveNode(Node):
         import foxglove
 
         p = self.params
-        self.skeleton = None  # live_scene.BodySkeleton, created when someone watches the body
+        from stg_node.nodes.live_scene import BodySkeleton
+
+        self.skeleton = BodySkeleton(p.body_model)  # loads torch and the body in a thread of its own
+        self.skeleton.start_warm_up()
         self.snapshot: GaussianSnapshot | None = None
         self.pose: BodyPose | None = None
         self.camera_center: np.ndarray | None = None
@@ -227,7 +230,8 @@ class FoxgloveNode(Node):
         elif isinstance(msg, BodyPose):
             self.pose = msg
             if arrays.get("joints") is None and self._body_watched(full):
-                arrays["joints"] = self._skeleton().joints(msg)
+                if self.skeleton.ready.is_set() and not self.skeleton.failure:  # until then: none
+                    arrays["joints"] = self.skeleton.joints(msg)
             self._maybe_cloud()
         elif isinstance(msg, Frame):
             R, t = np.asarray(msg.R, np.float64), np.asarray(msg.t, np.float64)
@@ -248,19 +252,9 @@ class FoxgloveNode(Node):
             view_topic(full_topic, "joints")
         )
 
-    def _skeleton(self):
-        if self.skeleton is None:
-            from stg_node.nodes.live_scene import BodySkeleton
-
-            self.skeleton = BodySkeleton(self.params.body_model)
-            if self.snapshot is not None:
-                self.skeleton.use_snapshot(self.snapshot)
-        return self.skeleton
-
     def _take_snapshot(self, msg: GaussianSnapshot) -> None:
         self.snapshot = msg
-        if self.skeleton is not None:
-            self.skeleton.use_snapshot(msg)
+        self.skeleton.use_snapshot(msg)
         if self.cloud is not None:
             self.cloud.submit(msg)
         self._maybe_cloud(force=True)

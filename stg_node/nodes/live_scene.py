@@ -18,6 +18,7 @@ Gaussians posed as a coloured point cloud.
 from __future__ import annotations
 
 import logging
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -38,6 +39,28 @@ class BodySkeleton:
         self._snapshot_rest: np.ndarray | None = None  # (24, 3) from the latest snapshot
         self._snapshot_parents: np.ndarray | None = None
         self._shaped: dict[bytes, np.ndarray] = {}  # betas bytes -> rest joints (body model)
+        self.ready = threading.Event()  # set once torch and the body model are loaded
+        self.failure: str | None = None
+
+    def warm_up(self) -> None:
+        """Load torch and the body model (seconds on a busy CPU): run it in a thread at start, so
+        that a node's loop never stalls on the first skeleton; :attr:`ready` is set at the end
+        (also on failure, with :attr:`failure` saying why: the joints then raise)."""
+        try:
+            self.rest_joints(np.zeros(10, np.float32))
+            posed_joints(
+                np.zeros((NUM_JOINTS, 3)), self.parents, np.zeros((NUM_JOINTS, 3)), np.zeros(3), np.zeros(3)
+            )
+        except Exception as exc:  # a missing or unreadable body model: said once, here
+            self.failure = (
+                f"the skeleton's body model ({self.body_model or 'the open body'}) did not load: {exc}"
+            )
+            log.error("%s", self.failure)
+        finally:
+            self.ready.set()
+
+    def start_warm_up(self) -> None:
+        threading.Thread(target=self.warm_up, name="skeleton-warm-up", daemon=True).start()
 
     def use_snapshot(self, msg: GaussianSnapshot) -> bool:
         """Take the rest joints of an avatar snapshot (True if it has them)."""

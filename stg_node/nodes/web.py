@@ -155,7 +155,10 @@ class WebNode(Node):
             )
         self.steady = SteadyView()
         self.cameras: OrderedDict[int, tuple[np.ndarray, np.ndarray, np.ndarray, int, int]] = OrderedDict()
-        self.skeleton = None  # live_scene.BodySkeleton, when a page shows the skeleton
+        from stg_node.nodes.live_scene import BodySkeleton
+
+        self.skeleton = BodySkeleton(p.body_model)  # loads torch and the body in a thread of its own
+        self.skeleton.start_warm_up()
         self.nodes: dict[str, dict] = {}
         self.metrics: TrainerMetrics | None = None
         self.next_status = 0.0
@@ -250,15 +253,11 @@ class WebNode(Node):
             server.publish("mask", meta, encode_image(mask_overlay(mask), "png"))
 
     def _skeleton(self, pose: BodyPose) -> None:
-        if not self.server.wants("skeleton"):
+        if not self.server.wants("skeleton") or not self.skeleton.ready.is_set() or self.skeleton.failure:
             return
         camera = self.cameras.get(pose.frame_seq)  # the camera of the very frame the pose is of
         if camera is None:  # a frame we skipped (keep-last) or of another rig: no picture to go on
             return
-        if self.skeleton is None:
-            from stg_node.nodes.live_scene import BodySkeleton
-
-            self.skeleton = BodySkeleton(self.params.body_model)
         from stg_node.nodes.live_scene import project_points
 
         joints = self.skeleton.joints(pose)

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 from nodehelpers import NodeThread, wait_until
 
-from stg_node.bus import Bus, BusConfig, Frame, RenderedImage
+from stg_node.bus import BodyPose, Bus, BusConfig, Frame, RenderedImage
 from stg_node.nodes import web as web_module
 from stg_node.nodes.params import parse_params
 from stg_node.nodes.runtime import NodeError
@@ -242,3 +242,37 @@ def test_a_page_that_stops_reading_loses_frames_counted_and_slows_nobody(broker,
             assert len(newer) >= 5 and newer == sorted(newer)
             # Counted where an operator looks: the node's NodeStatus drops.
             assert wait_until(lambda: node.heartbeat.traffic.snapshot()["drops"].get("slow_client", 0) >= 3)
+
+
+def test_the_skeleton_is_the_poses_joints_seen_by_the_camera_of_its_own_frame(broker, bus_url):
+    node = web_node(bus_url, camera_max_side=32)  # 64 x 48 frames are sent at 32 x 24
+    joints = (RNG.normal(size=(24, 3)) * 0.3 + [0.0, 0.0, 3.0]).astype(np.float32)
+    rvec, t = np.array([0.05, -0.1, 0.02]), np.array([0.1, 0.0, 0.2])
+    R = cv2.Rodrigues(rvec)[0]
+    with NodeThread(node), Bus(bus_url, node="pipeline", heartbeat_s=0) as bus:
+        assert wait_until(lambda: node.server is not None and node.server.port, timeout=20)
+        for topic in ("camera/frame", "body/pose"):
+            assert bus.publisher.wait_for_subscribers(topic, 15)
+        with page(node.server.port, ["camera", "skeleton"]) as ws:
+            skeleton = camera = None
+            deadline = time.monotonic() + 60
+            while skeleton is None and time.monotonic() < deadline:
+                seq = bus.publish(Frame(index=3, image=gradient(), K=K, R=R, t=t))
+                other = bus.publish(Frame(index=3, image=gradient(), K=K, R=np.eye(3), t=np.zeros(3)))
+                pose = BodyPose(poses=np.zeros((24, 3), np.float32), Rh=np.zeros(3, np.float32),
+                                Th=np.zeros(3, np.float32), betas=np.zeros(10, np.float32), joints=joints,
+                                frame_seq=seq, frame_index=3)  # fmt: skip
+                bus.publish(pose)
+                with contextlib.suppress(TimeoutError):
+                    while True:
+                        meta, _ = unpack(ws.recv(timeout=0.3))
+                        if meta["stream"] == "camera" and meta["seq"] == seq:
+                            camera = meta
+                        if meta["stream"] == "skeleton" and camera is not None:
+                            skeleton = meta
+                            break
+    assert skeleton is not None and other > seq
+    assert skeleton["frame_seq"] == camera["seq"] and (skeleton["width"], skeleton["height"]) == (32, 24)
+    want, _ = cv2.projectPoints(joints.astype(np.float64), rvec, t, K, None)
+    np.testing.assert_allclose(np.array(skeleton["points"]), want.reshape(-1, 2) * 0.5, atol=0.06)
+    assert skeleton["parents"][:4] == [-1, 0, 0, 0]
