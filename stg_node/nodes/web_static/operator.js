@@ -138,7 +138,7 @@ function showStatus(status) {
   for (const c of status.web.clients) {
     const a = (c.report && c.report.avatar) || {};
     const row = document.createElement("tr");
-    cell(row, `${(c.report && c.report.page) || "?"} (${c.address})`, "small");
+    cell(row, `${(c.report && c.report.page) || "another client"} (${c.address})`, "small");
     cell(row, String(a.shown ?? "–"), "num");
     cell(row, a.age_p50_ms == null ? "–" : `${fmt(a.age_p50_ms, 0)} ms`, "num");
     cell(row, a.age_p95_ms == null ? "–" : `${fmt(a.age_p95_ms, 0)} ms`, "num");
