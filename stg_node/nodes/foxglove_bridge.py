@@ -45,8 +45,10 @@ from stg_node.bus.foxglove_views import (
     wire_parts,
 )
 from stg_node.nodes.avatar_adapter import DEFAULT_MODULE
+from stg_node.nodes.live_scene import BodySkeleton
 from stg_node.nodes.params import param
 from stg_node.nodes.runtime import Node, NodeError
+from stg_node.nodes.web_server import is_loopback
 
 #: The bus topics served by default (names before remaps and namespace).
 DEFAULT_TOPICS = [
@@ -62,7 +64,6 @@ SDK_OUTBOX_LOGGER = "foxglove.websocket"
 SDK_OUTBOX_TEXT = "outbox for client"
 #: Types whose newest message is all a viewer needs (keep-last subscriptions).
 KEEP_LAST_TYPES = (Frame, RenderedImage, BodyPose, GaussianSnapshot)
-LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "::1")
 
 
 @dataclass
@@ -91,15 +92,16 @@ class FoxgloveParams:
 
 
 class _OutboxReports(logging.Handler):
-    """Counts the SDK's 'outbox for client ... full' reports (one per overflow episode)."""
+    """Counts the SDK's 'outbox for client ... full' reports (one per overflow episode), in the
+    SDK's thread; the node moves the count into its NodeStatus on its ticks."""
 
-    def __init__(self, on_report):
+    def __init__(self):
         super().__init__(logging.INFO)
-        self.on_report = on_report
+        self.count = 0
 
     def emit(self, record: logging.LogRecord) -> None:
         if SDK_OUTBOX_TEXT in record.getMessage():
-            self.on_report()
+            self.count += 1
 
 
 class _Subscriptions:
@@ -130,8 +132,6 @@ class FoxgloveNode(Node):
         import foxglove
 
         p = self.params
-        from stg_node.nodes.live_scene import BodySkeleton
-
         self.skeleton = BodySkeleton(p.body_model)  # loads torch and the body in a thread of its own
         self.skeleton.start_warm_up()
         self.snapshot: GaussianSnapshot | None = None
@@ -139,7 +139,8 @@ class FoxgloveNode(Node):
         self.camera_center: np.ndarray | None = None
         self.next_cloud = 0.0
         self.sent: dict[str, int] = {}
-        self.outbox_reports = _OutboxReports(lambda: self.drop("client_backlog"))
+        self.outbox_reports = _OutboxReports()
+        self.reports_counted = 0
         sdk_log = logging.getLogger(SDK_OUTBOX_LOGGER)
         sdk_log.addHandler(self.outbox_reports)
         if sdk_log.getEffectiveLevel() > logging.INFO:
@@ -175,10 +176,10 @@ class FoxgloveNode(Node):
             p.host,
             self.server.port,
             len(self.channels),
-            "localhost" if p.host in LOOPBACK_HOSTS else p.host,
+            "localhost" if is_loopback(p.host) else p.host,
             self.server.port,
         )
-        if p.host not in LOOPBACK_HOSTS:
+        if not is_loopback(p.host):
             self.log.warning(
                 "listening on %s: anyone who reaches port %d sees this session (the Foxglove WebSocket "
                 "protocol has no login); prefer host 127.0.0.1 and an SSH tunnel",
@@ -291,6 +292,10 @@ class FoxgloveNode(Node):
         self._log(channel_name, point_cloud(cloud.positions, cloud.colors, stamp, cloud.alpha), stamp)
 
     def on_tick(self) -> None:
+        reports = self.outbox_reports.count
+        if reports > self.reports_counted:
+            self.drop("client_backlog", reports - self.reports_counted)
+            self.reports_counted = reports
         self._maybe_cloud()
 
     def teardown(self) -> None:

@@ -38,6 +38,7 @@ import numpy as np
 
 from stg_node.bus import BodyPose, Frame, NodeStatus, RenderedImage, TrainerMetrics
 from stg_node.bus.foxglove_views import encode_image, json_safe
+from stg_node.nodes.live_scene import BodySkeleton, project_points
 from stg_node.nodes.params import param
 from stg_node.nodes.runtime import Node, NodeError
 from stg_node.nodes.web_server import WebServer, WebServerError, is_loopback, token_policy
@@ -155,8 +156,6 @@ class WebNode(Node):
             )
         self.steady = SteadyView()
         self.cameras: OrderedDict[int, tuple[np.ndarray, np.ndarray, np.ndarray, int, int]] = OrderedDict()
-        from stg_node.nodes.live_scene import BodySkeleton
-
         self.skeleton = BodySkeleton(p.body_model)  # loads torch and the body in a thread of its own
         self.skeleton.start_warm_up()
         self.nodes: dict[str, dict] = {}
@@ -258,8 +257,6 @@ class WebNode(Node):
         camera = self.cameras.get(pose.frame_seq)  # the camera of the very frame the pose is of
         if camera is None:  # a frame we skipped (keep-last) or of another rig: no picture to go on
             return
-        from stg_node.nodes.live_scene import project_points
-
         joints = self.skeleton.joints(pose)
         K, R, t, w, h = camera
         uv, front = project_points(joints, K, R, t)
