@@ -19,7 +19,7 @@ from stg_node.avatar import spacetime
 from stg_node.avatar.color import ColorMLP, sh_color
 from stg_node.avatar.config import ModelConfig
 from stg_node.avatar.gaussians import GaussianTable
-from stg_node.avatar.rigid import PosedBones, Skeleton, blend_weights, skin
+from stg_node.avatar.rigid import QUAT_EPS, PosedBones, Skeleton, blend_weights, skin, skin_with_kernel
 from stg_node.avatar.spacetime import TimeAxis
 from stg_node.avatar.timecode import PoseTimeIndex, pose_key
 from stg_node.body import lbs
@@ -127,7 +127,7 @@ def _normalise(q: torch.Tensor) -> torch.Tensor:
     norm = q.norm(dim=-1, keepdim=True)
     identity = torch.zeros_like(q)
     identity[..., 0] = 1.0
-    return torch.where(norm > 1e-12, q / norm.clamp_min(1e-12), identity)
+    return torch.where(norm > QUAT_EPS, q / norm.clamp_min(QUAT_EPS), identity)
 
 
 class AvatarModel(nn.Module):
@@ -181,6 +181,11 @@ class AvatarModel(nn.Module):
         """World centres only (cheap: the flow loss and densification need the next frame's)."""
         st = spacetime.evaluate(self.table, u, self.config.time_horizon, temporal_opacity=False)
         means = self.table["means"] if st.offsets is None else self.table["means"] + st.offsets
+        fused = skin_with_kernel(
+            means, self.table["skin_weights"], self.table.get("skin_delta"), bones, rotations=False
+        )
+        if fused is not None:
+            return fused.means
         return skin(means, self.skin_weights(), bones, rotations=False).means
 
     def pose(
@@ -215,14 +220,9 @@ class AvatarModel(nn.Module):
 
         canonical = table["means"] if st.offsets is None else table["means"] + st.offsets
         canonical = rows(canonical)
-        skinned = skin(canonical, rows(self.skin_weights()), bones)
-        quats = quat_multiply(skinned.quats, _normalise(rows(st.quats)))
+        means, quats, view_canonical = self._skin(canonical, bones, rows(st.quats), camera_center, rows)
         scales = rows(table.scales())
         degree = cfg.sh_degree if sh_degree is None else min(sh_degree, cfg.sh_degree)
-        with torch.no_grad():  # the viewing direction in each Gaussian's canonical frame
-            view = skinned.means - camera_center
-            view = view / view.norm(dim=1, keepdim=True).clamp_min(1e-9)
-            view_canonical = rotate(conjugate(skinned.quats), view)
         if self.color_mlp is not None:
             if body.poses.requires_grad:  # pose refinement: keep the pose code differentiable
                 key = lbs.axis_angle_to_matrix(body.poses[0, 1:]).reshape(1, 23 * 9)
@@ -231,7 +231,29 @@ class AvatarModel(nn.Module):
             colors = self.color_mlp(canonical, rows(table["features"]), key, view_canonical, degree)
         else:
             colors = sh_color(rows(table["sh"]), view_canonical, degree)
-        return PosedGaussians(skinned.means, quats, scales, rows(opacity), colors, index)
+        return PosedGaussians(means, quats, scales, rows(opacity), colors, index)
+
+    def _skin(self, canonical, bones: PosedBones, local_quats, camera_center, rows):
+        """Posed centres, orientations (blended bones x local rotation) and the viewing direction in
+        each Gaussian's canonical frame (no gradient): the fused kernel, or torch (the reference)."""
+        table = self.table
+        fused = skin_with_kernel(
+            canonical,
+            rows(table["skin_weights"]),
+            rows(table.get("skin_delta")),
+            bones,
+            local_quats=local_quats,
+            camera_center=camera_center,
+        )
+        if fused is not None:
+            return fused.means, fused.quats, fused.view_dirs
+        skinned = skin(canonical, rows(self.skin_weights()), bones)
+        quats = quat_multiply(skinned.quats, _normalise(local_quats))
+        with torch.no_grad():
+            view = skinned.means - camera_center
+            view = view / view.norm(dim=1, keepdim=True).clamp_min(1e-9)
+            view_canonical = rotate(conjugate(skinned.quats), view)
+        return skinned.means, quats, view_canonical
 
 
 def render(
