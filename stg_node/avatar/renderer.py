@@ -4,17 +4,22 @@ renderer node call.
 Built from a model or straight from a GaussianSnapshot (the renderer node hot-swaps those).
 Without a time the pose's time code comes from the nearest training pose (timecode.py); with
 ``follow`` state kept between calls, an animation keeps its time code stable (hysteresis).
-Rendering runs without gradients and skips motion terms that are exactly zero.
+Rendering runs without gradients, skips motion terms that are exactly zero, and colours only the
+Gaussians the camera can see. A live stream (``render(..., stream=name)``: one camera following
+one body, frame after frame) can carry its colours from frame to frame and recompute them in
+turns (``color_refresh_every``; color_cache.py); a render without a stream is always exact.
 """
 
 from __future__ import annotations
 
 import time
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
+from stg_node.avatar.color_cache import ColorCache
 from stg_node.avatar.model import AvatarModel, BodyState, Camera3, render
 
 
@@ -28,17 +33,37 @@ class RenderOutput:
     num_rendered: int  # Gaussians that reached the rasterizer
 
 
+MAX_STREAMS = 8  # colour caches kept per renderer (the least recently used goes first)
+
+
 class AvatarRenderer:
-    def __init__(self, model: AvatarModel, *, backend: str = "auto"):
+    def __init__(self, model: AvatarModel, *, backend: str = "auto", color_refresh_every: int = 1):
+        if int(color_refresh_every) < 1:
+            raise ValueError(f"color_refresh_every must be >= 1, got {color_refresh_every}")
         self.model = model.eval()
         self.backend = backend
+        self.color_refresh_every = int(color_refresh_every)
         self._last_key: int | None = None
+        self._streams: OrderedDict[str, ColorCache] = OrderedDict()
 
     @classmethod
-    def from_snapshot(cls, msg, device="cpu", backend: str = "auto") -> AvatarRenderer:
+    def from_snapshot(
+        cls, msg, device="cpu", backend: str = "auto", color_refresh_every: int = 1
+    ) -> AvatarRenderer:
         from stg_node.avatar.snapshot import model_from_snapshot
 
-        return cls(model_from_snapshot(msg, device=device), backend=backend)
+        return cls(
+            model_from_snapshot(msg, device=device), backend=backend, color_refresh_every=color_refresh_every
+        )
+
+    def _color_cache(self, stream: str | None) -> ColorCache | None:
+        if stream is None or self.color_refresh_every == 1:
+            return None
+        cache = self._streams.pop(stream, None) or ColorCache(self.color_refresh_every)
+        self._streams[stream] = cache
+        while len(self._streams) > MAX_STREAMS:
+            self._streams.popitem(last=False)
+        return cache
 
     @property
     def device(self) -> torch.device:
@@ -64,13 +89,19 @@ class AvatarRenderer:
         background=(0.0, 0.0, 0.0),
         follow: bool = False,
         depth: bool = False,
+        stream: str | None = None,
     ) -> RenderOutput:
-        """Render ``smpl`` (SmplParams) seen by ``camera`` (stg_node.data.types.Camera) at ``time`` (s)."""
+        """Render ``smpl`` (SmplParams) seen by ``camera`` (stg_node.data.types.Camera) at ``time`` (s).
+
+        ``stream`` names a live stream whose colours may be carried between frames (see the
+        module docstring); None renders exactly."""
         started = _now()
         u = self.time_for(smpl, time, follow=follow)
         cam = Camera3.from_camera(camera, device=self.device)
         body = BodyState.from_smpl(smpl, self.device)
-        posed = self.model.pose(body, u, cam.center, skip_inactive=True)
+        posed = self.model.pose(
+            body, u, cam.center, skip_inactive=True, camera=cam, color_cache=self._color_cache(stream)
+        )
         bg = torch.as_tensor(background, dtype=torch.float32, device=self.device)
         image, alpha, info = render(posed, cam, background=bg, backend=self.backend, render_depth=depth)
         out_depth = None

@@ -7,7 +7,7 @@
 #include <cstdint>
 #include <cstring>
 
-#if defined(__FMA__) && defined(__AVX__)
+#if defined(__AVX__)
 #include <immintrin.h>
 #endif
 
@@ -62,6 +62,52 @@ inline v8f v8_madd(v8f a, v8f b, v8f c) {
     return (v8f)_mm256_fmadd_ps((__m256)a, (__m256)b, (__m256)c);
 #else
     return a * b + c;
+#endif
+}
+
+typedef int32_t v8i __attribute__((vector_size(32)));
+
+inline v8i v8i_splat(int32_t x) { return v8i{x, x, x, x, x, x, x, x}; }
+
+inline v8i v8i_load(const int32_t* p) {
+    v8i v;
+    std::memcpy(&v, p, sizeof(v));
+    return v;
+}
+
+inline void v8i_store(int32_t* p, v8i v) { std::memcpy(p, &v, sizeof(v)); }
+
+// fast_exp on eight lanes: the same operations in the same order, so every lane equals
+// fast_exp of that lane bit for bit (the rasterizer's passes rely on it).
+inline v8f fast_exp8(v8f x) {
+    const v8f lo = v8_splat(-60.0f), hi = v8_splat(88.0f);
+    x = x < lo ? lo : x;
+    x = x > hi ? hi : x;
+    v8f k = x * v8_splat(1.44269504088896341f);
+    k = (k + v8_splat(12582912.0f)) - v8_splat(12582912.0f);
+    v8f r = v8_madd(k, v8_splat(-0.693145751953125f), x);
+    r = v8_madd(k, v8_splat(-1.42860682030941723212e-6f), r);
+    v8f p = v8_splat(1.0f / 720.0f);
+    p = v8_madd(p, r, v8_splat(1.0f / 120.0f));
+    p = v8_madd(p, r, v8_splat(1.0f / 24.0f));
+    p = v8_madd(p, r, v8_splat(1.0f / 6.0f));
+    p = v8_madd(p, r, v8_splat(0.5f));
+    p = v8_madd(p, r, v8_splat(1.0f));
+    p = v8_madd(p, r, v8_splat(1.0f));
+    const v8i bits = (__builtin_convertvector(k, v8i) + 127) << 23;
+    v8f scale;
+    std::memcpy(&scale, &bits, sizeof(scale));
+    return p * scale;
+}
+
+// Bit l set where lane l of the mask is true (all bits set).
+inline uint32_t v8_movemask(v8i mask) {
+#if defined(__AVX__)
+    return static_cast<uint32_t>(_mm256_movemask_ps((__m256)mask));
+#else
+    uint32_t bits = 0;
+    for (int l = 0; l < 8; ++l) bits |= (mask[l] != 0 ? 1u : 0u) << l;
+    return bits;
 #endif
 }
 

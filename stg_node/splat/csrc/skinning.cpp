@@ -31,6 +31,7 @@ inline void point_weights(const SkinShape& s, const float* sw, const float* delt
     }
     // (s + eps) exp(d - max d) / sum: the same ratio as without the shift, never overflowing.
     float dmax = delta[0];
+#pragma omp simd reduction(max : dmax)
     for (int b = 1; b < B; ++b) dmax = std::max(dmax, delta[b]);
     float total = 0.0f;
 #pragma omp simd reduction(+ : total)
@@ -43,16 +44,32 @@ inline void point_weights(const SkinShape& s, const float* sw, const float* delt
     for (int b = 0; b < B; ++b) w[b] *= inv;
 }
 
-// blend[16] = sum_b w_b bones[b, :]
+// blend[16] = sum_b w_b bones[b, :], in four interleaved partial sums (a chain of B dependent
+// multiply-adds would wait on each one's latency).
 inline void blend_bones(int B, const float* w, const float* bones, float* blend) {
-    float acc[kBoneStride] = {0};
-    for (int b = 0; b < B; ++b) {
-        const float wb = w[b];
-        const float* row = bones + static_cast<int64_t>(b) * kBoneStride;
-#pragma omp simd
-        for (int k = 0; k < kBoneStride; ++k) acc[k] = STG_MADD(wb, row[k], acc[k]);
+    using stg_math::v8_load;
+    using stg_math::v8_madd;
+    using stg_math::v8_splat;
+    using stg_math::v8f;
+    static_assert(kBoneStride == 16, "two vectors per bone");
+    v8f acc[4][2] = {};
+    int b = 0;
+    for (; b + 4 <= B; b += 4) {
+        for (int j = 0; j < 4; ++j) {
+            const float* row = bones + static_cast<int64_t>(b + j) * kBoneStride;
+            const v8f wb = v8_splat(w[b + j]);
+            acc[j][0] = v8_madd(wb, v8_load(row), acc[j][0]);
+            acc[j][1] = v8_madd(wb, v8_load(row + 8), acc[j][1]);
+        }
     }
-    for (int k = 0; k < kBoneStride; ++k) blend[k] = acc[k];
+    for (; b < B; ++b) {
+        const float* row = bones + static_cast<int64_t>(b) * kBoneStride;
+        const v8f wb = v8_splat(w[b]);
+        acc[0][0] = v8_madd(wb, v8_load(row), acc[0][0]);
+        acc[0][1] = v8_madd(wb, v8_load(row + 8), acc[0][1]);
+    }
+    stg_math::v8_store(blend, (acc[0][0] + acc[1][0]) + (acc[2][0] + acc[3][0]));
+    stg_math::v8_store(blend + 8, (acc[0][1] + acc[1][1]) + (acc[2][1] + acc[3][1]));
 }
 
 inline float norm4(const float* q) {

@@ -113,6 +113,20 @@ project_fwd(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& 
     return {means2d, conics, depths, opac_eff, comp, radii, bbox, visible};
 }
 
+at::Tensor visible_fwd(const at::Tensor& means, const at::Tensor& scales, const at::Tensor& viewmat,
+                       const at::Tensor& K, int64_t width, int64_t height, c10::ArrayRef<double> settings,
+                       double margin_px, int64_t threads) {
+    const int64_t n = means.size(0);
+    check_cpu_float(means, "means", n, 3);
+    check_cpu_float(scales, "scales", n, 3);
+    const Settings s = make_settings(settings, threads);
+    const Camera cam = make_camera(viewmat, K, width, height);
+    at::Tensor out = at::empty({n}, means.options().dtype(at::kBool));
+    stg_splat::may_be_visible(n, means.data_ptr<float>(), scales.data_ptr<float>(), cam, s, margin_px,
+                              reinterpret_cast<uint8_t*>(out.data_ptr<bool>()));
+    return out;
+}
+
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> project_bwd(
     const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
     const at::Tensor& opacities, const at::Tensor& viewmat, const at::Tensor& K, int64_t width,
@@ -511,6 +525,10 @@ TORCH_LIBRARY(STG_SPLAT_NS, m) {
         "Tensor K, int width, int height, float[] settings, int threads) -> (Tensor, Tensor, Tensor, "
         "Tensor, Tensor, Tensor, Tensor, Tensor)",
         &project_fwd);
+    m.def(
+        "may_be_visible(Tensor means, Tensor scales, Tensor viewmat, Tensor K, int width, int height, "
+        "float[] settings, float margin_px, int threads) -> Tensor",
+        &visible_fwd);
     m.def(
         "project_bwd(Tensor means, Tensor quats, Tensor scales, Tensor opacities, Tensor viewmat, "
         "Tensor K, int width, int height, float[] settings, int threads, Tensor visible, "

@@ -34,6 +34,8 @@
 #include <cstring>
 #include <vector>
 
+#include "fast_math.h"
+
 namespace stg_splat {
 namespace {
 
@@ -43,41 +45,24 @@ inline double ms_since(Clock::time_point t0) {
     return std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
 }
 
-// a * b + c, fused when the target has FMA. Contraction is otherwise off (-ffp-contract=off):
-// every expression that both passes evaluate goes through the same inline code, so the
-// forward and backward passes get bit-identical alphas either way.
-#ifdef __FMA__
-#define STG_MADD(a, b, c) __builtin_fmaf((a), (b), (c))
-#else
-#define STG_MADD(a, b, c) ((a) * (b) + (c))
-#endif
-
-// exp(x) for x in [-87, 88] to ~1 ulp, written so that it vectorises (no libm call, no
-// branches). Used for exp(-sigma) in both passes.
-inline float fast_exp(float x) {
-    x = x < -60.0f ? -60.0f : x;
-    x = x > 88.0f ? 88.0f : x;
-    float k = x * 1.44269504088896341f;
-    k = (k + 12582912.0f) - 12582912.0f;  // round to nearest integer
-    float r = STG_MADD(k, -0.693145751953125f, x);  // Cody-Waite: ln2 = hi + lo
-    r = STG_MADD(k, -1.42860682030941723212e-6f, r);
-    float p = 1.0f / 720.0f;
-    p = STG_MADD(p, r, 1.0f / 120.0f);
-    p = STG_MADD(p, r, 1.0f / 24.0f);
-    p = STG_MADD(p, r, 1.0f / 6.0f);
-    p = STG_MADD(p, r, 0.5f);
-    p = STG_MADD(p, r, 1.0f);
-    p = STG_MADD(p, r, 1.0f);
-    int32_t bits = (static_cast<int32_t>(k) + 127) << 23;
-    float scale;
-    std::memcpy(&scale, &bits, sizeof(float));
-    return p * scale;
-}
+using stg_math::fast_exp;
+using stg_math::fast_exp8;
+using stg_math::v8_load;
+using stg_math::v8_madd;
+using stg_math::v8_splat;
+using stg_math::v8_store;
+using stg_math::v8f;
+using stg_math::v8i;
 
 // The Gaussian's exponent at a pixel, sigma = a/2 dx^2 + b dx dy + c/2 dy^2, as
 // (ha dx + b dy) dx + c/2 dy^2 with the row terms hoisted (dx = mean_x - pixel_x).
 inline float sigma_at(float ha, float bdy, float rowc, float dx) {
     return STG_MADD(STG_MADD(ha, dx, bdy), dx, rowc);
+}
+
+// sigma_at on eight lanes (bit-identical per lane).
+inline v8f sigma_at8(float ha, float bdy, float rowc, v8f dx) {
+    return v8_madd(v8_madd(v8_splat(ha), dx, v8_splat(bdy)), dx, v8_splat(rowc));
 }
 
 // ---------------------------------------------------------------------------------------
@@ -250,6 +235,38 @@ void project_forward(int64_t n, const float* means, const float* quats, const fl
         bbox[i * 4 + 2] = covers ? static_cast<int32_t>(y0) : 0;
         bbox[i * 4 + 3] = covers ? static_cast<int32_t>(y1) : -1;
         visible[i] = 1;
+    }
+}
+
+void may_be_visible(int64_t n, const float* means, const float* scales, const Camera& cam,
+                    const Settings& s, double margin_px, uint8_t* out) {
+    const double W = cam.width, H = cam.height;
+    const double tan_x = 0.5 * W / cam.fx, tan_y = 0.5 * H / cam.fy;
+    const double lim_xp = (W - cam.cx) / cam.fx + s.frustum_margin * tan_x;
+    const double lim_xn = cam.cx / cam.fx + s.frustum_margin * tan_x;
+    const double lim_yp = (H - cam.cy) / cam.fy + s.frustum_margin * tan_y;
+    const double lim_yn = cam.cy / cam.fy + s.frustum_margin * tan_y;
+    const double e = s.sigma_extent_max;
+#pragma omp parallel for num_threads(s.threads) schedule(static)
+    for (int64_t i = 0; i < n; ++i) {
+        const double m[3] = {means[i * 3], means[i * 3 + 1], means[i * 3 + 2]};
+        double p[3];
+        for (int r = 0; r < 3; ++r)
+            p[r] = cam.R[r * 3] * m[0] + cam.R[r * 3 + 1] * m[1] + cam.R[r * 3 + 2] * m[2] + cam.t[r];
+        const double z = p[2];
+        const bool out_of_depth = (z < s.near_plane) | (z > s.far_plane);
+        const double zs = std::max(z, s.near_plane);
+        const double ux = p[0] / zs, uy = p[1] / zs;
+        const double tx = std::min(std::max(ux, -lim_xn), lim_xp), ty = std::min(std::max(uy, -lim_yn), lim_yp);
+        const double smax = std::max({static_cast<double>(scales[i * 3]), static_cast<double>(scales[i * 3 + 1]),
+                                      static_cast<double>(scales[i * 3 + 2])});
+        const double jx2 = (cam.fx / zs) * (cam.fx / zs) * (1.0 + tx * tx);
+        const double jy2 = (cam.fy / zs) * (cam.fy / zs) * (1.0 + ty * ty);
+        const double rx = e * std::sqrt(jx2 * smax * smax + s.eps2d) + margin_px;
+        const double ry = e * std::sqrt(jy2 * smax * smax + s.eps2d) + margin_px;
+        const double mx = cam.fx * ux + cam.cx, my = cam.fy * uy + cam.cy;
+        const bool off_image = (mx + rx <= 0.0) | (mx - rx >= W) | (my + ry <= 0.0) | (my - ry >= H);
+        out[i] = (out_of_depth | off_image) ? 0 : 1;
     }
 }
 
@@ -552,11 +569,40 @@ struct ForwardScratch {
     alignas(64) float T[kTilePixels];
     alignas(64) float thr[kTilePixels];  // alpha_min, or 2 once the pixel is finished
     alignas(64) int32_t last[kTilePixels];
-    alignas(64) float w[kTileSize];
     uint32_t done_bits[kTileSize];  // per row, bit l set once pixel l is finished (or outside)
     std::vector<float> acc;         // [C][256]
 };
 
+// One Gaussian on the 8 pixels of one half-row (lanes off .. off + 7): alpha, the blend test,
+// transmittance, last index, finished pixels, and the colour accumulation, on one vector.
+// Returns the lanes that finished here (bit l = pixel off + l). NC > 0: the channel count,
+// known at compile time; NC == 0: `channels` at run time.
+template <int NC>
+inline uint32_t forward_half(float* T, float* thr, int32_t* last, float* acc, int channels, const float* col,
+                             v8f dx, v8i inside, float ha, float bdy, float rowc, float op, float amax,
+                             float tmin, int32_t k) {
+    const v8f sigma = sigma_at8(ha, bdy, rowc, dx);
+    v8f alpha = v8_splat(op) * fast_exp8(-sigma);
+    alpha = alpha > v8_splat(amax) ? v8_splat(amax) : alpha;
+    const v8f Tl = v8_load(T), th = v8_load(thr);
+    const v8i valid = inside & (sigma >= v8_splat(0.0f)) & (alpha >= th);
+    const v8f Tn = Tl * (v8_splat(1.0f) - alpha);
+    const v8i below = Tn <= v8_splat(tmin);  // gsplat: next_T <= 1e-4f, exclusive
+    const v8i stop = valid & below;
+    const v8i blend = valid & ~below;
+    const v8f w = blend ? alpha * Tl : v8_splat(0.0f);
+    v8_store(T, blend ? Tn : Tl);
+    stg_math::v8i_store(last, blend ? stg_math::v8i_splat(k) : stg_math::v8i_load(last));
+    v8_store(thr, stop ? v8_splat(2.0f) : th);
+    const int C = NC > 0 ? NC : channels;
+    for (int ch = 0; ch < C; ++ch) {
+        float* a = acc + static_cast<size_t>(ch) * kTilePixels;
+        v8_store(a, v8_madd(w, v8_splat(col[ch]), v8_load(a)));
+    }
+    return stg_math::v8_movemask(stop);
+}
+
+template <int NC>
 void forward_tile(const SortedGaussians& S, const TileRect& r, const int32_t* list, int64_t len,
                   const Settings& s, ForwardScratch& sc, float* out_color, float* out_T,
                   int32_t* out_last, int width) {
@@ -583,6 +629,8 @@ void forward_tile(const SortedGaussians& S, const TileRect& r, const int32_t* li
         sc.done_bits[ly] = ly < r.h ? ~span_bits(0, r.w - 1) & 0xFFFFu : 0xFFFFu;
     alignas(64) float px[kTileSize];
     for (int l = 0; l < kTileSize; ++l) px[l] = static_cast<float>(r.X0 + l) + 0.5f;
+    const v8f px0 = v8_load(px), px1 = v8_load(px + kHalf);
+    const v8i lane = {0, 1, 2, 3, 4, 5, 6, 7};
     const int active = r.w * r.h;
     int finished = 0;
     for (int64_t k = 0; k < len && finished < active; ++k) {
@@ -594,46 +642,29 @@ void forward_tile(const SortedGaussians& S, const TileRect& r, const int32_t* li
         const float* col = &S.col[static_cast<size_t>(v) * C];
         const int32_t kk = static_cast<int32_t>(k);
         const uint32_t span = span_bits(lx0, lx1);
-        // The 8-lane halves the box touches, processed in one loop (one or two vectors).
-        const int h0 = lx0 < kHalf ? 0 : kHalf;
-        const int h1 = lx1 < kHalf ? kHalf : kTileSize;
+        // The 8-lane halves the box touches, with the lanes inside the box, and dx per lane.
+        const bool use0 = lx0 < kHalf, use1 = lx1 >= kHalf;
+        const v8i in0 = (lane >= stg_math::v8i_splat(lx0)) & (lane <= stg_math::v8i_splat(lx1));
+        const v8i in1 = (lane >= stg_math::v8i_splat(lx0 - kHalf)) & (lane <= stg_math::v8i_splat(lx1 - kHalf));
+        const uint32_t span0 = span & 0xFFu, span1 = span >> kHalf;
+        const v8f dx0 = v8_splat(mx) - px0, dx1 = v8_splat(mx) - px1;
         for (int ly = ly0; ly <= ly1; ++ly) {
-            if ((sc.done_bits[ly] & span) == span) continue;  // every pixel it could touch is done
+            const uint32_t done = sc.done_bits[ly];
+            if ((done & span) == span) continue;  // every pixel it could touch is done
             const float dy = my - (static_cast<float>(r.Y0 + ly) + 0.5f);
             const float bdy = b * dy, rowc = hc * dy * dy;
             const int row = ly * kTileSize;
-            float* T = sc.T + row;
-            float* thr = sc.thr + row;
-            int32_t* last = sc.last + row;
-            int stops = 0;
-            // Branch-free on purpose (bitwise &, selects): this loop must vectorise. A finished
-            // pixel has thr = 2, which no alpha reaches.
-#pragma omp simd reduction(+ : stops)
-            for (int l = h0; l < h1; ++l) {
-                const float sigma = sigma_at(ha, bdy, rowc, mx - px[l]);
-                float alpha = op * fast_exp(-sigma);
-                alpha = alpha > amax ? amax : alpha;
-                const bool valid = (l >= lx0) & (l <= lx1) & (sigma >= 0.0f) & (alpha >= thr[l]);
-                const float Tl = T[l];
-                const float Tn = Tl * (1.0f - alpha);
-                const bool stop = valid & (Tn <= tmin);  // gsplat: next_T <= 1e-4f, exclusive
-                const bool blend = valid & (Tn > tmin);
-                sc.w[l] = blend ? alpha * Tl : 0.0f;
-                T[l] = blend ? Tn : Tl;
-                last[l] = blend ? kk : last[l];
-                thr[l] = stop ? 2.0f : thr[l];
-                stops += stop ? 1 : 0;
-            }
-            for (int ch = 0; ch < C; ++ch) {
-                const float cv = col[ch];
-                float* acc_row = acc + static_cast<size_t>(ch) * kTilePixels + row;
-#pragma omp simd
-                for (int l = h0; l < h1; ++l) acc_row[l] += sc.w[l] * cv;
-            }
+            uint32_t stops = 0;
+            if (use0 && (done & span0) != span0)
+                stops |= forward_half<NC>(sc.T + row, sc.thr + row, sc.last + row, acc + row, C, col, dx0, in0,
+                                          ha, bdy, rowc, op, amax, tmin, kk);
+            if (use1 && ((done >> kHalf) & span1) != span1)
+                stops |= forward_half<NC>(sc.T + row + kHalf, sc.thr + row + kHalf, sc.last + row + kHalf,
+                                          acc + row + kHalf, C, col, dx1, in1, ha, bdy, rowc, op, amax, tmin, kk)
+                         << kHalf;
             if (stops) {
-                finished += stops;
-                for (int l = h0; l < h1; ++l)
-                    if (thr[l] > 1.0f) sc.done_bits[ly] |= 1u << l;
+                finished += __builtin_popcount(stops);
+                sc.done_bits[ly] |= stops;
             }
         }
     }
@@ -647,6 +678,26 @@ void forward_tile(const SortedGaussians& S, const TileRect& r, const int32_t* li
             const float* a = acc + static_cast<size_t>(ch) * kTilePixels + row;
             for (int lx = 0; lx < r.w; ++lx) out[lx * C + ch] = a[lx];
         }
+    }
+}
+
+using ForwardTileFn = void (*)(const SortedGaussians&, const TileRect&, const int32_t*, int64_t,
+                               const Settings&, ForwardScratch&, float*, float*, int32_t*, int);
+
+// The forward tile for a channel count: unrolled for the counts renders use (RGB, + depth,
+// + flow, + flow and depth), a run-time loop otherwise.
+ForwardTileFn forward_tile_for(int channels) {
+    switch (channels) {
+        case 3:
+            return forward_tile<3>;
+        case 4:
+            return forward_tile<4>;
+        case 5:
+            return forward_tile<5>;
+        case 6:
+            return forward_tile<6>;
+        default:
+            return forward_tile<0>;
     }
 }
 
@@ -852,11 +903,12 @@ void rasterize_forward(int64_t n, const float* means2d, const float* conics, con
         {
             ForwardScratch sc;
             sc.acc.resize(static_cast<size_t>(channels) * kTilePixels);
+            const ForwardTileFn tile_fn = forward_tile_for(channels);
 #pragma omp for schedule(dynamic, 1)
             for (int64_t t = 0; t < nt; ++t) {
                 const TileRect r = tile_rect(grid, tb + t);
-                forward_tile(S, r, list.data() + offsets[t], offsets[t + 1] - offsets[t], s, sc,
-                             out_color, out_T, out_last, width);
+                tile_fn(S, r, list.data() + offsets[t], offsets[t + 1] - offsets[t], s, sc, out_color, out_T,
+                        out_last, width);
             }
         }
         ms_raster += ms_since(t0);
