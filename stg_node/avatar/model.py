@@ -194,9 +194,12 @@ class AvatarModel(nn.Module):
             skip_inactive=skip_inactive,
         )
 
-    def posed_means(self, bones: PosedBones, u: float) -> torch.Tensor:
-        """World centres only (cheap: the flow loss and densification need the next frame's)."""
-        st = spacetime.evaluate(self.table, u, self.config.time_horizon, temporal_opacity=False)
+    def posed_means(
+        self, bones: PosedBones, u: float, state: spacetime.SpacetimeState | None = None
+    ) -> torch.Tensor:
+        """World centres only (cheap: the flow loss and densification need the next frame's);
+        ``state``: the spacetime terms at ``u`` when the caller has them already."""
+        st = state or spacetime.evaluate(self.table, u, self.config.time_horizon, temporal_opacity=False)
         means = self.table["means"] if st.offsets is None else self.table["means"] + st.offsets
         fused = skin_with_kernel(
             means, self.table["skin_weights"], self.table.get("skin_delta"), bones, rotations=False

@@ -400,12 +400,27 @@ void project_backward(int64_t n, const float* means, const float* quats, const f
 // Sorting and binning
 namespace {
 
+// Everything a tile needs of one Gaussian in one cache line (the tile loops visit Gaussians in
+// depth order but sparsely: one line per visit instead of one per attribute).
+constexpr int kPackedColors = 6;  // colours held in the record (more go to `col`)
+struct alignas(64) PackedGaussian {
+    float mx, my, a, b, c, op;
+    int32_t x0, x1, y0, y1;
+    float col[kPackedColors];
+};
+static_assert(sizeof(PackedGaussian) == 64, "one cache line per Gaussian");
+
 struct SortedGaussians {
     int64_t count = 0;
     int channels = 0;
     std::vector<int32_t> gid;  // original index, in depth order
-    std::vector<float> mx, my, ca, cb, cc, op, col;
+    std::vector<float> col;    // [count * channels], only when channels > kPackedColors
     std::vector<int32_t> x0, x1, y0, y1;
+    std::vector<PackedGaussian> packed;
+
+    const float* colors(int32_t v) const {
+        return channels <= kPackedColors ? packed[v].col : &col[static_cast<size_t>(v) * channels];
+    }
 };
 
 // Stable LSD radix sort of (key, value) pairs by 32-bit key, 11 bits per pass.
@@ -450,24 +465,27 @@ void sort_visible(int64_t n, const float* means2d, const float* conics, const fl
     out.count = V;
     out.channels = channels;
     out.gid = std::move(ids);
-    out.mx.resize(V); out.my.resize(V);
-    out.ca.resize(V); out.cb.resize(V); out.cc.resize(V); out.op.resize(V);
     out.x0.resize(V); out.x1.resize(V); out.y0.resize(V); out.y1.resize(V);
-    out.col.resize(static_cast<size_t>(V) * channels);
+    out.packed.resize(V);
+    const bool separate = channels > kPackedColors;
+    out.col.resize(separate ? static_cast<size_t>(V) * channels : 0);
 #pragma omp parallel for num_threads(threads) schedule(static)
     for (int64_t v = 0; v < V; ++v) {
         const int64_t i = out.gid[v];
-        out.mx[v] = means2d[i * 2];
-        out.my[v] = means2d[i * 2 + 1];
-        out.ca[v] = conics[i * 3];
-        out.cb[v] = conics[i * 3 + 1];
-        out.cc[v] = conics[i * 3 + 2];
-        out.op[v] = opac_eff[i];
-        out.x0[v] = bbox[i * 4];
-        out.x1[v] = bbox[i * 4 + 1];
-        out.y0[v] = bbox[i * 4 + 2];
-        out.y1[v] = bbox[i * 4 + 3];
-        for (int c = 0; c < channels; ++c) out.col[v * channels + c] = colors[i * channels + c];
+        PackedGaussian& g = out.packed[v];
+        g.mx = means2d[i * 2];
+        g.my = means2d[i * 2 + 1];
+        g.a = conics[i * 3];
+        g.b = conics[i * 3 + 1];
+        g.c = conics[i * 3 + 2];
+        g.op = opac_eff[i];
+        out.x0[v] = g.x0 = bbox[i * 4];
+        out.x1[v] = g.x1 = bbox[i * 4 + 1];
+        out.y0[v] = g.y0 = bbox[i * 4 + 2];
+        out.y1[v] = g.y1 = bbox[i * 4 + 3];
+        float* dst = separate ? &out.col[static_cast<size_t>(v) * channels] : g.col;
+        for (int c = 0; c < channels; ++c) dst[c] = colors[i * channels + c];
+        for (int c = separate ? 0 : channels; c < kPackedColors; ++c) g.col[c] = 0.0f;
     }
 }
 
@@ -635,11 +653,12 @@ void forward_tile(const SortedGaussians& S, const TileRect& r, const int32_t* li
     int finished = 0;
     for (int64_t k = 0; k < len && finished < active; ++k) {
         const int32_t v = list[k];
-        const float mx = S.mx[v], my = S.my[v], op = S.op[v];
-        const float ha = 0.5f * S.ca[v], b = S.cb[v], hc = 0.5f * S.cc[v];
-        const int lx0 = std::max(S.x0[v] - r.X0, 0), lx1 = std::min(S.x1[v] - r.X0, kTileSize - 1);
-        const int ly0 = std::max(S.y0[v] - r.Y0, 0), ly1 = std::min(S.y1[v] - r.Y0, r.h - 1);
-        const float* col = &S.col[static_cast<size_t>(v) * C];
+        const PackedGaussian& g = S.packed[v];
+        const float mx = g.mx, my = g.my, op = g.op;
+        const float ha = 0.5f * g.a, b = g.b, hc = 0.5f * g.c;
+        const int lx0 = std::max(g.x0 - r.X0, 0), lx1 = std::min(g.x1 - r.X0, kTileSize - 1);
+        const int ly0 = std::max(g.y0 - r.Y0, 0), ly1 = std::min(g.y1 - r.Y0, r.h - 1);
+        const float* col = S.colors(v);
         const int32_t kk = static_cast<int32_t>(k);
         const uint32_t span = span_bits(lx0, lx1);
         // The 8-lane halves the box touches, with the lanes inside the box, and dx per lane.
@@ -756,12 +775,13 @@ void backward_tile(const SortedGaussians& S, const TileRect& r, const int32_t* l
 
     for (int32_t k = kmax; k >= 0; --k) {
         const int32_t v = list[k];
-        const float mx = S.mx[v], my = S.my[v], op = S.op[v];
-        const float a = S.ca[v], b = S.cb[v], c = S.cc[v];
+        const PackedGaussian& pg = S.packed[v];
+        const float mx = pg.mx, my = pg.my, op = pg.op;
+        const float a = pg.a, b = pg.b, c = pg.c;
         const float ha = 0.5f * a, hc = 0.5f * c;
-        const int lx0 = std::max(S.x0[v] - r.X0, 0), lx1 = std::min(S.x1[v] - r.X0, kTileSize - 1);
-        const int ly0 = std::max(S.y0[v] - r.Y0, 0), ly1 = std::min(S.y1[v] - r.Y0, r.h - 1);
-        const float* col = &S.col[static_cast<size_t>(v) * C];
+        const int lx0 = std::max(pg.x0 - r.X0, 0), lx1 = std::min(pg.x1 - r.X0, kTileSize - 1);
+        const int ly0 = std::max(pg.y0 - r.Y0, 0), ly1 = std::min(pg.y1 - r.Y0, r.h - 1);
+        const float* col = S.colors(v);
         bool any = false;
         for (int ly = ly0; ly <= ly1; ++ly) {
             const float dy = my - (static_cast<float>(r.Y0 + ly) + 0.5f);
