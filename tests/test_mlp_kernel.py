@@ -22,7 +22,7 @@ def network(widths, activations, bias=True, seed=0):
     torch.manual_seed(seed)
     modules = {"relu": nn.ReLU, "sigmoid": nn.Sigmoid, "tanh": nn.Tanh}
     layers: list[nn.Module] = []
-    for (a, b), act in zip(zip(widths[:-1], widths[1:]), activations):
+    for (a, b), act in zip(zip(widths[:-1], widths[1:], strict=False), activations, strict=False):
         layers.append(nn.Linear(a, b, bias=bias))
         if act != "identity":
             layers.append(modules[act]())
@@ -54,7 +54,7 @@ def compare(net, rows=517, output_activation="identity", zero_rows=False, seed=1
     out = mlp_ops.mlp(x32, layers32)
     grads = torch.autograd.grad((out * g.float()).sum(), [x32] + net32)
     torch.testing.assert_close(out.double(), ref, atol=2e-5, rtol=1e-4)
-    for got, want in zip(grads, ref_grads):
+    for got, want in zip(grads, ref_grads, strict=False):
         scale = max(float(want.abs().max()), 1.0)
         torch.testing.assert_close(got.double(), want, atol=3e-5 * scale, rtol=1e-4)
     return x32, grads
@@ -79,7 +79,9 @@ def test_layers_without_bias():
 
 
 def test_rows_without_an_output_gradient_are_skipped_exactly():
-    x, grads = compare(network((30, 32, 3), ("relu", "identity")), zero_rows=True, output_activation="sigmoid")
+    x, grads = compare(
+        network((30, 32, 3), ("relu", "identity")), zero_rows=True, output_activation="sigmoid"
+    )
     assert torch.equal(grads[0][::3], torch.zeros_like(grads[0][::3]))
 
 
@@ -103,7 +105,7 @@ def test_two_threads_give_the_one_thread_result():
             results.append([out.detach(), *grads])
         finally:
             torch.set_num_threads(previous)
-    for a, b in zip(*results):
+    for a, b in zip(*results, strict=False):
         torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-5)
 
 
@@ -120,7 +122,7 @@ def test_folding_row_constant_inputs_into_the_bias_changes_nothing():
     folded = mlp_ops.mlp_torch(rows, mlp_ops.fold_constant_inputs(layers, slice(4, 7), code))
     g_folded = torch.autograd.grad(folded.sum(), [code, *net.parameters()])
     torch.testing.assert_close(folded, full)
-    for a, b in zip(g_folded, g_full):
+    for a, b in zip(g_folded, g_full, strict=False):
         torch.testing.assert_close(a, b)
     with pytest.raises(ValueError, match="columns"):
         mlp_ops.fold_constant_inputs(layers, slice(4, 6), code)

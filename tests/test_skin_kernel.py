@@ -95,7 +95,7 @@ def test_values_and_gradients_match_float64_autograd(with_delta, with_local, bon
     torch.testing.assert_close(out.means.double(), ref[0], atol=2e-6, rtol=1e-5)
     torch.testing.assert_close(out.quats.double(), ref[1], atol=2e-6, rtol=1e-5)
     torch.testing.assert_close(out.view_dirs.double(), ref[2], atol=2e-6, rtol=1e-5)
-    for got, want in zip(grads, ref_grads):
+    for got, want in zip(grads, ref_grads, strict=False):
         scale = float(want.abs().max())
         torch.testing.assert_close(got.double(), want, atol=1e-5 * max(scale, 1.0), rtol=1e-4)
 
@@ -117,7 +117,9 @@ def test_a_zero_local_rotation_is_the_identity_with_zero_gradient():
     local[3] = 0.0
     loc = local.float().requires_grad_(True)
     out = kernel(means.float(), weights.float(), delta.float(), transforms.float(), quats.float(), loc, None)
-    bare = kernel(means.float(), weights.float(), delta.float(), transforms.float(), quats.float(), None, None)
+    bare = kernel(
+        means.float(), weights.float(), delta.float(), transforms.float(), quats.float(), None, None
+    )
     torch.testing.assert_close(out.quats[3], bare.quats[3])
     out.quats.sum().backward()
     assert torch.equal(loc.grad[3], torch.zeros(4))
@@ -137,7 +139,7 @@ def test_two_threads_give_the_one_thread_result():
             results.append([out.means.detach(), out.quats.detach()] + [x.grad for x in ins])
         finally:
             torch.set_num_threads(previous)
-    for a, b in zip(*results):
+    for a, b in zip(*results, strict=False):
         torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-5)  # bone sums differ in order only
 
 

@@ -25,8 +25,8 @@ from stg_node.avatar.spacetime import TimeAxis
 from stg_node.avatar.timecode import PoseTimeIndex, pose_key
 from stg_node.body import lbs
 from stg_node.splat import rasterize
-from stg_node.splat.culling import may_be_visible
 from stg_node.splat.constants import ALPHA_MIN
+from stg_node.splat.culling import may_be_visible
 
 
 @dataclass

@@ -41,9 +41,9 @@ class TableOptimizer:
             if params:
                 dense_groups.append({"params": params, "lr": lr, "name": name})
                 self.base_lrs[name] = lr
-        self.dense = (
-            torch.optim.Adam(dense_groups, lr=0.0, eps=1e-15, fused=_fusable(dense_groups)) if dense_groups else None
-        )
+        self.dense = None
+        if dense_groups:
+            self.dense = torch.optim.Adam(dense_groups, lr=0.0, eps=1e-15, fused=_fusable(dense_groups))
 
     def groups(self):
         yield from self.adam.param_groups

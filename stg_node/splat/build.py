@@ -105,14 +105,12 @@ def _compiler_version(cxx: str) -> str:
     return first[0] if first else cxx
 
 
-def build_key(
-    source_dir: Path, cflags: list[str], compiler_version: str, files: tuple[str, ...] = SOURCES + HEADERS
-) -> str:
+def build_key(source_dir: Path, cflags: list[str], compiler_version: str) -> str:
     """Hash of everything that decides the built binary."""
     import torch
 
     h = hashlib.sha256()
-    for name in files:
+    for name in SOURCES + HEADERS:
         h.update(name.encode())
         h.update((source_dir / name).read_bytes())
     h.update(" ".join(cflags).encode())
@@ -156,16 +154,8 @@ class CpuKernels:
         return f"CpuKernels({self.namespace}, {self.library})"
 
 
-def build_extension(
-    source_dir: Path = CSRC_DIR,
-    cache_dir: Path | None = None,
-    sources: tuple[str, ...] = SOURCES,
-    headers: tuple[str, ...] = HEADERS,
-) -> CpuKernels:
-    """Compile (or reuse from the cache) and load the kernels; ExtensionUnavailable if not.
-
-    ``source_dir`` with its own ``sources``/``headers`` builds another version of the kernels (the
-    benchmarks load an older one beside this one: the operator namespaces never clash)."""
+def build_extension(source_dir: Path = CSRC_DIR, cache_dir: Path | None = None) -> CpuKernels:
+    """Compile (or reuse from the cache) and load the kernels; ExtensionUnavailable if not."""
     import torch
     from torch.utils import cpp_extension
 
@@ -176,7 +166,7 @@ def build_extension(
         )
     version = _compiler_version(cxx)
     cflags = [*BASE_CFLAGS, *arch_flags()]
-    key = build_key(source_dir, cflags, version, tuple(sources) + tuple(headers))
+    key = build_key(source_dir, cflags, version)
     namespace = f"stg_splat_{key}"
     build_dir = (cache_dir or cache_root()) / namespace
     build_dir.mkdir(parents=True, exist_ok=True)
@@ -185,7 +175,7 @@ def build_extension(
 
     if not library.exists():
         with _ninja_on_path():
-            _compile(cpp_extension, namespace, source_dir, sources, cflags, build_dir, log_path, cxx, version)
+            _compile(cpp_extension, namespace, source_dir, cflags, build_dir, log_path, cxx, version)
     else:
         try:
             torch.ops.load_library(str(library))
@@ -199,7 +189,7 @@ def build_extension(
     return CpuKernels(ops, namespace, library, cflags)
 
 
-def _compile(cpp_extension, namespace, source_dir, sources, cflags, build_dir, log_path, cxx, version) -> None:
+def _compile(cpp_extension, namespace, source_dir, cflags, build_dir, log_path, cxx, version) -> None:
     """Run torch's extension builder; its failure becomes ExtensionUnavailable naming the log."""
     if not cpp_extension.is_ninja_available():
         raise ExtensionUnavailable(
@@ -214,7 +204,7 @@ def _compile(cpp_extension, namespace, source_dir, sources, cflags, build_dir, l
         wait_with_progress(
             lambda: cpp_extension.load(
                 name=namespace,
-                sources=[str(source_dir / name) for name in sources],
+                sources=[str(source_dir / name) for name in SOURCES],
                 extra_cflags=[*cflags, f"-DSTG_SPLAT_NS={namespace}"],
                 extra_ldflags=list(BASE_LDFLAGS),
                 build_directory=str(build_dir),
@@ -252,19 +242,3 @@ def load_kernels() -> CpuKernels:
             _failure = exc
             raise
         return _kernels
-
-
-@contextlib.contextmanager
-def kernels_override(kernels: CpuKernels):
-    """Make ``load_kernels()`` return ``kernels`` inside this block (this process): the benchmarks
-    time an older build of the kernels (``build_extension(source_dir=...)``) against this one in
-    the same run. Not for concurrent use from several threads."""
-    global _kernels
-    with _lock:
-        previous = _kernels
-        _kernels = kernels
-    try:
-        yield kernels
-    finally:
-        with _lock:
-            _kernels = previous

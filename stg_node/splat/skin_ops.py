@@ -62,7 +62,17 @@ def skin_kernel_applies(*tensors: torch.Tensor | None) -> bool:
 class _Skin(torch.autograd.Function):
     @staticmethod
     def forward(
-        ctx, means, skin_weights, skin_delta, bones, local_quats, camera, rotations, weight_eps, quat_eps, grad
+        ctx,
+        means,
+        skin_weights,
+        skin_delta,
+        bones,
+        local_quats,
+        camera,
+        rotations,
+        weight_eps,
+        quat_eps,
+        grad,
     ):
         ops = load_kernels().ops
         m, sw, bo = _f32(means), _f32(skin_weights), _f32(bones)
@@ -134,8 +144,13 @@ def skin(
             f"skin needs means (N, 3) and skin_weights (N, B), got {tuple(means.shape)} and "
             f"{tuple(skin_weights.shape)}"
         )
-    if bone_transforms.shape[-2:] not in ((4, 4), (3, 4)) or bone_transforms.reshape(-1, *bone_transforms.shape[-2:]).shape[0] != b:
-        raise ValueError(f"bone_transforms must be ({b}, 4, 4) or ({b}, 3, 4), got {tuple(bone_transforms.shape)}")
+    if (
+        bone_transforms.shape[-2:] not in ((4, 4), (3, 4))
+        or bone_transforms.reshape(-1, *bone_transforms.shape[-2:]).shape[0] != b
+    ):
+        raise ValueError(
+            f"bone_transforms must be ({b}, 4, 4) or ({b}, 3, 4), got {tuple(bone_transforms.shape)}"
+        )
     if bone_quats.reshape(-1, 4).shape[0] != b:
         raise ValueError(f"bone_quats must be ({b}, 4), got {tuple(bone_quats.shape)}")
     if skin_delta is not None and skin_delta.shape != (n, b):

@@ -13,7 +13,7 @@ from avatar_helpers import small_config
 
 from stg_node.avatar import kernels
 from stg_node.avatar.color_cache import ColorCache
-from stg_node.avatar.model import BodyState, Camera3, render
+from stg_node.avatar.model import Camera3, render
 from stg_node.avatar.renderer import AvatarRenderer
 from stg_node.avatar.trainer import Trainer
 from stg_node.splat import build
@@ -66,7 +66,9 @@ def test_pose_with_kernels_matches_the_torch_path_in_values_and_gradients(traine
         else:
             posed, _ = _posed(trained, frame, sh_degree=1)
         gen = torch.Generator().manual_seed(0)
-        loss = sum((t * torch.randn(t.shape, generator=gen)).sum() for t in (posed.means, posed.quats, posed.colors))
+        loss = sum(
+            (t * torch.randn(t.shape, generator=gen)).sum() for t in (posed.means, posed.quats, posed.colors)
+        )
         loss.backward()
         grads = {
             name: p.grad.clone()
