@@ -103,6 +103,8 @@ class AvatarRenderer:
             body, u, cam.center, skip_inactive=True, camera=cam, color_cache=self._color_cache(stream)
         )
         bg = torch.as_tensor(background, dtype=torch.float32, device=self.device)
+        if not bool(bg.any()):  # black: nothing to blend
+            bg = None
         image, alpha, info = render(posed, cam, background=bg, backend=self.backend, render_depth=depth)
         out_depth = None
         if depth:
@@ -110,9 +112,14 @@ class AvatarRenderer:
             out_depth = (
                 torch.where(alpha[..., 0] > 0, d, torch.zeros_like(d)).cpu().numpy().astype(np.float32)
             )
-        img = (image.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
-        a = (alpha[..., 0].clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
+        img = _to_uint8(image)
+        a = _to_uint8(alpha[..., 0])
         return RenderOutput(img, a, out_depth, (_now() - started) * 1e3, u, int(posed.means.shape[0]))
+
+
+def _to_uint8(values: torch.Tensor) -> np.ndarray:
+    """[0, 1] floats -> uint8 levels, rounded (in place on the render's own buffer)."""
+    return values.mul(255.0).add_(0.5).clamp_(0.0, 255.0).to(torch.uint8).cpu().numpy()
 
 
 def _now() -> float:
