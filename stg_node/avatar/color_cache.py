@@ -62,6 +62,12 @@ class ColorCache:
                 self._colors[ids] = fresh
                 self._known[ids] = True
             return fresh
+        if rows is None and bool(self._known.all()):  # every row, all seen: this turn's slice
+            sel = torch.arange(turn, num_rows, self.refresh_every, device=self._colors.device)
+            self.evaluated = int(sel.numel())
+            if self.evaluated:
+                self._colors[turn :: self.refresh_every] = evaluate(sel).to(self._colors.dtype)
+            return self._colors
         ids = torch.arange(num_rows, device=self._colors.device) if rows is None else rows
         due = (ids % self.refresh_every == turn) | ~self._known[ids]
         sel = due.nonzero().squeeze(1)

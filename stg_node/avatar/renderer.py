@@ -4,8 +4,8 @@ renderer node call.
 Built from a model or straight from a GaussianSnapshot (the renderer node hot-swaps those).
 Without a time the pose's time code comes from the nearest training pose (timecode.py); with
 ``follow`` state kept between calls, an animation keeps its time code stable (hysteresis).
-Rendering runs without gradients, skips motion terms that are exactly zero, and colours only the
-Gaussians the camera can see. A live stream (``render(..., stream=name)``: one camera following
+Rendering runs without gradients, skips motion terms that are exactly zero (except on a CPU,
+where that costs more than it saves), and colours only the Gaussians the camera can see. A live stream (``render(..., stream=name)``: one camera following
 one body, frame after frame) can carry its colours from frame to frame and recompute them in
 turns (``color_refresh_every``; color_cache.py); a render without a stream is always exact.
 """
@@ -45,6 +45,9 @@ class AvatarRenderer:
         self.color_refresh_every = int(color_refresh_every)
         self._last_key: int | None = None
         self._streams: OrderedDict[str, ColorCache] = OrderedDict()
+        # Skipping the exactly-zero motion terms costs more than it saves on a CPU, where the
+        # polynomials are cheap next to the index bookkeeping (docs/BENCHMARKS.md, "Live rate").
+        self.skip_inactive = self.device.type != "cpu"
 
     @classmethod
     def from_snapshot(
@@ -100,7 +103,12 @@ class AvatarRenderer:
         cam = Camera3.from_camera(camera, device=self.device)
         body = BodyState.from_smpl(smpl, self.device)
         posed = self.model.pose(
-            body, u, cam.center, skip_inactive=True, camera=cam, color_cache=self._color_cache(stream)
+            body,
+            u,
+            cam.center,
+            skip_inactive=self.skip_inactive,
+            camera=cam,
+            color_cache=self._color_cache(stream),
         )
         bg = torch.as_tensor(background, dtype=torch.float32, device=self.device)
         if not bool(bg.any()):  # black: nothing to blend
