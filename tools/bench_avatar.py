@@ -27,6 +27,9 @@ The 1-minute load average is printed with every row.
    implementation and kornia's (this tree only, one process).
 5. skip: posed renders with 0 %, 10 %, 100 % of the Gaussians moving, with and without the
    zero-motion skip, against the bare rasterizer (this tree only, one process).
+6. streams: what a colour stream costs in the image: a fast-preset model trained 300 steps,
+   30 consecutive frames rendered with colours recomputed every 2nd, 3rd, 4th frame against
+   the exact renders (PSNR of the 8-bit images, largest difference in grey levels; this tree).
 
 The data is generated if --data is not given (stg-synth, 125 frames, 100 for training).
 Figures go to docs/BENCHMARKS.md with this command line, the machine and the load.
@@ -449,6 +452,41 @@ def bench_skip(data: Path, gaussians: int, repeats: int) -> list[dict]:
     return rows
 
 
+def bench_streams(data: Path, steps: int = 300) -> list[dict]:
+    """Streamed colours against exact ones on a briefly trained model (see the module docstring)."""
+    import numpy as np
+
+    from stg_node.avatar import AvatarRenderer, Trainer, preset
+    from stg_node.avatar.data_spec import DataSpec
+
+    train = DataSpec(str(data), "synthetic").open("train")
+    trainer = Trainer(preset("fast").replace(iterations=steps), seed=0)
+    trainer.add_frames([train[i] for i in range(0, len(train), 2)])
+    for _ in range(steps):
+        trainer.step()
+    frames = [train[i] for i in range(40, min(len(train), 70))]
+    exact = AvatarRenderer(trainer.model)
+    truth = [exact.render(f.camera, f.smpl, time=f.time).image.astype(np.float64) for f in frames]
+    rows = []
+    for every in (2, 3, 4):
+        streamed = AvatarRenderer(trainer.model, color_refresh_every=every)
+        psnr, worst = [], 0
+        for frame, want in zip(frames, truth, strict=True):
+            got = streamed.render(frame.camera, frame.smpl, time=frame.time, stream="bench").image
+            diff = got.astype(np.float64) - want
+            psnr.append(10 * np.log10(255.0**2 / max(float(np.mean(diff**2)), 1e-10)))
+            worst = max(worst, int(np.abs(diff).max()))
+        rows.append(
+            {
+                "every": every,
+                "psnr_min": min(psnr[1:]),
+                "psnr_median": float(np.median(psnr[1:])),
+                "worst": worst,
+            }
+        )
+    return rows
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", default=None, help="an stg-synth folder (default: generated once in /tmp)")
@@ -460,7 +498,9 @@ def main(argv=None) -> int:
     parser.add_argument("--steps", type=int, default=40, help="training steps timed per child")
     parser.add_argument("--repeats", type=int, default=20, help="ssim and skip repetitions")
     parser.add_argument("--gaussians", type=int, nargs="+", default=[20000, 50000])
-    parser.add_argument("--only", nargs="*", choices=("step", "render", "extremes", "ssim", "skip"))
+    parser.add_argument(
+        "--only", nargs="*", choices=("step", "render", "extremes", "ssim", "skip", "streams")
+    )
     parser.add_argument(
         "--no-million", action="store_true", help="extremes: leave out the 1M-Gaussian render"
     )
@@ -480,7 +520,7 @@ def main(argv=None) -> int:
     if not args.no_baseline:
         trees["baseline"] = export_revision(args.baseline)
     print(f"# machine: {_machine()}; trees: " + ", ".join(f"{k} = {v}" for k, v in trees.items()), flush=True)
-    sections = args.only or ["step", "render", "extremes", "ssim", "skip"]
+    sections = args.only or ["step", "render", "extremes", "ssim", "skip", "streams"]
     results: dict = {"machine": _machine(), "baseline": None if args.no_baseline else args.baseline}
     if "step" in sections:
         results["step"] = section_step(args, trees)
@@ -509,6 +549,14 @@ def main(argv=None) -> int:
                     f"(x{r['ms_all'] / r['ms_skip']:.2f}); rasterizer alone {r['ms_raster_only']:.1f} ms",
                     flush=True,
                 )
+    if "streams" in sections:
+        results["streams"] = bench_streams(args.data)
+        for r in results["streams"]:
+            print(
+                f"streams: colours every {r['every']} frames against exact: PSNR {r['psnr_min']:.1f} dB at "
+                f"worst, {r['psnr_median']:.1f} dB median, at most {r['worst']} grey level(s) apart",
+                flush=True,
+            )
     if args.json:
         args.json.write_text(json.dumps(results, indent=2, default=str) + "\n")
     return 0

@@ -5,9 +5,10 @@ Built from a model or straight from a GaussianSnapshot (the renderer node hot-sw
 Without a time the pose's time code comes from the nearest training pose (timecode.py); with
 ``follow`` state kept between calls, an animation keeps its time code stable (hysteresis).
 Rendering runs without gradients, skips motion terms that are exactly zero (except on a CPU,
-where that costs more than it saves), and colours only the Gaussians the camera can see. A live stream (``render(..., stream=name)``: one camera following
-one body, frame after frame) can carry its colours from frame to frame and recompute them in
-turns (``color_refresh_every``; color_cache.py); a render without a stream is always exact.
+where that costs more than it saves), and colours only the Gaussians the camera can see. A live
+stream (``render(..., stream=name)``: one camera following one body, frame after frame) can carry
+its colours from frame to frame and recompute them in turns (``color_refresh_every``;
+color_cache.py); a render without a stream is always exact.
 """
 
 from __future__ import annotations
