@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""The running system's figures: pose-to-pixels latency, snapshot hot-swap pause, memory on a long stream.
+"""The running system's figures: pose-to-pixels latency, snapshot hot-swap pause, memory on a long stream,
+live rendering beside the trainer.
 
 Every node runs as its own process under stg-launch's supervisor (a private ipc bus); this tool
 watches from outside over the bus.
@@ -16,7 +17,16 @@ watches from outside over the bus.
    and renderer for --stream-s seconds; resident memory (VmRSS) of each process sampled every
    second; the growth over the second half of the run, in MB per hour of stream time.
 
+4. live: the whole pipeline at camera rate: ingest replays the data at --live-rate Hz (30) at
+   --live-size (512), the tracker publishes poses, the trainer (fast preset) trains and publishes
+   snapshots, and the renderer renders a standing view (the data's camera at --live-size) for
+   every pose, beside the trainer. Over --live-s seconds once the first image arrived: images
+   rendered per second, poses per second, and frame age (a pose's source stamp to the receipt of
+   its image) p50/p95. With --baseline REV the same run is repeated on that git revision
+   (tools/baseline.py), alternating, in the same invocation.
+
     python tools/bench_pipeline.py --data runs/demo/subject [--avatar stg_node.avatar] [--json out.json]
+    python tools/bench_pipeline.py --data DIR --only live --live-size 512 --baseline 6bbdca2
     python tools/bench_pipeline.py --data DIR --avatar tests.nodes.fake_avatar --quick    # smoke run
 
 Figures go to docs/BENCHMARKS.md only from an idle machine (the lead's final run).
@@ -30,6 +40,7 @@ import json
 import os
 import platform
 import statistics
+import subprocess
 import sys
 import tempfile
 import textwrap
@@ -38,8 +49,9 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
+if "--root" in sys.argv:  # a child timing another tree (--baseline): import that one's stg_node
+    ROOT = Path(sys.argv[sys.argv.index("--root") + 1]).resolve()
+sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
 
@@ -318,6 +330,112 @@ def bench_memory(args, workdir: Path) -> dict:
     return out
 
 
+def bench_live(args, workdir: Path) -> dict:
+    from stg_node.nodes.sources import DatasetSource
+
+    first = next(iter(DatasetSource(args.data, size=args.live_size).frames()))
+    camera = resized_camera(first.camera, args.live_size)
+    nodes = f"""
+    - name: tracker
+      kind: tracker
+      params: {{path: {args.data}}}
+    - name: trainer
+      kind: trainer
+      params: {{avatar: {args.avatar}, device: {args.device}, preset: fast,
+                 max_frames: 64, snapshot_every_s: 5}}
+    - name: renderer
+      kind: renderer
+      params: {{avatar: {args.avatar}, device: {args.device}, default_view: none, idle_rate_hz: 0}}
+    - name: ingest
+      kind: ingest
+      params: {{path: {args.data}, size: {args.live_size}, rate_hz: {args.live_rate}, loop: true}}
+      after: [tracker, trainer]
+    """
+    launcher, thread, url = start_launch(workdir, "live", textwrap.dedent(nodes))
+    ages, render_ms, arrivals, poses = [], [], [], []
+    try:
+        wait_ready(url, {"ingest", "tracker", "trainer", "renderer"})
+        with (
+            Bus(url, node="bench", heartbeat_s=0) as bus,
+            Subscriber(BusConfig(url=url), ["avatar/image", "body/pose"]) as sub,
+        ):
+            bus.publisher.wait_for_subscribers("avatar/view", 30)
+            view = ViewRequest(
+                request_id=1, width=camera.width, height=camera.height, follow_live=True,
+                K=camera.K, R=camera.R, t=camera.t,
+            )  # fmt: skip
+            bus.publish(view)
+            deadline = time.monotonic() + args.live_warmup_s
+            while not isinstance(sub.recv(timeout=0.5), RenderedImage):  # the first snapshot is in
+                if time.monotonic() > deadline:
+                    raise SystemExit(
+                        f"bench: no image within {args.live_warmup_s:g} s (see {workdir}/live.log)"
+                    )
+            settle = time.monotonic() + 5.0
+            while time.monotonic() < settle:
+                sub.recv(timeout=0.1)
+            start = time.monotonic()
+            while time.monotonic() - start < args.live_s:
+                msg = sub.recv(timeout=0.5)
+                now_ns = time.time_ns()
+                if isinstance(msg, RenderedImage):
+                    arrivals.append(time.monotonic())
+                    render_ms.append(msg.render_ms)
+                    if msg.source_stamp_ns:
+                        ages.append((now_ns - msg.source_stamp_ns) / 1e6)
+                elif msg is not None:
+                    poses.append(time.monotonic())
+            duration = time.monotonic() - start
+    finally:
+        stop_launch(launcher, thread)
+    if not arrivals:
+        raise SystemExit(f"bench: no image in {args.live_s:g} s of the live run (see {workdir}/live.log)")
+    return {
+        "size": [camera.width, camera.height],
+        "camera_hz": args.live_rate,
+        "seconds": duration,
+        "images_per_s": len(arrivals) / duration,
+        "poses_per_s": len(poses) / duration,
+        "age_ms_p50": percentile(ages, 50),
+        "age_ms_p95": percentile(ages, 95),
+        "render_ms_p50": percentile(render_ms, 50),
+        "render_ms_p95": percentile(render_ms, 95),
+    }
+
+
+def live_with_baseline(args) -> dict:
+    """The live run on this tree and on ``args.baseline``, alternating, each in a child process
+    that imports its own tree (and launches its nodes from it)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from baseline import export_revision
+
+    trees = {"new": Path(__file__).resolve().parents[1], "baseline": export_revision(args.baseline)}
+    out: dict[str, list] = {name: [] for name in trees}
+    names = list(trees)
+    for r in range(args.rounds):
+        for name in names if r % 2 == 0 else names[::-1]:
+            cmd = [sys.executable, str(Path(__file__).resolve()), "--root", str(trees[name]), "--live-child"]
+            cmd += [
+                "--data",
+                str(Path(args.data).resolve()),
+                "--avatar",
+                args.avatar,
+                "--device",
+                args.device,
+            ]
+            cmd += ["--live-s", str(args.live_s), "--live-rate", str(args.live_rate)]
+            cmd += ["--live-size", str(args.live_size), "--live-warmup-s", str(args.live_warmup_s)]
+            env = dict(os.environ, PYTHONPATH=str(trees[name]))
+            done = subprocess.run(cmd, env=env, cwd=trees[name], capture_output=True, text=True)
+            if done.returncode != 0:
+                raise SystemExit(f"bench: the live child on {trees[name]} failed:\n{done.stderr[-4000:]}")
+            result = json.loads(done.stdout.strip().splitlines()[-1])
+            result["load"] = os.getloadavg()[0]
+            out[name].append(result)
+            print(f"live [{name}]: {json.dumps(result)}", flush=True)
+    return out
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -340,22 +458,53 @@ def main() -> int:
     parser.add_argument(
         "--stream-rate", type=float, default=300.0, help="frames per second of the sped-up stream"
     )
+    parser.add_argument("--live-s", type=float, default=60.0, help="seconds measured in the live run")
+    parser.add_argument("--live-rate", type=float, default=30.0, help="camera rate of the live run (Hz)")
+    parser.add_argument("--live-size", type=int, default=512, help="image size of the live run (longer side)")
     parser.add_argument(
-        "--only", choices=("latency", "swap", "memory"), action="append", help="run only these"
+        "--live-warmup-s",
+        type=float,
+        default=120.0,
+        help="live run: wait at most this long for the first image",
+    )
+    parser.add_argument(
+        "--baseline", help="live run: also time this git revision, alternating (tools/baseline.py)"
+    )
+    parser.add_argument("--rounds", type=int, default=1, help="live run with --baseline: runs per tree")
+    parser.add_argument("--root", help=argparse.SUPPRESS)
+    parser.add_argument("--live-child", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument(
+        "--only", choices=("latency", "swap", "memory", "live"), action="append", help="run only these"
     )
     parser.add_argument("--quick", action="store_true", help="a smoke run: few samples, short runs")
     parser.add_argument("--json", type=Path, help="also write the results here")
     args = parser.parse_args()
     if args.quick:
         args.train_steps, args.requests, args.swap_s, args.stream_s = 5, 10, 5.0, 8.0
+        args.live_s = min(args.live_s, 10.0)
     os.environ.setdefault("STG_THREADS", "1")
+    if args.live_child:
+        with tempfile.TemporaryDirectory(prefix="stgbench-") as tmp:
+            print(json.dumps(bench_live(args, Path(tmp))), flush=True)
+        return 0
+    if args.baseline and (args.only or []) == ["live"]:
+        results = live_with_baseline(args)
+        _print_live(results)
+        if args.json:
+            args.json.write_text(json.dumps(results, indent=2) + "\n")
+        return 0
     results = {
         "machine": f"{platform.node()} {platform.machine()} {os.cpu_count()} cpus",
         "avatar": args.avatar,
     }
     with tempfile.TemporaryDirectory(prefix="stgbench-") as tmp:
         workdir = Path(tmp)
-        for name, fn in (("latency", bench_latency), ("swap", bench_swap), ("memory", bench_memory)):
+        for name, fn in (
+            ("latency", bench_latency),
+            ("swap", bench_swap),
+            ("memory", bench_memory),
+            ("live", bench_live),
+        ):
             if args.only and name not in args.only:
                 continue
             results[name] = fn(args, workdir)
@@ -367,9 +516,22 @@ def main() -> int:
             f"pose-to-pixels at {lat['size'][0]}x{lat['size'][1]}: request {lat['request_ms_median']:.1f} ms "
             f"(p95 {lat['request_ms_p95']:.1f}), pose {lat['pose_ms_median']:.1f} ms: {ok} the 50 ms target"
         )
+    if "live" in results:
+        _print_live({"new": [results["live"]]})
     if args.json:
         args.json.write_text(json.dumps(results, indent=2) + "\n")
     return 0
+
+
+def _print_live(results: dict) -> None:
+    for name, runs in results.items():
+        for r in runs:
+            print(
+                f"live [{name}] {r['size'][0]}x{r['size'][1]}, camera {r['camera_hz']:g} Hz, trainer beside: "
+                f"{r['images_per_s']:.1f} images/s for {r['poses_per_s']:.1f} poses/s; frame age p50 "
+                f"{r['age_ms_p50']:.0f} ms, p95 {r['age_ms_p95']:.0f} ms; "
+                f"render p50 {r['render_ms_p50']:.1f} ms"
+            )
 
 
 if __name__ == "__main__":

@@ -43,18 +43,22 @@ PHASES = ("data", "pose", "flow_target", "render", "loss", "backward", "update",
 
 
 class StepProfile:
-    """Wall time of each phase of a step, summed over steps (``Trainer.profile = StepProfile()``)."""
+    """Wall time of each phase of a step, summed over steps (``Trainer.profile = StepProfile()``).
 
-    def __init__(self):
+    ``clock=time.thread_time`` counts this thread's CPU time instead: on a machine shared with
+    other processes, what the step itself costs."""
+
+    def __init__(self, clock=time.perf_counter):
         self.seconds = dict.fromkeys(PHASES, 0.0)
         self.steps = 0
+        self.clock = clock
         self._last = 0.0
 
     def start(self) -> None:
-        self._last = time.perf_counter()
+        self._last = self.clock()
 
     def mark(self, phase: str) -> None:
-        now = time.perf_counter()
+        now = self.clock()
         self.seconds[phase] += now - self._last
         self._last = now
 
@@ -280,7 +284,7 @@ class Trainer:
         timer.mark("data")
         state = self.model.spacetime(u)
         posed = self.model.pose(
-            body, u, camera.center, sh_degree=sh_degree, bones=bones, key=key, state=state
+            body, u, camera.center, sh_degree=sh_degree, bones=bones, key=key, state=state, camera=camera
         )
         timer.mark("pose")
 
@@ -288,10 +292,17 @@ class Trainer:
         extra = None
         flow_pair = stored.flow if stored.next_smpl is not None else None
         use_flow = flow_pair is not None and c.loss.flow > 0
+        table = self.model.table
+        want_temporal = c.loss.temporal > 0 and "t_center" in table and stored.next_time is not None
+        next_state = None  # the next frame's spacetime terms: one evaluation for the flow and temporal terms
+        if use_flow or want_temporal:
+            next_state = self.model.spacetime(self.model.time_axis(stored.next_time))
         if use_flow:
             u_next = self.model.time_axis(stored.next_time)
             next_body = self.body_state(stored.frame, smpl=stored.next_smpl)
-            means_next = self.model.posed_means(self._frame_bones(stored, next_body, "next")[0], u_next)
+            means_next = self.model.posed_means(
+                self._frame_bones(stored, next_body, "next")[0], u_next, state=next_state
+            )
             if posed.index is not None:
                 means_next = means_next[posed.index]
             extra = camera.project(means_next) - camera.project(posed.means)
@@ -308,9 +319,8 @@ class Trainer:
             fwd = torch.from_numpy(flow_pair.forward[y0 : y0 + h, x0 : x0 + w]).to(self.device)
             valid = torch.from_numpy(flow_pair.valid_forward[y0 : y0 + h, x0 : x0 + w]).to(self.device)
             terms["flow"] = L.flow_loss(image[..., 3:5], alpha, fwd, valid)
-        table = self.model.table
-        if c.loss.temporal > 0 and "t_center" in table and stored.next_time is not None:
-            terms["temporal"] = self._temporal_term(state, self.model.time_axis(stored.next_time))
+        if want_temporal:
+            terms["temporal"] = self._temporal_term(state, next_state)
         if c.loss.rigidity > 0 and state.offsets is not None:
             terms["rigidity"] = self.neighbours.loss(table, state.offsets, state.temporal)
         terms.update(self._regularisers(body))
@@ -406,9 +416,8 @@ class Trainer:
             cache = stored.extras[which] = (bones, key)
         return cache
 
-    def _temporal_term(self, now: spacetime.SpacetimeState, u_next: float) -> torch.Tensor:
+    def _temporal_term(self, now: spacetime.SpacetimeState, nxt: spacetime.SpacetimeState) -> torch.Tensor:
         table = self.model.table
-        nxt = self.model.spacetime(u_next)
         out = table["means"].new_zeros(())
         if now.offsets is not None:
             out = out + 100.0 * (nxt.offsets - now.offsets).abs().sum(1).mean()

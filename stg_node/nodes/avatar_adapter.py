@@ -9,6 +9,7 @@ fake in the tests (tests/nodes/fake_avatar.py).
 from __future__ import annotations
 
 import importlib
+import inspect
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -116,12 +117,21 @@ class TrainerAdapter:
         self._trainer.save(str(path))
 
 
+def _accepts(fn, name: str) -> bool:
+    """Whether ``fn`` takes the keyword ``name`` (optional parts of the avatar API)."""
+    try:
+        return name in inspect.signature(fn).parameters
+    except (TypeError, ValueError):
+        return False
+
+
 class RendererAdapter:
     """Renders one snapshot for any camera and pose."""
 
     def __init__(self, renderer, version: int):
         self._renderer = renderer
         self.version = version
+        self._streams = _accepts(renderer.render, "stream")
 
     @classmethod
     def from_snapshot(
@@ -131,16 +141,25 @@ class RendererAdapter:
         module: str = DEFAULT_MODULE,
         device: str = "cpu",
         backend: str = "auto",
+        color_refresh_every: int = 1,
     ) -> RendererAdapter:
         avatar = avatar_module(module)
-        return cls(
-            avatar.AvatarRenderer.from_snapshot(msg, device=device, backend=backend), msg.model_version
-        )
+        load = avatar.AvatarRenderer.from_snapshot
+        extra = {"color_refresh_every": color_refresh_every} if _accepts(load, "color_refresh_every") else {}
+        return cls(load(msg, device=device, backend=backend, **extra), msg.model_version)
 
     def render(
-        self, camera: Camera, smpl: SmplParams, time: float | None = None, background=(0, 0, 0)
+        self,
+        camera: Camera,
+        smpl: SmplParams,
+        time: float | None = None,
+        background=(0, 0, 0),
+        stream: str | None = None,
     ) -> RenderOutput:
-        out = self._renderer.render(camera, smpl, time=time, background=background)
+        """``stream`` names a live stream (one camera following the body) whose colours the avatar
+        may carry between frames; None (one-shot requests) renders exactly."""
+        extra = {"stream": stream} if self._streams and stream is not None else {}
+        out = self._renderer.render(camera, smpl, time=time, background=background, **extra)
         return RenderOutput(
             image=np.ascontiguousarray(out.image, dtype=np.uint8),
             alpha=None if out.alpha is None else np.ascontiguousarray(out.alpha, dtype=np.uint8),
