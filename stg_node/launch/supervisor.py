@@ -12,7 +12,8 @@
   when nothing is left running;
 - on SIGINT/SIGTERM (or the end) stops every node: SIGINT to its process group, SIGTERM after
   ``sigint_timeout``, SIGKILL after ``sigterm_timeout``; a second Ctrl-C skips to SIGTERM, a
-  third to SIGKILL; finally every process group is killed so no grandchild survives.
+  third to SIGKILL; finally every process group is killed so no grandchild survives;
+- keeps a guard process (:mod:`.guard`) that stops every group if the launcher itself is killed.
 
 The exit code: 0 when every node ended well, 1 when a node failed (exited non-zero and was not
 respawned, never became ready, or had to be killed), 2 is the CLI's for bad usage or files.
@@ -31,6 +32,7 @@ from pathlib import Path
 import stg_node
 from stg_node.bus import Broker, BrokerRunning, Subscriber
 from stg_node.bus.messages import NodeStatus
+from stg_node.launch.guard import Guard
 from stg_node.launch.process import ChildProcess, OutputSink
 from stg_node.launch.spec import LaunchSpec, NodeSpec
 from stg_node.nodes.runtime import ENV_LAUNCH_FILE, ENV_PARENT_PID, ENV_RESPAWN
@@ -75,6 +77,7 @@ class Launcher:
         self._failed = False
         self._broker: Broker | None = None
         self._status: Subscriber | None = None
+        self._guard: Guard | None = None
 
     # -- signals ------------------------------------------------------------------------------------
 
@@ -99,6 +102,7 @@ class Launcher:
             previous = {s: signal.signal(s, self._on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
         started = time.monotonic()
         try:
+            self._guard = Guard()
             self._open_bus()
             self._loop()
         except BrokerRunning as exc:
@@ -112,6 +116,9 @@ class Launcher:
                 self._shutdown()
             finally:
                 self._close_bus()
+                if self._guard is not None:
+                    self._guard.close()
+                    self._guard = None
                 for sig, handler in previous.items():
                     signal.signal(sig, handler)
         self._summary(time.monotonic() - started)
@@ -201,7 +208,15 @@ class Launcher:
         spec = state.spec
         argv = spec.command(self.spec.bus)
         if state.proc is None:
-            state.proc = ChildProcess(spec.name, argv, self._env(spec), spec.cwd, self.sink)
+            state.proc = ChildProcess(
+                spec.name,
+                argv,
+                self._env(spec),
+                spec.cwd,
+                self.sink,
+                guard=self._guard,
+                grace_s=spec.sigint_timeout + spec.sigterm_timeout,
+            )
         state.proc.env[ENV_RESPAWN] = str(state.respawns)
         try:
             pid = state.proc.start()

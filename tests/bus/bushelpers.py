@@ -23,6 +23,25 @@ def wait_until(predicate, timeout: float = 5.0, step: float = 0.01) -> bool:
     return predicate()
 
 
+def recv_until(sub, predicate, timeout: float = 30.0, seen: list | None = None):
+    """Read ``sub`` as a subscriber would until a message satisfies ``predicate``: that message,
+    or None after ``timeout`` s. Every message read goes to ``seen`` when given (what came before).
+
+    A test that waits on another process waits for the message it asserts on, never for the
+    first message or for whatever arrives in a fixed time: a backlog or a loaded machine makes
+    those an older message."""
+    deadline = time.monotonic() + timeout
+    while (left := deadline - time.monotonic()) > 0:
+        msg = sub.recv(timeout=min(left, 0.5))
+        if msg is None:
+            continue
+        if seen is not None:
+            seen.append(msg)
+        if predicate(msg):
+            return msg
+    return None
+
+
 def recv_raw(sock: zmq.Socket, timeout_ms: int = 5000) -> list:
     assert sock.poll(timeout_ms), "nothing received in time"
     return sock.recv_multipart(copy=False)

@@ -13,6 +13,7 @@ simple enough to check from outside:
 
 from __future__ import annotations
 
+import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -22,6 +23,10 @@ import numpy as np
 from stg_node.bus import GaussianSnapshot
 
 BODY_RADIUS_M = 0.25
+#: A snapshot with meta ``gate`` 1 loads only once this is set (a test holds a load open as long as
+#: it needs, instead of guessing how long is long enough). Set it through the module the node
+#: imported: ``tests.nodes.fake_avatar``.
+LOAD_GATE = threading.Event()
 
 
 @dataclass
@@ -152,6 +157,8 @@ class AvatarRenderer:
         if msg.format != "fake/1":
             raise ValueError(f"fake avatar cannot read snapshot format {msg.format!r}")
         time.sleep(float(msg.meta.get("load_s", 0.0)))
+        if msg.meta.get("gate"):
+            LOAD_GATE.wait(60)
         return cls(np.array(msg.arrays["color"]).reshape(3), msg.iteration)
 
     def render(

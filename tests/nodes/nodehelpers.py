@@ -10,7 +10,7 @@ import threading
 from dataclasses import dataclass
 from pathlib import Path
 
-from tests.bus.bushelpers import wait_until  # one helper for every suite
+from tests.bus.bushelpers import recv_until, wait_until  # one helper for every suite
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -22,6 +22,7 @@ __all__ = [
     "ignore_sigint",
     "launch_file",
     "pid_alive",
+    "recv_until",
     "run_launch",
     "spawn",
     "wait_until",
