@@ -10,6 +10,7 @@ from nodehelpers import NodeThread, recv_until, wait_until
 from sample_nodes import pose
 
 from stg_node.bus import Bus, BusConfig, Frame, GaussianSnapshot, NodeStatus, Subscriber, TrainerMetrics
+from stg_node.nodes.avatar_adapter import TrainerAdapter
 from stg_node.nodes.params import parse_params
 from stg_node.nodes.trainer import FramePairs, TrainerNode, TrainerParams
 
@@ -110,14 +111,15 @@ def test_a_fresh_start_ignores_an_old_checkpoint_unless_asked(bus_url, tmp_path,
     monkeypatch.delenv("STG_RESPAWN", raising=False)
     old = Trainer(TrainConfig())
     old.iteration = 17
+    old.notes = {"elapsed_s": 3.0}
     old.save(str(tmp_path / "trainer.ckpt"))
-    (tmp_path / "trainer.json").write_text('{"iteration": 17, "elapsed_s": 3.0}')
     for resume, expected in (("respawn", 0), ("always", 17), ("never", 0)):
         node = trainer(bus_url, checkpoint_dir=str(tmp_path), resume=resume)
         try:
             node.setup()
             assert node.iteration == expected, resume
             assert (node.resumed_from is not None) == (expected > 0)
+            assert node.elapsed_before == (3.0 if expected else 0.0)  # from the same file
         finally:
             node.bus.close()
 
@@ -131,8 +133,9 @@ def test_a_stopped_trainer_flushes_a_final_snapshot_and_checkpoint(broker, bus_u
             assert run.stop() == 0
         snap = recv_until(sub, lambda m: m.model_version == node.iteration, 30)
     assert snap is not None and snap.model_version == node.iteration > 0
-    assert (tmp_path / "trainer.ckpt").is_file()
-    assert json.loads((tmp_path / "trainer.json").read_text())["iteration"] == node.iteration
+    saved = TrainerAdapter.load(tmp_path / "trainer.ckpt", module=FAKE)  # the one file the node writes
+    assert saved.iteration == node.iteration and saved.notes["elapsed_s"] > 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["trainer.ckpt"]
 
 
 def test_a_refused_pose_keeps_its_frame_out_in_either_order():
