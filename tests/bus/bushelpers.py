@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 
+import msgpack
 import numpy as np
 import zmq
 
@@ -42,7 +43,20 @@ def recv_until(sub, predicate, timeout: float = 30.0, seen: list | None = None):
     return None
 
 
-def recv_raw(sock: zmq.Socket, timeout_ms: int = 5000) -> list:
+def keep_last_holds(sub, topic: str, seq: int) -> bool:
+    """Whether a subscriber's keep-last reader thread has taken message ``seq`` (or a later one) of
+    ``topic`` off its socket; every message sent before it on that lane has then reached it too."""
+    for channel in sub._channel_list:
+        if not channel.keep_last:
+            continue
+        with channel._lock:
+            frames = channel._mailbox.get(topic.encode())
+        if frames is not None and msgpack.unpackb(frames[1].bytes)["seq"] >= seq:
+            return True
+    return False
+
+
+def recv_raw(sock: zmq.Socket, timeout_ms: int = 30_000) -> list:
     assert sock.poll(timeout_ms), "nothing received in time"
     return sock.recv_multipart(copy=False)
 
