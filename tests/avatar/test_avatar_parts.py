@@ -180,7 +180,14 @@ def test_temporal_split_spreads_copies_of_an_always_on_gaussian_over_the_trainin
     scale = new["t_log_scale"][:k].exp()
     assert torch.allclose(scale, torch.full((k,), max(0.6 * spacing, d.config.min_time_scale)), rtol=1e-5)
     assert torch.equal(new["means"][:k], model.table["means"][3].expand(k, 3))
-    # Not dynamic, no split; no room, no split.
+    # No room, no split; room for one Gaussian's copies only, only the first (by gradient) is split.
+    grads = torch.ones(model.table.num)
+    assert d._temporal_split_rows(ctx, hot, grads, room=0) is None
+    assert d._temporal_split_rows(ctx, hot, grads, room=k - 1) is None  # not even one whole set
+    grads[7] = 2.0
+    sources, new = d._temporal_split_rows(ctx, hot, grads, room=k)
+    assert sources.tolist() == [7] and new["means"].shape[0] == k
+    # Not dynamic, no split.
     model.table["motion_gate"].data[rows] = 0.0
     assert d._temporal_split_rows(ctx, hot, torch.ones(model.table.num), room=1000) is None
 

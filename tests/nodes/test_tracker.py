@@ -17,7 +17,6 @@ from stg_node.nodes.params import ParamError, parse_params
 from stg_node.nodes.tracker import (
     EstimateMismatch,
     PoseEstimate,
-    PoseEstimator,
     ReplayEstimator,
     TrackerNode,
     TrackerParams,
@@ -35,7 +34,6 @@ def test_replay_matches_by_index_and_checks_the_time(tmp_path):
     truth = write_zju_original(tmp_path / "d", num_frames=3, num_cams=1)
     dataset = open_replay_dataset(str(tmp_path / "d"))
     estimator = ReplayEstimator(dataset)
-    assert isinstance(estimator, PoseEstimator)
     estimate = estimator.estimate(frame(2, 2 / dataset.fps))
     np.testing.assert_allclose(estimate.smpl.poses, truth.smpl[2]["poses"], rtol=1e-6, atol=1e-6)
     np.testing.assert_allclose(estimate.smpl.Th, truth.smpl[2]["Th"], rtol=1e-6, atol=1e-6)
