@@ -110,6 +110,7 @@ class ChildProcess:
     sink: OutputSink
     guard: Guard | None = None  # told of each run's process group (stops it if the launcher dies)
     grace_s: float = 5.0  # for the guard: SIGTERM to SIGKILL
+    standby: bool = False  # a standby copy: stdin is a pipe it waits on for "go" (stg_node.cli.node)
     popen: subprocess.Popen | None = None
     runs: list[RunRecord] = field(default_factory=list)
     _pumps: list[threading.Thread] = field(default_factory=list)
@@ -119,7 +120,7 @@ class ChildProcess:
             self.argv,
             env=self.env,
             cwd=self.cwd,
-            stdin=subprocess.DEVNULL,
+            stdin=subprocess.PIPE if self.standby else subprocess.DEVNULL,
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             start_new_session=True,
@@ -140,6 +141,34 @@ class ChildProcess:
         with stream:
             for raw in iter(stream.readline, b""):
                 self.sink.line(self.name, raw.decode("utf-8", "replace").rstrip("\r\n"))
+
+    # -- standby copies -------------------------------------------------------------------------------
+
+    def hand_over(self, respawns: int) -> bool:
+        """Tell a standby copy to take over as respawn ``respawns``; False if it cannot hear it."""
+        if not self.standby or not self.running:
+            return False
+        try:
+            self.popen.stdin.write(f"go {respawns}\n".encode())
+            self.popen.stdin.flush()
+            return True
+        except (OSError, ValueError):  # it died meanwhile
+            return False
+
+    def dismiss(self) -> None:
+        """A standby copy that is not needed: end of file on its stdin, and it exits."""
+        if self.standby and self.popen is not None and self.popen.stdin is not None:
+            try:
+                self.popen.stdin.close()
+            except OSError:
+                pass
+
+    def adopt(self, spare: ChildProcess) -> int:
+        """Make ``spare`` (a standby copy that was just handed over) this node's current run."""
+        spare.name = self.name  # its output from now on carries the node's own prefix
+        self.popen, self._pumps = spare.popen, spare._pumps
+        self.runs.append(RunRecord(self.popen.pid, time.monotonic()))
+        return self.popen.pid
 
     @property
     def pid(self) -> int | None:

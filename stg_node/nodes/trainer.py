@@ -36,7 +36,7 @@ from pathlib import Path
 from typing import Literal
 
 from stg_node.bus import TrainerMetrics
-from stg_node.nodes.avatar_adapter import DEFAULT_MODULE, StepInfo, TrainerAdapter
+from stg_node.nodes.avatar_adapter import DEFAULT_MODULE, StepInfo, TrainerAdapter, avatar_module
 from stg_node.nodes.convert import frame_camera
 from stg_node.nodes.params import param
 from stg_node.nodes.runtime import Node
@@ -127,6 +127,13 @@ class TrainerNode(Node):
 
     kind = "trainer"
     Params = TrainerParams
+
+    @classmethod
+    def prepare(cls, params: TrainerParams) -> None:
+        from stg_node.threads import configure_threads
+
+        configure_threads()
+        avatar_module(params.avatar)  # torch and the avatar package
 
     def setup(self) -> None:
         from stg_node.threads import configure_threads

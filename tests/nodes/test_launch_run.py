@@ -4,6 +4,7 @@ node-prefixed output, exit codes, and no orphans after Ctrl-C."""
 from __future__ import annotations
 
 import io
+import os
 import re
 import signal
 import sys
@@ -12,7 +13,7 @@ from pathlib import Path
 
 from nodehelpers import describe_pids, ignore_sigint, launch_file, pid_alive, spawn, wait_until
 
-from stg_node.launch import read_launch
+from stg_node.launch import LaunchFileError, read_launch
 from stg_node.launch.process import OutputSink
 from stg_node.launch.supervisor import Launcher
 
@@ -195,3 +196,55 @@ def test_a_launcher_killed_outright_takes_its_nodes_with_it(tmp_path):
     proc.kill()  # SIGKILL: no chance to clean up
     proc.communicate(timeout=60)
     assert wait_until(lambda: not any(pid_alive(p) for p in pids), timeout=60), describe_pids(pids)
+
+
+def test_a_standby_copy_takes_over_when_the_node_dies(tmp_path):
+    """standby: a second copy waits, prepared; when the node is killed the launcher hands over to
+    it (that very process becomes the node, as respawn 1), and a fresh copy is prepared again."""
+    path = launch_file(
+        tmp_path,
+        f"nodes:\n  - {{name: node, kind: {ECHO}, respawn: true, respawn_delay: 0.1, standby: true}}\n",
+    )
+    proc = spawn(["-m", "stg_node.cli.launch", str(path), "--no-color"], preexec_fn=ignore_sigint)
+    lines: list[str] = []
+
+    def seen(pattern: str) -> list[str]:
+        return re.findall(pattern, "".join(lines))
+
+    def until(pattern: str, count: int = 1) -> bool:
+        def found() -> bool:
+            lines.append(proc.stdout.readline())
+            return len(seen(pattern)) >= count
+
+        return wait_until(found, timeout=120, step=0)
+
+    try:
+        assert until(r"\[node\*\] .*standing by \(pid (\d+)\)"), "".join(lines)
+        first = int(seen(r"started node: pid (\d+)")[0])
+        spare = int(seen(r"standing by \(pid (\d+)\)")[0])
+        assert spare != first
+        os.kill(first, signal.SIGKILL)
+        assert until(r"handed over to its standby copy node \(respawn 1\): pid (\d+)"), "".join(lines)
+        assert int(seen(r"handed over to its standby copy node \(respawn 1\): pid (\d+)")[0]) == spare
+        assert until(r"\[node\] .*taking over \(respawn 1\)"), "".join(lines)  # its own words, unprefixed
+        assert until(r"node is ready", 2), "".join(lines)
+        assert until(r"standing by \(pid (\d+)\)", 2), "".join(lines)  # and a new copy waits
+        pids = [first, spare, *map(int, seen(r"standing by \(pid (\d+)\)"))]
+    finally:
+        proc.send_signal(signal.SIGINT)
+        rest, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 0, "".join(lines) + rest
+    assert wait_until(lambda: not any(pid_alive(p) for p in pids), timeout=30), describe_pids(pids)
+
+
+def test_standby_is_for_kind_nodes_that_respawn(tmp_path):
+    for body, why in (
+        ("nodes:\n  - {name: n, cmd: [sleep, '1'], respawn: true, standby: true}\n", "cmd"),
+        (f"nodes:\n  - {{name: n, kind: {ECHO}, standby: true}}\n", "no respawn"),
+    ):
+        try:
+            read_launch(launch_file(tmp_path, body))
+        except LaunchFileError as exc:
+            assert "standby is for kind nodes with respawn: true" in str(exc), why
+        else:
+            raise AssertionError(f"standby accepted for a node with {why}")
