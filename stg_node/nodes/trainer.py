@@ -134,6 +134,11 @@ class TrainerNode(Node):
 
         configure_threads()
         avatar_module(params.avatar)  # torch and the avatar package
+        import torch
+
+        # torch.optim imports torch._dynamo on the first optimiser it builds: seconds on a busy
+        # machine, which a resumed trainer would otherwise spend before its first step
+        torch.optim.Adam([torch.zeros(1, requires_grad=True)])
 
     def setup(self) -> None:
         from stg_node.threads import configure_threads

@@ -117,7 +117,10 @@ def test_escalation_sigint_then_sigterm_then_sigkill(tmp_path):
         "import signal, time; signal.signal(signal.SIGINT, signal.SIG_IGN); "
         "signal.signal(signal.SIGTERM, signal.SIG_IGN); print('up', flush=True); time.sleep(60)"
     )
-    polite = "import time\ntry:\n    time.sleep(60)\nexcept KeyboardInterrupt:\n    print('bye', flush=True)"
+    polite = (
+        "import time\ntry:\n    print('up', flush=True)\n    time.sleep(60)\n"
+        "except KeyboardInterrupt:\n    print('bye', flush=True)"
+    )
     path = launch_file(
         tmp_path,
         f"""
@@ -130,8 +133,8 @@ def test_escalation_sigint_then_sigterm_then_sigkill(tmp_path):
     out = io.StringIO()
     launcher = Launcher(read_launch(path), sink=OutputSink(out, color=False))
 
-    def stop_once_up():  # a stop asked for while both run
-        if wait_until(lambda: "[stubborn] up" in out.getvalue(), 60):
+    def stop_once_up():  # a stop asked for while both run (each has said so)
+        if wait_until(lambda: "[stubborn] up" in out.getvalue() and "[polite] up" in out.getvalue(), 60):
             launcher.request_stop()
 
     threading.Thread(target=stop_once_up, daemon=True).start()
