@@ -138,6 +138,29 @@ def as_array(
     return array
 
 
+def as_size(value: Any, *, path: str | Path, name: str) -> int:
+    """An image dimension: a positive whole number, else an error naming ``path`` and ``name``."""
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        number = float("nan")
+    if not (np.isfinite(number) and number >= 1 and number == int(number) and number < 1e6):
+        raise DatasetError(path, f"{name} is {value!r}", f"{name} as a positive whole number of pixels")
+    return int(number)
+
+
+def as_rows(value: Any, *, path: str | Path, name: str) -> np.ndarray:
+    """An array with a leading axis of one row per frame (at least 1-D), else an error."""
+    array = np.asarray(value)
+    if array.ndim < 1 or array.dtype.kind not in "biuf":
+        raise DatasetError(
+            path,
+            f"{name} is a {array.dtype} array of shape {array.shape}",
+            f"{name}: numbers, one row per frame",
+        )
+    return array
+
+
 def find_image(stem: Path) -> Path | None:
     """The existing file ``stem`` + one of the image suffixes, or None."""
     for suffix in IMAGE_SUFFIXES:

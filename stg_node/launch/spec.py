@@ -499,6 +499,8 @@ def read_launch(path: str | Path, overrides: dict[str, str] | None = None) -> La
         raise doc.error(("bus",), f"bus: {exc}") from None
     for spec in reader.nodes:
         spec.namespace = _join_ns(section.namespace, spec.namespace)
+    if not reader.nodes and not reader.skipped:  # an empty or cut-off file: say so, do not run nothing
+        raise doc.error(("nodes",), "nothing to launch: the file (and its includes) lists no nodes")
     _check_graph(reader.nodes, set(reader.skipped))
     return LaunchSpec(
         path=path,
