@@ -78,7 +78,7 @@ def _check_array_size(fh, available: int, where: str) -> None:
     try:
         shape, dtype, nbytes = _array_header(fh)
     except ValueError as exc:
-        raise UnreadableFileError(f"{where}: not a .npy array ({exc})") from None
+        raise UnreadableFileError(f"{where}: not a .npy array ({_short(exc)})") from None
     held = available - (fh.tell() - start)
     fh.seek(start)
     if not dtype.hasobject and nbytes > held:
@@ -86,6 +86,12 @@ def _check_array_size(fh, available: int, where: str) -> None:
             f"{where}: its header promises a {'x'.join(map(str, shape)) or 'scalar'} {dtype} array "
             f"({nbytes} bytes) but {max(held, 0)} bytes follow (truncated or damaged)"
         )
+
+
+def _short(exc: BaseException, limit: int = 200) -> str:
+    """An exception as one short line (a damaged zip's quotes kilobytes of its bytes)."""
+    text = " ".join(str(exc).split())
+    return f"{type(exc).__name__}: " + (text if len(text) <= limit else text[: limit - 3] + "...")
 
 
 #: What reading a damaged .npy/.npz raises, besides ValueError: wrapped into UnreadableFileError.
@@ -175,11 +181,9 @@ def load_npy(path: str | Path, unpickler: type[pickle.Unpickler] = SafeUnpickler
                 return np.load(fh, allow_pickle=False)
             except ValueError as exc:
                 if not _is_object_array_error(exc):
-                    raise UnreadableFileError(f"{path}: cannot be read as .npy ({exc})") from None
+                    raise UnreadableFileError(f"{path}: cannot be read as .npy ({_short(exc)})") from None
             except _READ_ERRORS as exc:
-                raise UnreadableFileError(
-                    f"{path}: cannot be read as .npy ({type(exc).__name__}: {exc})"
-                ) from None
+                raise UnreadableFileError(f"{path}: cannot be read as .npy ({_short(exc)})") from None
         fh.seek(0)
         try:
             if bare_pickle:
@@ -189,9 +193,7 @@ def load_npy(path: str | Path, unpickler: type[pickle.Unpickler] = SafeUnpickler
             raise RefusedPickleError(f"{path}: {exc}") from None
         except (ValueError, *_READ_ERRORS) as exc:
             what = "a pickle" if bare_pickle else "an object .npy"
-            raise UnreadableFileError(
-                f"{path}: cannot be read as {what} ({type(exc).__name__}: {exc})"
-            ) from None
+            raise UnreadableFileError(f"{path}: cannot be read as {what} ({_short(exc)})") from None
 
 
 def load_npz(path: str | Path, unpickler: type[pickle.Unpickler] | None = None) -> dict[str, Any]:
@@ -208,7 +210,7 @@ def load_npz(path: str | Path, unpickler: type[pickle.Unpickler] | None = None) 
     try:
         archive = np.load(path, allow_pickle=False)
     except (ValueError, *_READ_ERRORS) as exc:
-        raise UnreadableFileError(f"{path}: cannot be read as .npz ({type(exc).__name__}: {exc})") from None
+        raise UnreadableFileError(f"{path}: cannot be read as .npz ({_short(exc)})") from None
     with archive:
         for key in archive.files:
             where = f"{path} member {key!r}"
@@ -221,9 +223,9 @@ def load_npz(path: str | Path, unpickler: type[pickle.Unpickler] | None = None) 
                 if isinstance(exc, UnreadableFileError):
                     raise
                 if not _is_object_array_error(exc):
-                    raise UnreadableFileError(f"{where}: cannot be read ({exc})") from None
+                    raise UnreadableFileError(f"{where}: cannot be read ({_short(exc)})") from None
             except _READ_ERRORS as exc:
-                raise UnreadableFileError(f"{where}: cannot be read ({type(exc).__name__}: {exc})") from None
+                raise UnreadableFileError(f"{where}: cannot be read ({_short(exc)})") from None
             if unpickler is None:
                 raise RefusedPickleError(
                     f"{path}: refusing member {key!r}: it holds pickled Python objects, which are not "
@@ -236,7 +238,7 @@ def load_npz(path: str | Path, unpickler: type[pickle.Unpickler] | None = None) 
             except RefusedPickleError as exc:
                 raise RefusedPickleError(f"{path} member {key!r}: {exc}") from None
             except (ValueError, *_READ_ERRORS) as exc:
-                raise UnreadableFileError(f"{where}: cannot be read ({type(exc).__name__}: {exc})") from None
+                raise UnreadableFileError(f"{where}: cannot be read ({_short(exc)})") from None
     return out
 
 

@@ -25,7 +25,15 @@ import numpy as np
 
 from stg_node.data.base import SequenceDataset, smpl_from_arrays
 from stg_node.data.errors import DatasetError
-from stg_node.data.io import IMAGE_SUFFIXES, as_array, as_rows, as_size, load_json, load_npz_arrays
+from stg_node.data.io import (
+    IMAGE_SUFFIXES,
+    as_array,
+    as_distortion,
+    as_rows,
+    as_size,
+    load_json,
+    load_npz_arrays,
+)
 from stg_node.data.splits import FrameRange, MonocularProtocol, SplitSpec
 from stg_node.data.types import SmplParams
 from stg_node.data.views import RawCamera
@@ -201,8 +209,7 @@ class FolderDataset(SequenceDataset):
                 raise DatasetError(
                     where, f"camera {name!r} lacks {key!r}", "K, R, t, width, height (D optional)"
                 )
-        D = entry.get("D", np.zeros(5))
-        D = as_array(D, (np.size(D),), path=where, name=f"{name}.D")
+        D = as_distortion(entry.get("D", np.zeros(5)), path=where, name=f"{name}.D")
         return RawCamera(
             name=name,
             K=as_array(entry["K"], (3, 3), path=where, name=f"{name}.K"),

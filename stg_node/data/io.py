@@ -108,7 +108,7 @@ def load_npz_arrays(path: str | Path, expected: str) -> dict[str, np.ndarray]:
         ) from None
     except Exception as exc:
         raise DatasetError(
-            path, f"cannot be read ({type(exc).__name__}: {exc})", f"an .npz archive: {expected}"
+            path, f"cannot be read ({type(exc).__name__}: {short(exc)})", f"an .npz archive: {expected}"
         ) from exc
 
 
@@ -136,6 +136,26 @@ def as_array(
     if not np.all(np.isfinite(array)):
         raise DatasetError(path, f"{name} contains NaN or infinite values", f"finite {name}")
     return array
+
+
+#: OpenCV's distortion models: how many coefficients each takes (0: none).
+DISTORTION_COUNTS = (0, 4, 5, 8, 12, 14)
+
+
+def as_distortion(value: Any, *, path: str | Path, name: str) -> np.ndarray:
+    """OpenCV distortion coefficients: finite, and as many as one of its models takes."""
+    D = as_array(value, (np.size(value),), path=path, name=name)
+    if D.size not in DISTORTION_COUNTS:
+        raise DatasetError(
+            path, f"{name} has {D.size} coefficients", f"{name}: one of {DISTORTION_COUNTS} (OpenCV)"
+        )
+    return D
+
+
+def short(exc: BaseException, limit: int = 200) -> str:
+    """An exception as one short line (some, a damaged zip's, quote kilobytes of its bytes)."""
+    text = " ".join(str(exc).split())
+    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def as_size(value: Any, *, path: str | Path, name: str) -> int:
