@@ -561,7 +561,7 @@ class Maker:
         cases = []
         for name in sorted(files) if fixed else [self.rng.choice(sorted(files))]:
             for how in self.pick(fixed, [*YAML_DAMAGE, *BYTE_DAMAGE]):
-                path = self.fresh(ROOT / "launch" / name)
+                path = self.fresh(ROOT / "launch") / name  # the whole folder: files include others
                 if how in YAML_DAMAGE:
                     what = damage_yaml(path, how, self.rng)
                 else:
