@@ -91,6 +91,7 @@ class Watcher:
         self.status: list[tuple[float, str, int, str, dict]] = []  # (t, node, pid, state, drops)
         self.metrics: list[tuple[float, int, float]] = []  # (t, iteration, it/s)
         self.images: list[tuple[float, str, int]] = []  # (t, src, seq)
+        self.sizes: dict[str, float] = {}  # topic -> the largest mean message size the broker reported
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="chaos-watch", daemon=True)
         self._thread.start()
@@ -114,6 +115,12 @@ class Watcher:
                         continue
                     topic = frames[0]
                     with self.lock:
+                        if topic == self.topics["node/status"] and header.get("node") == "broker":
+                            rates, rate_bytes = header.get("rates_hz") or {}, header.get("bytes_per_s") or {}
+                            for name, hz in rates.items():
+                                if hz and name in rate_bytes:
+                                    size = rate_bytes[name] / hz
+                                    self.sizes[name] = max(self.sizes.get(name, 0.0), size)
                         if topic == self.topics["node/status"]:
                             self.status.append(
                                 (now, str(header.get("node")), int(header.get("pid", -1)),
@@ -612,14 +619,35 @@ class Chaos:
             "avatar_gap_s": self.watcher.longest_gap(start, end),
             "problems": [],
         }
+        # A node must not grow; the broker may queue for the stalled subscriber what its lanes'
+        # high-water marks allow (that is what they are for), and no more.
+        bound = self.queue_bound_mb()
+        result["broker_queue_bound_mb"] = bound
         grown = {
-            n: round(m["growth_mb"], 1) for n, m in memory.items() if m["growth_mb"] > self.args.max_growth_mb
+            n: round(m["growth_mb"], 1)
+            for n, m in memory.items()
+            if m["growth_mb"]
+            > (self.args.max_growth_mb + bound if n == "broker" else self.args.max_growth_mb)
         }
         if grown:
             result["problems"].append(f"memory grew (MB): {grown}")
         if result["avatar_gap_s"] > TARGET_AVATAR_GAP_S:
             result["problems"].append(f"avatar gone for {result['avatar_gap_s']:.1f} s")
         self.results["slow_subscriber"] = result
+
+    def queue_bound_mb(self) -> float:
+        """What the broker may hold for one subscriber that never reads: per lane, its high-water
+        mark times the largest message seen on it (from the broker's own reports), in MB."""
+        from stg_node.bus.config import BusConfig
+
+        config = BusConfig(url=self.url, lanes=dict(self.spec.bus.lanes))
+        largest: dict[str, float] = {}
+        for topic, size in self.watcher.sizes.items():
+            lane = config.lane_of(topic)
+            largest[lane.name] = max(largest.get(lane.name, 0.0), size)
+        from stg_node.bus.topics import LANES
+
+        return sum(LANES[name].hwm * size for name, size in largest.items()) / 1e6
 
     # -- phase: the broker killed ----------------------------------------------------------------------
 
