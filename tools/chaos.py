@@ -688,6 +688,18 @@ class Chaos:
 
     # -- the end ----------------------------------------------------------------------------------------
 
+    def cold_starts(self) -> dict[str, float]:
+        """Each node's first start to ready, from the launch's log: the same-run baseline of a
+        respawn (what a start from nothing costs on this machine now)."""
+        import re
+
+        found: dict[str, float] = {}
+        for line in (self.work / "launch.log").read_text(errors="replace").splitlines():
+            m = re.search(r"stg_node\.launch: (\S+) is ready \(([\d.]+) s\)", line)
+            if m and m.group(1) not in found:
+                found[m.group(1)] = float(m.group(2))
+        return found
+
     def stop(self) -> None:
         self.note_pids()
         if self.launcher is not None and self.launcher.poll() is None:
@@ -722,6 +734,7 @@ class Chaos:
                 self.results["problems"].append(f"recording {how or 'missing'} after the launch ended")
         if hasattr(self, "launch_log"):
             self.launch_log.close()
+            self.results["cold_start_s"] = self.cold_starts()
 
 
 def report(results: dict) -> list[str]:
@@ -742,6 +755,12 @@ def report(results: dict) -> list[str]:
             image = "" if k["image_back_s"] is None else f"{k['image_back_s']:.1f}"
             row = f"{k['at_s']:6.0f} {k['node']:10} {back:>7} {image:>7} {k['avatar_gap_s']:6.1f}"
             lines.append(f"{row}  {'; '.join(extra)}")
+        cold = results.get("cold_start_s", {})
+        if cold:
+            lines.append(
+                "cold starts (first start to ready, same run): "
+                + ", ".join(f"{n} {s:.1f} s" for n, s in cold.items())
+            )
         backs = [k["back_s"] for k in kills if k["back_s"] is not None]
         gaps = [k["avatar_gap_s"] for k in kills]
         lines.append(
