@@ -76,7 +76,7 @@ class Launcher:
         self.states = [NodeState(n) for n in spec.nodes]
         self._by_name = {s.name: s for s in self.states}
         self._signals = 0
-        self._signal_lock = threading.Lock()
+        self._signal_lock = threading.RLock()  # taken in a signal handler: must be re-entrant
         self._ending: str | None = None
         self._failed = False
         self._broker: Broker | None = None
