@@ -442,16 +442,18 @@ class Chaos:
             left = keep_copy(self._checkpoint_path(), self.work / "checkpoint-at-kill")
             result.checkpoint_iteration = None if left is None else checkpoint_iteration(left)
             result.last_iteration = metrics_before[-1][1] if metrics_before else None
-        count, how = recording_count(self.recording)
+        deadline = killed_at + max(30.0, self.args.every)
+        while (
+            time.monotonic() < deadline and self.watcher.heard_since(name, killed_at, other_than=pid) is None
+        ):
+            time.sleep(0.1)
+        # from the watcher's own arrival times, so the figure does not depend on when we look
+        back = self.watcher.heard_since(name, killed_at, other_than=pid)
+        result.back_s = None if back is None else back - killed_at
+        count, how = recording_count(self.recording)  # (scanning a growing file takes a while)
         result.recording_messages = count
         if self.recording is not None and count is None:
             result.problems.append(f"recording {how or 'missing'}")
-        deadline = killed_at + max(30.0, self.args.every)
-        while time.monotonic() < deadline and result.back_s is None:
-            back = self.watcher.heard_since(name, killed_at, other_than=pid)
-            if back is not None:
-                result.back_s = back - killed_at
-            time.sleep(0.1)
         self._sleep_until(min(next_kill - 0.5, killed_at + self.args.every - 0.5))
         end = min(time.monotonic(), next_kill)
         result.avatar_gap_s = self.watcher.longest_gap(killed_at, end)
