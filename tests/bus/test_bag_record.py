@@ -250,8 +250,9 @@ def test_sigterm_or_sigint_finishes_the_file(ipc_url, tmp_path, ctx, sig, ignore
     """SIGINT works even when the recorder inherited it ignored (started in the background)."""
     path = tmp_path / "clean.mcap"
     with Broker(ipc_url, status_period_s=0):
-        proc = _start_recorder(ipc_url, path, ignore_sigint=ignore_sigint)
+        proc = _start_recorder(ipc_url, path, "--flush-interval", "0.2", ignore_sigint=ignore_sigint)
         _publish_poses(ipc_url, ctx, 25)
+        assert wait_until(lambda: _messages_on_disk(path) >= 25, 60)  # recorded: now stop it
         proc.send_signal(sig)
         out, err = proc.communicate(timeout=60)
     assert proc.returncode == 0, err

@@ -44,7 +44,8 @@ MiB = 1 << 20
 DEFAULT_MAX_QUEUE_BYTES = 512 * MiB
 OVERFLOW = "recorder_overflow"
 _POLL_MS = 1000  # the reader thread's longest wait; stop() wakes it earlier
-_DRAIN_S = 1.0  # on stop: at most this long reading what had already arrived
+_DRAIN_S = 1.0  # on stop: at most this long reading what had already arrived ...
+_QUIET_S = 0.2  # ... until nothing more has come for this long
 _ids = itertools.count()
 _WRITE_SLICE_S = 0.5  # poll() returns after this long even with more queued, so callers stay responsive
 
@@ -267,9 +268,13 @@ class Recorder:
                     if env is None:
                         break
                     self._take(env)
-            # Stopped: what has already reached this process is part of the session; keep it.
+            # Stopped: what has already reached this process is part of the session; keep it (up
+            # to _DRAIN_S, until nothing has come for _QUIET_S: some may still be on its way in).
             deadline = time.monotonic() + _DRAIN_S
-            while time.monotonic() < deadline and (env := sub.recv(timeout=0)) is not None:
+            while (left := deadline - time.monotonic()) > 0:
+                env = sub.recv(timeout=min(_QUIET_S, left))
+                if env is None:
+                    break
                 self._take(env)
         except Exception as exc:
             self._error = exc
