@@ -55,6 +55,14 @@ class GaussianTable(nn.Module):
         self.params = nn.ParameterDict()
         for name, tensor in columns.items():
             self.params[name] = nn.Parameter(tensor.detach().clone(), requires_grad=name not in FIXED_COLUMNS)
+        #: Bumped by every edit of the rows (append, prune, a column set anew): what caches built
+        #: on the rows (the rigidity neighbour graph) compare, never ``id()`` of a tensor, which
+        #: a new tensor may reuse once the old one is freed.
+        self.version = 0
+
+    def rows_changed(self) -> None:
+        """Say that rows were added, removed or replaced (done by set_column and the optimiser)."""
+        self.version += 1
 
     @property
     def num(self) -> int:
@@ -77,6 +85,7 @@ class GaussianTable(nn.Module):
 
     def set_column(self, name: str, tensor: torch.Tensor) -> None:
         self.params[name] = nn.Parameter(tensor.detach().clone(), requires_grad=name not in FIXED_COLUMNS)
+        self.rows_changed()
 
     # --- activated views ----------------------------------------------------------------------
     def scales(self) -> torch.Tensor:

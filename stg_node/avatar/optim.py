@@ -91,6 +91,7 @@ class TableOptimizer:
                     }
                 break
         self.table.params[name] = param
+        self.table.rows_changed()
 
     def append(self, rows: dict[str, torch.Tensor]) -> None:
         """Append rows (every column must be given) with zero Adam moments."""

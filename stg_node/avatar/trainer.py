@@ -111,7 +111,6 @@ class Trainer:
         backend: str = "auto",
         seed: int = 0,
         flow_cache=None,
-        max_frames: int | None = None,
     ):
         config.validate()
         self.config = config
@@ -122,7 +121,7 @@ class Trainer:
         self.body_reference = _body_reference(body_model)
         want_flow = config.loss.flow > 0 or (config.densify.enabled and config.densify.flow_guided)
         self.store = FrameStore(
-            capacity=config.max_frames if max_frames is None else max_frames,
+            capacity=config.max_frames,  # its one home: a checkpoint keeps it with the config
             crop_margin=config.crop_margin_px,
             flow=want_flow and config.model.spacetime or config.loss.flow > 0,
             flow_cache=flow_cache,
@@ -142,6 +141,9 @@ class Trainer:
         self.pose_slots: dict[int, int] = {}
         self.neighbours = NeighbourGraph()  # local rigidity of the non-rigid motion
         self.profile: StepProfile | None = None  # set to a StepProfile to time the phases of each step
+        #: Numbers the caller keeps with the checkpoint, written and restored in the same file (the
+        #: trainer node's wall time): nothing beside a checkpoint can disagree with it after a kill.
+        self.notes: dict[str, float] = {}
 
     # --- frames ----------------------------------------------------------------------------------
     def add_frame(self, frame: TrainFrame) -> None:

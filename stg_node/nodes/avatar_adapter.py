@@ -8,6 +8,7 @@ fake in the tests (tests/nodes/fake_avatar.py).
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import inspect
 from dataclasses import dataclass
@@ -69,10 +70,10 @@ class TrainerAdapter:
         max_frames: int = 64,
     ) -> TrainerAdapter:
         avatar = avatar_module(module)
-        config = avatar.preset(preset)
-        trainer = avatar.Trainer(
-            config, body_model=body_model, device=device, backend=backend, seed=seed, max_frames=max_frames
-        )
+        # The frame store's bound lives in the config, the one thing a checkpoint keeps: a trainer
+        # resumed from one is bounded as the one that wrote it.
+        config = dataclasses.replace(avatar.preset(preset), max_frames=int(max_frames))
+        trainer = avatar.Trainer(config, body_model=body_model, device=device, backend=backend, seed=seed)
         return cls(trainer, avatar)
 
     @classmethod
@@ -81,6 +82,20 @@ class TrainerAdapter:
     ):
         avatar = avatar_module(module)
         return cls(avatar.Trainer.load(str(path), device=device, backend=backend), avatar)
+
+    @property
+    def iteration(self) -> int:
+        return int(self._trainer.iteration)
+
+    @property
+    def max_frames(self) -> int:
+        """Frames the trainer keeps at most (0: no bound), as its config says."""
+        return int(self._trainer.config.max_frames)
+
+    @property
+    def notes(self) -> dict[str, float]:
+        """What :meth:`save` kept beside the model (the node's wall time), restored by :meth:`load`."""
+        return dict(self._trainer.notes)
 
     def add_frame(self, *, index: int, time: float, image, mask, camera: Camera, smpl: SmplParams) -> None:
         frame = self._module.TrainFrame(
@@ -113,7 +128,9 @@ class TrainerAdapter:
         msg.model_version = int(version)
         return msg
 
-    def save(self, path: str | Path) -> None:
+    def save(self, path: str | Path, notes: dict[str, float] | None = None) -> None:
+        """A checkpoint at ``path`` holding ``notes`` too (one file: they cannot disagree)."""
+        self._trainer.notes = {str(k): float(v) for k, v in (notes or {}).items()}
         self._trainer.save(str(path))
 
 

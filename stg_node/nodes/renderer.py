@@ -35,7 +35,7 @@ import numpy as np
 
 from stg_node.bus import BodyPose, Frame, GaussianSnapshot, RenderedImage, ViewRequest
 from stg_node.data.types import Camera, SmplParams
-from stg_node.nodes.avatar_adapter import DEFAULT_MODULE, RendererAdapter
+from stg_node.nodes.avatar_adapter import DEFAULT_MODULE, RendererAdapter, avatar_module
 from stg_node.nodes.convert import frame_camera, request_camera, request_smpl, resized_camera
 from stg_node.nodes.params import param
 from stg_node.nodes.runtime import Node
@@ -142,6 +142,17 @@ class RendererNode(Node):
 
     kind = "renderer"
     Params = RendererParams
+
+    @classmethod
+    def prepare(cls, params: RendererParams) -> None:
+        from stg_node.threads import configure_threads
+
+        configure_threads()
+        avatar_module(params.avatar)  # torch and the avatar package
+        if params.device == "cpu" and params.backend in ("auto", "cpu"):
+            from stg_node.splat.build import load_kernels
+
+            load_kernels()  # the rasterizer's compiled kernels (built once, cached)
 
     def setup(self) -> None:
         from stg_node.threads import configure_threads
