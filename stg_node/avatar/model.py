@@ -2,7 +2,8 @@
 
 ``AvatarModel.pose(...)`` turns the canonical table into world-space Gaussians for one body
 pose and one instant (rigid part: :mod:`rigid`; non-rigid part: :mod:`spacetime`; colour:
-:mod:`color`), and :func:`render` splats them into a camera through ``stg_node.splat``.
+:mod:`color`, then the light it is seen under: :mod:`shading`), and :func:`render` splats them
+into a camera through ``stg_node.splat``.
 Everything a renderer needs lives in the model (the skeleton, not the body mesh), so
 :mod:`snapshot` can rebuild it from a GaussianSnapshot alone.
 """
@@ -18,8 +19,9 @@ from torch import nn
 from stg_node.avatar import spacetime
 from stg_node.avatar.color import ColorMLP, sh_color
 from stg_node.avatar.config import ModelConfig
-from stg_node.avatar.gaussians import GaussianTable
+from stg_node.avatar.gaussians import GaussianTable, cap_scale_ratio
 from stg_node.avatar.rigid import PosedBones, Skeleton, blend_weights, skin
+from stg_node.avatar.shading import LightSpec, Shading, gaussian_normals
 from stg_node.avatar.spacetime import TimeAxis
 from stg_node.avatar.timecode import PoseTimeIndex, pose_key
 from stg_node.body import lbs
@@ -55,6 +57,7 @@ class PosedGaussians:
     opacities: torch.Tensor  # (M,) including temporal opacity
     colors: torch.Tensor  # (M, 3)
     index: torch.Tensor | None  # (M,) rows of the table, or None when every row is kept
+    canonical: torch.Tensor | None = None  # (M, 3) canonical centres (with offsets) the means came from
 
 
 @dataclass
@@ -147,6 +150,7 @@ class AvatarModel(nn.Module):
         self.skeleton = skeleton
         self.register_buffer("bounds", bounds.float().clone())  # (2, 3) canonical body box
         self.color_mlp = ColorMLP(config, bounds) if config.color == "mlp" else None
+        self.shading = Shading() if config.shading == "sh" else None
         self.time_axis = time_axis or TimeAxis(unit_s=config.time_unit_s)
         self.pose_index = pose_index or PoseTimeIndex()
 
@@ -161,6 +165,10 @@ class AvatarModel(nn.Module):
 
     def skin_weights(self) -> torch.Tensor:
         return blend_weights(self.table["skin_weights"], self.table.get("skin_delta"))
+
+    def scales(self) -> torch.Tensor:
+        """(N, 3) the Gaussians' scales as rendered: the table's, largest / smallest axis capped."""
+        return cap_scale_ratio(self.table.scales(), self.config.max_scale_ratio)
 
     def bones(self, body: BodyState) -> PosedBones:
         return self.skeleton.bones(body.poses, body.Rh, body.Th)
@@ -195,8 +203,10 @@ class AvatarModel(nn.Module):
         bones: PosedBones | None = None,
         key: torch.Tensor | None = None,
         state: spacetime.SpacetimeState | None = None,
+        light: LightSpec | None = None,
     ) -> PosedGaussians:
-        """World-space Gaussians for one body pose at normalised time ``u``, seen from ``camera_center``."""
+        """World-space Gaussians for one body pose at normalised time ``u``, seen from ``camera_center``;
+        ``light`` says how a model with shading is lit (default: its learned light, shading.py)."""
         cfg = self.config
         table = self.table
         bones = bones or self.bones(body)
@@ -217,7 +227,7 @@ class AvatarModel(nn.Module):
         canonical = rows(canonical)
         skinned = skin(canonical, rows(self.skin_weights()), bones)
         quats = quat_multiply(skinned.quats, _normalise(rows(st.quats)))
-        scales = rows(table.scales())
+        scales = rows(self.scales())
         degree = cfg.sh_degree if sh_degree is None else min(sh_degree, cfg.sh_degree)
         with torch.no_grad():  # the viewing direction in each Gaussian's canonical frame
             view = skinned.means - camera_center
@@ -231,7 +241,13 @@ class AvatarModel(nn.Module):
             colors = self.color_mlp(canonical, rows(table["features"]), key, view_canonical, degree)
         else:
             colors = sh_color(rows(table["sh"]), view_canonical, degree)
-        return PosedGaussians(skinned.means, quats, scales, rows(opacity), colors, index)
+        if self.shading is not None:
+            normals = gaussian_normals(quats, scales, skinned.means, camera_center)
+            root = None
+            if light is not None and light.mode == "baked":
+                root = lbs.axis_angle_to_matrix(body.Rh[0]) @ lbs.axis_angle_to_matrix(body.poses[0, 0])
+            colors = self.shading(colors, normals, light, root)
+        return PosedGaussians(skinned.means, quats, scales, rows(opacity), colors, index, canonical)
 
 
 def render(

@@ -4,7 +4,9 @@ renderer node call.
 Built from a model or straight from a GaussianSnapshot (the renderer node hot-swaps those).
 Without a time the pose's time code comes from the nearest training pose (timecode.py); with
 ``follow`` state kept between calls, an animation keeps its time code stable (hysteresis).
-Rendering runs without gradients and skips motion terms that are exactly zero.
+Rendering runs without gradients and skips motion terms that are exactly zero. A model with
+shading is lit by its learned light (fixed in the world), by a light the caller gives, with the
+light carried along with the body (``baked``), or not at all (``albedo``): :mod:`shading`.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import numpy as np
 import torch
 
 from stg_node.avatar.model import AvatarModel, BodyState, Camera3, render
+from stg_node.avatar.shading import LightSpec
 
 
 @dataclass
@@ -29,16 +32,19 @@ class RenderOutput:
 
 
 class AvatarRenderer:
-    def __init__(self, model: AvatarModel, *, backend: str = "auto"):
+    def __init__(self, model: AvatarModel, *, backend: str = "auto", light: LightSpec | None = None):
         self.model = model.eval()
         self.backend = backend
+        self.light = light  # None: the model's learned light (shading.py)
         self._last_key: int | None = None
 
     @classmethod
-    def from_snapshot(cls, msg, device="cpu", backend: str = "auto") -> AvatarRenderer:
+    def from_snapshot(
+        cls, msg, device="cpu", backend: str = "auto", light: LightSpec | None = None
+    ) -> AvatarRenderer:
         from stg_node.avatar.snapshot import model_from_snapshot
 
-        return cls(model_from_snapshot(msg, device=device), backend=backend)
+        return cls(model_from_snapshot(msg, device=device), backend=backend, light=light)
 
     @property
     def device(self) -> torch.device:
@@ -64,13 +70,15 @@ class AvatarRenderer:
         background=(0.0, 0.0, 0.0),
         follow: bool = False,
         depth: bool = False,
+        light: LightSpec | None = None,
     ) -> RenderOutput:
-        """Render ``smpl`` (SmplParams) seen by ``camera`` (stg_node.data.types.Camera) at ``time`` (s)."""
+        """Render ``smpl`` (SmplParams) seen by ``camera`` (stg_node.data.types.Camera) at ``time`` (s);
+        ``light`` overrides the renderer's light for this render."""
         started = _now()
         u = self.time_for(smpl, time, follow=follow)
         cam = Camera3.from_camera(camera, device=self.device)
         body = BodyState.from_smpl(smpl, self.device)
-        posed = self.model.pose(body, u, cam.center, skip_inactive=True)
+        posed = self.model.pose(body, u, cam.center, skip_inactive=True, light=light or self.light)
         bg = torch.as_tensor(background, dtype=torch.float32, device=self.device)
         image, alpha, info = render(posed, cam, background=bg, backend=self.backend, render_depth=depth)
         out_depth = None

@@ -123,10 +123,17 @@ class RendererAdapter:
         module: str = DEFAULT_MODULE,
         device: str = "cpu",
         backend: str = "auto",
+        light: str = "learned",
     ) -> RendererAdapter:
         avatar = avatar_module(module)
+        options = {}
+        if light != "learned":  # the default needs nothing of a plug-in avatar package
+            from stg_node.avatar.shading import parse_light
+
+            options["light"] = parse_light(light)
         return cls(
-            avatar.AvatarRenderer.from_snapshot(msg, device=device, backend=backend), msg.model_version
+            avatar.AvatarRenderer.from_snapshot(msg, device=device, backend=backend, **options),
+            msg.model_version,
         )
 
     def render(

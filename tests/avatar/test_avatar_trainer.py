@@ -35,7 +35,7 @@ def _masked(frame):
 
 def test_full_model_overfits_a_tiny_sequence(tiny_frames):
     """300 steps on 10 frames of 128x128: the training views are reproduced to > 25 dB (full image,
-    black background), far above what the untrained model gives (< 20 dB)."""
+    black background), far above what the untrained model gives (about 20 dB)."""
     config = small_config(iterations=300)
     trainer = Trainer(config, seed=0)
     trainer.add_frames(tiny_frames)
@@ -47,8 +47,8 @@ def test_full_model_overfits_a_tiny_sequence(tiny_frames):
         result = trainer.step()
         assert not result.skipped
     after = np.mean([_psnr(renderer.render(f.camera, f.smpl, f.time).image, _masked(f)) for f in tiny_frames])
-    assert before < 20.0
-    assert after > 25.0, (before, after)
+    assert before < 21.0
+    assert after > 25.0 and after > before + 5.0, (before, after)
     stats = trainer.stats()
     assert stats["gaussians"] == trainer.model.table.num > 0
     assert 0.0 <= stats["active_motion_fraction"] <= 1.0 and stats["model_mb"] > 0
