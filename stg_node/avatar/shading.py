@@ -17,22 +17,31 @@ everything else:
   rotation), flipped to face the camera: for a surface seen from outside the visible side faces
   the viewer, and a splat's axis has no sign of its own. Gaussians start as flat discs along the
   body surface (``model.init_flatness``) so the shortest axis is the surface normal from the start.
-- **Light**: second-order spherical-harmonic irradiance (Ramamoorthi and Hanrahan 2001),
-  ``E(n) = max(0, sum_k e_k Y_k(n))`` over the 9 real SH functions of :func:`color.sh_basis`,
-  per colour channel: 27 numbers. It represents the irradiance of any distant light to within a
-  few percent (the clamped-cosine kernel has almost no energy above band 2). The constant term
-  is held at ``E = 1`` (mean irradiance over the sphere): brightness and colour of the surface
-  stay in the albedo, so albedo and light cannot trade a common scale; the 24 other numbers are
-  learned, with a small penalty (``loss.light``) that keeps them at zero (uniform light) unless
-  the images ask otherwise. A clip that never turns constrains the light only through the normals
-  it shows, and then the penalty leaves it near uniform: the avatar degrades to the baked colour.
+- **Light**, fixed in the world and learned from the training clip with everything else; its
+  mean over all directions is held at ``E = 1``, so brightness and colour of the surface stay in
+  the albedo and albedo and light cannot trade a common scale. Two models (``model.light_model``):
+
+  * ``distant`` (default, :class:`DistantLights`): an ambient term plus ``model.light_count``
+    distant lights, each a non-negative colour and a direction, ``E(n) = a + sum_k c_k max(0,
+    n . d_k)`` (normalised). A clip that shows one side of the subject constrains the light only
+    through the normals it shows; this model extrapolates to the others as a room does (a surface
+    facing away from every light gets the ambient term).
+  * ``sh`` (:class:`SHLight`): free second-order spherical-harmonic irradiance (Ramamoorthi and
+    Hanrahan 2001), ``E(n) = max(0, sum_k e_k Y_k(n))`` over the 9 real SH functions of
+    :func:`color.sh_basis` per channel: 27 numbers, 24 learned. It represents the irradiance of
+    any distant light to within a few percent, but fitted on one hemisphere of normals its
+    quadratic terms rise again on the other: measured, it lights the side facing away from the
+    room's lamp almost as brightly as the lit one (docs/AVATAR.md).
+
+  A small penalty (``loss.light``) keeps the learned light near uniform unless the images ask
+  otherwise: a clip that never shows how the light falls leaves the avatar near its baked colour.
 
 Render modes (:class:`LightSpec`): ``learned`` (the default: the learned light, fixed in the
 world, so a turning avatar is lit by the room as it turns), ``given`` (a caller's light: SH
-coefficients, or directional lights and an ambient term converted exactly to them by
-:func:`directional_irradiance`), ``baked`` (the learned light carried along with the body, as if
-it never turned from its mean training orientation: what a colour without shading gives, for
-comparison) and ``albedo`` (no shading: E = 1).
+irradiance coefficients, or an ambient term and distant lights, evaluated exactly;
+:func:`directional_irradiance` converts the latter to SH), ``baked`` (the learned light carried
+along with the body, as if it never turned from its mean training orientation: what a colour
+without shading gives, for comparison) and ``albedo`` (no shading: E = 1).
 
 SH convention: :func:`color.sh_basis` (3DGS's real SH with its signs), world frame of the
 dataset. Irradiance coefficients are stored, i.e. ``e_lm = A_l L_lm`` with the radiance's SH
@@ -51,6 +60,7 @@ import torch
 from torch import nn
 
 from stg_node.avatar.color import SH_C0, sh_basis
+from stg_node.avatar.config import LIGHT_MODELS
 
 SH_BANDS = 9  # second order: l = 0, 1, 2
 KERNEL = (math.pi,) + (2.0 * math.pi / 3.0,) * 3 + (math.pi / 4.0,) * 5  # clamped cosine, per coefficient
@@ -87,28 +97,67 @@ def directional_irradiance(directions, colors, ambient=(0.0, 0.0, 0.0), dtype=to
 
 @dataclass(frozen=True)
 class LightSpec:
-    """How a render is lit (module doc): a mode and, for ``given``, the (9, 3) SH irradiance."""
+    """How a render is lit (module doc). A ``given`` light is SH irradiance (``sh``: 27 floats,
+    row-major (9, 3)) or distant lights (``ambient``: RGB, ``lights``: (direction xyz, colour rgb)
+    per light, directions towards the lights), evaluated exactly."""
 
     mode: str = "learned"
-    coefficients: tuple | None = None  # 27 floats, row-major (9, 3), for "given"
+    sh: tuple | None = None
+    ambient: tuple | None = None
+    lights: tuple | None = None
 
     def __post_init__(self):
         if self.mode not in LIGHT_MODES:
             raise ValueError(f"light mode must be one of {', '.join(LIGHT_MODES)}, got {self.mode!r}")
-        if (self.mode == "given") != (self.coefficients is not None):
-            raise ValueError("a 'given' light needs its 27 coefficients, and only it has them")
-        if self.coefficients is not None and len(self.coefficients) != 27:
-            raise ValueError(f"a given light has 27 SH coefficients (9 x RGB), got {len(self.coefficients)}")
+        given = self.sh is not None or self.ambient is not None
+        if (self.mode == "given") != given:
+            raise ValueError("a 'given' light needs SH coefficients or lights, and only it has them")
+        if self.sh is not None and len(self.sh) != 27:
+            raise ValueError(f"a given light has 27 SH coefficients (9 x RGB), got {len(self.sh)}")
 
     @classmethod
     def given(cls, coefficients) -> LightSpec:
+        """A caller's light from SH irradiance coefficients (9, 3)."""
         values = np.asarray(coefficients, np.float64).reshape(-1)
         if values.size != 27 or not np.isfinite(values).all():
             raise ValueError(f"a given light has 27 finite SH coefficients (9 x RGB), got {values.size}")
-        return cls("given", tuple(float(v) for v in values))
+        return cls("given", sh=tuple(float(v) for v in values))
+
+    @classmethod
+    def distant(cls, ambient, directions=(), colors=()) -> LightSpec:
+        """A caller's light: an ambient term plus distant lights (``ambient + sum c_k max(0, n.d_k)``)."""
+        a = np.asarray(ambient, np.float64).reshape(3)
+        d = np.asarray(directions, np.float64).reshape(-1, 3)
+        c = np.asarray(colors, np.float64).reshape(-1, 3)
+        if d.shape[0] != c.shape[0]:
+            raise ValueError(f"{d.shape[0]} light directions but {c.shape[0]} colours")
+        norms = np.linalg.norm(d, axis=1, keepdims=True)
+        if (
+            not (np.isfinite(a).all() and np.isfinite(d).all() and np.isfinite(c).all())
+            or (norms < 1e-9).any()
+        ):
+            raise ValueError("light directions must be finite and non-zero, colours finite")
+        rows = tuple(tuple(float(v) for v in row) for row in np.concatenate([d / norms, c], axis=1))
+        return cls("given", ambient=tuple(float(v) for v in a), lights=rows)
 
     def tensor(self, device=None) -> torch.Tensor:
-        return torch.tensor(self.coefficients, dtype=torch.float32, device=device).reshape(SH_BANDS, 3)
+        """(9, 3) SH irradiance of a given light (distant lights converted: directional_irradiance)."""
+        if self.sh is not None:
+            return torch.tensor(self.sh, dtype=torch.float32, device=device).reshape(SH_BANDS, 3)
+        rows = np.asarray(self.lights or np.zeros((0, 6)), np.float64).reshape(-1, 6)
+        return directional_irradiance(rows[:, :3], rows[:, 3:], self.ambient).to(device)
+
+    def irradiance(self, normals: torch.Tensor) -> torch.Tensor:
+        """(M, 3) irradiance of a given light at world ``normals`` (M, 3)."""
+        if self.sh is not None:
+            return irradiance(normals, self.tensor(normals.device))
+        out = torch.tensor(self.ambient, dtype=normals.dtype, device=normals.device).expand(
+            normals.shape[0], 3
+        )
+        if self.lights:
+            rows = torch.tensor(self.lights, dtype=normals.dtype, device=normals.device)
+            out = out + (normals @ rows[:, :3].T).clamp_min(0.0) @ rows[:, 3:]
+        return out
 
 
 def parse_light(text: str | None) -> LightSpec:
@@ -149,10 +198,7 @@ def parse_light(text: str | None) -> LightSpec:
             colors = [light["color"] for light in lights]
         except (KeyError, TypeError) as exc:
             raise ValueError(f"--light {path}: every light needs 'direction' and 'color'") from exc
-        ambient = data.get("ambient", [0.0, 0.0, 0.0])
-        if not lights:
-            return LightSpec.given(directional_irradiance(np.zeros((0, 3)), np.zeros((0, 3)), ambient))
-        return LightSpec.given(directional_irradiance(directions, colors, ambient))
+        return LightSpec.distant(data.get("ambient", [0.0, 0.0, 0.0]), directions, colors)
     raise ValueError(f"--light {path}: expected a JSON object with 'sh' or 'lights'")
 
 
@@ -180,26 +226,87 @@ def polar_rotation(matrix: np.ndarray) -> np.ndarray:
     return u @ np.diag([1.0, 1.0, d]) @ vt
 
 
-class Shading(nn.Module):
-    """The learned light (8 x 3 learned SH coefficients over a fixed uniform term) and the mean
-    training orientation the ``baked`` mode carries it along from."""
+class SHLight(nn.Module):
+    """Learned second-order SH irradiance: 8 x 3 free coefficients over a constant term fixed at E = 1."""
 
     def __init__(self):
         super().__init__()
         self.coefficients = nn.Parameter(torch.zeros(SH_BANDS - 1, 3))  # bands 1 and 2
         self.register_buffer("dc", torch.full((1, 3), UNIFORM_DC))
+
+    def sh(self) -> torch.Tensor:
+        return torch.cat([self.dc, self.coefficients], dim=0)
+
+    def irradiance(self, normals: torch.Tensor) -> torch.Tensor:
+        return irradiance(normals, self.sh())
+
+    def penalty(self) -> torch.Tensor:
+        """Mean square of the non-constant coefficients: zero for uniform light."""
+        return self.coefficients.pow(2).mean()
+
+
+INITIAL_DIRECTIONS = ((0.0, 0.0, 1.0), (1.0, 0.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0))
+
+
+class DistantLights(nn.Module):
+    """Learned light as a room has it: an ambient term and ``count`` distant lights, per channel
+
+        E(n) = (a + sum_k c_k max(0, n . d_k)) / (a + sum_k c_k / 4)
+
+    with ``a, c_k >= 0`` (softplus) and unit directions ``d_k``. The denominator is the mean of the
+    numerator over all directions, so E averages 1 (as SHLight's constant term) and the albedo keeps
+    the surface's brightness. Unlike free SH coefficients, this cannot brighten a side no light
+    faces: fitted from the normals a clip shows, it extrapolates to the others as a room would (a
+    surface facing away from every light gets the ambient term), where a second-order polynomial
+    fitted on one hemisphere rises again on the other. Starts uniform (weak lights, E ~ 1).
+    """
+
+    def __init__(self, count: int):
+        super().__init__()
+        if not 1 <= count <= len(INITIAL_DIRECTIONS):
+            raise ValueError(f"light_count must be 1..{len(INITIAL_DIRECTIONS)}, got {count}")
+        self.ambient = nn.Parameter(torch.full((3,), math.log(math.e - 1.0)))  # softplus -> 1
+        self.colors = nn.Parameter(torch.full((count, 3), -3.0))  # softplus -> 0.05: weak
+        self.directions = nn.Parameter(torch.tensor(INITIAL_DIRECTIONS[:count]))
+
+    def parts(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(ambient (3,), colours (K, 3), unit directions (K, 3), mean irradiance (3,)), unnormalised."""
+        a = torch.nn.functional.softplus(self.ambient)
+        c = torch.nn.functional.softplus(self.colors)
+        d = self.directions / self.directions.norm(dim=1, keepdim=True).clamp_min(1e-9)
+        return a, c, d, a + c.sum(dim=0) / 4.0
+
+    def irradiance(self, normals: torch.Tensor) -> torch.Tensor:
+        a, c, d, mean = self.parts()
+        return (a + (normals @ d.T).clamp_min(0.0) @ c) / mean
+
+    def sh(self) -> torch.Tensor:
+        """(9, 3) the same light as SH irradiance (second order: to about 3 % of its lobes)."""
+        with torch.no_grad():
+            a, c, d, mean = self.parts()
+            return directional_irradiance(d.cpu().numpy(), (c / mean).cpu().numpy(), (a / mean).cpu().numpy())
+
+    def penalty(self) -> torch.Tensor:
+        """Mean square of the share of the mean irradiance the distant lights bring: 0 for ambient only."""
+        _, c, _, mean = self.parts()
+        return ((c.sum(dim=0) / 4.0) / mean).pow(2).mean()
+
+
+class Shading(nn.Module):
+    """The learned light (``light_model``: ``distant`` lights or ``sh``) and the mean training
+    orientation the ``baked`` mode carries it along from."""
+
+    def __init__(self, light_model: str = "distant", light_count: int = 2):
+        super().__init__()
+        if light_model not in LIGHT_MODELS:
+            raise ValueError(f"light_model must be one of {', '.join(LIGHT_MODELS)}, got {light_model!r}")
+        self.light = DistantLights(light_count) if light_model == "distant" else SHLight()
         self.register_buffer("reference", torch.eye(3))  # mean training root orientation (world)
         self.register_buffer("orientation_sum", torch.zeros(3, 3))  # of the frames seen so far
 
-    def learned(self) -> torch.Tensor:
-        """(9, 3) SH irradiance of the learned light."""
-        return torch.cat([self.dc, self.coefficients], dim=0)
-
-    def load_learned(self, coefficients: torch.Tensor) -> None:
-        with torch.no_grad():
-            c = torch.as_tensor(coefficients, dtype=self.dc.dtype, device=self.dc.device).reshape(SH_BANDS, 3)
-            self.dc.copy_(c[:1])
-            self.coefficients.copy_(c[1:])
+    def learned_sh(self) -> torch.Tensor:
+        """(9, 3) the learned light as SH irradiance (what stg-render --light takes back)."""
+        return self.light.sh().detach()
 
     @torch.no_grad()
     def add_orientation(self, root_rotation: torch.Tensor) -> None:
@@ -209,8 +316,7 @@ class Shading(nn.Module):
         self.reference.copy_(torch.as_tensor(mean, dtype=self.reference.dtype))
 
     def penalty(self) -> torch.Tensor:
-        """Mean square of the learned (non-uniform) coefficients: zero for uniform light."""
-        return self.coefficients.pow(2).mean()
+        return self.light.penalty()
 
     def forward(
         self,
@@ -227,10 +333,10 @@ class Shading(nn.Module):
         if mode == "albedo":
             return albedo
         if mode == "given":
-            return albedo * irradiance(normals, light.tensor(albedo.device))
+            return albedo * light.irradiance(normals)
         if mode == "baked":
             if root_rotation is None:
                 raise ValueError("the baked light needs the body's root orientation")
             # The normal as it would point had the body kept its mean training orientation.
             normals = normals @ root_rotation.to(normals) @ self.reference.T.to(normals)
-        return albedo * irradiance(normals, self.learned())
+        return albedo * self.light.irradiance(normals)

@@ -5,8 +5,8 @@ The trainer node publishes exactly what ``stg-train`` saves: a GaussianSnapshot 
 
 - ``g.<column>``: every column of the Gaussian table (gaussians.py lists them);
 - ``mlp.<name>``: the colour MLP's weights (colour mode "mlp");
-- ``shading.<name>``: the learned light (SH irradiance: ``shading.dc`` (1, 3) and
-  ``shading.coefficients`` (8, 3)) and the mean training orientation (``shading.reference``,
+- ``shading.<name>``: the learned light (``shading.light.*``: an ambient term and distant lights,
+  or SH coefficients) and the mean training orientation (``shading.reference``,
   ``shading.orientation_sum``), shading mode "sh";
 - ``body.rest_joints`` (24, 3), ``body.parents`` (24,), ``body.big_pose_inverse`` (24, 4, 4),
   ``body.betas`` (S,), ``body.bounds`` (2, 3): the skeleton, so a renderer needs no body file;
@@ -34,7 +34,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from stg_node.avatar.config import COLOR_MODES, PREDATING_DEFAULTS, SHADING_MODES, SKIN_INIT, ModelConfig
+from stg_node.avatar.config import (
+    COLOR_MODES,
+    LIGHT_MODELS,
+    PREDATING_DEFAULTS,
+    SHADING_MODES,
+    SKIN_INIT,
+    ModelConfig,
+)
 from stg_node.avatar.gaussians import GaussianTable
 from stg_node.avatar.model import AvatarModel
 from stg_node.avatar.rigid import Skeleton
@@ -43,7 +50,12 @@ from stg_node.avatar.timecode import PoseTimeIndex
 
 FORMAT = "stg-avatar/1"
 FILE_MAGIC = b"STGSNAP1"
-_STRING_CHOICES = {"color": COLOR_MODES, "skin_init": SKIN_INIT, "shading": SHADING_MODES}
+_STRING_CHOICES = {
+    "color": COLOR_MODES,
+    "skin_init": SKIN_INIT,
+    "shading": SHADING_MODES,
+    "light_model": LIGHT_MODELS,
+}
 
 
 class SnapshotError(ValueError):

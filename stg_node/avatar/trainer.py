@@ -220,7 +220,7 @@ class Trainer:
         if self.pose_deltas is not None:
             dense["pose"] = ([self.pose_deltas], c.lr_pose)
         if self.model.shading is not None:
-            dense["light"] = ([self.model.shading.coefficients], c.lr_light)
+            dense["light"] = (list(self.model.shading.light.parameters()), c.lr_light)
         self.optimizer = TableOptimizer(self.model.table, lrs, dense)
 
     def _pose_slot(self, frame_index: int) -> int:

@@ -121,9 +121,16 @@ def test_a_lambertian_sphere_of_gaussian_discs_renders_the_closed_form_shading()
     np.testing.assert_allclose(centre.numpy(), expected, rtol=0.02)
 
 
-def test_baked_light_turns_with_the_body_and_the_learned_one_stays_in_the_world():
-    shading = Shading()
-    shading.load_learned(directional_irradiance([[1.0, 0.0, 0.0]], [[1.0, 1.0, 1.0]], [0.2] * 3))
+@pytest.mark.parametrize("light_model", ["distant", "sh"])
+def test_baked_light_turns_with_the_body_and_the_learned_one_stays_in_the_world(light_model):
+    shading = Shading(light_model)
+    with torch.no_grad():  # a light from +x in the room
+        if light_model == "sh":
+            sh = directional_irradiance([[1.0, 0.0, 0.0]], [[1.0, 1.0, 1.0]], [0.2] * 3)
+            shading.light.coefficients.copy_(sh[1:] / (sh[0] * 0.28209479177387814))
+        else:
+            shading.light.directions[0] = torch.tensor([1.0, 0.0, 0.0])
+            shading.light.colors[0] = 3.0
     n = torch.tensor([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]])
     albedo = torch.ones(2, 3)
     turn = torch.as_tensor(Rotation.from_euler("z", 180, degrees=True).as_matrix(), dtype=torch.float32)
@@ -148,11 +155,31 @@ def test_the_baked_reference_is_the_mean_training_orientation():
 
 
 def test_uniform_light_leaves_the_colour_unchanged_and_costs_nothing():
-    shading = Shading()
+    shading = Shading("sh")
     albedo = torch.rand(50, 3)
     normals = torch.nn.functional.normalize(torch.randn(50, 3), dim=1)
     np.testing.assert_allclose(shading(albedo, normals).detach().numpy(), albedo.numpy(), atol=1e-6)
     assert float(shading.penalty().detach()) == 0.0
+    # The distant lights start weak: nearly uniform, a small penalty.
+    distant = Shading("distant", 2)
+    np.testing.assert_allclose(distant(albedo, normals).detach().numpy(), albedo.numpy(), atol=0.05)
+    assert float(distant.penalty().detach()) < 1e-3
+
+
+def test_distant_lights_average_one_and_convert_to_the_same_sh_light():
+    """E averages 1 over all directions (the albedo keeps the brightness); its SH form agrees."""
+    from stg_node.avatar.shading import DistantLights
+
+    lights = DistantLights(2)
+    with torch.no_grad():
+        lights.colors.copy_(torch.tensor([[1.0, 0.5, 0.0], [0.2, 0.4, 2.0]]))
+        lights.directions.copy_(torch.tensor([[0.3, -0.5, 0.8], [-1.0, 0.2, 0.1]]))
+    w = torch.as_tensor(_sphere_directions(40_000), dtype=torch.float32)
+    with torch.no_grad():
+        e = lights.irradiance(w)
+    np.testing.assert_allclose(e.mean(0).numpy(), 1.0, atol=2e-3)
+    via_sh = irradiance(w, lights.sh())
+    assert float((via_sh - e).abs().mean()) < 0.05  # the second-order truncation of the lobes
 
 
 def test_light_values_from_the_command_line_and_json_files(tmp_path):
@@ -165,11 +192,15 @@ def test_light_values_from_the_command_line_and_json_files(tmp_path):
     assert parse_light(str(sh_file)).tensor()[0, 0] == 1.0
     lights = tmp_path / "lights.json"
     lights.write_text(
-        json.dumps({"ambient": [0.3] * 3, "lights": [{"direction": [0, 0, 1], "color": [1, 1, 1]}]})
+        json.dumps({"ambient": [0.3] * 3, "lights": [{"direction": [0, 0, 2], "color": [1, 1, 1]}]})
     )
-    got = parse_light(str(lights)).tensor()
+    spec = parse_light(str(lights))
     np.testing.assert_allclose(
-        got.numpy(), directional_irradiance([[0, 0, 1]], [[1, 1, 1]], [0.3] * 3).numpy()
+        spec.tensor().numpy(), directional_irradiance([[0, 0, 1]], [[1, 1, 1]], [0.3] * 3).numpy(), atol=1e-6
+    )
+    normals = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.6, 0.8], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+    np.testing.assert_allclose(  # given distant lights are evaluated exactly
+        spec.irradiance(normals).numpy(), np.array([[1.3] * 3, [1.1] * 3, [0.3] * 3, [0.3] * 3]), atol=1e-6
     )
     for bad, match in (
         ("1,2,3", "27"),
