@@ -37,7 +37,7 @@ from tradeoff import BAKED  # noqa: E402  (the colour before shading)
 CONFIGS = {
     "baked": BAKED,  # today's colour: the light baked in, spheres, no cap, no isometry
     "shaded": {},  # the fast preset as it is now: every part on
-    "no_shading": {"model.shading": "none"},
+    "no_shading": {"model.shading": False},
     "no_scale_cap": {"model.max_scale_ratio": 0.0},
     "no_isometry": {"loss.isometry": 0.0},
     "sphere_init": {"model.init_flatness": 1.0},

@@ -321,7 +321,7 @@ CONDITIONS = (
 # The colour as it was before shading (issue 21): the light baked in, spherical initial Gaussians,
 # no cap on their scale ratio, no isometry term.
 BAKED = {
-    "model.shading": "none",
+    "model.shading": False,
     "model.init_flatness": 1.0,
     "model.max_scale_ratio": 0.0,
     "loss.isometry": 0.0,
@@ -331,7 +331,7 @@ SHADING_ABLATIONS = (
     (
         "no_shading",
         "no shading (the light baked into the colour; discs, cap, isometry kept)",
-        {"model.shading": "none"},
+        {"model.shading": False},
     ),
     ("no_scale_cap", "no cap on the scale ratio", {"model.max_scale_ratio": 0.0}),
     ("no_isometry", "no as-isometric-as-possible term", {"loss.isometry": 0.0}),

@@ -19,12 +19,11 @@ from dataclasses import dataclass, field
 
 COLOR_MODES = ("mlp", "sh")
 SKIN_INIT = ("barycentric", "nearest")
-SHADING_MODES = ("sh", "none")
 LIGHT_MODELS = ("distant", "sh")  # the learned light: an ambient term and distant lights, or free SH
 # What settings added later mean for a model or configuration written before they existed: the
 # behaviour it was trained with (snapshot.model_config_from_meta, TrainConfig.from_dict).
 PREDATING_DEFAULTS = {
-    "model": {"shading": "none", "init_flatness": 1.0, "max_scale_ratio": 0.0},
+    "model": {"shading": False, "init_flatness": 1.0, "max_scale_ratio": 0.0},
     "loss": {"isometry": 0.0},
 }
 
@@ -52,18 +51,16 @@ class ModelConfig:
     mlp_layers: int = 2  # hidden layers
     pos_freqs: int = 4  # gamma(mu): sin/cos frequencies of the positional encoding
     pose_dim: int = 8  # gamma(theta): the body pose is encoded to this many features (0 = no pose input)
-    # Shading (shading.py): "sh" = the colour above is the albedo, times the irradiance of each
-    # Gaussian's world normal (its shortest axis) under a learned second-order SH light fixed in the
-    # world; "none" = the colour as is, the training clip's light baked in (the earlier behaviour).
-    shading: str = "sh"
+    # Shading (shading.py): the colour above is the albedo, times the irradiance of each Gaussian's
+    # world normal (its shortest axis) under a light fixed in the world, learned; False = the colour
+    # as is, the training clip's light baked in (the earlier behaviour).
+    shading: bool = True
     light_model: str = "distant"  # the learned light: ambient + light_count distant lights, or free SH
     light_count: int = 2
     init_flatness: float = 0.3  # initial Gaussians: discs along the surface, normal axis x this (1 = spheres)
     max_scale_ratio: float = 10.0  # largest / smallest axis of a rendered Gaussian at most this (0 = no cap)
 
     def validate(self) -> None:
-        if self.shading not in SHADING_MODES:
-            raise ValueError(f"shading must be one of {SHADING_MODES}, got {self.shading!r}")
         if self.light_model not in LIGHT_MODELS:
             raise ValueError(f"light_model must be one of {LIGHT_MODELS}, got {self.light_model!r}")
         if not 1 <= self.light_count <= 4:

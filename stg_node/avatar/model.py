@@ -150,7 +150,7 @@ class AvatarModel(nn.Module):
         self.skeleton = skeleton
         self.register_buffer("bounds", bounds.float().clone())  # (2, 3) canonical body box
         self.color_mlp = ColorMLP(config, bounds) if config.color == "mlp" else None
-        self.shading = Shading(config.light_model, config.light_count) if config.shading == "sh" else None
+        self.shading = Shading(config.light_model, config.light_count) if config.shading else None
         self.time_axis = time_axis or TimeAxis(unit_s=config.time_unit_s)
         self.pose_index = pose_index or PoseTimeIndex()
 

@@ -38,7 +38,6 @@ from stg_node.avatar.config import (
     COLOR_MODES,
     LIGHT_MODELS,
     PREDATING_DEFAULTS,
-    SHADING_MODES,
     SKIN_INIT,
     ModelConfig,
 )
@@ -53,7 +52,6 @@ FILE_MAGIC = b"STGSNAP1"
 _STRING_CHOICES = {
     "color": COLOR_MODES,
     "skin_init": SKIN_INIT,
-    "shading": SHADING_MODES,
     "light_model": LIGHT_MODELS,
 }
 

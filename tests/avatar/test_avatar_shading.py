@@ -320,3 +320,39 @@ def test_isometry_is_zero_for_a_rigid_motion_and_the_stretch_otherwise():
         if i % 2 == 0 and j % 2 == 0
     ]
     assert partial == pytest.approx(100.0 * float(np.mean(keep)), rel=1e-5)
+
+
+def test_models_and_configurations_from_before_shading_load_as_they_were_made(tiny_frames):
+    """A snapshot or config.json without the shading settings is a model trained without them: it
+    loads with the baked colour, spherical initial Gaussians and no cap, whatever today's defaults."""
+    import dataclasses
+
+    from avatar_helpers import small_config
+
+    from stg_node.avatar.config import TrainConfig
+    from stg_node.avatar.snapshot import model_from_snapshot
+    from stg_node.avatar.trainer import Trainer
+
+    trainer = Trainer(small_config(iterations=2), seed=0)
+    trainer.add_frames(tiny_frames[:2])
+    msg = trainer.snapshot()
+    assert trainer.model.shading is not None and any(k.startswith("shading.") for k in msg.arrays)
+    old = dataclasses.replace(
+        msg,
+        arrays={k: v for k, v in msg.arrays.items() if not k.startswith("shading.")},
+        meta={
+            k: v
+            for k, v in msg.meta.items()
+            if k not in ("model.shading", "model.init_flatness", "model.max_scale_ratio")
+        },
+    )
+    model = model_from_snapshot(old)
+    assert model.shading is None and model.config.max_scale_ratio == 0.0
+    data = trainer.config.to_dict()
+    for key in ("shading", "init_flatness", "max_scale_ratio"):
+        del data["model"][key]
+    del data["loss"]["isometry"]
+    config = TrainConfig.from_dict(data)
+    assert config.model.shading is False and config.model.init_flatness == 1.0
+    assert config.loss.isometry == 0.0
+    assert TrainConfig.from_dict(trainer.config.to_dict()) == trainer.config  # today's round-trips
