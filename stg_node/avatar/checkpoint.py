@@ -70,6 +70,8 @@ def training_state(trainer) -> tuple[dict, dict]:
     if d.initial_part_counts is not None:
         arrays["train.densify.initial_parts"] = _np(d.initial_part_counts)
     meta["train.densify.steps_seen"] = float(d.steps_seen)
+    for name, value in trainer.isometry.state_arrays().items():
+        arrays[f"train.isometry.{name}"] = _np(value)
     for name, value in d.counts.items():
         meta[f"train.densify.count.{name}"] = float(value)
     for name, value in trainer.weights.ema.items():
@@ -154,6 +156,9 @@ def load(path: str | Path, *, body_model=None, device="cpu", backend="auto", flo
     trainer.notes = {
         k[len("train.notes.") :]: float(v) for k, v in meta.items() if k.startswith("train.notes.")
     }
+    trainer.isometry.load_state_arrays(
+        {k[len("train.isometry.") :]: t(k) for k in arrays if k.startswith("train.isometry.")}, model.table
+    )
     trainer.iteration = int(meta["train.iteration"])
     trainer.train_seconds = float(meta["train.seconds"])
     trainer.skipped_steps = int(meta["train.skipped"])

@@ -2,7 +2,8 @@
 
 ``AvatarModel.pose(...)`` turns the canonical table into world-space Gaussians for one body
 pose and one instant (rigid part: :mod:`rigid`; non-rigid part: :mod:`spacetime`; colour:
-:mod:`color`), and :func:`render` splats them into a camera through ``stg_node.splat``.
+:mod:`color`, then the light it is seen under: :mod:`shading`), and :func:`render` splats them
+into a camera through ``stg_node.splat``.
 Everything a renderer needs lives in the model (the skeleton, not the body mesh), so
 :mod:`snapshot` can rebuild it from a GaussianSnapshot alone.
 """
@@ -19,8 +20,9 @@ from stg_node.avatar import spacetime
 from stg_node.avatar.color import ColorMLP, sh_color
 from stg_node.avatar.color_cache import ColorCache
 from stg_node.avatar.config import ModelConfig
-from stg_node.avatar.gaussians import GaussianTable
+from stg_node.avatar.gaussians import GaussianTable, cap_scale_ratio
 from stg_node.avatar.rigid import QUAT_EPS, PosedBones, Skeleton, blend_weights, skin, skin_with_kernel
+from stg_node.avatar.shading import LightSpec, Shading, gaussian_normals
 from stg_node.avatar.spacetime import TimeAxis
 from stg_node.avatar.timecode import PoseTimeIndex, pose_key
 from stg_node.body import lbs
@@ -57,6 +59,7 @@ class PosedGaussians:
     opacities: torch.Tensor  # (M,) including temporal opacity
     colors: torch.Tensor  # (M, 3)
     index: torch.Tensor | None  # (M,) rows of the table, or None when every row is kept
+    canonical: torch.Tensor | None = None  # (M, 3) canonical centres (with offsets) the means came from
 
 
 @dataclass
@@ -149,6 +152,7 @@ class AvatarModel(nn.Module):
         self.skeleton = skeleton
         self.register_buffer("bounds", bounds.float().clone())  # (2, 3) canonical body box
         self.color_mlp = ColorMLP(config, bounds) if config.color == "mlp" else None
+        self.shading = Shading(config.light_model, config.light_count) if config.shading else None
         self.time_axis = time_axis or TimeAxis(unit_s=config.time_unit_s)
         self.pose_index = pose_index or PoseTimeIndex()
         self._skin_weight_cache: tuple | None = None  # (key, weights): see _render_skin_weights
@@ -178,6 +182,10 @@ class AvatarModel(nn.Module):
             cached = (key, self.skin_weights().detach())
             self._skin_weight_cache = cached
         return cached[1]
+
+    def scales(self) -> torch.Tensor:
+        """(N, 3) the Gaussians' scales as rendered: the table's, largest / smallest axis capped."""
+        return cap_scale_ratio(self.table.scales(), self.config.max_scale_ratio)
 
     def bones(self, body: BodyState) -> PosedBones:
         return self.skeleton.bones(body.poses, body.Rh, body.Th)
@@ -222,12 +230,14 @@ class AvatarModel(nn.Module):
         state: spacetime.SpacetimeState | None = None,
         camera: Camera3 | None = None,
         color_cache: ColorCache | None = None,
+        light: LightSpec | None = None,
     ) -> PosedGaussians:
         """World-space Gaussians for one body pose at normalised time ``u``, seen from ``camera_center``.
 
         ``camera``: leave out the Gaussians it cannot see (splat.culling) before they are coloured.
         ``color_cache``: colours of a live stream, recomputed in turns (color_cache.py; rendering
-        only, ignored when gradients are on)."""
+        only, ignored when gradients are on).
+        ``light``: how a model with shading is lit (default: its learned light, shading.py)."""
         cfg = self.config
         table = self.table
         bones = bones or self.bones(body)
@@ -247,7 +257,7 @@ class AvatarModel(nn.Module):
         canonical = table["means"] if st.offsets is None else table["means"] + st.offsets
         canonical = rows(canonical)
         means, quats, view_canonical = self._skin(canonical, bones, rows(st.quats), camera_center, rows)
-        scales = rows(table.scales())
+        scales = rows(self.scales())
         if camera is not None:  # what the camera cannot see needs no colour
             seen = may_be_visible(means, scales, camera.viewmat, camera.K, camera.width, camera.height)
             if not bool(seen.all()):
@@ -276,7 +286,13 @@ class AvatarModel(nn.Module):
                 colors = evaluate(None)
         else:
             colors = sh_color(rows(table["sh"]), view_canonical, degree)
-        return PosedGaussians(means, quats, scales, rows(opacity), colors, index)
+        if self.shading is not None:
+            normals = gaussian_normals(quats, scales, means, camera_center)
+            root = None
+            if light is not None and light.mode == "baked":
+                root = lbs.axis_angle_to_matrix(body.Rh[0]) @ lbs.axis_angle_to_matrix(body.poses[0, 0])
+            colors = self.shading(colors, normals, light, root)
+        return PosedGaussians(means, quats, scales, rows(opacity), colors, index, canonical)
 
     def _skin(self, canonical, bones: PosedBones, local_quats, camera_center, rows):
         """Posed centres, orientations (blended bones x local rotation) and the viewing direction in

@@ -9,6 +9,8 @@ where that costs more than it saves), and colours only the Gaussians the camera 
 stream (``render(..., stream=name)``: one camera following one body, frame after frame) can carry
 its colours from frame to frame and recompute them in turns (``color_refresh_every``;
 color_cache.py); a render without a stream is always exact.
+A model with shading is lit by its learned light (fixed in the world), by a light the caller gives,
+with the light carried along with the body (``baked``), or not at all (``albedo``): :mod:`shading`.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ import torch
 
 from stg_node.avatar.color_cache import ColorCache
 from stg_node.avatar.model import AvatarModel, BodyState, Camera3, render
+from stg_node.avatar.shading import LightSpec
 
 
 @dataclass
@@ -45,12 +48,20 @@ class PointsOutput:
 
 
 class AvatarRenderer:
-    def __init__(self, model: AvatarModel, *, backend: str = "auto", color_refresh_every: int = 1):
+    def __init__(
+        self,
+        model: AvatarModel,
+        *,
+        backend: str = "auto",
+        color_refresh_every: int = 1,
+        light: LightSpec | None = None,
+    ):
         if int(color_refresh_every) < 1:
             raise ValueError(f"color_refresh_every must be >= 1, got {color_refresh_every}")
         self.model = model.eval()
         self.backend = backend
         self.color_refresh_every = int(color_refresh_every)
+        self.light = light  # None: the model's learned light (shading.py)
         self._last_key: int | None = None
         self._streams: OrderedDict[str, ColorCache] = OrderedDict()
         # Skipping the exactly-zero motion terms costs more than it saves on a CPU, where the
@@ -59,12 +70,20 @@ class AvatarRenderer:
 
     @classmethod
     def from_snapshot(
-        cls, msg, device="cpu", backend: str = "auto", color_refresh_every: int = 1
+        cls,
+        msg,
+        device="cpu",
+        backend: str = "auto",
+        color_refresh_every: int = 1,
+        light: LightSpec | None = None,
     ) -> AvatarRenderer:
         from stg_node.avatar.snapshot import model_from_snapshot
 
         return cls(
-            model_from_snapshot(msg, device=device), backend=backend, color_refresh_every=color_refresh_every
+            model_from_snapshot(msg, device=device),
+            backend=backend,
+            color_refresh_every=color_refresh_every,
+            light=light,
         )
 
     def _color_cache(self, stream: str | None) -> ColorCache | None:
@@ -101,11 +120,13 @@ class AvatarRenderer:
         follow: bool = False,
         depth: bool = False,
         stream: str | None = None,
+        light: LightSpec | None = None,
     ) -> RenderOutput:
         """Render ``smpl`` (SmplParams) seen by ``camera`` (stg_node.data.types.Camera) at ``time`` (s).
 
         ``stream`` names a live stream whose colours may be carried between frames (see the
-        module docstring); None renders exactly."""
+        module docstring); None renders exactly. ``light`` overrides the renderer's light for this
+        render."""
         started = _now()
         u = self.time_for(smpl, time, follow=follow)
         cam = Camera3.from_camera(camera, device=self.device)
@@ -117,6 +138,7 @@ class AvatarRenderer:
             skip_inactive=self.skip_inactive,
             camera=cam,
             color_cache=self._color_cache(stream),
+            light=light or self.light,
         )
         bg = torch.as_tensor(background, dtype=torch.float32, device=self.device)
         if not bool(bg.any()):  # black: nothing to blend

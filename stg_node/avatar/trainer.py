@@ -28,7 +28,8 @@ from stg_node.avatar import spacetime
 from stg_node.avatar.config import TrainConfig
 from stg_node.avatar.densify import DensifyStrategy, StepContext
 from stg_node.avatar.frames import FrameStore, StoredFrame, TrainFrame
-from stg_node.avatar.gaussians import init_table
+from stg_node.avatar.gaussians import init_table, scale_ratio_percentile
+from stg_node.avatar.isometry import IsometryGraph
 from stg_node.avatar.model import AvatarModel, BodyState, Camera3, render
 from stg_node.avatar.optim import TableOptimizer
 from stg_node.avatar.rigid import Skeleton
@@ -140,6 +141,7 @@ class Trainer:
         )
         self.pose_slots: dict[int, int] = {}
         self.neighbours = NeighbourGraph()  # local rigidity of the non-rigid motion
+        self.isometry = IsometryGraph()  # canonical neighbours keep their distances when posed
         self.profile: StepProfile | None = None  # set to a StepProfile to time the phases of each step
         #: Numbers the caller keeps with the checkpoint, written and restored in the same file (the
         #: trainer node's wall time): nothing beside a checkpoint can disagree with it after a kill.
@@ -153,8 +155,10 @@ class Trainer:
             self._initialize(stored.frame)
         u = self.model.time_axis(frame.time)
         index = self.model.pose_index
-        if not np.any(np.isclose(index.times, u, atol=1e-6)):
+        if not np.any(np.isclose(index.times, u, atol=1e-6)):  # a frame not seen before (resume: seen)
             index.add(np.asarray(frame.smpl.poses), u)
+            if self.model.shading is not None:  # the mean training orientation (the baked light mode)
+                self.model.shading.add_orientation(_root_rotation(frame.smpl))
         if self.config.lr_pose > 0:
             self._pose_slot(frame.index)
 
@@ -221,6 +225,8 @@ class Trainer:
             dense["mlp"] = (list(self.model.color_mlp.parameters()), c.lr_mlp)
         if self.pose_deltas is not None:
             dense["pose"] = ([self.pose_deltas], c.lr_pose)
+        if self.model.shading is not None:
+            dense["light"] = (list(self.model.shading.light.parameters()), c.lr_light)
         self.optimizer = TableOptimizer(self.model.table, lrs, dense)
 
     def _pose_slot(self, frame_index: int) -> int:
@@ -325,6 +331,8 @@ class Trainer:
             terms["temporal"] = self._temporal_term(state, next_state)
         if c.loss.rigidity > 0 and state.offsets is not None:
             terms["rigidity"] = self.neighbours.loss(table, state.offsets, state.temporal)
+        if c.loss.isometry > 0:
+            terms["isometry"] = self.isometry.loss(table, posed.means, posed.canonical, posed.index)
         terms.update(self._regularisers(body))
         weights = {
             "mask": c.loss.mask,
@@ -336,6 +344,8 @@ class Trainer:
             "opacity": c.loss.opacity,
             "skin": c.loss.skin,
             "pose": c.loss.pose_refine,
+            "isometry": c.loss.isometry,
+            "light": c.loss.light,
         }
         total, applied = self.weights.combine(terms, weights, it)
         timer.mark("loss")
@@ -444,6 +454,8 @@ class Trainer:
             out["skin"] = table["skin_delta"].pow(2).mean()
         if self.pose_deltas is not None and c.pose_refine > 0:
             out["pose"] = self.pose_deltas.pow(2).sum(1).mean()
+        if self.model.shading is not None and c.light > 0:
+            out["light"] = self.model.shading.penalty()
         return out
 
     def _grads_finite(self) -> bool:
@@ -494,7 +506,18 @@ class Trainer:
             "gaussians": n,
             "active_motion_fraction": active,
             "model_mb": model_nbytes(self.model) / 1e6,
+            # largest / smallest axis of the Gaussians as rendered (skinning turns them, never stretches)
+            "scale_ratio_p99": scale_ratio_percentile(self.model.scales().detach()),
         }
+
+
+def _root_rotation(smpl) -> torch.Tensor:
+    """(3, 3) a frame's body orientation in the world: ``R(Rh) @ R(poses[0])``."""
+    from stg_node.body import lbs
+
+    poses = torch.as_tensor(np.array(smpl.poses, np.float32)).reshape(24, 3)
+    Rh = torch.as_tensor(np.array(smpl.Rh, np.float32)).reshape(3)
+    return lbs.axis_angle_to_matrix(Rh) @ lbs.axis_angle_to_matrix(poses[0])
 
 
 def _load_body(body_model, device):

@@ -159,11 +159,18 @@ class RendererAdapter:
         device: str = "cpu",
         backend: str = "auto",
         color_refresh_every: int = 1,
+        light: str = "learned",
     ) -> RendererAdapter:
         avatar = avatar_module(module)
         load = avatar.AvatarRenderer.from_snapshot
-        extra = {"color_refresh_every": color_refresh_every} if _accepts(load, "color_refresh_every") else {}
-        return cls(load(msg, device=device, backend=backend, **extra), msg.model_version)
+        options = {}
+        if _accepts(load, "color_refresh_every"):
+            options["color_refresh_every"] = color_refresh_every
+        if light != "learned":  # the default needs nothing of a plug-in avatar package
+            from stg_node.avatar.shading import parse_light
+
+            options["light"] = parse_light(light)
+        return cls(load(msg, device=device, backend=backend, **options), msg.model_version)
 
     def render(
         self,

@@ -47,6 +47,11 @@ class RendererParams:
     avatar: str = param(DEFAULT_MODULE, doc="package implementing the avatar API (tests: a fake)")
     device: str = param("cpu", doc="torch device")
     backend: str = param("auto", doc="rasterizer backend: auto (the best available), cpu, cuda, torch")
+    light: str = param(
+        "learned",
+        doc="light of an avatar with shading: learned (fixed in the world), baked (turns with the body), "
+        "albedo, 27 comma-separated SH numbers, or a JSON file (docs/AVATAR.md)",
+    )
     size: int = param(256, min=8, max=4096, unit="px", doc="default views: longer side")
     default_view: Literal["train", "orbit", "both", "none"] = param(
         "both", doc="what to render when nobody asks"
@@ -159,6 +164,10 @@ class RendererNode(Node):
 
         configure_threads()
         p = self.params
+        if p.light != "learned":
+            from stg_node.avatar.shading import parse_light
+
+            parse_light(p.light)  # a bad light stops the node at start, with the reason
         self.current: RendererAdapter | None = None
         self.loader = SnapshotLoader(self._build, self._load_failed)
         self.pose: BodyPose | None = None
@@ -188,7 +197,12 @@ class RendererNode(Node):
     def _build(self, msg: GaussianSnapshot) -> RendererAdapter:
         p = self.params
         return RendererAdapter.from_snapshot(
-            msg, module=p.avatar, device=p.device, backend=p.backend, color_refresh_every=p.color_refresh
+            msg,
+            module=p.avatar,
+            device=p.device,
+            backend=p.backend,
+            color_refresh_every=p.color_refresh,
+            light=p.light,
         )
 
     def _load_failed(self, msg: GaussianSnapshot, exc: Exception) -> None:

@@ -98,6 +98,30 @@ def test_eval_both_splits_reports_the_gap_body_parts_and_the_condition(run_dir, 
     assert "per body part" in text and "benchmark: lambert light, trained on dance" in text
 
 
+def test_render_under_a_given_light_learned_baked_and_albedo(run_dir, tmp_path):
+    """--light: a red light from the camera's side reddens the avatar; baked and albedo render; a bad
+    value is a usage error."""
+    from stg_node.avatar.shading import directional_irradiance
+
+    red = directional_irradiance([[0.0, -1.0, 0.3]], [[1.2, 0.2, 0.2]], ambient=[0.1, 0.1, 0.1])
+    means = {}
+    for name, light in (
+        ("learned", "learned"),
+        ("baked", "baked"),
+        ("albedo", "albedo"),
+        ("red", ",".join(f"{v:.6f}" for v in red.reshape(-1).tolist())),
+    ):
+        out = tmp_path / name
+        args = [str(run_dir), "-o", str(out), "--views", "dataset", "--frames", "1", "--light", light]
+        assert render_cli.main([*args, "--no-progress"]) == 0, name
+        image = cv2.cvtColor(cv2.imread(str(out / "000000.png")), cv2.COLOR_BGR2RGB).astype(float)
+        body = image.sum(-1) > 0
+        means[name] = image[body].mean(0)
+    red_ratio = means["red"][0] / means["red"][2]
+    assert red_ratio > 1.5 * means["learned"][0] / means["learned"][2]
+    assert render_cli.main([str(run_dir), "-o", str(tmp_path / "bad"), "--light", "disco"]) == 2
+
+
 def test_render_orbit_to_mp4_and_a_pose_file_to_pngs(run_dir, tmp_path, tiny_synth):
     video = tmp_path / "orbit.mp4"
     assert render_cli.main([str(run_dir), "-o", str(video), "--frames", "3", "--no-progress"]) == 0

@@ -35,7 +35,7 @@ def _masked(frame):
 
 def test_full_model_overfits_a_tiny_sequence(tiny_frames):
     """300 steps on 10 frames of 128x128: the training views are reproduced to > 25 dB (full image,
-    black background), far above what the untrained model gives (< 20 dB)."""
+    black background), far above what the untrained model gives (about 20 dB)."""
     config = small_config(iterations=300)
     trainer = Trainer(config, seed=0)
     trainer.add_frames(tiny_frames)
@@ -47,8 +47,8 @@ def test_full_model_overfits_a_tiny_sequence(tiny_frames):
         result = trainer.step()
         assert not result.skipped
     after = np.mean([_psnr(renderer.render(f.camera, f.smpl, f.time).image, _masked(f)) for f in tiny_frames])
-    assert before < 20.0
-    assert after > 25.0, (before, after)
+    assert before < 21.0
+    assert after > 25.0 and after > before + 5.0, (before, after)
     # stats() against the published snapshot (a second path to the same numbers): row count, the
     # share of rows with any motion coefficient, and the bytes a renderer receives
     stats = trainer.stats()
