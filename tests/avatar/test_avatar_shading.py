@@ -322,6 +322,31 @@ def test_isometry_is_zero_for_a_rigid_motion_and_the_stretch_otherwise():
     assert partial == pytest.approx(100.0 * float(np.mean(keep)), rel=1e-5)
 
 
+def test_the_isometry_graph_is_rebuilt_after_a_prune_and_an_append_of_as_many_rows():
+    """As the rigidity graph: a prune and an append leave the row count as it was (and the new means
+    column may sit where a freed one was); the graph must follow the rows, checked by brute force."""
+    from stg_node.avatar.gaussians import GaussianTable
+    from stg_node.avatar.optim import TableOptimizer
+
+    means = torch.tensor([[0.0, 0, 0], [0.01, 0, 0], [0.5, 0, 0], [1.0, 0, 0], [1.02, 0, 0]])
+    table = GaussianTable({"means": means})
+    opt = TableOptimizer(table, {"means": 0.1}, {})
+    graph = IsometryGraph(k=1)
+    points = table["means"].detach()
+    graph.loss(table, points, points, None)
+    built = graph.neighbours
+    graph.loss(table, points, points, None)
+    assert graph.neighbours is built  # unchanged rows: not rebuilt
+    assert built[:, 0].tolist() == [1, 0, 1, 4, 3]
+    opt.keep(torch.tensor([True, False, True, True, True]))  # row 1 (row 0's neighbour) goes
+    opt.append({"means": torch.tensor([[0.52, 0, 0]])})  # and one beside row 2 (0.5) comes
+    assert table.num == 5
+    points = table["means"].detach()
+    graph.loss(table, points, points, None)
+    dist = torch.cdist(points, points).fill_diagonal_(float("inf"))
+    assert graph.neighbours[:, 0].tolist() == dist.argmin(dim=1).tolist() == [1, 4, 3, 2, 1]
+
+
 def test_models_and_configurations_from_before_shading_load_as_they_were_made(tiny_frames):
     """A snapshot or config.json without the shading settings is a model trained without them: it
     loads with the baked colour, spherical initial Gaussians and no cap, whatever today's defaults."""
