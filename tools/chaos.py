@@ -441,6 +441,7 @@ class Chaos:
         killed_at = time.monotonic()
         os.kill(pid, signal.SIGKILL)
         result = KillResult(name, killed_at - begin, pid, None, 0.0)
+        resumes_before = len(self.resumed_iterations(name))
         if self.trainer is not None and name == self.trainer.name:
             left = keep_copy(self._checkpoint_path(), self.work / "checkpoint-at-kill")
             result.checkpoint_iteration = None if left is None else checkpoint_iteration(left)
@@ -465,8 +466,12 @@ class Chaos:
             result.image_back_s = None if first is None else first - killed_at
         if result.checkpoint_iteration is not None:
             after = [m for m in self.watcher.iterations(killed_at, end)]
-            if after:
+            resumes = self.resumed_iterations(name)
+            if len(resumes) > resumes_before:  # what the new process says it loaded (its log)
+                result.resumed_at = resumes[resumes_before] + 1
+            elif after:  # (a trainer's first metrics may be sent before its publisher is heard)
                 result.resumed_at = after[0][1]
+            if after:
                 rates = [m[2] for m in metrics_before[-50:] if m[2] > 0]
                 lost = (result.last_iteration or 0) - result.checkpoint_iteration
                 result.lost_s = lost / statistics.median(rates) if rates else None
@@ -707,6 +712,17 @@ class Chaos:
         self.results["broker"] = result
 
     # -- the end ----------------------------------------------------------------------------------------
+
+    def resumed_iterations(self, name: str) -> list[int]:
+        """The iterations the node ``name`` said it resumed from, in order, from the launch's log."""
+        import re
+
+        path = self.work / "launch.log"
+        if not path.is_file():
+            return []
+        pattern = re.compile(rf"^\[{re.escape(name)}\] .* resumed from .* at iteration (\d+)")
+        lines = path.read_text(errors="replace").splitlines()
+        return [int(m.group(1)) for line in lines if (m := pattern.search(line))]
 
     def cold_starts(self) -> dict[str, float]:
         """Each node's first start to ready, from the launch's log: the same-run baseline of a
