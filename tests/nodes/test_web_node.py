@@ -195,13 +195,14 @@ def test_a_page_gets_the_streams_it_asked_for_and_only_those_are_encoded(broker,
                 bus.publish(Frame(index=0, image=image, mask=mask, K=K, R=np.eye(3), t=np.zeros(3)))
                 read()
 
-            # Publishing stopped: every image encoded for the page reaches it or is counted as a
-            # drop; read what is still on its way.
-            def settled() -> bool:
-                return len(encoded) == len(got.get("avatar", [])) + node.server.drops
+            # Publishing stopped: read on until the last image published arrives (the newest is
+            # never superseded nor dropped; the node encodes in order): then every image encoded
+            # for the page has reached it or been counted as a drop.
+            def last_arrived() -> bool:
+                return any(meta["seq"] == seq for meta, _ in got.get("avatar", []))
 
             deadline = time.monotonic() + 30
-            while not settled() and time.monotonic() < deadline:
+            while not last_arrived() and time.monotonic() < deadline:
                 read()
     assert {"avatar", "status"} <= set(got) and "camera" not in got and "mask" not in got
     meta, jpeg = got["avatar"][-1]
