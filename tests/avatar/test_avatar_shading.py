@@ -265,12 +265,17 @@ def test_disc_initialisation_lies_in_the_surface():
 
 
 def test_quaternion_z_to_turns_z_onto_each_direction_even_straight_down():
-    d = torch.nn.functional.normalize(torch.randn(100, 3), dim=1)
+    """Against scipy's rotation of z by the quaternion. Float32: random directions come within
+    about 1e-5, directions a hair from straight down within about 5e-5 (300 seeds), so the
+    tolerance is 1e-4 (a wrong turn is off by order 1); seeded, so a run cannot draw a worse case."""
+    d = torch.nn.functional.normalize(torch.randn(100, 3, generator=torch.Generator().manual_seed(0)), dim=1)
     d[0] = torch.tensor([0.0, 0.0, -1.0])
     d[1] = torch.tensor([0.0, 0.0, 1.0])
+    d[2] = torch.nn.functional.normalize(torch.tensor([1e-3, 0.0, -1.0]), dim=0)
+    d[3] = torch.nn.functional.normalize(torch.tensor([0.0, 1e-5, -1.0]), dim=0)
     q = quaternion_z_to(d).numpy()
     turned = Rotation.from_quat(q[:, [1, 2, 3, 0]]).apply([0.0, 0.0, 1.0])
-    np.testing.assert_allclose(turned, d.numpy(), atol=1e-6)
+    np.testing.assert_allclose(turned, d.numpy(), atol=1e-4)
 
 
 # --- as-isometric-as-possible ---------------------------------------------------------------------
