@@ -33,7 +33,9 @@ watches from outside over the bus.
    last --soak-window-s of the run (target: the last p95 within 20 % of the first), and the
    backlog of every lossless stream (messages a node has published on a topic that a lossless
    subscriber has not yet taken, from their heartbeats) first vs last window: a queue that
-   grows shows there.
+   grows shows there. On a shared machine the frame age follows the CPU the pipeline gets, so
+   each window also gives the machine's load average and the cores the pipeline's processes
+   used; the JSON keeps the memory and load series.
 
     python tools/bench_pipeline.py --data runs/demo/subject [--avatar stg_node.avatar] [--json out.json]
     python tools/bench_pipeline.py --data DIR --only live --live-size 512 --baseline 6bbdca2
@@ -284,6 +286,15 @@ def bench_swap(args, workdir: Path) -> dict:
         "pause_ms": max(0.0, worst - base) * 1e3,
         "images": len(arrivals),
     }
+
+
+def cpu_s(pid: int) -> float:
+    """CPU seconds (user + system) a process has used so far; NaN once it is gone."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime, stime
+    except (OSError, IndexError, ValueError):
+        return float("nan")
 
 
 def rss_mb(pid: int) -> float:
@@ -570,6 +581,19 @@ def window_stats(samples: list[tuple[float, float]], start: float, end: float) -
     return {"n": len(values), "p50_ms": percentile(values, 50), "p95_ms": percentile(values, 95)}
 
 
+def machine_stats(samples: list[tuple[float, float, float]], start: float, end: float) -> dict:
+    """Mean load average and the cores the pipeline's processes used (CPU seconds per second)
+    between ``start`` and ``end`` (seconds into the soak)."""
+    inside = [(t, load, cpu) for t, load, cpu in samples if start <= t <= end]
+    if len(inside) < 2:
+        return {"load_avg": float("nan"), "pipeline_cores": float("nan")}
+    (t0, _l, c0), (t1, _l1, c1) = inside[0], inside[-1]
+    return {
+        "load_avg": statistics.fmean(load for _t, load, _c in inside),
+        "pipeline_cores": (c1 - c0) / (t1 - t0) if t1 > t0 else float("nan"),
+    }
+
+
 def bench_soak(args, workdir: Path) -> dict:
     import signal
     import subprocess
@@ -584,6 +608,7 @@ def bench_soak(args, workdir: Path) -> dict:
     url = f"ipc://{workdir}/soak"
     watch = SoakWatch(url)
     memory: dict[str, list[tuple[float, float]]] = {}
+    machine: list[tuple[float, float, float]] = []  # (t, 1-minute load average, the pipeline's CPU seconds)
     try:
         pids = wait_ready(url, {"ingest", "tracker", "trainer", "renderer", "recorder"}, timeout=600)
         pids["launcher+broker"] = launcher.pid
@@ -599,6 +624,7 @@ def bench_soak(args, workdir: Path) -> dict:
         while (now := time.monotonic()) < start + args.soak_s:
             for name, pid in pids.items():
                 memory.setdefault(name, []).append((now - start, rss_mb(pid)))
+            machine.append((now - start, os.getloadavg()[0], sum(cpu_s(pid) for pid in pids.values())))
             if now >= next_report:
                 rss = ", ".join(f"{n} {pts[-1][1]:.0f}" for n, pts in memory.items())
                 print(f"soak: {(now - start) / 60:.0f} min, RSS MB: {rss}", flush=True)
@@ -632,6 +658,16 @@ def bench_soak(args, workdir: Path) -> dict:
             "last": window_stats(watch.image_age, *last),
         },
         "backlog": {},
+        # what the machine gave the pipeline in each window: frame age on a shared machine follows it
+        "machine": {
+            "first": machine_stats(machine, 0.0, w),
+            "last": machine_stats(machine, end - start - w, end - start),
+        },
+        "series": {
+            "t_s": [t for t, _l, _c in machine],
+            "load_avg": [load for _t, load, _c in machine],
+            "rss_mb": {name: [mb for _t, mb in points] for name, points in memory.items()},
+        },
         "status": {
             n: {"drops": dict(s.drops), "published": dict(s.published), "received": dict(s.received)}
             for n, s in watch.status.items()
@@ -767,6 +803,11 @@ def main() -> int:
                 f"soak {kind}: p95 {a['p95_ms']:.0f} -> {b['p95_ms']:.0f} ms (x{ratio:.2f}), "
                 f"p50 {a['p50_ms']:.0f} -> {b['p50_ms']:.0f} ms, {a['n']} / {b['n']} samples"
             )
+        a, b = soak["machine"]["first"], soak["machine"]["last"]
+        print(
+            f"soak machine: load average {a['load_avg']:.1f} -> {b['load_avg']:.1f}, "
+            f"the pipeline's processes used {a['pipeline_cores']:.2f} -> {b['pipeline_cores']:.2f} cores"
+        )
         for stream, q in soak["backlog"].items():
             print(f"soak backlog {stream}: {q['first_median']} -> {q['last_median']} (max {q['last_max']})")
     if args.json:

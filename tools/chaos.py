@@ -29,7 +29,9 @@ can be killed too; a recording (``record:=``, when declared) runs throughout. Ph
 Targets (issue 20): every node back within 10 s, the avatar never gone for more than 6 s, a
 killed renderer back within 3 s, the trainer resumed from its checkpoint losing at most one
 checkpoint interval, the recording readable, no process left. Exit code 0 when every target is
-met, 1 when one is missed, 2 for bad usage. Figures: docs/BENCHMARKS.md ("Chaos").
+met, 1 when one is missed, 2 for bad usage; with ``--time-targets report`` the time targets are
+reported but do not set the exit code (``behaviour_ok`` in the JSON: everything else held), for
+a test on a machine whose load nobody controls. Figures: docs/BENCHMARKS.md ("Chaos").
 """
 
 from __future__ import annotations
@@ -284,7 +286,8 @@ class KillResult:
     resumed_at: int | None = None  # trainer: its first iteration after coming back
     lost_s: float | None = None  # trainer: training time lost (iterations past the checkpoint)
     recording_messages: int | None = None  # messages readable from the recording right after
-    problems: list[str] = field(default_factory=list)
+    problems: list[str] = field(default_factory=list)  # what went wrong
+    late: list[str] = field(default_factory=list)  # time targets missed
 
 
 def checkpoint_iteration(path: Path) -> int | None:
@@ -438,6 +441,7 @@ class Chaos:
         killed_at = time.monotonic()
         os.kill(pid, signal.SIGKILL)
         result = KillResult(name, killed_at - begin, pid, None, 0.0)
+        resumes_before = len(self.resumed_iterations(name))
         if self.trainer is not None and name == self.trainer.name:
             left = keep_copy(self._checkpoint_path(), self.work / "checkpoint-at-kill")
             result.checkpoint_iteration = None if left is None else checkpoint_iteration(left)
@@ -462,8 +466,12 @@ class Chaos:
             result.image_back_s = None if first is None else first - killed_at
         if result.checkpoint_iteration is not None:
             after = [m for m in self.watcher.iterations(killed_at, end)]
-            if after:
+            resumes = self.resumed_iterations(name)
+            if len(resumes) > resumes_before:  # what the new process says it loaded (its log)
+                result.resumed_at = resumes[resumes_before] + 1
+            elif after:  # (a trainer's first metrics may be sent before its publisher is heard)
                 result.resumed_at = after[0][1]
+            if after:
                 rates = [m[2] for m in metrics_before[-50:] if m[2] > 0]
                 lost = (result.last_iteration or 0) - result.checkpoint_iteration
                 result.lost_s = lost / statistics.median(rates) if rates else None
@@ -474,11 +482,11 @@ class Chaos:
         if r.back_s is None:
             r.problems.append("never came back")
         elif r.back_s > TARGET_BACK_S:
-            r.problems.append(f"back after {r.back_s:.1f} s > {TARGET_BACK_S:g} s")
+            r.late.append(f"back after {r.back_s:.1f} s > {TARGET_BACK_S:g} s")
         if r.avatar_gap_s > TARGET_AVATAR_GAP_S:
-            r.problems.append(f"avatar gone for {r.avatar_gap_s:.1f} s > {TARGET_AVATAR_GAP_S:g} s")
+            r.late.append(f"avatar gone for {r.avatar_gap_s:.1f} s > {TARGET_AVATAR_GAP_S:g} s")
         if r.image_back_s is not None and r.image_back_s > TARGET_RENDERER_BACK_S:
-            r.problems.append(
+            r.late.append(
                 f"renderer's first image after {r.image_back_s:.1f} s > {TARGET_RENDERER_BACK_S:g} s"
             )
         if r.checkpoint_iteration is not None:
@@ -490,9 +498,7 @@ class Chaos:
                 )
             interval = float(self.trainer.params.checkpoint_every_s)
             if r.lost_s is not None and interval and r.lost_s > interval * 1.1:
-                r.problems.append(
-                    f"lost {r.lost_s:.0f} s of training > one checkpoint interval ({interval:g} s)"
-                )
+                r.late.append(f"lost {r.lost_s:.0f} s of training > one checkpoint interval ({interval:g} s)")
 
     # -- phase: flood -------------------------------------------------------------------------------
 
@@ -569,13 +575,14 @@ class Chaos:
             "nodes_restarted": died,
             "avatar_gap_s": self.watcher.longest_gap(start, end),
             "problems": [],
+            "late": [],
         }
         if died:
             result["problems"].append(f"nodes restarted: {died}")
         if not any(v > 0 for v in counted.values()):
             result["problems"].append("no drop counted")
         if result["avatar_gap_s"] > TARGET_AVATAR_GAP_S:
-            result["problems"].append(f"avatar gone for {result['avatar_gap_s']:.1f} s")
+            result["late"].append(f"avatar gone for {result['avatar_gap_s']:.1f} s")
         self.results["flood"] = result
 
     # -- phase: a subscriber that never reads ----------------------------------------------------------
@@ -641,6 +648,7 @@ class Chaos:
             "broker_queue_bound_mb": bound,
             "avatar_gap_s": self.watcher.longest_gap(start, end),
             "problems": [],
+            "late": [],
         }
         allowed = {n: self.args.max_growth_mb + (1.25 * bound if n == "broker" else 0.0) for n in memory}
         grown = {
@@ -649,7 +657,7 @@ class Chaos:
         if grown:
             result["problems"].append(f"memory grew for the stalled subscriber (MB): {grown}")
         if result["avatar_gap_s"] > TARGET_AVATAR_GAP_S:
-            result["problems"].append(f"avatar gone for {result['avatar_gap_s']:.1f} s")
+            result["late"].append(f"avatar gone for {result['avatar_gap_s']:.1f} s")
         self.results["slow_subscriber"] = result
 
     def queue_bound_mb(self) -> float:
@@ -704,6 +712,17 @@ class Chaos:
         self.results["broker"] = result
 
     # -- the end ----------------------------------------------------------------------------------------
+
+    def resumed_iterations(self, name: str) -> list[int]:
+        """The iterations the node ``name`` said it resumed from, in order, from the launch's log."""
+        import re
+
+        path = self.work / "launch.log"
+        if not path.is_file():
+            return []
+        pattern = re.compile(rf"^\[{re.escape(name)}\] .* resumed from .* at iteration (\d+)")
+        lines = path.read_text(errors="replace").splitlines()
+        return [int(m.group(1)) for line in lines if (m := pattern.search(line))]
 
     def cold_starts(self) -> dict[str, float]:
         """Each node's first start to ready, from the launch's log: the same-run baseline of a
@@ -767,7 +786,7 @@ def report(results: dict) -> list[str]:
                 extra.append(f"ckpt {k['checkpoint_iteration']} -> {k['resumed_at']}{lost}")
             if k["recording_messages"] is not None:
                 extra.append(f"rec {k['recording_messages']} msgs")
-            extra += k["problems"]
+            extra += k["problems"] + k["late"]
             back = "-" if k["back_s"] is None else f"{k['back_s']:.1f}"
             image = "" if k["image_back_s"] is None else f"{k['image_back_s']:.1f}"
             row = f"{k['at_s']:6.0f} {k['node']:10} {back:>7} {image:>7} {k['avatar_gap_s']:6.1f}"
@@ -803,12 +822,13 @@ def report(results: dict) -> list[str]:
     return lines
 
 
-def all_problems(results: dict) -> list[str]:
-    found = list(results.get("problems", []))
+def all_problems(results: dict, key: str = "problems") -> list[str]:
+    """Every phase's ``problems`` (what went wrong) or ``late`` (time targets missed)."""
+    found = list(results.get(key, []))
     for k in results.get("kills", []):
-        found += [f"{k['node']} at {k['at_s']:.0f} s: {p}" for p in k["problems"]]
+        found += [f"{k['node']} at {k['at_s']:.0f} s: {p}" for p in k.get(key, [])]
     for name in ("flood", "slow_subscriber", "broker"):
-        found += [f"{name}: {p}" for p in results.get(name, {}).get("problems", [])]
+        found += [f"{name}: {p}" for p in results.get(name, {}).get(key, [])]
     return found
 
 
@@ -832,6 +852,12 @@ def main(argv=None) -> int:
     parser.add_argument("--warmup-timeout", type=float, default=900.0, help="seconds to wait for the launch")
     parser.add_argument("--work", type=Path, help="folder for logs, bus, recording (default: a temp folder)")
     parser.add_argument("--json", type=Path, help="also write the results here")
+    parser.add_argument(
+        "--time-targets",
+        choices=("judge", "report"),
+        default="judge",
+        help="report: time targets missed are printed but leave the exit code 0 (a test on a busy machine)",
+    )
     args = parser.parse_args(argv)
     args.kill = [n.strip() for n in args.kill.split(",") if n.strip()]
     scenarios = {s.strip() for s in args.scenarios.split(",") if s.strip()}
@@ -878,15 +904,18 @@ def main(argv=None) -> int:
     results["load_after"] = os.getloadavg()[0]
     for line in report(results):
         print(line)
-    problems = all_problems(results)
-    results["targets_met"] = not problems
-    print("targets met" if not problems else "targets missed:\n  " + "\n  ".join(problems))
+    problems, late = all_problems(results), all_problems(results, "late")
+    results["behaviour_ok"] = not problems  # everything but the time targets
+    results["targets_met"] = not problems and not late
+    print("targets met" if not (problems or late) else "targets missed:\n  " + "\n  ".join(problems + late))
+    if args.time_targets == "report":  # time targets printed, not judged
+        print("behaviour ok" if results["behaviour_ok"] else "behaviour NOT ok")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(results, indent=2, default=str) + "\n")
     if interrupted:
         return 130
-    return 0 if not problems else 1
+    return 0 if not problems and (not late or args.time_targets == "report") else 1
 
 
 if __name__ == "__main__":

@@ -25,6 +25,8 @@ the true nearest and the rest nearly as near (tested), at a fraction of the cost
 
 from __future__ import annotations
 
+import weakref
+
 import torch
 
 K_NEIGHBOURS = 8
@@ -87,14 +89,20 @@ class IsometryGraph:
     def __init__(self, k: int = K_NEIGHBOURS):
         self.k = k
         self.neighbours: torch.Tensor | None = None  # (N, k) rows of the table
-        self._key = None
+        self._table = None  # weak reference to the table the graph was built for
+        self._version = -1  # ... and its version (bumped by every row edit) then
+
+    def _built_for(self, table) -> None:
+        self._table, self._version = weakref.ref(table), table.version
 
     def _stale(self, table) -> bool:
-        key = (id(table["means"]), table.num)
-        if key != self._key:
-            self._key = key
-            return True
-        return False
+        # The table by identity (a weak reference: never an id() that a new object may reuse, as
+        # the means column replaced by a prune and an append of as many rows may), its rows by version.
+        built_for = self._table() if self._table is not None else None
+        if built_for is table and table.version == self._version:
+            return False
+        self._built_for(table)
+        return True
 
     def state_arrays(self) -> dict[str, torch.Tensor]:
         """What a checkpoint keeps: the graph (as float32, exact for row indices below 2^24)."""
@@ -104,7 +112,7 @@ class IsometryGraph:
         """Take the graph of a checkpoint as the one of ``table`` (rows unchanged since it was saved)."""
         if "neighbours" in arrays and arrays["neighbours"].shape[0] == table.num:
             self.neighbours = arrays["neighbours"].round().long().to(table["means"].device)
-            self._key = (id(table["means"]), table.num)
+            self._built_for(table)
 
     def loss(self, table, means: torch.Tensor, canonical: torch.Tensor, index: torch.Tensor | None):
         """L_iso over the posed ``means`` (M, 3) of the table rows ``index`` (None: all rows), whose

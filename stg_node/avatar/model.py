@@ -176,7 +176,9 @@ class AvatarModel(nn.Module):
         if torch.is_grad_enabled():
             return None
         columns = [self.table["skin_weights"], self.table.get("skin_delta")]
-        key = tuple((id(c), c._version, c.shape[0]) for c in columns if c is not None)
+        # the table's version (bumped by every row edit), never id() of a column: a column replaced
+        # by a prune and an append may be a new tensor where the freed one was
+        key = (self.table.version, *((c._version, c.shape[0]) for c in columns if c is not None))
         cached = self._skin_weight_cache
         if cached is None or cached[0] != key:
             cached = (key, self.skin_weights().detach())

@@ -252,3 +252,31 @@ def test_the_rigidity_graph_is_rebuilt_after_a_prune_and_an_append_of_as_many_ro
     table["motion_gate"].data[:] = torch.tensor([0.0, 1.0, 1.0, 0.0, 0.0])
     graph.loss(table, offsets, None)
     assert graph.builds == 3 and graph.rows.tolist() == [1, 2]
+
+
+def test_the_render_time_skin_weights_follow_a_prune_and_an_append_of_as_many_rows(tiny_frames):
+    """A render without gradients reuses the blended skinning weights while the table is unchanged;
+    a prune followed by an append (same row count, the new row's correction different) must not
+    serve the old rows' weights: checked against the weights computed afresh."""
+    from test_avatar_trainer import small_config
+
+    from stg_node.avatar.trainer import Trainer
+
+    trainer = Trainer(small_config(iterations=2), seed=0)
+    trainer.add_frames(tiny_frames[:2])
+    trainer.step()
+    model, opt = trainer.model, trainer.optimizer
+    for row in range(3):
+        with torch.no_grad():
+            before = model._render_skin_weights()
+            assert model._render_skin_weights() is before  # unchanged table: reused
+        keep = torch.ones(model.table.num, dtype=torch.bool)
+        keep[row] = False
+        opt.keep(keep)
+        new = {name: model.table[name].detach()[:1].clone() for name in model.table.names()}
+        new["skin_delta"] = new["skin_delta"] + torch.linspace(-2.0, 2.0, new["skin_delta"].shape[1])
+        opt.append(new)
+        with torch.no_grad():
+            got, truth = model._render_skin_weights(), model.skin_weights()
+        assert got.shape == before.shape and torch.equal(got, truth)
+        assert not torch.allclose(got[-1], truth[0])  # the appended row is not a copy of row 0's weights

@@ -181,19 +181,36 @@ def test_a_page_gets_the_streams_it_asked_for_and_only_those_are_encoded(broker,
         with page(node.server.port, ["avatar", "status"]) as ws:
             got: dict[str, list] = {}
             deadline = time.monotonic() + 60
-            while not ({"avatar", "status"} <= set(got)) and time.monotonic() < deadline:
-                seq = bus.publish(rendered(image))
-                bus.publish(Frame(index=0, image=image, mask=mask, K=K, R=np.eye(3), t=np.zeros(3)))
+
+            def renderer_seen() -> bool:  # a status that has heard the renderer's heartbeat
+                return any("renderer" in meta["nodes"] for meta, _ in got.get("status", []))
+
+            def read() -> None:
                 with contextlib.suppress(TimeoutError):
                     meta, payload = unpack(ws.recv(timeout=0.3))
                     got.setdefault(meta["stream"], []).append((meta, payload))
+
+            while not ("avatar" in got and renderer_seen()) and time.monotonic() < deadline:
+                seq = bus.publish(rendered(image))
+                bus.publish(Frame(index=0, image=image, mask=mask, K=K, R=np.eye(3), t=np.zeros(3)))
+                read()
+
+            # Publishing stopped: read on until the last image published arrives (the newest is
+            # never superseded nor dropped; the node encodes in order): then every image encoded
+            # for the page has reached it or been counted as a drop.
+            def last_arrived() -> bool:
+                return any(meta["seq"] == seq for meta, _ in got.get("avatar", []))
+
+            deadline = time.monotonic() + 30
+            while not last_arrived() and time.monotonic() < deadline:
+                read()
     assert {"avatar", "status"} <= set(got) and "camera" not in got and "mask" not in got
     meta, jpeg = got["avatar"][-1]
     assert (meta["width"], meta["height"], meta["src"]) == (64, 48, "renderer") and 0 <= meta["seq"] <= seq
     assert abs(meta["stamp_ns"] - time.time_ns()) < 60e9
     decoded = cv2.cvtColor(cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
     assert np.abs(decoded.astype(int) - image).mean() < 4
-    status = got["status"][-1][0]
+    status = [meta for meta, _ in got["status"] if "renderer" in meta["nodes"]][-1]
     assert status["nodes"]["renderer"]["state"] == "running" and status["web"]["clients"][0]["streams"] == [
         "avatar",
         "status",
