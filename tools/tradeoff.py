@@ -378,7 +378,7 @@ def train_run(row: Configuration, config, data: Path, run_dir: Path, scale: Scal
         "preset": config.preset,
         **stats,
         "active_motion_count": round(stats["active_motion_fraction"] * stats["gaussians"]),
-        "densify": dict(trainer.densifier.counts),
+        "densify": trainer.densify_counts,
     }
     write_json(run.summary, summary)
     return summary

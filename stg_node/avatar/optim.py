@@ -158,3 +158,23 @@ class TableOptimizer:
             if s is not None:
                 p = group["params"][0]
                 self.adam.state[p] = {k: v.to(p.device) for k, v in s.items()}
+
+    def dense_state(self) -> dict[str, dict[str, torch.Tensor]]:
+        """Adam state of the dense modules, keyed ``"<group>.<i>"`` (i: the parameter's place in it)."""
+        out = {}
+        if self.dense is not None:
+            for group in self.dense.param_groups:
+                for i, p in enumerate(group["params"]):
+                    state = self.dense.state.get(p)
+                    if state:
+                        out[f"{group['name']}.{i}"] = state
+        return out
+
+    def load_dense_state(self, states: dict[str, dict[str, torch.Tensor]]) -> None:
+        if self.dense is None:
+            return
+        for group in self.dense.param_groups:
+            for i, p in enumerate(group["params"]):
+                s = states.get(f"{group['name']}.{i}")
+                if s is not None:
+                    self.dense.state[p] = {k: v.to(p.device) for k, v in s.items()}

@@ -23,10 +23,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from stg_node.avatar import checkpoint, spacetime
 from stg_node.avatar import losses as L
-from stg_node.avatar import spacetime
 from stg_node.avatar.config import TrainConfig
-from stg_node.avatar.densify import DensifyStrategy, StepContext
+from stg_node.avatar.densify import CanonicalSurface, DensifyInputs, DensifyStrategy, counts, motion_threshold
 from stg_node.avatar.frames import FrameStore, StoredFrame, TrainFrame
 from stg_node.avatar.gaussians import init_table
 from stg_node.avatar.model import AvatarModel, BodyState, Camera3, render
@@ -127,6 +127,7 @@ class Trainer:
         self.model: AvatarModel | None = None
         self.optimizer: TableOptimizer | None = None
         self.densifier = DensifyStrategy(config.densify, config.iterations)
+        self.densify_state: dict[str, torch.Tensor] = {}  # the strategy's state (ours, checkpointed)
         self.weights = L.AdaptiveWeights(config.loss)
         self.iteration = 0
         self.train_seconds = 0.0
@@ -175,7 +176,7 @@ class Trainer:
             model = AvatarModel(cfg, table, skeleton, bounds, axis)
         self.attach_model(model, betas)
         self._build_optimizer()
-        self.densifier.reset(self.model)
+        self.densify_state = self.densifier.initialize_state(self.model)
         log.info(
             "initialised %d Gaussians on %s (%s colour, n_p=%d, n_q=%d%s)",
             table.num,
@@ -193,6 +194,7 @@ class Trainer:
         with torch.no_grad():
             self.canonical_vertices = big_pose_output(self.body, self.betas).vertices[0]
         self.canonical_faces = self.body.faces
+        self.surface = CanonicalSurface(self.canonical_vertices, self.canonical_faces, self.body.weights)
 
     def _build_optimizer(self) -> None:
         c = self.config
@@ -350,10 +352,8 @@ class Trainer:
             self.optimizer.soft_threshold("motion", c.loss.motion_sparsity)
             self.optimizer.soft_threshold("rot_motion", c.loss.motion_sparsity)
             timer.mark("update")
-            ctx = StepContext(
+            inputs = DensifyInputs(
                 iteration=it,
-                model=self.model,
-                optimizer=self.optimizer,
                 info=info,
                 index=posed.index,
                 camera=camera,
@@ -362,14 +362,15 @@ class Trainer:
                 target=target,
                 mask=mask,
                 flow=flow_pair,
-                frame=stored,
                 u=u,
                 bones=bones,
                 generator=gen,
-                trainer=self,
+                motion_threshold_px=self.motion_threshold(),
+                time_range=self.time_range(),
+                surface=self.surface,
                 rendered_flow=(image[..., 3:5] / alpha.clamp_min(0.5)).detach() if use_flow else None,
             )
-            report = self.densifier.step_post_backward(ctx)
+            report = self.densifier.step_post_backward(self.model, self.optimizer, self.densify_state, inputs)
             timer.mark("densify")
         if self.profile is not None:
             self.profile.steps += 1
@@ -391,6 +392,22 @@ class Trainer:
             weights=applied,
             densify=report,
         )
+
+    def motion_threshold(self) -> float:
+        """delta (px per frame) of the frames held now (densify.motion_threshold)."""
+        return motion_threshold(
+            self.config.densify, [f.flow_magnitude for f in self.store.frames if f.flow is not None]
+        )
+
+    def time_range(self) -> tuple[float, float]:
+        """Normalised times of the earliest and latest frame held now."""
+        times = [self.model.time_axis(f.frame.time) for f in self.store.frames]
+        return (min(times), max(times)) if times else (0.0, 0.0)
+
+    @property
+    def densify_counts(self) -> dict[str, int]:
+        """What densification did so far (cloned, split, pruned, flow_added, ...)."""
+        return counts(self.densify_state)
 
     def _frame_bones(self, stored: StoredFrame, body: BodyState, which: str):
         """A frame's bones and pose code; cached on the frame unless its pose is being refined."""
@@ -454,20 +471,58 @@ class Trainer:
 
     def save(self, path: str | Path) -> Path:
         """Checkpoint everything needed to resume exactly (one GaussianSnapshot file, atomic)."""
-        from stg_node.avatar import checkpoint
-
-        return checkpoint.save(self, path)
+        if self.model is None:
+            raise RuntimeError("no model yet: add a frame first")
+        slots = sorted(self.pose_slots.items(), key=lambda kv: kv[1])
+        state = checkpoint.TrainingState(
+            model=self.model,
+            config=self.config,
+            body_model=self.body_reference,
+            seed=self.seed,
+            betas=self.betas,
+            iteration=self.iteration,
+            train_seconds=self.train_seconds,
+            skipped_steps=self.skipped_steps,
+            frames_seen=self.store.seen,
+            model_version=self.model_version,
+            table_adam=self.optimizer.table_state(),
+            dense_adam=self.optimizer.dense_state(),
+            pose_deltas=self.pose_deltas,
+            pose_frames=[f for f, _ in slots],
+            densify=self.densify_state,
+            loss_ema=dict(self.weights.ema),
+        )
+        return checkpoint.save(path, state)
 
     @classmethod
     def load(
         cls, path: str | Path, *, body_model=None, device="cpu", backend="auto", flow_cache=None
     ) -> Trainer:
         """Resume from a checkpoint written by :meth:`save`; frames must be added again."""
-        from stg_node.avatar import checkpoint
-
-        return checkpoint.load(
-            path, body_model=body_model, device=device, backend=backend, flow_cache=flow_cache
+        state = checkpoint.load(path, device=device)
+        body = body_model if body_model is not None else state.body_model
+        trainer = cls(
+            state.config, body, device=device, backend=backend, seed=state.seed, flow_cache=flow_cache
         )
+        trainer._restore(state)
+        return trainer
+
+    def _restore(self, state: checkpoint.TrainingState) -> None:
+        self.attach_model(state.model, state.betas)
+        if state.pose_deltas is not None:
+            self.pose_slots = {f: i for i, f in enumerate(state.pose_frames)}
+            self.pose_deltas = torch.nn.Parameter(state.pose_deltas.to(self.device))
+        self._build_optimizer()
+        self.optimizer.load_table_state(state.table_adam)
+        self.optimizer.load_dense_state(state.dense_adam)
+        self.densify_state = self.densifier.initialize_state(self.model) | {
+            k: v.to(self.device) for k, v in state.densify.items()
+        }
+        self.weights.ema = dict(state.loss_ema)
+        self.iteration = state.iteration
+        self.train_seconds = state.train_seconds
+        self.skipped_steps = state.skipped_steps
+        self.model_version = state.model_version
 
     # --- reporting -------------------------------------------------------------------------------
     def stats(self) -> dict:

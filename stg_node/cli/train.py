@@ -271,7 +271,7 @@ def _train(args, frames, stop: StopSignals) -> int:
         "frames": len(trainer.store),
         "preset": config.preset,
         **stats,
-        "densify": dict(trainer.densifier.counts),
+        "densify": trainer.densify_counts,
     }
     write_json(run.summary, summary)
     tlog.close()

@@ -140,7 +140,6 @@ def test_temporal_split_spreads_copies_of_an_always_on_gaussian_over_the_trainin
     windows, centred evenly over the frames' time range, each crossing its neighbour at ~half opacity."""
     from avatar_helpers import small_config
 
-    from stg_node.avatar.densify import StepContext
     from stg_node.avatar.trainer import Trainer
 
     trainer = Trainer(small_config(), seed=0)
@@ -150,25 +149,8 @@ def test_temporal_split_spreads_copies_of_an_always_on_gaussian_over_the_trainin
     model.table["motion_gate"].data[rows] = 1.0
     hot = torch.zeros(model.table.num, dtype=torch.bool)
     hot[rows] = True
-    ctx = StepContext(
-        0,
-        model,
-        trainer.optimizer,
-        {},
-        None,
-        None,
-        (0, 0, 1, 1),
-        None,
-        None,
-        None,
-        None,
-        None,
-        0.0,
-        None,
-        None,
-        trainer,
-    )
-    sources, new = d._temporal_split_rows(ctx, hot, torch.ones(model.table.num), room=1000)
+    time_range = trainer.time_range()
+    sources, new = d._temporal_split_rows(model, time_range, hot, torch.ones(model.table.num), room=1000)
     times = sorted(model.time_axis(f.frame.time) for f in trainer.store.frames)
     span = times[-1] - times[0]
     k = new["means"].shape[0] // 2
@@ -182,7 +164,7 @@ def test_temporal_split_spreads_copies_of_an_always_on_gaussian_over_the_trainin
     assert torch.equal(new["means"][:k], model.table["means"][3].expand(k, 3))
     # Not dynamic, no split; no room, no split.
     model.table["motion_gate"].data[rows] = 0.0
-    assert d._temporal_split_rows(ctx, hot, torch.ones(model.table.num), room=1000) is None
+    assert d._temporal_split_rows(model, time_range, hot, torch.ones(model.table.num), room=1000) is None
 
 
 def test_rigidity_pulls_a_dynamic_gaussian_towards_its_neighbours_motion():

@@ -123,6 +123,11 @@ def test_resumed_checkpoint_continues_exactly_like_the_uninterrupted_run(tiny_fr
     ):
         assert k == k2 and torch.equal(v, v2), k
     assert torch.equal(straight.pose_deltas, resumed.pose_deltas)
+    # The densification strategy's state is a dict the trainer owns, stored as it is.
+    assert straight.densify_state.keys() == resumed.densify_state.keys()
+    for key, value in straight.densify_state.items():
+        assert torch.equal(value, resumed.densify_state[key]), key
+    assert straight.densify_counts == resumed.densify_counts and "flow_added" in straight.densify_counts
 
 
 def test_a_non_finite_step_is_skipped_and_never_written(tiny_frames, monkeypatch, caplog):
