@@ -134,6 +134,11 @@ def _check_sane(record: dict) -> None:
         assert scores["views"] > 0 and scores["fast_pixels"] >= 0
         if scores["fast_pixels"]:
             assert 3.0 < scores["fast_psnr"] < 60.0, (name, split)
+        # The garment is seen in every split of every subject (the shirt's front or back).
+        assert 0.05 < scores["garment_fraction_of_body"] < 0.8, (name, split)
+        assert 3.0 < scores["garment_psnr"] < 60.0, (name, split)
+    on = record["train"]["active_on_garment_fraction"]
+    assert (math.isnan(on) and record["train"]["active_motion_count"] == 0) or 0.0 <= on <= 1.0, name
 
 
 def _check_outputs(tmp_path: Path, expect_measured: set[str]) -> dict:

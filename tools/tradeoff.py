@@ -23,7 +23,10 @@ as a run folder ``stg-eval`` / ``stg-render`` open (``--out/runs/NAME``), and is
 - PSNR on the fast-moving regions only: pixels whose true motion (the benchmark's ground-truth
   vertices of this frame and the next, projected into the evaluation camera and rasterized:
   :mod:`stg_node.data.synth.true_flow`) exceeds 5 px per frame at 512 x 512 (scaled with the
-  image width), the squared errors of those pixels pooled over the split's views.
+  image width), the squared errors of those pixels pooled over the split's views;
+- PSNR on the garment's pixels only: where the true surface seen is the loose cloth
+  (:mod:`stg_node.data.synth.garment_truth`), pooled the same way; and the fraction of the
+  Gaussians with active motion terms that lie on the garment.
 
 Each configuration's result is kept in ``--out/results/NAME.json`` with a fingerprint of its
 settings and data: a re-run (or a run resumed after Ctrl-C) skips what is already measured;
@@ -60,7 +63,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 log = logging.getLogger("tradeoff")
 
-RESULT_VERSION = 1
+RESULT_VERSION = 2  # 2: garment PSNR, active motion on the garment
 SUBJECTS = ("dance", "still", "mixed")
 LPIPS_NET = "alex"
 
@@ -271,17 +274,12 @@ def ensure_subject(cache: Path, subject: str, scale: Scale, seed: int = 0, fresh
     return out
 
 
-def fast_regions(folder: Path, scale: Scale) -> dict[str, dict[tuple[int, str], object]]:
-    """Per split, (frame, camera name) -> (H, W) bool fast-moving pixels; cached beside the data."""
+def _cached_regions(folder: Path, scale: Scale, cache: Path, region_of) -> dict[str, dict]:
+    """Per split, (frame, camera name) -> (H, W) bool ``region_of(sample)``; cached in ``cache``."""
     import numpy as np
 
     from stg_node.avatar.data_spec import DataSpec
-    from stg_node.body import load_body_model
-    from stg_node.data.synth.true_flow import benchmark_true_flow, fast_region
-    from stg_node.data.synth.writer import read_metadata
 
-    threshold = scale.fast_threshold_px
-    cache = folder / f"fast_regions_{threshold:.3f}px.npz"
     regions: dict[str, dict] = {"novel_view": {}, "novel_pose": {}}
     if cache.is_file():
         with np.load(cache) as stored:
@@ -291,18 +289,61 @@ def fast_regions(folder: Path, scale: Scale) -> dict[str, dict[tuple[int, str], 
                     np.unpackbits(stored[key])[: scale.size**2].reshape(scale.size, scale.size).astype(bool)
                 )
         return regions
-    meta = read_metadata(folder)
-    faces = load_body_model().faces.cpu().numpy()
     spec = DataSpec(str(folder), "synthetic", size=scale.size)
     packed = {}
     for split in regions:
         for sample in spec.open(split):
-            flow = benchmark_true_flow(folder, sample.index, sample.camera, faces, int(meta["num_frames"]))
-            region = fast_region(flow, threshold)
+            region = region_of(sample)
             regions[split][(sample.index, sample.camera.name)] = region
             packed[f"{split}|{sample.index}|{sample.camera.name}"] = np.packbits(region)
     np.savez_compressed(cache, **packed)
     return regions
+
+
+def fast_regions(folder: Path, scale: Scale) -> dict[str, dict[tuple[int, str], object]]:
+    """Per split, (frame, camera name) -> (H, W) bool fast-moving pixels; cached beside the data."""
+    from stg_node.body import load_body_model
+    from stg_node.data.synth.true_flow import benchmark_true_flow, fast_region
+    from stg_node.data.synth.writer import read_metadata
+
+    threshold = scale.fast_threshold_px
+    faces = load_body_model().faces.cpu().numpy()
+    num_frames = int(read_metadata(folder)["num_frames"])
+
+    def region_of(sample):
+        return fast_region(
+            benchmark_true_flow(folder, sample.index, sample.camera, faces, num_frames), threshold
+        )
+
+    return _cached_regions(folder, scale, folder / f"fast_regions_{threshold:.3f}px.npz", region_of)
+
+
+def garment_regions(folder: Path, scale: Scale) -> dict[str, dict[tuple[int, str], object]]:
+    """Per split, (frame, camera) -> (H, W) bool pixels where the garment is seen; cached with the data."""
+    from stg_node.body import load_body_model
+    from stg_node.data.synth.garment_truth import benchmark_garment_pixels, benchmark_looseness, garment_faces
+
+    body = load_body_model()
+    faces = body.faces.cpu().numpy()
+    is_garment = garment_faces(faces, benchmark_looseness(folder, body))
+
+    def region_of(sample):
+        return benchmark_garment_pixels(folder, sample.index, sample.camera, faces, is_garment)
+
+    return _cached_regions(folder, scale, folder / "garment_regions.npz", region_of)
+
+
+def active_on_garment(trainer, folder: Path) -> dict:
+    """How many of the Gaussians with active motion terms lie on the garment (synthetic ground truth)."""
+    from stg_node.data.synth.garment_truth import benchmark_looseness, on_garment
+
+    table = trainer.model.table
+    active = table.motion_active()
+    if "motion" not in table or not bool(active.any()):
+        return {"active_on_garment": 0, "active_on_garment_fraction": float("nan")}
+    looseness = benchmark_looseness(folder, trainer.body)
+    on = on_garment(table["means"].detach()[active].cpu(), trainer.canonical_vertices.cpu(), looseness)
+    return {"active_on_garment": int(on.sum()), "active_on_garment_fraction": float(on.mean())}
 
 
 # --- measuring one configuration ----------------------------------------------------------------
@@ -379,6 +420,7 @@ def train_run(row: Configuration, config, data: Path, run_dir: Path, scale: Scal
         **stats,
         "active_motion_count": round(stats["active_motion_fraction"] * stats["gaussians"]),
         "densify": trainer.densify_counts,
+        **active_on_garment(trainer, data),
     }
     write_json(run.summary, summary)
     return summary
@@ -438,13 +480,22 @@ def measure_render(run_dir: Path, scale: Scale, loaded=None) -> dict:
     return out
 
 
-def evaluate_run(run_dir: Path, regions: dict, scale: Scale) -> dict:
-    """Quality on both held-out splits (stg-eval's protocol), fast-region PSNR, render speed."""
+def pooled_psnr(kept: list, masks: dict) -> tuple[float, int]:
+    """PSNR of the pixels in ``masks[(frame, camera)]`` over the kept views (squared errors pooled), and
+    how many pixels that was."""
     import numpy as np
 
+    from stg_node.data.metrics import psnr
+
+    pred = np.concatenate([p[masks[(index, camera)]] for index, camera, p, _ in kept])
+    gt = np.concatenate([g[masks[(index, camera)]] for index, camera, _, g in kept])
+    return (psnr(pred[None], gt[None]) if pred.shape[0] else math.nan), int(pred.shape[0])
+
+
+def evaluate_run(run_dir: Path, regions: dict, scale: Scale, garment: dict | None = None) -> dict:
+    """Quality on both held-out splits (stg-eval's protocol), fast-region and garment PSNR, render speed."""
     from stg_node.avatar.evaluate import evaluate_split
     from stg_node.avatar.loading import load_run_renderer
-    from stg_node.data.metrics import psnr
 
     loaded = load_run_renderer(run_dir)
     run, renderer, corrections, _ = loaded
@@ -461,23 +512,25 @@ def evaluate_run(run_dir: Path, regions: dict, scale: Scale) -> dict:
             show_progress=False,
             keep_images=len(dataset),
         )
-        pred_px, gt_px, body_px = [], [], 0
-        for index, camera, pred, gt in kept:
-            region = regions[split][(index, camera)]
-            pred_px.append(pred[region])
-            gt_px.append(gt[region])
-            body_px += int((gt.sum(-1) > 0).sum())
-        fast = np.concatenate(pred_px), np.concatenate(gt_px)
+        body_px = sum(int((gt.sum(-1) > 0).sum()) for _, _, _, gt in kept)
+        fast_psnr, fast_pixels = pooled_psnr(kept, regions[split])
         out[split] = {
             "psnr": report["psnr"],
             "ssim": report["ssim"],
             "lpips": report["lpips"].get(LPIPS_NET, math.nan),
             "views": report["views"],
-            "fast_pixels": int(fast[0].shape[0]),
-            "fast_fraction_of_body": fast[0].shape[0] / max(body_px, 1),
-            "fast_psnr": psnr(fast[0][None], fast[1][None]) if fast[0].shape[0] else math.nan,
+            "fast_pixels": fast_pixels,
+            "fast_fraction_of_body": fast_pixels / max(body_px, 1),
+            "fast_psnr": fast_psnr,
             "protocol": report["protocol"],
         }
+        if garment is not None:
+            garment_psnr, garment_pixels = pooled_psnr(kept, garment[split])
+            out[split] |= {
+                "garment_psnr": garment_psnr,
+                "garment_pixels": garment_pixels,
+                "garment_fraction_of_body": garment_pixels / max(body_px, 1),
+            }
     out["render"] = measure_render(run_dir, scale, loaded)
     return out
 
@@ -504,7 +557,9 @@ def machine() -> dict:
     return record
 
 
-def measure(row: Configuration, scale: Scale, args, regions_by_subject: dict, data: dict) -> dict:
+def measure(
+    row: Configuration, scale: Scale, args, regions_by_subject: dict, data: dict, garment_by_subject=None
+) -> dict:
     """Train and score one configuration, or read its result if already measured with these settings."""
     from stg_node.avatar.run import write_json
 
@@ -525,7 +580,8 @@ def measure(row: Configuration, scale: Scale, args, regions_by_subject: dict, da
     log.info("%s: training %d iterations on the %s subject", row.name, config.iterations, row.subject)
     run_dir = Path(args.out) / "runs" / row.name
     summary = train_run(row, config, data[row.subject], run_dir, scale, args)
-    scores = evaluate_run(run_dir, regions_by_subject[row.subject], scale)
+    garment = (garment_by_subject or {}).get(row.subject)
+    scores = evaluate_run(run_dir, regions_by_subject[row.subject], scale, garment)
     result = {
         "name": row.name,
         "label": row.label,
@@ -647,15 +703,16 @@ def run(args: argparse.Namespace, argv: list[str]) -> int:
     )
     selected = [r for r in rows if not r.alias_of and (not args.only or r.name in args.only)]
     subjects = sorted({r.subject for r in selected}, key=SUBJECTS.index)
-    data, regions = {}, {}
+    data, regions, garment = {}, {}, {}
     for subject in progress(subjects, desc="subjects", unit="subject", enabled=not args.no_progress):
         data[subject] = ensure_subject(cache, subject, scale, fresh=args.fresh)
         regions[subject] = fast_regions(data[subject], scale)
+        garment[subject] = garment_regions(data[subject], scale)
     results = {}
     bar = progress(desc="configurations", unit="config", total=len(selected), enabled=not args.no_progress)
     for row in selected:
         bar.set_postfix(config=row.name, refresh=True)
-        results[row.name] = measure(row, scale, args, regions, data)
+        results[row.name] = measure(row, scale, args, regions, data, garment)
         bar.update(1)
     bar.close()
     # Rows measured earlier with the same settings (a partial --only run) join the report.
