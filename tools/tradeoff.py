@@ -106,6 +106,7 @@ ITERATION_KEYS = (
     "sh_increase_every",
     "checkpoint_every",
     "log_every",
+    "nonrigid_decide_iter",
 )
 GAUSSIAN_KEYS = ("model.num_gaussians", "model.max_gaussians", "densify.flow_max_new")
 # Settings in pixels of the 512 x 512 benchmark (scaled with the image width), and whether integer.
@@ -113,6 +114,7 @@ PIXEL_KEYS = {
     "densify.motion_floor_px": False,
     "densify.region_px": True,
     "densify.flow_consistency_px": False,
+    "densify.residual_motion_px": False,
     "crop_margin_px": True,
 }
 
@@ -339,7 +341,7 @@ def active_on_garment(trainer, folder: Path) -> dict:
 
     table = trainer.model.table
     active = table.motion_active()
-    if "motion" not in table or not bool(active.any()):
+    if not bool(active.any()):
         return {"active_on_garment": 0, "active_on_garment_fraction": float("nan")}
     looseness = benchmark_looseness(folder, trainer.body)
     on = on_garment(table["means"].detach()[active].cpu(), trainer.canonical_vertices.cpu(), looseness)
@@ -420,6 +422,7 @@ def train_run(row: Configuration, config, data: Path, run_dir: Path, scale: Scal
         **stats,
         "active_motion_count": round(stats["active_motion_fraction"] * stats["gaussians"]),
         "densify": trainer.densify_counts,
+        "nonrigid": trainer.nonrigid_report(),
         **active_on_garment(trainer, data),
     }
     write_json(run.summary, summary)

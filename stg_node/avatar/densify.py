@@ -47,9 +47,10 @@ import torch
 import torch.nn.functional as F
 
 from stg_node.avatar.config import DensifyConfig
-from stg_node.avatar.gaussians import new_columns, sample_surface, surface_skin_weights
+from stg_node.avatar.gaussians import MOTION_COLUMNS, new_columns, sample_surface, surface_skin_weights
 from stg_node.avatar.model import conjugate, rotate
-from stg_node.avatar.rigid import blend, blend_rotation
+from stg_node.avatar.motion_basis import initial_coefficients
+from stg_node.avatar.rigid import blend, blend_rotation, blend_weights
 from stg_node.body import lbs
 
 log = logging.getLogger(__name__)
@@ -86,10 +87,11 @@ class DensifyInputs:
     time_range: tuple[float, float]  # normalised times of the first and last training frame
     surface: CanonicalSurface
     rendered_flow: torch.Tensor | None = None  # (h, w, 2) per-pixel Gaussian motion, detached
+    grow_in_time: bool = True  # temporal copies and flow-guided additions (off while the trainer decides)
 
 
 # Per-Gaussian entries of the state (resized with the table's rows).
-ROW_STATE = ("grad_sum", "vis_count", "flow_w", "was_dynamic")
+ROW_STATE = ("grad_sum", "vis_count", "flow_w", "resid_w", "was_dynamic")
 COUNT_PREFIX = "count."
 
 
@@ -120,6 +122,7 @@ class DensifyStrategy:
             "grad_sum": torch.zeros(n, device=dev),
             "vis_count": torch.zeros(n, device=dev),
             "flow_w": torch.zeros(n, device=dev),  # W_i, px per frame
+            "resid_w": torch.zeros(n, device=dev),  # R_i: flow the model's own motion misses, px per frame
             "was_dynamic": torch.zeros(n, device=dev)
             if gate is None
             else gate.float(),  # at the last density step
@@ -165,7 +168,12 @@ class DensifyStrategy:
         it = inputs.iteration
         if not self.active(it):
             return report
-        if c.flow_guided and inputs.flow is not None and (it - c.start_iter) % c.flow_interval == 0:
+        if (
+            c.flow_guided
+            and inputs.grow_in_time
+            and inputs.flow is not None
+            and (it - c.start_iter) % c.flow_interval == 0
+        ):
             report["flow_added"] = self._flow_guided(model, optimizer, state, inputs)
         if (it - c.start_iter) % c.interval == 0 and it > c.start_iter:
             report.update(self._adaptive_density(model, optimizer, state, inputs))
@@ -204,6 +212,10 @@ class DensifyStrategy:
         sel = table_rows[ok]
         flow_w = state["flow_w"]
         flow_w[sel] = W_DECAY * flow_w[sel] + (1 - W_DECAY) * mag[ok]
+        if inputs.rendered_flow is not None:
+            missed = (fwd[py, px] - inputs.rendered_flow[py, px]).norm(dim=-1)
+            resid_w = state["resid_w"]
+            resid_w[sel] = W_DECAY * resid_w[sel] + (1 - W_DECAY) * missed[ok]
 
     # --- flow-guided densification ---------------------------------------------------------------
     @torch.no_grad()
@@ -281,9 +293,12 @@ class DensifyStrategy:
         rows_new["means"] = new_means[keep]
         rows_new["log_scales"] = rows_new["log_scales"] + torch.log(torch.tensor(0.8))
         rows_new["opacity_logits"] = torch.full_like(rows_new["opacity_logits"], -1.0)
-        for name in ("motion", "rot_motion"):
+        for name in MOTION_COLUMNS:
             if name in rows_new:
                 rows_new[name] = torch.zeros_like(rows_new[name])
+        if "motion_coef" in rows_new:
+            skin = blend_weights(rows_new["skin_weights"], rows_new.get("skin_delta"))
+            rows_new["motion_coef"] = initial_coefficients(skin, rows_new["motion_coef"].shape[1])
         if "motion_gate" in rows_new:
             rows_new["motion_gate"] = torch.ones_like(rows_new["motion_gate"])  # non-rigid detail: may move
         if "t_center" in rows_new:
@@ -310,7 +325,11 @@ class DensifyStrategy:
         room = self._room(model)
         # Dynamic Gaussians on long temporal windows are refined in time first (they fail because
         # one polynomial cannot follow the motion), the rest in space as in 3DGS.
-        tsplit_rows = self._temporal_split_rows(model, inputs.time_range, hot & was_dynamic, grads, room)
+        tsplit_rows = (
+            self._temporal_split_rows(model, inputs.time_range, hot & was_dynamic, grads, room)
+            if inputs.grow_in_time
+            else None
+        )
         taken = torch.zeros(table.num, dtype=torch.bool, device=model.device)
         if tsplit_rows is not None:
             taken[tsplit_rows[0]] = True
@@ -381,6 +400,8 @@ class DensifyStrategy:
         table = model.table
         gate = table.motion_gate()
         if not c.temporal_split or gate is None or "t_center" not in table or room <= 0:
+            return None
+        if "motion_coef" in table:  # shared bases follow the motion at every knot: no copies needed
             return None
         lo, hi = time_range
         span = max(hi - lo, 1e-3)
@@ -468,18 +489,28 @@ class DensifyStrategy:
         # motion above the 1 px floor fits the training view's cloth better, +6 dB in the garment
         # region of the dance benchmark, but novel views got worse: from one camera the extra freedom
         # is spent on placements other views disagree with. docs/AVATAR.md.)
-        moving = state["flow_w"] > inputs.motion_threshold_px
+        if self.config.motion_signal == "flow":
+            moving = state["flow_w"] > inputs.motion_threshold_px
+        else:
+            moving = state["resid_w"] > self.config.residual_motion_px
         activate = ~gate & moving & (grads > 0.5 * self.config.grad_threshold)
         amplitude = torch.zeros(table.num, device=gate.device)
         if "motion" in table:
             amplitude = amplitude + table["motion"].norm(dim=-1).sum(dim=1)
+        if "motion_coef" in table and model.motion_bases is not None:
+            rows = gate.nonzero().squeeze(1)
+            coef = table["motion_coef"].detach()[rows]
+            amplitude[rows] += model.motion_bases.amplitude(coef, table["means"].detach()[rows])
         if "rot_motion" in table:
             amplitude = amplitude + 0.1 * table["rot_motion"].norm(dim=-1).sum(dim=1)  # ~0.1 m per radian
         settle = gate & (state["was_dynamic"] > 0.5) & (amplitude < self.config.motion_min_m)
-        for name in ("motion", "rot_motion"):
+        for name in MOTION_COLUMNS:
             if name in table:
                 optimizer.zero_rows(name, settle)
         table["motion_gate"].data[activate] = 1.0
+        if "motion_coef" in table and bool(activate.any()):
+            coef = table["motion_coef"]
+            coef.data[activate] = initial_coefficients(model.skin_weights().detach()[activate], coef.shape[1])
         table["motion_gate"].data[settle] = 0.0
         state["was_dynamic"] = table["motion_gate"].detach().clone()
         return {"motion_on": int(activate.sum()), "motion_off": int(settle.sum())}

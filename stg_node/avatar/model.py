@@ -19,6 +19,7 @@ from stg_node.avatar import spacetime
 from stg_node.avatar.color import ColorMLP, sh_color
 from stg_node.avatar.config import ModelConfig
 from stg_node.avatar.gaussians import GaussianTable
+from stg_node.avatar.motion_basis import MotionBases
 from stg_node.avatar.rigid import PosedBones, Skeleton, blend_weights, skin
 from stg_node.avatar.spacetime import TimeAxis
 from stg_node.avatar.timecode import PoseTimeIndex, pose_key
@@ -149,6 +150,9 @@ class AvatarModel(nn.Module):
         self.color_mlp = ColorMLP(config, bounds) if config.color == "mlp" else None
         self.time_axis = time_axis or TimeAxis(unit_s=config.time_unit_s)
         self.pose_index = pose_index or PoseTimeIndex()
+        self.motion_bases = (
+            MotionBases(config.n_b, config.basis_knot_s / self.time_axis.unit_s) if config.n_b else None
+        )
 
     @property
     def device(self) -> torch.device:
@@ -166,8 +170,11 @@ class AvatarModel(nn.Module):
         return self.skeleton.bones(body.poses, body.Rh, body.Th)
 
     # --- deformation ---------------------------------------------------------------------------
-    def spacetime(self, u: float, *, skip_inactive: bool = False) -> spacetime.SpacetimeState:
-        """The spacetime terms of every Gaussian at normalised time ``u`` (None where a term is off)."""
+    def spacetime(
+        self, u: float, *, skip_inactive: bool = False, rows: torch.Tensor | None = None
+    ) -> spacetime.SpacetimeState:
+        """The spacetime terms of every Gaussian at normalised time ``u`` (None where a term is off;
+        ``rows``/``skip_inactive``: see spacetime.evaluate)."""
         cfg = self.config
         return spacetime.evaluate(
             self.table,
@@ -175,11 +182,20 @@ class AvatarModel(nn.Module):
             cfg.time_horizon,
             temporal_opacity=cfg.uses_temporal_opacity,
             skip_inactive=skip_inactive,
+            bases=self.motion_bases,
+            rows=rows,
         )
 
-    def posed_means(self, bones: PosedBones, u: float) -> torch.Tensor:
+    def posed_means(self, bones: PosedBones, u: float, rows: torch.Tensor | None = None) -> torch.Tensor:
         """World centres only (cheap: the flow loss and densification need the next frame's)."""
-        st = spacetime.evaluate(self.table, u, self.config.time_horizon, temporal_opacity=False)
+        st = spacetime.evaluate(
+            self.table,
+            u,
+            self.config.time_horizon,
+            temporal_opacity=False,
+            bases=self.motion_bases,
+            rows=rows,
+        )
         means = self.table["means"] if st.offsets is None else self.table["means"] + st.offsets
         return skin(means, self.skin_weights(), bones, rotations=False).means
 

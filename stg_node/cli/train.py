@@ -272,6 +272,7 @@ def _train(args, frames, stop: StopSignals) -> int:
         "preset": config.preset,
         **stats,
         "densify": trainer.densify_counts,
+        "nonrigid": trainer.nonrigid_report(),
     }
     write_json(run.summary, summary)
     tlog.close()
