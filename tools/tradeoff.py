@@ -102,6 +102,7 @@ ITERATION_KEYS = (
     "loss.warmup_iters",
     "densify.start_iter",
     "densify.interval",
+    "densify.gate_start_iter",
     "densify.flow_interval",
     "sh_increase_every",
     "checkpoint_every",

@@ -19,7 +19,9 @@ from dataclasses import dataclass, field
 
 COLOR_MODES = ("mlp", "sh")
 SKIN_INIT = ("barycentric", "nearest")
-NONRIGID_MODES = ("auto", "on")
+NONRIGID_MODES = ("auto", "on", "off")
+# What switching the non-rigid part off sets: LBS only (no spacetime terms, no flow-guided densification).
+LBS_ONLY = {"model.spacetime": False, "densify.flow_guided": False}
 
 
 @dataclass(frozen=True)
@@ -120,6 +122,7 @@ class DensifyConfig:
     start_iter: int = 300
     stop_fraction: float = 0.75  # no densification after this fraction of the iterations
     interval: int = 200
+    gate_start_iter: int = 150  # motion gates are revised every interval from here (densify.py)
     # Mean |dL/dmeans2d| x rendered pixels (AbsGS-style, made independent of the crop's size) that
     # triggers clone/split: about the top 5 % of Gaussians early in training.
     grad_threshold: float = 0.3
@@ -150,6 +153,9 @@ class DensifyConfig:
     # What opens a Gaussian's motion gate (with the image still pulling on it): "residual", flow the
     # model's own motion misses (> residual_motion_px); "flow", the flow itself (> delta, STG-Avatar's).
     motion_signal: str = "residual"
+    # Shared motion bases: a static Gaussian also starts to move where moving with its bones' shared
+    # motions would lower the loss: -sum <dL/dx, m> / sum |dL/dx| |m| over an interval above this.
+    motion_help: float = 0.1
     new_time_scale: float = 0.25  # temporal scale (units) of Gaussians added along the flow
     resample_fraction: float = 0.3  # re-sample body parts whose density fell below this x initial
     # Temporal split: a dynamic Gaussian that the image still pulls on is replaced by copies on
@@ -191,7 +197,8 @@ class TrainConfig:
     time_noise_frames: float = 0.0
     time_noise_until: float = 0.5
     # The non-rigid part earns its place (nonrigid.py): "auto" decides at nonrigid_decide_iter whether
-    # it pays on this subject and switches it off when not (LBS only from then on); "on" keeps it.
+    # it pays on this subject and switches it off when not (LBS only from then on); "on" keeps it;
+    # "off" is LBS only from the start (as model.spacetime=false with densify.flow_guided=false).
     # Until the decision every nonrigid_holdout_every-th training frame is held out to judge it.
     nonrigid: str = "auto"
     nonrigid_decide_iter: int = 600

@@ -49,7 +49,7 @@ import torch.nn.functional as F
 from stg_node.avatar.config import DensifyConfig
 from stg_node.avatar.gaussians import MOTION_COLUMNS, new_columns, sample_surface, surface_skin_weights
 from stg_node.avatar.model import conjugate, rotate
-from stg_node.avatar.motion_basis import initial_coefficients
+from stg_node.avatar.motion_basis import MotionBases, initial_coefficients
 from stg_node.avatar.rigid import blend, blend_rotation, blend_weights
 from stg_node.body import lbs
 
@@ -91,7 +91,7 @@ class DensifyInputs:
 
 
 # Per-Gaussian entries of the state (resized with the table's rows).
-ROW_STATE = ("grad_sum", "vis_count", "flow_w", "resid_w", "was_dynamic")
+ROW_STATE = ("grad_sum", "vis_count", "flow_w", "resid_w", "help_dot", "help_norm", "was_dynamic")
 COUNT_PREFIX = "count."
 
 
@@ -123,6 +123,8 @@ class DensifyStrategy:
             "vis_count": torch.zeros(n, device=dev),
             "flow_w": torch.zeros(n, device=dev),  # W_i, px per frame
             "resid_w": torch.zeros(n, device=dev),  # R_i: flow the model's own motion misses, px per frame
+            "help_dot": torch.zeros(n, device=dev),  # sum of <dL/dx_i, m_i(t)>: would moving help (< 0)
+            "help_norm": torch.zeros(n, device=dev),  # sum of |dL/dx_i| |m_i(t)|
             "was_dynamic": torch.zeros(n, device=dev)
             if gate is None
             else gate.float(),  # at the last density step
@@ -164,9 +166,15 @@ class DensifyStrategy:
         if not c.enabled:
             return {}
         self._accumulate(state, inputs)
+        self._accumulate_help(model, state, inputs)
         report: dict[str, int] = {}
         it = inputs.iteration
+        gate_round = c.gate_start_iter <= it < int(c.stop_fraction * self.total)
+        gate_round &= (it - c.gate_start_iter) % c.interval == 0
         if not self.active(it):
+            if gate_round:
+                report.update(self._gate_round(model, optimizer, state, inputs))
+                self._tally(state, report)
             return report
         if (
             c.flow_guided
@@ -177,9 +185,21 @@ class DensifyStrategy:
             report["flow_added"] = self._flow_guided(model, optimizer, state, inputs)
         if (it - c.start_iter) % c.interval == 0 and it > c.start_iter:
             report.update(self._adaptive_density(model, optimizer, state, inputs))
+        if gate_round:  # after the density step: its temporal split saw who was dynamic all interval
+            report.update(self._gate_round(model, optimizer, state, inputs))
+        self._tally(state, report)
+        return report
+
+    def _tally(self, state: dict, report: dict[str, int]) -> None:
         for k, v in report.items():
             self._count(state, k, v)
-        return report
+
+    def _gate_round(self, model, optimizer, state: dict, inputs: DensifyInputs) -> dict[str, int]:
+        grads = state["grad_sum"] / state["vis_count"].clamp_min(1)
+        out = self._gate_motion(model, optimizer, state, inputs, grads)
+        state["help_dot"].zero_()
+        state["help_norm"].zero_()
+        return out
 
     @torch.no_grad()
     def _accumulate(self, state: dict, inputs: DensifyInputs) -> None:
@@ -216,6 +236,30 @@ class DensifyStrategy:
             missed = (fwd[py, px] - inputs.rendered_flow[py, px]).norm(dim=-1)
             resid_w = state["resid_w"]
             resid_w[sel] = W_DECAY * resid_w[sel] + (1 - W_DECAY) * missed[ok]
+
+    @torch.no_grad()
+    def _accumulate_help(self, model, state: dict, inputs: DensifyInputs) -> None:
+        """Shared motion bases: would a static Gaussian's loss fall if it moved with the bases?
+
+        A static Gaussian that started to move would get the offset ``m_i(t)`` its bones' shared
+        motions give (its initial coefficients, motion_basis.initial_coefficients); to first order
+        that changes the loss by ``<dL/dx_i, m_i(t)>``. Summed over the steps it is seen in and
+        normalised, ``-sum <g, m> / sum |g| |m|`` near 1 says the image keeps pulling it the way
+        the garment around it moves.
+        """
+        table, bases = model.table, model.motion_bases
+        gate = table.motion_gate()
+        grad = table["means"].grad
+        if bases is None or gate is None or grad is None:
+            return
+        rows = (~gate & (grad.abs().sum(dim=1) > 0)).nonzero().squeeze(1)
+        if rows.numel() == 0:
+            return
+        coef = initial_coefficients(model.skin_weights().detach()[rows], bases.count)
+        would = MotionBases.apply(bases.at(inputs.u).detach(), coef, table["means"].detach()[rows])
+        g = grad[rows]
+        state["help_dot"].index_add_(0, rows, (g * would).sum(dim=1))
+        state["help_norm"].index_add_(0, rows, g.norm(dim=1) * would.norm(dim=1))
 
     # --- flow-guided densification ---------------------------------------------------------------
     @torch.no_grad()
@@ -318,7 +362,6 @@ class DensifyStrategy:
         vis_count = state["vis_count"]
         grads = state["grad_sum"] / vis_count.clamp_min(1)
         was_dynamic = state["was_dynamic"] > 0.5  # dynamic for a whole interval already
-        report.update(self._gate_motion(model, optimizer, state, inputs, grads))
         scales = table.scales().max(dim=1).values
         small = scales <= c.percent_dense * model.extent
         hot = (grads > c.grad_threshold) & (vis_count > 0)
@@ -494,6 +537,9 @@ class DensifyStrategy:
         else:
             moving = state["resid_w"] > self.config.residual_motion_px
         activate = ~gate & moving & (grads > 0.5 * self.config.grad_threshold)
+        if "motion_coef" in table:  # shared bases: also where moving with them would lower the loss
+            helps = -state["help_dot"] / state["help_norm"].clamp_min(1e-20)
+            activate |= ~gate & (helps > self.config.motion_help) & (state["help_norm"] > 0)
         amplitude = torch.zeros(table.num, device=gate.device)
         if "motion" in table:
             amplitude = amplitude + table["motion"].norm(dim=-1).sum(dim=1)

@@ -25,7 +25,7 @@ import torch
 
 from stg_node.avatar import checkpoint, nonrigid, spacetime
 from stg_node.avatar import losses as L
-from stg_node.avatar.config import TrainConfig
+from stg_node.avatar.config import LBS_ONLY, TrainConfig
 from stg_node.avatar.densify import CanonicalSurface, DensifyInputs, DensifyStrategy, counts, motion_threshold
 from stg_node.avatar.frames import FrameStore, StoredFrame, TrainFrame
 from stg_node.avatar.gaussians import MOTION_COLUMNS, init_table
@@ -111,6 +111,8 @@ class Trainer:
         max_frames: int | None = None,
     ):
         config.validate()
+        if config.nonrigid == "off":
+            config = config.replace(**LBS_ONLY)
         self.config = config
         self.device = torch.device(device)
         self.backend = backend
@@ -498,7 +500,7 @@ class Trainer:
             if name in rigid.table.names()
         }
         dense_state = {k: v for k, v in self.optimizer.dense_state().items() if not k.startswith("bases.")}
-        self.config = self.config.replace(**{"model.spacetime": False, "densify.flow_guided": False})
+        self.config = self.config.replace(**LBS_ONLY)
         self.attach_model(rigid, self.betas)
         self._build_optimizer()
         self.optimizer.load_table_state(table_state)
@@ -513,7 +515,8 @@ class Trainer:
         if self.decision is not None:
             return self.decision.to_dict()
         if not self.config.model.spacetime:
-            return {"chose": "off", "why": "model.spacetime=false: LBS only from the start"}
+            how = "nonrigid=off" if self.config.nonrigid == "off" else "model.spacetime=false"
+            return {"chose": "off", "why": f"{how}: LBS only from the start"}
         if self.config.nonrigid == "on":
             return {"chose": "on", "why": "nonrigid=on: kept whatever the evidence"}
         c = self.config

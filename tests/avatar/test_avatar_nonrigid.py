@@ -106,6 +106,9 @@ def test_forced_on_never_decides_and_short_runs_keep_every_frame(tiny_frames):
     short, _ = _trainer(tiny_frames, _trial_config(iterations=10), 10)
     assert not short._deciding() and len(short._training_frames()) == len(tiny_frames)
     assert short.nonrigid_report()["why"].startswith("no trial")
+    off = Trainer(_trial_config(nonrigid="off"), seed=0)
+    assert off.config.model.spacetime is False and off.config.densify.flow_guided is False
+    assert off.nonrigid_report() == {"chose": "off", "why": "nonrigid=off: LBS only from the start"}
     with pytest.raises(ValueError, match="nonrigid must be one of"):
         _trial_config(nonrigid="maybe").validate()
 
