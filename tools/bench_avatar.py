@@ -144,6 +144,7 @@ def bench_ssim(repeats: int) -> dict:
 def bench_render(data: Path, gaussians: int, repeats: int) -> list[dict]:
     from stg_node.avatar import AvatarRenderer, preset
     from stg_node.avatar.data_spec import DataSpec
+    from stg_node.avatar.gaussians import MOTION_COLUMNS
     from stg_node.avatar.model import BodyState, Camera3, render
     from stg_node.avatar.nonrigid import rigid_part
     from stg_node.avatar.trainer import Trainer
@@ -176,12 +177,18 @@ def bench_render(data: Path, gaussians: int, repeats: int) -> list[dict]:
         "ms_lbs": lambda: pose_and_render(True, rigid),
         "ms_raster_only": lambda: render(posed, cam, background=0.0),
     }
+    if model.motion_bases is not None:  # shared bases: some motion, so moving rows do move
+        with torch.no_grad():
+            model.motion_bases.values.copy_(
+                torch.randn(model.motion_bases.values.shape, generator=gen) * 1e-3
+            )
     for fraction in (0.0, 0.1, 1.0):
         with torch.no_grad():
             active = torch.rand(table.num, generator=gen) < fraction
-            for name in ("motion", "rot_motion"):
-                table[name].zero_()
-                table[name][active] = 1e-3
+            for name in MOTION_COLUMNS:
+                if name in table:
+                    table[name].zero_()
+                    table[name][active] = 1e-3
         result = {"gaussians": table.num, "active_fraction": fraction}
         runs = {name: [] for name in cases}
         for _ in range(repeats + 2):

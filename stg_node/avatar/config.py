@@ -42,7 +42,7 @@ class ModelConfig:
     # Shared motion bases (motion_basis.py): B > 0 replaces the per-Gaussian offset polynomial by
     # per-Gaussian mixtures of B shared affine motions (24: one per bone, GART's latent bones),
     # piecewise linear in time over knots basis_knot_s apart.
-    motion_basis: int = 0
+    motion_basis: int = 24
     basis_knot_s: float = 1.0 / 15.0
     # Colour: "mlp" (the paper's light MLP) or "sh" (per-Gaussian spherical harmonics).
     color: str = "mlp"
@@ -155,7 +155,7 @@ class DensifyConfig:
     motion_signal: str = "residual"
     # Shared motion bases: a static Gaussian also starts to move where moving with its bones' shared
     # motions would lower the loss: -sum <dL/dx, m> / sum |dL/dx| |m| over an interval above this.
-    motion_help: float = 0.1
+    motion_help: float = 0.3
     new_time_scale: float = 0.25  # temporal scale (units) of Gaussians added along the flow
     resample_fraction: float = 0.3  # re-sample body parts whose density fell below this x initial
     # Temporal split: a dynamic Gaussian that the image still pulls on is replaced by copies on
@@ -235,18 +235,28 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, data: dict) -> TrainConfig:
+        """From :meth:`to_dict`; a setting a stored config lacks (written before it existed) takes the
+        value that reproduces what that run did (LEGACY), else its default."""
         data = dict(data)
         groups = {"model": ModelConfig, "loss": LossConfig, "densify": DensifyConfig}
         kwargs = {}
         for f in dataclasses.fields(cls):
             if f.name not in data:
+                if f.name in LEGACY:
+                    kwargs[f.name] = LEGACY[f.name]
                 continue
             value = data[f.name]
             if f.name in groups:
                 known = {g.name for g in dataclasses.fields(groups[f.name])}
-                value = groups[f.name](**{k: v for k, v in value.items() if k in known})
+                stored = {k: v for k, v in value.items() if k in known}
+                legacy = {k[len(f.name) + 1 :]: v for k, v in LEGACY.items() if k.startswith(f.name + ".")}
+                value = groups[f.name](**(legacy | stored))
             kwargs[f.name] = value
         return cls(**kwargs)
+
+
+# Settings added after runs were stored, and the value that reproduces those runs when absent.
+LEGACY = {"model.motion_basis": 0, "nonrigid": "on"}
 
 
 def apply_settings(config: TrainConfig, items) -> TrainConfig:

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from stg_node.avatar.config import COLOR_MODES, SKIN_INIT, ModelConfig
+from stg_node.avatar.config import COLOR_MODES, LEGACY, SKIN_INIT, ModelConfig
 from stg_node.avatar.gaussians import GaussianTable
 from stg_node.avatar.model import AvatarModel
 from stg_node.avatar.motion_basis import MotionBases
@@ -68,6 +68,8 @@ def model_config_from_meta(meta: dict) -> ModelConfig:
     for f in dataclasses.fields(ModelConfig):
         key = f"model.{f.name}"
         if key not in meta:
+            if key in LEGACY:  # a snapshot from before the setting existed
+                kwargs[f.name] = LEGACY[key]
             continue
         value = meta[key]
         if f.name in _STRING_CHOICES:

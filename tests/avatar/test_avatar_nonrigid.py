@@ -134,3 +134,20 @@ def test_the_rigid_part_renders_like_the_model_with_its_terms_at_zero(tiny_frame
         model.table["t_log_scale"][:5] = math.log(0.2)
     _, keep = nonrigid.rigid_part(model)
     assert keep.tolist()[:6] == [False] * 5 + [True] and int(keep.sum()) == model.table.num - 5
+
+
+def test_runs_stored_before_the_trial_and_the_bases_resume_as_they_were():
+    """A config or snapshot written before these settings existed keeps the polynomial motion and no
+    trial (what those runs did), not today's defaults."""
+    from stg_node.avatar.config import ModelConfig, TrainConfig
+    from stg_node.avatar.snapshot import model_config_from_meta, model_config_meta
+
+    old = TrainConfig().to_dict()
+    del old["nonrigid"], old["model"]["motion_basis"]
+    restored = TrainConfig.from_dict(old)
+    assert restored.nonrigid == "on" and restored.model.motion_basis == 0
+    assert TrainConfig.from_dict(TrainConfig().to_dict()) == TrainConfig()
+    meta = model_config_meta(ModelConfig())
+    assert model_config_from_meta(meta).motion_basis == ModelConfig().motion_basis == 24
+    del meta["model.motion_basis"]
+    assert model_config_from_meta(meta).motion_basis == 0
