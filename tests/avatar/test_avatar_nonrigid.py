@@ -151,3 +151,35 @@ def test_runs_stored_before_the_trial_and_the_bases_resume_as_they_were():
     assert model_config_from_meta(meta).motion_basis == ModelConfig().motion_basis == 24
     del meta["model.motion_basis"]
     assert model_config_from_meta(meta).motion_basis == 0
+
+
+def test_a_gate_opens_on_flow_the_model_misses_or_where_moving_helps_not_on_motion_skinning_explains(
+    tiny_frames,
+):
+    """Row 0: large flow the model's own motion explains (a turn): stays static. Row 1: flow it misses
+    and the image pulls: opens. Row 2: no missed flow, but moving with its bones' shared motions
+    would lower the loss (the normalised sum -<g, m> = 0.8): opens. Row 3: pulled, but moving would
+    raise the loss: stays static. Each newly moving row starts with its skinning weights as
+    coefficients."""
+    from types import SimpleNamespace
+
+    from stg_node.avatar.motion_basis import initial_coefficients
+
+    trainer, _ = _trainer(tiny_frames, _trial_config(nonrigid="on"), 1)
+    model, state, c = trainer.model, trainer.densify_state, trainer.config.densify
+    n = model.table.num
+    for key in ("flow_w", "resid_w", "help_dot", "help_norm"):
+        state[key] = torch.zeros(n)
+    state["flow_w"][0] = 50.0
+    state["resid_w"][1] = 2 * c.residual_motion_px
+    state["help_dot"][2], state["help_norm"][2] = -0.8, 1.0
+    state["help_dot"][3], state["help_norm"][3] = 0.8, 1.0
+    grads = torch.zeros(n)
+    grads[:4] = c.grad_threshold  # the image pulls on all four
+    inputs = SimpleNamespace(motion_threshold_px=1.0)
+    report = trainer.densifier._gate_motion(model, trainer.optimizer, state, inputs, grads)
+    gate = model.table.motion_gate()
+    assert gate[:4].tolist() == [False, True, True, False] and report["motion_on"] == 2
+    expected = initial_coefficients(model.skin_weights().detach()[1:3], model.motion_bases.count)
+    assert torch.allclose(model.table["motion_coef"].detach()[1:3], expected)
+    assert not bool(model.table["motion_coef"].detach()[[0, 3]].any())
