@@ -2,8 +2,9 @@
 
 What the model needs is the published snapshot (snapshot.py); a checkpoint adds, as ``train.*``
 arrays and meta: the Adam moments of every column and dense module, the densification
-strategy's state dict, the per-frame pose corrections, the adaptive-weight averages, the
-counters, and the TrainConfig with what the trainer decided about the non-rigid part (JSON
+strategy's state dict, the isometry loss's state, the per-frame pose corrections, the
+adaptive-weight averages, the counters, the caller's ``notes``, and the TrainConfig (the frame
+store's bound ``max_frames`` with it) with what the trainer decided about the non-rigid part (JSON
 bytes) and the subject's betas (to rebuild the canonical mesh). Frames are not saved:
 ``stg-train --resume`` re-reads them from the dataset, the online trainer from the stream.
 Because every random choice of step k is a function of (seed, k), a run resumed at checkpoint k
@@ -58,6 +59,8 @@ class TrainingState:
     densify: dict[str, torch.Tensor] = field(default_factory=dict)  # the strategy's state dict
     loss_ema: dict[str, float] = field(default_factory=dict)
     nonrigid: dict = field(default_factory=dict)  # the trainer's decision about the non-rigid part
+    isometry: dict[str, torch.Tensor] = field(default_factory=dict)  # the isometry loss's state arrays
+    notes: dict[str, float] = field(default_factory=dict)  # the caller's figures (e.g. wall time)
 
 
 def _np(t: torch.Tensor) -> np.ndarray:
@@ -106,6 +109,10 @@ def save(path: str | Path, state: TrainingState) -> Path:
         arrays[f"train.densify.{name}"] = _np(value)
     for name, value in state.loss_ema.items():
         meta[f"train.ema.{name}"] = float(value)
+    for name, value in state.isometry.items():
+        arrays[f"train.isometry.{name}"] = _np(value)
+    for name, value in state.notes.items():
+        meta[f"train.notes.{name}"] = float(value)
     msg = to_snapshot(
         state.model,
         iteration=state.iteration,
@@ -160,4 +167,6 @@ def load(path: str | Path, *, device="cpu") -> TrainingState:
         densify=densify,
         loss_ema={k[len("train.ema.") :]: float(v) for k, v in meta.items() if k.startswith("train.ema.")},
         nonrigid=dict(stored.get("nonrigid") or {}),
+        isometry={k[len("train.isometry.") :]: tensor(k) for k in arrays if k.startswith("train.isometry.")},
+        notes={k[len("train.notes.") :]: float(v) for k, v in meta.items() if k.startswith("train.notes.")},
     )

@@ -69,8 +69,8 @@ def moving_fraction(resid_w: torch.Tensor, seen: torch.Tensor, threshold_px: flo
 
 def rigid_part(model: AvatarModel) -> tuple[AvatarModel, torch.Tensor]:
     """``model`` without its non-rigid part: the same Gaussians, colour and skeleton under LBS only
-    (no motion columns, no temporal opacity), and the rows kept (Gaussians on a finite temporal
-    window model one moment and are dropped)."""
+    (no motion columns, no temporal opacity; the same light where it is shaded), and the rows
+    kept (Gaussians on a finite temporal window model one moment and are dropped)."""
     table = model.table
     keep = torch.ones(table.num, dtype=torch.bool, device=model.device)
     if "t_log_scale" in table:
@@ -84,6 +84,8 @@ def rigid_part(model: AvatarModel) -> tuple[AvatarModel, torch.Tensor]:
     ).to(model.device)
     if model.color_mlp is not None:
         rigid.color_mlp.load_state_dict(model.color_mlp.state_dict())
+    if model.shading is not None:  # the same learned light and mean training orientation
+        rigid.shading.load_state_dict(model.shading.state_dict())
     return rigid, keep
 
 

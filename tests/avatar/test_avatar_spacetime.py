@@ -12,6 +12,7 @@ from stg_node.avatar.gaussians import GaussianTable, new_columns
 
 
 def _table(n=5, seed=0, **model):
+    model.setdefault("motion_basis", 0)  # per-Gaussian polynomials (the shared bases: motion_priors tests)
     cfg = ModelConfig(num_gaussians=n, max_gaussians=max(n, 10), **model)
     gen = torch.Generator().manual_seed(seed)
     cols = new_columns(

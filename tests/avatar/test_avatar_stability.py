@@ -95,7 +95,8 @@ def ten_thousand(tiny_frames):
     def prepare(trainer):
         _open_motion(trainer, (0.0, u_end / 2, u_end))
 
-    return frames, _train(frames, small_config(iterations=40), prepare=prepare)
+    # Per-Gaussian polynomials: their bounded local time is what is tested at the far ends.
+    return frames, _train(frames, small_config(iterations=40, **{"model.motion_basis": 0}), prepare=prepare)
 
 
 def test_ten_thousand_frames_train_and_render_at_both_ends(ten_thousand):
