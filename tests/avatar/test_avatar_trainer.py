@@ -123,8 +123,13 @@ def test_resumed_checkpoint_continues_exactly_like_the_uninterrupted_run(tiny_fr
     config = small_config(iterations=50, lr_pose=1e-4)
     straight = _train(tiny_frames, config)
     first = _train(tiny_frames, config, steps=25)
+    first.notes = {"wall_s": 12.5}
     path = first.save(tmp_path / "ck.stgsnap")
     resumed = Trainer.load(path)
+    # The caller's notes and the isometry loss's neighbour graph come back as they were saved.
+    assert resumed.notes == {"wall_s": 12.5}
+    assert first.isometry.neighbours is not None
+    assert torch.equal(resumed.isometry.neighbours, first.isometry.neighbours)
     resumed.add_frames(tiny_frames)
     assert resumed.iteration == 25
     for _ in range(25):
