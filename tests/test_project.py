@@ -43,3 +43,56 @@ def test_markers_are_declared():
     declared = {m.split(":")[0] for m in ini["markers"]}
     assert {"slow", "gpu"} <= declared
     assert "not slow" in ini["addopts"]
+
+
+def _import_graph() -> dict[str, set[str]]:
+    """stg_node's modules -> the stg_node modules they import (at the top or inside functions)."""
+    import ast
+
+    package = ROOT / "stg_node"
+    modules = {}
+    for path in package.rglob("*.py"):
+        parts = path.relative_to(ROOT).with_suffix("").parts
+        modules[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+    graph = {}
+    for name, path in modules.items():
+        deps = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                for alias in node.names:
+                    child = f"{node.module}.{alias.name}"
+                    deps.add(child if child in modules else node.module)
+            elif isinstance(node, ast.Import):
+                deps.update(alias.name for alias in node.names)
+        graph[name] = {d for d in deps if d in modules and d != name}
+    return graph
+
+
+def _cycle(graph: dict[str, set[str]]) -> list[str] | None:
+    """One import cycle of ``graph`` (depth-first search), or None."""
+    state: dict[str, int] = {}  # 1: on the current path, 2: done
+    path: list[str] = []
+
+    def visit(node: str) -> list[str] | None:
+        state[node] = 1
+        path.append(node)
+        for dep in sorted(graph[node]):
+            if state.get(dep) == 1:
+                return path[path.index(dep) :] + [dep]
+            if dep not in state and (found := visit(dep)):
+                return found
+        path.pop()
+        state[node] = 2
+        return None
+
+    for node in sorted(graph):
+        if node not in state and (found := visit(node)):
+            return found
+    return None
+
+
+def test_the_package_has_no_import_cycles():
+    """Not even through imports inside functions (checkpoint.py and trainer.py once imported each other)."""
+    assert _cycle(_import_graph()) is None, " -> ".join(_cycle(_import_graph()))
+    assert _cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]  # the search finds one
+    assert "stg_node.avatar.checkpoint" in _import_graph()["stg_node.avatar.trainer"]

@@ -37,7 +37,11 @@ def test_grid_holds_every_preset_and_ablation_the_issue_names():
     orders = {
         rows[f"n_p{k}"].alias_of or rows[f"n_p{k}"].config(tradeoff.FULL).model.motion_order for k in range(4)
     }
-    assert orders == {0, 1, 3, "preset_fast"} and base.model.motion_order == 2
+    assert orders == {0, 1, 3, "polynomial"} and base.model.motion_order == 2
+    # The motion order ablations are of the per-Gaussian polynomials; the default shares motion bases.
+    assert rows["polynomial"].config(tradeoff.FULL).model.n_p == 2 and base.model.n_b == 24
+    assert rows["n_p3"].config(tradeoff.FULL).model.motion_basis == 0
+    assert rows["forced_on"].config(tradeoff.FULL).nonrigid == "on" and base.nonrigid == "auto"
     assert (
         rows["n_q0"].config(tradeoff.FULL).model.rotation_order == 0
         and rows["n_q1"].alias_of == "preset_fast"
@@ -139,6 +143,11 @@ def _check_sane(record: dict) -> None:
         assert scores["views"] > 0
         if scores["fast_pixels"]:
             assert 3.0 < scores["fast_psnr"] < 60.0, (name, split)
+        # The garment is seen in every split of every subject (the shirt's front or back).
+        assert 0.05 < scores["garment_fraction_of_body"] < 0.8, (name, split)
+        assert 3.0 < scores["garment_psnr"] < 60.0, (name, split)
+    on = record["train"]["active_on_garment_fraction"]
+    assert (math.isnan(on) and record["train"]["active_motion_count"] == 0) or 0.0 <= on <= 1.0, name
 
 
 def _check_outputs(tmp_path: Path, expect_measured: set[str]) -> dict:

@@ -27,7 +27,10 @@ open (``--out/runs/NAME``), and is scored:
 - PSNR on the fast-moving regions only: pixels whose true motion (the benchmark's ground-truth
   vertices of this frame and the next, projected into the evaluation camera and rasterized:
   :mod:`stg_node.data.synth.true_flow`) exceeds 5 px per frame at 512 x 512 (scaled with the
-  image width), the squared errors of those pixels pooled over the split's views.
+  image width), the squared errors of those pixels pooled over the split's views;
+- PSNR on the garment's pixels only: where the true surface seen is the loose cloth
+  (:mod:`stg_node.data.synth.garment_truth`), pooled the same way; and the fraction of the
+  Gaussians with active motion terms that lie on the garment.
 
 Each configuration's result is kept in ``--out/results/NAME.json`` with a fingerprint of its
 settings and data: a re-run (or a run resumed after Ctrl-C) skips what is already measured;
@@ -64,7 +67,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 log = logging.getLogger("tradeoff")
 
-RESULT_VERSION = 1
+RESULT_VERSION = 2  # 2: garment PSNR, active motion on the garment, the non-rigid choice
 LPIPS_NET = "alex"
 
 
@@ -173,10 +176,12 @@ ITERATION_KEYS = (
     "loss.warmup_iters",
     "densify.start_iter",
     "densify.interval",
+    "densify.gate_start_iter",
     "densify.flow_interval",
     "sh_increase_every",
     "checkpoint_every",
     "log_every",
+    "nonrigid_decide_iter",
 )
 GAUSSIAN_KEYS = ("model.num_gaussians", "model.max_gaussians", "densify.flow_max_new")
 # Settings in pixels of the 512 x 512 benchmark (scaled with the image width), and whether integer.
@@ -184,6 +189,7 @@ PIXEL_KEYS = {
     "densify.motion_floor_px": False,
     "densify.region_px": True,
     "densify.flow_consistency_px": False,
+    "densify.residual_motion_px": False,
     "crop_margin_px": True,
 }
 
@@ -237,18 +243,37 @@ def grid(base: str = "fast") -> list[Configuration]:
     if base not in PRESETS:
         raise ValueError(f"--base must be one of {', '.join(PRESETS)}, got {base!r}")
     b = preset(base)
-    n_p, n_q = b.model.motion_order, b.model.rotation_order
+    n_p, n_q, n_b = b.model.motion_order, b.model.rotation_order, b.model.motion_basis
     budget = (b.model.num_gaussians, b.model.max_gaussians)
     full = f"preset_{base}"
     rows = [Configuration(f"preset_{p}", f"{p} (preset)", "preset", "dance", p) for p in PRESETS]
+    # The paper's per-Gaussian polynomials (STG), as the previous default ran them: every ablation
+    # of the motion's polynomial order (n_p) is of this model.
+    poly = {"model.motion_basis": 0, "densify.motion_signal": "flow", "nonrigid": "on"}
     ablations = [
         Configuration(
             f"full_{base}",
-            f"full model (= {base}: n_p={n_p}, n_q={n_q}, MLP, flow-guided)",
+            f"full model (= {base}: {n_b} shared motion bases, n_q={n_q}, MLP, flow-guided, the trial)",
             "ablation",
             "dance",
             base,
             alias_of=full,
+        ),
+        Configuration(
+            "polynomial",
+            f"per-Gaussian polynomials (STG: n_p={n_p}, n_q={n_q}), local rigidity, no trial",
+            "ablation",
+            "dance",
+            base,
+            poly,
+        ),
+        Configuration(
+            "forced_on",
+            "non-rigid part forced on (nonrigid=on: no trial)",
+            "ablation",
+            "dance",
+            base,
+            {"nonrigid": "on"},
         ),
         Configuration(
             "lbs_only",
@@ -270,18 +295,19 @@ def grid(base: str = "fast") -> list[Configuration]:
             "sh_color", "SH colour instead of the MLP", "ablation", "dance", base, {"model.color": "sh"}
         ),
     ]
-    for symbol, key, orders, current in (
-        ("n_p", "model.motion_order", range(4), n_p),
-        ("n_q", "model.rotation_order", range(2), n_q),
+    for symbol, key, orders, current, same, extra in (
+        ("n_p", "model.motion_order", range(4), n_p, "polynomial", poly),
+        ("n_q", "model.rotation_order", range(2), n_q, full, {}),
     ):
         for order in orders:
-            name, label = f"{symbol}{order}", f"{symbol} = {order}"
-            if order == current:  # the base itself: the same run, shown again in its series
+            name, label = f"{symbol}{order}", f"{symbol} = {order}" + (" (polynomials)" if extra else "")
+            if order == current:  # the same run as another row, shown again in its series
                 ablations.append(
-                    Configuration(name, f"{label} (= {base})", "ablation", "dance", base, alias_of=full)
+                    Configuration(name, f"{label} (= {same})", "ablation", "dance", base, alias_of=same)
                 )
             else:
-                ablations.append(Configuration(name, label, "ablation", "dance", base, {key: order}))
+                changes = extra | {key: order}
+                ablations.append(Configuration(name, label, "ablation", "dance", base, changes))
     for name, factor, word in (("budget_half", 0.5, "halved"), ("budget_double", 2.0, "doubled")):
         changes = {
             "model.num_gaussians": round(budget[0] * factor),
@@ -456,17 +482,12 @@ def _motions(test_motion: str | None) -> list[str] | None:
     return list(held_out_motions(test_motion)) or None
 
 
-def fast_regions(folder: Path, scale: Scale) -> dict[str, dict[tuple[int, str], object]]:
-    """Per split, (frame, camera name) -> (H, W) bool fast-moving pixels; cached beside the data."""
+def _cached_regions(folder: Path, scale: Scale, cache: Path, region_of) -> dict[str, dict]:
+    """Per split, (frame, camera name) -> (H, W) bool ``region_of(sample)``; cached in ``cache``."""
     import numpy as np
 
     from stg_node.avatar.data_spec import DataSpec
-    from stg_node.body import load_body_model
-    from stg_node.data.synth.true_flow import benchmark_true_flow, fast_region
-    from stg_node.data.synth.writer import read_metadata
 
-    threshold = scale.fast_threshold_px
-    cache = folder / f"fast_regions_{threshold:.3f}px.npz"
     regions: dict[str, dict] = {"novel_view": {}, "novel_pose": {}}
     if cache.is_file():
         with np.load(cache) as stored:
@@ -476,21 +497,63 @@ def fast_regions(folder: Path, scale: Scale) -> dict[str, dict[tuple[int, str], 
                     np.unpackbits(stored[key])[: scale.size**2].reshape(scale.size, scale.size).astype(bool)
                 )
         return regions
-    meta = read_metadata(folder)
-    faces = load_body_model().faces.cpu().numpy()
     spec = DataSpec(str(folder), "synthetic", size=scale.size)
-    cuts = tuple((meta.get("held_out") or {}).get("cuts", ()))
     packed = {}
     for split in regions:
         for sample in spec.open(split):
-            flow = benchmark_true_flow(
-                folder, sample.index, sample.camera, faces, int(meta["num_frames"]), cuts=cuts
-            )
-            region = fast_region(flow, threshold)
+            region = region_of(sample)
             regions[split][(sample.index, sample.camera.name)] = region
             packed[f"{split}|{sample.index}|{sample.camera.name}"] = np.packbits(region)
     np.savez_compressed(cache, **packed)
     return regions
+
+
+def fast_regions(folder: Path, scale: Scale) -> dict[str, dict[tuple[int, str], object]]:
+    """Per split, (frame, camera name) -> (H, W) bool fast-moving pixels; cached beside the data."""
+    from stg_node.body import load_body_model
+    from stg_node.data.synth.true_flow import benchmark_true_flow, fast_region
+    from stg_node.data.synth.writer import read_metadata
+
+    threshold = scale.fast_threshold_px
+    meta = read_metadata(folder)
+    faces = load_body_model().faces.cpu().numpy()
+    cuts = tuple((meta.get("held_out") or {}).get("cuts", ()))
+
+    def region_of(sample):
+        flow = benchmark_true_flow(
+            folder, sample.index, sample.camera, faces, int(meta["num_frames"]), cuts=cuts
+        )
+        return fast_region(flow, threshold)
+
+    return _cached_regions(folder, scale, folder / f"fast_regions_{threshold:.3f}px.npz", region_of)
+
+
+def garment_regions(folder: Path, scale: Scale) -> dict[str, dict[tuple[int, str], object]]:
+    """Per split, (frame, camera) -> (H, W) bool pixels where the garment is seen; cached with the data."""
+    from stg_node.body import load_body_model
+    from stg_node.data.synth.garment_truth import benchmark_garment_pixels, benchmark_looseness, garment_faces
+
+    body = load_body_model()
+    faces = body.faces.cpu().numpy()
+    is_garment = garment_faces(faces, benchmark_looseness(folder, body))
+
+    def region_of(sample):
+        return benchmark_garment_pixels(folder, sample.index, sample.camera, faces, is_garment)
+
+    return _cached_regions(folder, scale, folder / "garment_regions.npz", region_of)
+
+
+def active_on_garment(trainer, folder: Path) -> dict:
+    """How many of the Gaussians with active motion terms lie on the garment (synthetic ground truth)."""
+    from stg_node.data.synth.garment_truth import benchmark_looseness, on_garment
+
+    table = trainer.model.table
+    active = table.motion_active()
+    if not bool(active.any()):
+        return {"active_on_garment": 0, "active_on_garment_fraction": float("nan")}
+    looseness = benchmark_looseness(folder, trainer.body)
+    on = on_garment(table["means"].detach()[active].cpu(), trainer.canonical_vertices.cpu(), looseness)
+    return {"active_on_garment": int(on.sum()), "active_on_garment_fraction": float(on.mean())}
 
 
 # --- measuring one configuration ----------------------------------------------------------------
@@ -566,7 +629,9 @@ def train_run(row: Configuration, config, data: Path, run_dir: Path, scale: Scal
         "preset": config.preset,
         **stats,
         "active_motion_count": round(stats["active_motion_fraction"] * stats["gaussians"]),
-        "densify": dict(trainer.densifier.counts),
+        "densify": trainer.densify_counts,
+        "nonrigid": trainer.nonrigid_report(),
+        **active_on_garment(trainer, data),
     }
     write_json(run.summary, summary)
     return summary
@@ -626,9 +691,10 @@ def measure_render(run_dir: Path, scale: Scale, loaded=None) -> dict:
     return out
 
 
-def evaluate_run(run_dir: Path, regions: dict, scale: Scale) -> dict:
+def evaluate_run(run_dir: Path, regions: dict, scale: Scale, garment: dict | None = None) -> dict:
     """Quality on both held-out splits (stg-eval's protocol), fast-region and per-body-part PSNR,
-    the benchmark's condition (held-out distances), render speed."""
+    the benchmark's condition (held-out distances), render speed; with ``garment`` (split -> (frame,
+    camera) -> mask), the garment's PSNR pooled the same way as the body parts'."""
     import numpy as np
 
     from stg_node.avatar.evaluate import evaluate_split
@@ -653,7 +719,7 @@ def evaluate_run(run_dir: Path, regions: dict, scale: Scale) -> dict:
             pose_corrections=corrections if split == "novel_view" else None,
             show_progress=False,
             keep_images=len(dataset),
-            regions=labeller.regions,
+            regions=labeller.regions if garment is None else _with_garment(labeller.regions, garment[split]),
         )
         pred_px, gt_px, body_px = [], [], 0
         for index, camera, pred, gt in kept:
@@ -670,14 +736,30 @@ def evaluate_run(run_dir: Path, regions: dict, scale: Scale) -> dict:
             "fast_pixels": int(fast[0].shape[0]),
             "fast_fraction_of_body": fast[0].shape[0] / max(body_px, 1),
             "fast_psnr": psnr(fast[0][None], fast[1][None]) if fast[0].shape[0] else math.nan,
-            "parts": {name: value["psnr"] for name, value in report["regions"].items()},
+            "parts": {name: value["psnr"] for name, value in report["regions"].items() if name != "garment"},
             "protocol": report["protocol"],
         }
+        if garment is not None:
+            seen = report["regions"].get("garment", {"psnr": math.nan, "pixels": 0})
+            out[split] |= {
+                "garment_psnr": seen["psnr"],
+                "garment_pixels": seen["pixels"],
+                "garment_fraction_of_body": seen["pixels"] / max(body_px, 1),
+            }
         if split == "novel_pose":
             frames = sorted({int(f) for f in dataset.frames})
             out["condition"] = benchmark_condition(read_metadata(Path(spec.root)), frames)
     out["render"] = measure_render(run_dir, scale, loaded)
     return out
+
+
+def _with_garment(parts, masks: dict):
+    """The body-part labeller's regions of a view plus its garment pixels (as one more region)."""
+
+    def regions(frame: int, camera) -> dict:
+        return parts(frame, camera) | {"garment": masks[(frame, camera.name)]}
+
+    return regions
 
 
 def machine() -> dict:
@@ -702,7 +784,9 @@ def machine() -> dict:
     return record
 
 
-def measure(row: Configuration, scale: Scale, args, regions_by_subject: dict, data: dict) -> dict:
+def measure(
+    row: Configuration, scale: Scale, args, regions_by_subject: dict, data: dict, garment_by_subject=None
+) -> dict:
     """Train and score one configuration, or read its result if already measured with these settings."""
     from stg_node.avatar.run import write_json
 
@@ -723,7 +807,8 @@ def measure(row: Configuration, scale: Scale, args, regions_by_subject: dict, da
     log.info("%s: training %d iterations on the %s subject", row.name, config.iterations, row.subject)
     run_dir = Path(args.out) / "runs" / row.name
     summary = train_run(row, config, data[row.subject], run_dir, scale, args)
-    scores = evaluate_run(run_dir, regions_by_subject[row.subject], scale)
+    garment = (garment_by_subject or {}).get(row.subject)
+    scores = evaluate_run(run_dir, regions_by_subject[row.subject], scale, garment)
     result = {
         "name": row.name,
         "label": row.label,
@@ -845,15 +930,16 @@ def run(args: argparse.Namespace, argv: list[str]) -> int:
     )
     selected = [r for r in rows if not r.alias_of and (not args.only or r.name in args.only)]
     subjects = sorted({r.subject for r in selected}, key=list(SUBJECTS).index)
-    data, regions = {}, {}
+    data, regions, garment = {}, {}, {}
     for subject in progress(subjects, desc="subjects", unit="subject", enabled=not args.no_progress):
         data[subject] = ensure_subject(cache, subject, scale, fresh=args.fresh)
         regions[subject] = fast_regions(data[subject], scale)
+        garment[subject] = garment_regions(data[subject], scale)
     results = {}
     bar = progress(desc="configurations", unit="config", total=len(selected), enabled=not args.no_progress)
     for row in selected:
         bar.set_postfix(config=row.name, refresh=True)
-        results[row.name] = measure(row, scale, args, regions, data)
+        results[row.name] = measure(row, scale, args, regions, data, garment)
         bar.update(1)
     bar.close()
     # Rows measured earlier with the same settings (a partial --only run) join the report.

@@ -2,22 +2,29 @@
 
 What the model needs is the published snapshot (snapshot.py); a checkpoint adds, as ``train.*``
 arrays and meta: the Adam moments of every column and dense module, the densification
-statistics, the per-frame pose corrections, the adaptive-weight averages, the counters, and
-the TrainConfig (JSON bytes, the frame store's bound ``max_frames`` with it), the subject's betas
-(to rebuild the canonical mesh) and the caller's ``notes``. Frames are not
-saved: ``stg-train --resume`` re-reads them from the dataset, the online trainer from the
-stream. Because every random choice of step k is a function of (seed, k), a run resumed at
-checkpoint k is the uninterrupted run.
+strategy's state dict, the isometry loss's state, the per-frame pose corrections, the
+adaptive-weight averages, the counters, the caller's ``notes``, and the TrainConfig (the frame
+store's bound ``max_frames`` with it) with what the trainer decided about the non-rigid part (JSON
+bytes) and the subject's betas (to rebuild the canonical mesh). Frames are not saved:
+``stg-train --resume`` re-reads them from the dataset, the online trainer from the stream.
+Because every random choice of step k is a function of (seed, k), a run resumed at checkpoint k
+is the uninterrupted run.
+
+One direction: the trainer gathers its state into a :class:`TrainingState` and hands it to
+:func:`save`; :func:`load` returns one that the trainer rebuilds itself from. Nothing here
+knows the Trainer.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from stg_node.avatar.config import TrainConfig
+from stg_node.avatar.model import AvatarModel
 from stg_node.avatar.snapshot import (
     array_to_json,
     json_to_array,
@@ -28,139 +35,138 @@ from stg_node.avatar.snapshot import (
 )
 
 STATE_KEYS = ("exp_avg", "exp_avg_sq")
+AdamState = dict[str, torch.Tensor]  # step, exp_avg, exp_avg_sq
+
+
+@dataclass
+class TrainingState:
+    """Everything a trainer needs to continue exactly (besides its frames)."""
+
+    model: AvatarModel
+    config: TrainConfig
+    body_model: str  # what finds the body again: a path, or "open"
+    seed: int
+    betas: torch.Tensor  # (1, S)
+    iteration: int = 0
+    train_seconds: float = 0.0
+    skipped_steps: int = 0
+    frames_seen: int = 0
+    model_version: int = 0
+    table_adam: dict[str, AdamState] = field(default_factory=dict)  # column -> Adam state
+    dense_adam: dict[str, AdamState] = field(default_factory=dict)  # "group.i" -> Adam state
+    pose_deltas: torch.Tensor | None = None  # (slots, 75)
+    pose_frames: list[int] = field(default_factory=list)  # frame number of each slot
+    densify: dict[str, torch.Tensor] = field(default_factory=dict)  # the strategy's state dict
+    loss_ema: dict[str, float] = field(default_factory=dict)
+    nonrigid: dict = field(default_factory=dict)  # the trainer's decision about the non-rigid part
+    isometry: dict[str, torch.Tensor] = field(default_factory=dict)  # the isometry loss's state arrays
+    notes: dict[str, float] = field(default_factory=dict)  # the caller's figures (e.g. wall time)
 
 
 def _np(t: torch.Tensor) -> np.ndarray:
     return np.ascontiguousarray(t.detach().to("cpu", torch.float32).numpy())
 
 
-def training_state(trainer) -> tuple[dict, dict]:
+def _adam_arrays(prefix: str, states: dict[str, AdamState], arrays: dict, meta: dict) -> None:
+    for name, state in states.items():
+        for key in STATE_KEYS:
+            arrays[f"{prefix}.{name}.{key}"] = _np(state[key])
+        meta[f"{prefix}.{name}.step"] = float(state["step"])
+
+
+def _adam_states(prefix: str, arrays: dict, meta: dict, tensor) -> dict[str, AdamState]:
+    out = {}
+    for key in meta:
+        if key.startswith(prefix + ".") and key.endswith(".step"):
+            name = key[len(prefix) + 1 : -len(".step")]
+            out[name] = {
+                "step": torch.tensor(meta[key]),
+                **{k: tensor(f"{prefix}.{name}.{k}") for k in STATE_KEYS},
+            }
+    return out
+
+
+def save(path: str | Path, state: TrainingState) -> Path:
+    """Write ``state`` as one snapshot file (atomic: temporary file, fsync, rename)."""
     arrays: dict[str, np.ndarray] = {}
     meta: dict[str, float] = {
-        "train.iteration": float(trainer.iteration),
-        "train.seconds": float(trainer.train_seconds),
-        "train.skipped": float(trainer.skipped_steps),
-        "train.seed": float(trainer.seed),
-        "train.frames_seen": float(trainer.store.seen),
+        "train.iteration": float(state.iteration),
+        "train.seconds": float(state.train_seconds),
+        "train.skipped": float(state.skipped_steps),
+        "train.seed": float(state.seed),
+        "train.frames_seen": float(state.frames_seen),
     }
     arrays["train.config_json"] = json_to_array(
-        {"config": trainer.config.to_dict(), "body_model": trainer.body_reference}
+        {"config": state.config.to_dict(), "body_model": state.body_model, "nonrigid": state.nonrigid}
     )
-    arrays["train.betas"] = _np(trainer.betas).reshape(-1)
-    for name, state in trainer.optimizer.table_state().items():
-        for key in STATE_KEYS:
-            arrays[f"train.adam.{name}.{key}"] = _np(state[key])
-        meta[f"train.adam.{name}.step"] = float(state["step"])
-    if trainer.optimizer.dense is not None:
-        for group in trainer.optimizer.dense.param_groups:
-            for i, p in enumerate(group["params"]):
-                state = trainer.optimizer.dense.state.get(p)
-                if not state:
-                    continue
-                for key in STATE_KEYS:
-                    arrays[f"train.dense.{group['name']}.{i}.{key}"] = _np(state[key])
-                meta[f"train.dense.{group['name']}.{i}.step"] = float(state["step"])
-    if trainer.pose_deltas is not None:
-        arrays["train.pose_deltas"] = _np(trainer.pose_deltas)
-        slots = sorted(trainer.pose_slots.items(), key=lambda kv: kv[1])
-        arrays["train.pose_frames"] = np.asarray([f for f, _ in slots], np.float32)
-    d = trainer.densifier
-    for name, value in d.state_arrays().items():
+    arrays["train.betas"] = _np(state.betas).reshape(-1)
+    _adam_arrays("train.adam", state.table_adam, arrays, meta)
+    _adam_arrays("train.dense", state.dense_adam, arrays, meta)
+    if state.pose_deltas is not None:
+        arrays["train.pose_deltas"] = _np(state.pose_deltas)
+        arrays["train.pose_frames"] = np.asarray(state.pose_frames, np.float32)
+    for name, value in state.densify.items():
         arrays[f"train.densify.{name}"] = _np(value)
-    if d.initial_part_counts is not None:
-        arrays["train.densify.initial_parts"] = _np(d.initial_part_counts)
-    meta["train.densify.steps_seen"] = float(d.steps_seen)
-    for name, value in trainer.isometry.state_arrays().items():
-        arrays[f"train.isometry.{name}"] = _np(value)
-    for name, value in d.counts.items():
-        meta[f"train.densify.count.{name}"] = float(value)
-    for name, value in trainer.weights.ema.items():
+    for name, value in state.loss_ema.items():
         meta[f"train.ema.{name}"] = float(value)
-    for name, value in trainer.notes.items():
+    for name, value in state.isometry.items():
+        arrays[f"train.isometry.{name}"] = _np(value)
+    for name, value in state.notes.items():
         meta[f"train.notes.{name}"] = float(value)
-    return arrays, meta
-
-
-def save(trainer, path: str | Path) -> Path:
-    arrays, meta = training_state(trainer)
     msg = to_snapshot(
-        trainer.model,
-        iteration=trainer.iteration,
-        model_version=trainer.model_version,
+        state.model,
+        iteration=state.iteration,
+        model_version=state.model_version,
         extra_arrays=arrays,
         extra_meta=meta,
     )
     return write_snapshot_file(path, msg)
 
 
-def load(path: str | Path, *, body_model=None, device="cpu", backend="auto", flow_cache=None, config=None):
-    """A Trainer continuing exactly where the checkpoint at ``path`` stopped."""
-    from stg_node.avatar.trainer import Trainer
-
+def load(path: str | Path, *, device="cpu") -> TrainingState:
+    """The training state in the checkpoint at ``path`` (tensors on ``device``)."""
     msg = read_snapshot_file(path)
     arrays, meta = msg.arrays, msg.meta
     if "train.config_json" not in arrays:
         raise ValueError(f"{path} is a published snapshot, not a training checkpoint (no train.* state)")
     stored = array_to_json(arrays["train.config_json"])
-    cfg = config or TrainConfig.from_dict(stored["config"])
-    body = body_model if body_model is not None else stored.get("body_model")
-    trainer = Trainer(
-        cfg, body, device=device, backend=backend, seed=int(meta["train.seed"]), flow_cache=flow_cache
-    )
-    dev = trainer.device
+    dev = torch.device(device)
 
-    def t(name):
+    def tensor(name):
         return torch.as_tensor(np.array(arrays[name], np.float32), device=dev)
 
-    model = model_from_snapshot(msg, device=dev)
-    trainer.attach_model(model, t("train.betas")[None])
-    if "train.pose_deltas" in arrays:
-        frames = [int(f) for f in np.asarray(arrays["train.pose_frames"])]
-        trainer.pose_slots = {f: i for i, f in enumerate(frames)}
-        trainer.pose_deltas = torch.nn.Parameter(t("train.pose_deltas"))
-    trainer._build_optimizer()
-    table_states = {}
-    for name in model.table.trainable_names():
-        key = f"train.adam.{name}.step"
-        if key in meta:
-            table_states[name] = {
-                "step": torch.tensor(meta[key]),
-                **{k: t(f"train.adam.{name}.{k}") for k in STATE_KEYS},
-            }
-    trainer.optimizer.load_table_state(table_states)
-    if trainer.optimizer.dense is not None:
-        for group in trainer.optimizer.dense.param_groups:
-            for i, p in enumerate(group["params"]):
-                key = f"train.dense.{group['name']}.{i}.step"
-                if key in meta:
-                    trainer.optimizer.dense.state[p] = {
-                        "step": torch.tensor(meta[key]),
-                        **{k: t(f"train.dense.{group['name']}.{i}.{k}") for k in STATE_KEYS},
-                    }
-    d = trainer.densifier
-    d.reset(model)
-    d.load_state_arrays(
-        {n: t(f"train.densify.{n}") for n in d.STATE if f"train.densify.{n}" in arrays},
-        int(meta.get("train.densify.steps_seen", 0)),
+    densify = {
+        name[len("train.densify.") :]: tensor(name) for name in arrays if name.startswith("train.densify.")
+    }
+    # Checkpoints written before the strategy kept one state dict held these as meta.
+    if "initial_parts" in densify:
+        densify["initial_part_counts"] = densify.pop("initial_parts")
+    for key, value in meta.items():
+        if key == "train.densify.steps_seen":
+            densify["steps_seen"] = torch.tensor([float(value)], device=dev)
+        elif key.startswith("train.densify.count."):
+            densify["count." + key[len("train.densify.count.") :]] = torch.tensor([float(value)], device=dev)
+    pose_frames = []
+    if "train.pose_frames" in arrays:
+        pose_frames = [int(f) for f in np.asarray(arrays["train.pose_frames"])]
+    return TrainingState(
+        model=model_from_snapshot(msg, device=dev),
+        config=TrainConfig.from_dict(stored["config"]),
+        body_model=stored.get("body_model"),
+        seed=int(meta["train.seed"]),
+        betas=tensor("train.betas")[None],
+        iteration=int(meta["train.iteration"]),
+        train_seconds=float(meta["train.seconds"]),
+        skipped_steps=int(meta["train.skipped"]),
+        frames_seen=int(meta.get("train.frames_seen", 0)),
+        model_version=int(msg.model_version),
+        table_adam=_adam_states("train.adam", arrays, meta, tensor),
+        dense_adam=_adam_states("train.dense", arrays, meta, tensor),
+        pose_deltas=tensor("train.pose_deltas") if "train.pose_deltas" in arrays else None,
+        pose_frames=pose_frames,
+        densify=densify,
+        loss_ema={k[len("train.ema.") :]: float(v) for k, v in meta.items() if k.startswith("train.ema.")},
+        nonrigid=dict(stored.get("nonrigid") or {}),
+        isometry={k[len("train.isometry.") :]: tensor(k) for k in arrays if k.startswith("train.isometry.")},
+        notes={k[len("train.notes.") :]: float(v) for k, v in meta.items() if k.startswith("train.notes.")},
     )
-    if "train.densify.initial_parts" in arrays:
-        d.initial_part_counts = t("train.densify.initial_parts")
-    d.counts = {
-        k[len("train.densify.count.") :]: int(v)
-        for k, v in meta.items()
-        if k.startswith("train.densify.count.")
-    }
-    trainer.weights.ema = {
-        k[len("train.ema.") :]: float(v) for k, v in meta.items() if k.startswith("train.ema.")
-    }
-    trainer.notes = {
-        k[len("train.notes.") :]: float(v) for k, v in meta.items() if k.startswith("train.notes.")
-    }
-    trainer.isometry.load_state_arrays(
-        {k[len("train.isometry.") :]: t(k) for k in arrays if k.startswith("train.isometry.")}, model.table
-    )
-    trainer.iteration = int(meta["train.iteration"])
-    trainer.train_seconds = float(meta["train.seconds"])
-    trainer.skipped_steps = int(meta["train.skipped"])
-    trainer.model_version = int(msg.model_version)
-    return trainer

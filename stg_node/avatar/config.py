@@ -19,12 +19,17 @@ from dataclasses import dataclass, field
 
 COLOR_MODES = ("mlp", "sh")
 SKIN_INIT = ("barycentric", "nearest")
+NONRIGID_MODES = ("auto", "on", "off")
+# What switching the non-rigid part off sets: LBS only (no spacetime terms, no flow-guided densification).
+LBS_ONLY = {"model.spacetime": False, "densify.flow_guided": False}
 LIGHT_MODELS = ("distant", "sh")  # the learned light: an ambient term and distant lights, or free SH
 # What settings added later mean for a model or configuration written before they existed: the
 # behaviour it was trained with (snapshot.model_config_from_meta, TrainConfig.from_dict).
+# A group's entries are a dict; a top-level setting's entry is its value.
 PREDATING_DEFAULTS = {
-    "model": {"shading": False, "init_flatness": 1.0, "max_scale_ratio": 0.0},
+    "model": {"shading": False, "init_flatness": 1.0, "max_scale_ratio": 0.0, "motion_basis": 0},
     "loss": {"isometry": 0.0},
+    "nonrigid": "on",  # runs stored before the trial kept their non-rigid part
 }
 
 
@@ -43,6 +48,11 @@ class ModelConfig:
     time_unit_s: float = 1.0  # one unit of the normalised time axis, in seconds
     time_horizon: float = 1.0  # local time is bounded to +-horizon units (tanh), so polynomials stay bounded
     init_time_scale: float = 1e3  # temporal scale of the initial Gaussians (units): present at all times
+    # Shared motion bases (motion_basis.py): B > 0 replaces the per-Gaussian offset polynomial by
+    # per-Gaussian mixtures of B shared affine motions (24: one per bone, GART's latent bones),
+    # piecewise linear in time over knots basis_knot_s apart.
+    motion_basis: int = 24
+    basis_knot_s: float = 1.0 / 15.0
     # Colour: "mlp" (the paper's light MLP) or "sh" (per-Gaussian spherical harmonics).
     color: str = "mlp"
     sh_degree: int = 1  # view dependence (SH mode: per-Gaussian coefficients; MLP mode: direction encoding)
@@ -86,11 +96,21 @@ class ModelConfig:
             raise ValueError(f"sh_degree must be 0..3, got {self.sh_degree}")
         if self.time_unit_s <= 0 or self.time_horizon <= 0 or self.init_time_scale <= 0:
             raise ValueError("time_unit_s, time_horizon and init_time_scale must be > 0")
+        if not 0 <= self.motion_basis <= 24 or not self.basis_knot_s > 0:
+            raise ValueError(
+                f"motion_basis must be 0..24 and basis_knot_s > 0, got {self.motion_basis}, "
+                f"{self.basis_knot_s}"
+            )
 
     @property
     def n_p(self) -> int:
-        """Active order of the motion polynomial (0 when spacetime is off)."""
-        return self.motion_order if self.spacetime else 0
+        """Active order of the motion polynomial (0 when spacetime is off or shared bases replace it)."""
+        return self.motion_order if self.spacetime and not self.motion_basis else 0
+
+    @property
+    def n_b(self) -> int:
+        """Shared motion bases in use (0 when spacetime is off)."""
+        return self.motion_basis if self.spacetime else 0
 
     @property
     def n_q(self) -> int:
@@ -108,8 +128,10 @@ class LossConfig:
     flow: float = 0.05  # rendered Gaussian motion vs optical flow (pixels, on valid flow only)
     temporal: float = 0.1  # offsets (cm) and temporal opacities at consecutive frames agree
     rigidity: float = 0.05  # neighbouring Gaussians move together (cm; rigidity.py)
+    line_of_sight: float = 0.0  # motion along the training camera's rays (cm; motion_priors.py)
     motion_sparsity: float = 0.3  # proximal L1 threshold, x the motion learning rate (optim.soft_threshold)
     motion_smooth: float = 1e-3  # higher polynomial orders cost more (|b_ik| (k - 1))
+    basis_smooth: float = 0.01  # shared motion bases: |second difference| of their knots (cm)
     scale: float = 0.01  # penalises scales above scale_max_m
     scale_max_m: float = 0.03
     opacity: float = 0.0  # entropy-style push of opacities towards 0 or 1
@@ -128,6 +150,7 @@ class DensifyConfig:
     start_iter: int = 300
     stop_fraction: float = 0.75  # no densification after this fraction of the iterations
     interval: int = 200
+    gate_start_iter: int = 150  # motion gates are revised every interval from here (densify.py)
     # Mean |dL/dmeans2d| x rendered pixels (AbsGS-style, made independent of the crop's size) that
     # triggers clone/split: about the top 5 % of Gaussians early in training.
     grad_threshold: float = 0.3
@@ -152,6 +175,15 @@ class DensifyConfig:
     flow_noise_m: float = 0.005  # sigma of N(0, sigma^2) added to new centres
     flow_consistency_px: float = 1.5  # reject new Gaussians whose projected motion disagrees with the flow
     flow_max_new: int = 500  # per flow-guided round
+    # A Gaussian sees motion the model misses when the optical flow under it differs from the model's
+    # own rendered motion by more than this (running mean, px per frame): where non-rigid terms may pay.
+    residual_motion_px: float = 1.5
+    # What opens a Gaussian's motion gate (with the image still pulling on it): "residual", flow the
+    # model's own motion misses (> residual_motion_px); "flow", the flow itself (> delta, STG-Avatar's).
+    motion_signal: str = "residual"
+    # Shared motion bases: a static Gaussian also starts to move where moving with its bones' shared
+    # motions would lower the loss: -sum <dL/dx, m> / sum |dL/dx| |m| over an interval above this.
+    motion_help: float = 0.3
     new_time_scale: float = 0.25  # temporal scale (units) of Gaussians added along the flow
     resample_fraction: float = 0.3  # re-sample body parts whose density fell below this x initial
     # Temporal split: a dynamic Gaussian that the image still pulls on is replaced by copies on
@@ -175,7 +207,8 @@ class TrainConfig:
     lr_opacity: float = 5e-2
     lr_color: float = 2.5e-3  # SH coefficients / per-Gaussian features
     lr_mlp: float = 1e-3
-    lr_motion: float = 1e-3
+    lr_motion: float = 1e-3  # offset polynomials, and the shared bases' trajectories (metres)
+    lr_motion_coef: float = 1e-3  # coefficients of the shared motion bases
     lr_rot_motion: float = 1e-3
     lr_time: float = 1e-3
     lr_skin: float = 1e-3
@@ -188,6 +221,19 @@ class TrainConfig:
     checkpoint_every: int = 500
     log_every: int = 10
     max_frames: int = 0  # frames kept for training (0 = all); the online trainer bounds this
+    # Annealed time noise (Deformable 3DGS): the spacetime terms see the frame's time plus N(0, s^2),
+    # s = time_noise_frames frame intervals at the start, falling to 0 at time_noise_until x iterations.
+    time_noise_frames: float = 0.0
+    time_noise_until: float = 0.5
+    # The non-rigid part earns its place (nonrigid.py): "auto" decides at nonrigid_decide_iter whether
+    # it pays on this subject and switches it off when not (LBS only from then on); "on" keeps it;
+    # "off" is LBS only from the start (as model.spacetime=false with densify.flow_guided=false).
+    # Until the decision every nonrigid_holdout_every-th training frame is held out to judge it.
+    nonrigid: str = "auto"
+    nonrigid_decide_iter: int = 600
+    nonrigid_holdout_every: int = 10
+    nonrigid_min_moving: float = 0.05  # share of the Gaussians seeing flow the rigid model misses
+    nonrigid_min_gain_db: float = 0.3  # on the held-out frames' pixels the non-rigid terms change
 
     def validate(self) -> None:
         self.model.validate()
@@ -196,6 +242,8 @@ class TrainConfig:
         for f in dataclasses.fields(self):
             if f.name.startswith("lr_") and getattr(self, f.name) < 0:
                 raise ValueError(f"{f.name} must be >= 0, got {getattr(self, f.name)}")
+        if self.nonrigid not in NONRIGID_MODES:
+            raise ValueError(f"nonrigid must be one of {NONRIGID_MODES}, got {self.nonrigid!r}")
 
     def replace(self, **changes) -> TrainConfig:
         """A copy with top-level fields or dotted sub-fields changed: replace(**{"model.color": "sh"})."""
@@ -216,11 +264,15 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, data: dict) -> TrainConfig:
+        """From :meth:`to_dict`; a setting a stored config lacks (written before it existed) takes the
+        value that reproduces what that run did (PREDATING_DEFAULTS), else its default."""
         data = dict(data)
         groups = {"model": ModelConfig, "loss": LossConfig, "densify": DensifyConfig}
         kwargs = {}
         for f in dataclasses.fields(cls):
             if f.name not in data:
+                if f.name in PREDATING_DEFAULTS and f.name not in groups:
+                    kwargs[f.name] = PREDATING_DEFAULTS[f.name]
                 continue
             value = data[f.name]
             if f.name in groups:

@@ -1,8 +1,13 @@
 """Densification: where the avatar gains and loses Gaussians (gsplat-style strategy, one hook).
 
-The trainer calls :meth:`DensifyStrategy.step_post_backward` after every optimiser step with
-what the step saw (:class:`StepContext`); the strategy keeps per-Gaussian statistics and, on its
-schedule, edits the table through the optimiser (so Adam moments follow the rows).
+As gsplat's strategies (``gsplat/strategy/default.py``), the strategy holds only its settings:
+its statistics live in a *state dict* the caller owns (:meth:`DensifyStrategy.initialize_state`;
+every entry a tensor, so a checkpoint stores it as it is), and everything one step saw comes in
+explicitly as :class:`DensifyInputs` (the rendered view, the body's canonical surface, the
+training frames' time range, the motion threshold). The trainer calls
+:meth:`DensifyStrategy.step_post_backward` after every optimiser step; on its schedule the
+strategy edits the table through the optimiser (so Adam moments follow the rows) and resizes the
+per-Gaussian entries of the state alike.
 
 Underneath, 3DGS's adaptive density control: Gaussians with a large mean screen-space gradient
 (AbsGS: |dL/dmeans2d| summed over pixels) are cloned when small and split in two when large.
@@ -42,9 +47,10 @@ import torch
 import torch.nn.functional as F
 
 from stg_node.avatar.config import DensifyConfig
-from stg_node.avatar.gaussians import new_columns, sample_surface, surface_skin_weights
+from stg_node.avatar.gaussians import MOTION_COLUMNS, new_columns, sample_surface, surface_skin_weights
 from stg_node.avatar.model import conjugate, rotate
-from stg_node.avatar.rigid import blend, blend_rotation
+from stg_node.avatar.motion_basis import MotionBases, initial_coefficients
+from stg_node.avatar.rigid import blend, blend_rotation, blend_weights
 from stg_node.body import lbs
 
 log = logging.getLogger(__name__)
@@ -52,13 +58,20 @@ log = logging.getLogger(__name__)
 W_DECAY = 0.9
 
 
+@dataclass(frozen=True)
+class CanonicalSurface:
+    """The body's surface in the canonical (big) pose: where re-sampling draws new Gaussians."""
+
+    vertices: torch.Tensor  # (V, 3)
+    faces: torch.Tensor  # (F, 3) long
+    vertex_weights: torch.Tensor  # (V, 24) skinning weights of the body
+
+
 @dataclass
-class StepContext:
-    """What one training step hands to the strategy."""
+class DensifyInputs:
+    """What one training step hands to the strategy: everything it reads, explicitly."""
 
     iteration: int
-    model: object  # AvatarModel
-    optimizer: object  # TableOptimizer
     info: dict  # rasterize() info of the step (means2d with .grad/.absgrad, radii, depths)
     index: torch.Tensor | None  # table rows of the rendered Gaussians (None = all)
     camera: object  # Camera3 of the rendered crop
@@ -67,55 +80,72 @@ class StepContext:
     target: torch.Tensor  # (h, w, 3)
     mask: torch.Tensor | None  # (h, w) bool
     flow: object | None  # FlowPair of the frame (full image), or None
-    frame: object  # StoredFrame
-    u: float
-    bones: object
+    u: float  # normalised time of the frame
+    bones: object  # PosedBones of the frame
     generator: torch.Generator
-    trainer: object
+    motion_threshold_px: float  # delta: sustained motion (see motion_threshold)
+    time_range: tuple[float, float]  # normalised times of the first and last training frame
+    surface: CanonicalSurface
     rendered_flow: torch.Tensor | None = None  # (h, w, 2) per-pixel Gaussian motion, detached
+    grow_in_time: bool = True  # temporal copies and flow-guided additions (off while the trainer decides)
+
+
+# Per-Gaussian entries of the state (resized with the table's rows).
+ROW_STATE = ("grad_sum", "vis_count", "flow_w", "resid_w", "help_dot", "help_norm", "was_dynamic")
+COUNT_PREFIX = "count."
+
+
+def motion_threshold(config: DensifyConfig, flow_magnitudes) -> float:
+    """delta (px per frame) from the frames' mean flow magnitudes: see DensifyConfig.motion_floor_px."""
+    mags = sorted(float(m) for m in flow_magnitudes)
+    median = mags[len(mags) // 2] if mags else 0.0
+    return max(config.motion_floor_px, config.motion_relative * median)
+
+
+def counts(state: dict[str, torch.Tensor]) -> dict[str, int]:
+    """What the strategy did so far (cloned, split, pruned, flow_added, ...), from its state."""
+    return {k[len(COUNT_PREFIX) :]: int(v) for k, v in state.items() if k.startswith(COUNT_PREFIX)}
 
 
 class DensifyStrategy:
     def __init__(self, config: DensifyConfig, total_iterations: int):
         self.config = config
         self.total = int(total_iterations)
-        self.initial_part_counts: torch.Tensor | None = None
-        self.counts: dict[str, int] = {}
 
     # --- state -----------------------------------------------------------------------------------
-    def reset(self, model) -> None:
+    def initialize_state(self, model) -> dict[str, torch.Tensor]:
+        """A fresh state for ``model`` (the caller keeps it and hands it to every step)."""
         n = model.table.num
         dev = model.device
-        self.grad_sum = torch.zeros(n, device=dev)
-        self.vis_count = torch.zeros(n, device=dev)
-        self.steps_seen = 0
-        self.flow_w = torch.zeros(n, device=dev)  # W_i, px per frame
         gate = model.table.motion_gate()
-        self.was_dynamic = (
-            torch.zeros(n, device=dev) if gate is None else gate.float()
-        )  # at the last density step
-        if self.initial_part_counts is None:
-            self.initial_part_counts = self._part_counts(model)
+        return {
+            "grad_sum": torch.zeros(n, device=dev),
+            "vis_count": torch.zeros(n, device=dev),
+            "flow_w": torch.zeros(n, device=dev),  # W_i, px per frame
+            "resid_w": torch.zeros(n, device=dev),  # R_i: flow the model's own motion misses, px per frame
+            "help_dot": torch.zeros(n, device=dev),  # sum of <dL/dx_i, m_i(t)>: would moving help (< 0)
+            "help_norm": torch.zeros(n, device=dev),  # sum of |dL/dx_i| |m_i(t)|
+            "was_dynamic": torch.zeros(n, device=dev)
+            if gate is None
+            else gate.float(),  # at the last density step
+            "steps_seen": torch.zeros(1, device=dev),  # scalars are 1-element tensors (as stored)
+            "initial_part_counts": self._part_counts(model),
+        }
 
-    STATE = ("grad_sum", "vis_count", "flow_w", "was_dynamic")
-
-    def state_arrays(self) -> dict[str, torch.Tensor]:
-        return {name: getattr(self, name) for name in self.STATE}
-
-    def load_state_arrays(self, arrays: dict[str, torch.Tensor], steps_seen: int) -> None:
-        for name in self.STATE:
-            if name in arrays:
-                setattr(self, name, arrays[name])
-        self.steps_seen = int(steps_seen)
-
-    def _resize(self, keep: torch.Tensor | None = None, added: int = 0) -> None:
-        for name in self.STATE:
-            t = getattr(self, name)
+    @staticmethod
+    def _resize(state: dict, keep: torch.Tensor | None = None, added: int = 0) -> None:
+        for name in ROW_STATE:
+            t = state[name]
             if keep is not None:
                 t = t[keep]
             if added:
                 t = torch.cat([t, t.new_zeros(added)])
-            setattr(self, name, t)
+            state[name] = t
+
+    @staticmethod
+    def _count(state: dict, name: str, value: int) -> None:
+        key = COUNT_PREFIX + name
+        state[key] = state.get(key, torch.zeros(1)) + int(value)
 
     @staticmethod
     def _part_counts(model) -> torch.Tensor:
@@ -127,123 +157,179 @@ class DensifyStrategy:
         c = self.config
         return c.enabled and c.start_iter <= iteration < int(c.stop_fraction * self.total)
 
-    def step_post_backward(self, ctx: StepContext) -> dict[str, int]:
+    def step_post_backward(
+        self, model, optimizer, state: dict[str, torch.Tensor], inputs: DensifyInputs
+    ) -> dict[str, int]:
+        """Accumulate this step's statistics into ``state``; on schedule, grow and prune ``model``
+        through ``optimizer`` (``state``'s per-Gaussian entries follow). What it did this step."""
         c = self.config
         if not c.enabled:
             return {}
-        self._accumulate(ctx)
+        self._accumulate(state, inputs)
+        self._accumulate_help(model, state, inputs)
         report: dict[str, int] = {}
-        it = ctx.iteration
+        it = inputs.iteration
+        gate_round = c.gate_start_iter <= it < int(c.stop_fraction * self.total)
+        gate_round &= (it - c.gate_start_iter) % c.interval == 0
         if not self.active(it):
+            if gate_round:
+                report.update(self._gate_round(model, optimizer, state, inputs))
+                self._tally(state, report)
             return report
-        if c.flow_guided and ctx.flow is not None and (it - c.start_iter) % c.flow_interval == 0:
-            report["flow_added"] = self._flow_guided(ctx)
+        if (
+            c.flow_guided
+            and inputs.grow_in_time
+            and inputs.flow is not None
+            and (it - c.start_iter) % c.flow_interval == 0
+        ):
+            report["flow_added"] = self._flow_guided(model, optimizer, state, inputs)
         if (it - c.start_iter) % c.interval == 0 and it > c.start_iter:
-            report.update(self._adaptive_density(ctx))
-        for k, v in report.items():
-            self.counts[k] = self.counts.get(k, 0) + v
+            report.update(self._adaptive_density(model, optimizer, state, inputs))
+        if gate_round:  # after the density step: its temporal split saw who was dynamic all interval
+            report.update(self._gate_round(model, optimizer, state, inputs))
+        self._tally(state, report)
         return report
 
+    def _tally(self, state: dict, report: dict[str, int]) -> None:
+        for k, v in report.items():
+            self._count(state, k, v)
+
+    def _gate_round(self, model, optimizer, state: dict, inputs: DensifyInputs) -> dict[str, int]:
+        grads = state["grad_sum"] / state["vis_count"].clamp_min(1)
+        out = self._gate_motion(model, optimizer, state, inputs, grads)
+        state["help_dot"].zero_()
+        state["help_norm"].zero_()
+        return out
+
     @torch.no_grad()
-    def _accumulate(self, ctx: StepContext) -> None:
-        info = ctx.info
+    def _accumulate(self, state: dict, inputs: DensifyInputs) -> None:
+        info = inputs.info
         radii = info["radii"]
         visible = (radii > 0).all(dim=-1) if radii.dim() == 2 else radii > 0
         rows = visible.nonzero().squeeze(1)
-        table_rows = rows if ctx.index is None else ctx.index[rows]
+        table_rows = rows if inputs.index is None else inputs.index[rows]
         means2d = info["means2d"]
         grad = getattr(means2d, "absgrad", None)
         if grad is None:
             grad = means2d.grad
         if grad is None:
             return
-        pixels = float(ctx.crop[2] * ctx.crop[3])
-        self.grad_sum.index_add_(0, table_rows, grad[rows].norm(dim=-1) * pixels)
-        self.vis_count.index_add_(0, table_rows, torch.ones_like(table_rows, dtype=self.vis_count.dtype))
-        self.steps_seen += 1
-        if ctx.flow is None:
+        pixels = float(inputs.crop[2] * inputs.crop[3])
+        vis_count = state["vis_count"]
+        state["grad_sum"].index_add_(0, table_rows, grad[rows].norm(dim=-1) * pixels)
+        vis_count.index_add_(0, table_rows, torch.ones_like(table_rows, dtype=vis_count.dtype))
+        state["steps_seen"] += 1
+        if inputs.flow is None:
             return
-        x0, y0, w, h = ctx.crop
+        x0, y0, w, h = inputs.crop
         xy = means2d.detach()[rows]
         px = xy[:, 0].round().long().clamp(0, w - 1)
         py = xy[:, 1].round().long().clamp(0, h - 1)
-        fwd = torch.from_numpy(ctx.flow.forward[y0 : y0 + h, x0 : x0 + w]).to(xy.device)
-        valid = torch.from_numpy(ctx.flow.valid_forward[y0 : y0 + h, x0 : x0 + w]).to(xy.device)
+        fwd = torch.from_numpy(inputs.flow.forward[y0 : y0 + h, x0 : x0 + w]).to(xy.device)
+        valid = torch.from_numpy(inputs.flow.valid_forward[y0 : y0 + h, x0 : x0 + w]).to(xy.device)
         ok = valid[py, px]
         mag = fwd[py, px].norm(dim=-1)
         sel = table_rows[ok]
-        self.flow_w[sel] = W_DECAY * self.flow_w[sel] + (1 - W_DECAY) * mag[ok]
+        flow_w = state["flow_w"]
+        flow_w[sel] = W_DECAY * flow_w[sel] + (1 - W_DECAY) * mag[ok]
+        if inputs.rendered_flow is not None:
+            missed = (fwd[py, px] - inputs.rendered_flow[py, px]).norm(dim=-1)
+            resid_w = state["resid_w"]
+            resid_w[sel] = W_DECAY * resid_w[sel] + (1 - W_DECAY) * missed[ok]
+
+    @torch.no_grad()
+    def _accumulate_help(self, model, state: dict, inputs: DensifyInputs) -> None:
+        """Shared motion bases: would a static Gaussian's loss fall if it moved with the bases?
+
+        A static Gaussian that started to move would get the offset ``m_i(t)`` its bones' shared
+        motions give (its initial coefficients, motion_basis.initial_coefficients); to first order
+        that changes the loss by ``<dL/dx_i, m_i(t)>``. Summed over the steps it is seen in and
+        normalised, ``-sum <g, m> / sum |g| |m|`` near 1 says the image keeps pulling it the way
+        the garment around it moves.
+        """
+        table, bases = model.table, model.motion_bases
+        gate = table.motion_gate()
+        grad = table["means"].grad
+        if bases is None or gate is None or grad is None:
+            return
+        rows = (~gate & (grad.abs().sum(dim=1) > 0)).nonzero().squeeze(1)
+        if rows.numel() == 0:
+            return
+        coef = initial_coefficients(model.skin_weights().detach()[rows], bases.count)
+        would = MotionBases.apply(bases.at(inputs.u).detach(), coef, table["means"].detach()[rows])
+        g = grad[rows]
+        state["help_dot"].index_add_(0, rows, (g * would).sum(dim=1))
+        state["help_norm"].index_add_(0, rows, g.norm(dim=1) * would.norm(dim=1))
 
     # --- flow-guided densification ---------------------------------------------------------------
     @torch.no_grad()
-    def _flow_guided(self, ctx: StepContext) -> int:
+    def _flow_guided(self, model, optimizer, state: dict, inputs: DensifyInputs) -> int:
         c = self.config
-        model = ctx.model
         room = self._room(model)
         if room <= 0:
             return 0
-        x0, y0, w, h = ctx.crop
-        err = (ctx.render - ctx.target).abs().mean(-1)  # (h, w)
+        x0, y0, w, h = inputs.crop
+        err = (inputs.render - inputs.target).abs().mean(-1)  # (h, w)
         r = c.region_px
         tiles = F.avg_pool2d(err[None, None], r, r, ceil_mode=True)[0, 0]  # mean error per region
-        info = ctx.info
+        info = inputs.info
         radii = info["radii"]
         visible = (radii > 0).all(dim=-1) if radii.dim() == 2 else radii > 0
         rows = visible.nonzero().squeeze(1)
         if rows.numel() == 0:
             return 0
-        table_rows = rows if ctx.index is None else ctx.index[rows]
+        table_rows = rows if inputs.index is None else inputs.index[rows]
         xy = info["means2d"].detach()[rows]
         px = xy[:, 0].round().long()
         py = xy[:, 1].round().long()
         inside = (px >= 0) & (px < w) & (py >= 0) & (py < h)
         px, py, rows, table_rows = px[inside], py[inside], rows[inside], table_rows[inside]
         tile_err = tiles[py // r, px // r]
-        delta = self.motion_threshold(ctx.trainer)
-        seeds = (tile_err > c.error_threshold) & (self.flow_w[table_rows] > delta)
+        flow_w = state["flow_w"]
+        seeds = (tile_err > c.error_threshold) & (flow_w[table_rows] > inputs.motion_threshold_px)
         if not bool(seeds.any()):
             return 0
-        fwd = torch.from_numpy(ctx.flow.forward[y0 : y0 + h, x0 : x0 + w]).to(xy.device)
-        valid = torch.from_numpy(ctx.flow.valid_forward[y0 : y0 + h, x0 : x0 + w]).to(xy.device)
+        fwd = torch.from_numpy(inputs.flow.forward[y0 : y0 + h, x0 : x0 + w]).to(xy.device)
+        valid = torch.from_numpy(inputs.flow.valid_forward[y0 : y0 + h, x0 : x0 + w]).to(xy.device)
         seeds &= valid[py, px]
         idx = seeds.nonzero().squeeze(1)
         if idx.numel() == 0:
             return 0
         # Strongest seeds first: error x motion.
-        score = tile_err[idx] * self.flow_w[table_rows[idx]]
+        score = tile_err[idx] * flow_w[table_rows[idx]]
         idx = idx[score.argsort(descending=True)][: min(c.flow_max_new, room)]
         sx, sy, srow = px[idx], py[idx], table_rows[idx]
         observed = fwd[sy, sx]
-        if ctx.rendered_flow is not None:
-            residual = observed - ctx.rendered_flow[sy, sx]
+        if inputs.rendered_flow is not None:
+            residual = observed - inputs.rendered_flow[sy, sx]
         else:
             residual = observed
         depth = info["depths"].detach()[rows[idx]]
-        K = ctx.camera.K
+        K = inputs.camera.K
         # Lift the pixel residual to a camera-space displacement at the seed's depth, then to world.
         d_cam = torch.stack(
             [residual[:, 0] * depth / K[0, 0], residual[:, 1] * depth / K[1, 1], torch.zeros_like(depth)], 1
         )
-        d_world = d_cam @ ctx.camera.viewmat[:3, :3]  # R^T d
+        d_world = d_cam @ inputs.camera.viewmat[:3, :3]  # R^T d
         # Into the canonical frame of each seed: inverse of its blended rotation.
         weights = model.skin_weights()[srow]
-        blended = blend(weights, ctx.bones)
-        d_canon = rotate(conjugate(blend_rotation(weights, ctx.bones)), d_world)
-        noise = torch.randn(d_canon.shape, generator=ctx.generator).to(d_canon.device)
+        blended = blend(weights, inputs.bones)
+        d_canon = rotate(conjugate(blend_rotation(weights, inputs.bones)), d_world)
+        noise = torch.randn(d_canon.shape, generator=inputs.generator).to(d_canon.device)
         new_means = model.table["means"][srow] + c.flow_step * d_canon + c.flow_noise_m * noise
         # Temporal consistency with the flow: where the new centre projects, the observed flow must
         # be valid, on the person, and close to the seed's.
         posed_new = (blended[:, :3, :3] @ new_means[..., None]).squeeze(-1) + blended[:, :3, 3]
-        p_new = ctx.camera.project(posed_new)
+        p_new = inputs.camera.project(posed_new)
         nx, ny = p_new[:, 0].round().long(), p_new[:, 1].round().long()
         ok = (nx >= 0) & (nx < w) & (ny >= 0) & (ny < h)
         nxc, nyc = nx.clamp(0, w - 1), ny.clamp(0, h - 1)
         ok &= valid[nyc, nxc]
-        if ctx.mask is not None:
-            ok &= ctx.mask[nyc, nxc]
+        if inputs.mask is not None:
+            ok &= inputs.mask[nyc, nxc]
         ok &= (fwd[nyc, nxc] - observed).norm(dim=-1) <= c.flow_consistency_px
         keep = ok.nonzero().squeeze(1)
-        self.counts["flow_rejected"] = self.counts.get("flow_rejected", 0) + int((~ok).sum())
+        self._count(state, "flow_rejected", int((~ok).sum()))
         if keep.numel() == 0:
             return 0
         srow = srow[keep]
@@ -251,36 +337,42 @@ class DensifyStrategy:
         rows_new["means"] = new_means[keep]
         rows_new["log_scales"] = rows_new["log_scales"] + torch.log(torch.tensor(0.8))
         rows_new["opacity_logits"] = torch.full_like(rows_new["opacity_logits"], -1.0)
-        for name in ("motion", "rot_motion"):
+        for name in MOTION_COLUMNS:
             if name in rows_new:
                 rows_new[name] = torch.zeros_like(rows_new[name])
+        if "motion_coef" in rows_new:
+            skin = blend_weights(rows_new["skin_weights"], rows_new.get("skin_delta"))
+            rows_new["motion_coef"] = initial_coefficients(skin, rows_new["motion_coef"].shape[1])
         if "motion_gate" in rows_new:
             rows_new["motion_gate"] = torch.ones_like(rows_new["motion_gate"])  # non-rigid detail: may move
         if "t_center" in rows_new:
-            rows_new["t_center"] = torch.full_like(rows_new["t_center"], ctx.u)
+            rows_new["t_center"] = torch.full_like(rows_new["t_center"], inputs.u)
             rows_new["t_log_scale"] = torch.full_like(
                 rows_new["t_log_scale"], float(torch.log(torch.tensor(c.new_time_scale)))
             )
-        self._append(ctx, rows_new)
+        self._append(optimizer, state, rows_new)
         return int(keep.numel())
 
     # --- clone / split / prune / re-sample -------------------------------------------------------
     @torch.no_grad()
-    def _adaptive_density(self, ctx: StepContext) -> dict[str, int]:
+    def _adaptive_density(self, model, optimizer, state: dict, inputs: DensifyInputs) -> dict[str, int]:
         c = self.config
-        model = ctx.model
         table = model.table
         report = {"cloned": 0, "split": 0, "pruned": 0, "resampled": 0}
-        grads = self.grad_sum / self.vis_count.clamp_min(1)
-        was_dynamic = self.was_dynamic > 0.5  # dynamic for a whole interval already
-        report.update(self._gate_motion(ctx, grads))
+        vis_count = state["vis_count"]
+        grads = state["grad_sum"] / vis_count.clamp_min(1)
+        was_dynamic = state["was_dynamic"] > 0.5  # dynamic for a whole interval already
         scales = table.scales().max(dim=1).values
         small = scales <= c.percent_dense * model.extent
-        hot = (grads > c.grad_threshold) & (self.vis_count > 0)
+        hot = (grads > c.grad_threshold) & (vis_count > 0)
         room = self._room(model)
         # Dynamic Gaussians on long temporal windows are refined in time first (they fail because
         # one polynomial cannot follow the motion), the rest in space as in 3DGS.
-        tsplit_rows = self._temporal_split_rows(ctx, hot & was_dynamic, grads, room)
+        tsplit_rows = (
+            self._temporal_split_rows(model, inputs.time_range, hot & was_dynamic, grads, room)
+            if inputs.grow_in_time
+            else None
+        )
         taken = torch.zeros(table.num, dtype=torch.bool, device=model.device)
         if tsplit_rows is not None:
             taken[tsplit_rows[0]] = True
@@ -292,7 +384,7 @@ class DensifyStrategy:
         clone = clone[grads[clone].argsort(descending=True)][: max(room, 0)]
         n_before = table.num
         if clone.numel():
-            self._append(ctx, self._copy_rows(model, clone))
+            self._append(optimizer, state, self._copy_rows(model, clone))
             report["cloned"] = int(clone.numel())
         if split.numel():
             rows = self._copy_rows(model, split)
@@ -300,15 +392,15 @@ class DensifyStrategy:
             std = table.scales()[split]
             rot = lbs.quaternion_to_matrix(table["quats"][split])
             for r in (rows, rows2):
-                offset = torch.randn(std.shape, generator=ctx.generator).to(std.device) * std
+                offset = torch.randn(std.shape, generator=inputs.generator).to(std.device) * std
                 r["means"] = table["means"][split] + (rot @ offset[..., None]).squeeze(-1)
                 r["log_scales"] = r["log_scales"] - torch.log(torch.tensor(1.6))
             both = {k: torch.cat([rows[k], rows2[k]]) for k in rows}
-            self._append(ctx, both)
+            self._append(optimizer, state, both)
             report["split"] = int(split.numel())
         if tsplit_rows is not None:
             sources, rows = tsplit_rows
-            self._append(ctx, rows)
+            self._append(optimizer, state, rows)
             report["time_split"] = int(sources.numel())
             split = torch.cat([split, sources])
         # Prune (the split originals, plus what contributes nothing).
@@ -316,43 +408,45 @@ class DensifyStrategy:
         prune = torch.zeros(n, dtype=torch.bool, device=model.device)
         prune[split] = True
         opacity = model.table.opacities()
-        seen = self.vis_count / max(self.steps_seen, 1)
-        delta = self.motion_threshold(ctx.trainer)
-        score = opacity * seen * (1.0 + c.motion_protect_gamma * self.flow_w / delta)
+        seen = state["vis_count"] / max(float(state["steps_seen"]), 1.0)
+        delta = inputs.motion_threshold_px
+        score = opacity * seen * (1.0 + c.motion_protect_gamma * state["flow_w"] / delta)
         old = torch.arange(n, device=model.device) < n_before  # new rows have no statistics yet
         prune |= old & (opacity < c.prune_opacity)
-        prune |= old & (score < c.prune_score) & (self.steps_seen >= c.interval)
+        prune |= old & (score < c.prune_score) & (float(state["steps_seen"]) >= c.interval)
         prune |= model.table.scales().max(dim=1).values > c.prune_scale_m
         if bool(prune.all()):
             prune[opacity.argmax()] = False  # never prune the model away entirely
         if bool(prune.any()):
-            ctx.optimizer.keep(~prune)
-            self._resize(keep=~prune)
+            optimizer.keep(~prune)
+            self._resize(state, keep=~prune)
             report["pruned"] = int(prune.sum()) - int(split.numel())
-        report["resampled"] = self._resample(ctx)
-        self.grad_sum.zero_()
-        self.vis_count.zero_()
-        self.steps_seen = 0
+        report["resampled"] = self._resample(model, optimizer, state, inputs)
+        state["grad_sum"].zero_()
+        state["vis_count"].zero_()
+        state["steps_seen"].zero_()
         return report
 
     @torch.no_grad()
     def _temporal_split_rows(
-        self, ctx: StepContext, candidates: torch.Tensor, grads: torch.Tensor, room: int
+        self, model, time_range: tuple[float, float], candidates: torch.Tensor, grads: torch.Tensor, room: int
     ):
         """Copies on shorter temporal windows of the dynamic, still-pulled Gaussians (sources, rows).
 
         A Gaussian present at all times becomes up to ``temporal_split_max`` copies centred evenly over
-        the training time range, a finite window becomes two copies at ``mu +- s/2``; the windows are
-        0.6x their spacing, so neighbouring copies cross at about half opacity. Each copy keeps the
-        source's other attributes (its polynomial then fits its own part of the motion).
+        the training time range (``time_range``: the first and last frame's normalised time), a finite
+        window becomes two copies at ``mu +- s/2``; the windows are 0.6x their spacing, so
+        neighbouring copies cross at about half opacity. Each copy keeps the source's other
+        attributes (its polynomial then fits its own part of the motion).
         """
         c = self.config
-        table = ctx.model.table
+        table = model.table
         gate = table.motion_gate()
         if not c.temporal_split or gate is None or "t_center" not in table or room <= 0:
             return None
-        times = [ctx.model.time_axis(f.frame.time) for f in ctx.trainer.store.frames]
-        lo, hi = min(times), max(times)
+        if "motion_coef" in table:  # shared bases follow the motion at every knot: no copies needed
+            return None
+        lo, hi = time_range
         span = max(hi - lo, 1e-3)
         scale = table["t_log_scale"].exp()
         cand = candidates & gate & (scale > c.min_time_scale / 0.6)
@@ -368,7 +462,7 @@ class DensifyStrategy:
         if idx.numel() == 0:
             return None
         source = torch.repeat_interleave(idx, copies)
-        rows = self._copy_rows(ctx.model, source)
+        rows = self._copy_rows(model, source)
         slot = torch.cat([torch.arange(int(k), device=idx.device) for k in copies.tolist()])
         a = torch.repeat_interleave(always, copies)
         k = torch.repeat_interleave(copies, copies).float()
@@ -381,43 +475,47 @@ class DensifyStrategy:
         return idx, rows
 
     @torch.no_grad()
-    def _resample(self, ctx: StepContext) -> int:
+    def _resample(self, model, optimizer, state: dict, inputs: DensifyInputs) -> int:
         c = self.config
-        model = ctx.model
-        trainer = ctx.trainer
-        if c.resample_fraction <= 0 or self.initial_part_counts is None:
+        initial = state.get("initial_part_counts")
+        if c.resample_fraction <= 0 or initial is None:
             return 0
         counts = self._part_counts(model)
-        low = (counts < c.resample_fraction * self.initial_part_counts).nonzero().squeeze(1)
+        low = (counts < c.resample_fraction * initial).nonzero().squeeze(1)
         if low.numel() == 0:
             return 0
-        vertices, faces = trainer.canonical_vertices, trainer.canonical_faces
-        vertex_part = trainer.body.weights.argmax(dim=1)
+        surface = inputs.surface
+        vertices, faces = surface.vertices, surface.faces
+        vertex_part = surface.vertex_weights.argmax(dim=1)
         face_part = vertex_part[faces[:, 0]]
         added = 0
         for part in low.tolist():
-            want = int(c.resample_fraction * self.initial_part_counts[part] - counts[part])
+            want = int(c.resample_fraction * initial[part] - counts[part])
             want = min(want, self._room(model))
             sel = (face_part == part).nonzero().squeeze(1)
             if want <= 0 or sel.numel() == 0:
                 continue
             # Random draws on the CPU (the step's generator lives there), whatever the model's device.
-            points, face, bary = sample_surface(vertices.cpu(), faces[sel].cpu(), want, ctx.generator)
+            points, face, bary = sample_surface(vertices.cpu(), faces[sel].cpu(), want, inputs.generator)
             weights = surface_skin_weights(
-                faces[sel].cpu(), trainer.body.weights.cpu(), face, bary, model.config.skin_init
+                faces[sel].cpu(), surface.vertex_weights.cpu(), face, bary, model.config.skin_init
             )
             scale = (
                 float(model.table.scales()[model.table["skin_weights"].argmax(1) == part].mean())
                 if (counts[part] > 0)
                 else 0.01
             )
-            rows = new_columns(model.config, points, weights, scale, t_center=ctx.u, generator=ctx.generator)
-            self._append(ctx, {k: v.to(model.device) for k, v in rows.items()})
+            rows = new_columns(
+                model.config, points, weights, scale, t_center=inputs.u, generator=inputs.generator
+            )
+            self._append(optimizer, state, {k: v.to(model.device) for k, v in rows.items()})
             added += want
         return added
 
     @torch.no_grad()
-    def _gate_motion(self, ctx: StepContext, grads: torch.Tensor) -> dict[str, int]:
+    def _gate_motion(
+        self, model, optimizer, state: dict, inputs: DensifyInputs, grads: torch.Tensor
+    ) -> dict[str, int]:
         """Decide which Gaussians may move, so motion terms exist only where the scene needs them.
 
         A static Gaussian becomes dynamic when it sits on sustained motion (``W_i > delta``) and the
@@ -426,7 +524,7 @@ class DensifyStrategy:
         (metres at |tau| = 1) since the last density step goes back to static: its terms and their
         Adam moments become exact zeros.
         """
-        table = ctx.model.table
+        table = model.table
         gate = table.motion_gate()
         if gate is None:
             return {}
@@ -434,28 +532,34 @@ class DensifyStrategy:
         # motion above the 1 px floor fits the training view's cloth better, +6 dB in the garment
         # region of the dance benchmark, but novel views got worse: from one camera the extra freedom
         # is spent on placements other views disagree with. docs/AVATAR.md.)
-        moving = self.flow_w > self.motion_threshold(ctx.trainer)
+        if self.config.motion_signal == "flow":
+            moving = state["flow_w"] > inputs.motion_threshold_px
+        else:
+            moving = state["resid_w"] > self.config.residual_motion_px
         activate = ~gate & moving & (grads > 0.5 * self.config.grad_threshold)
+        if "motion_coef" in table:  # shared bases: also where moving with them would lower the loss
+            helps = -state["help_dot"] / state["help_norm"].clamp_min(1e-20)
+            activate |= ~gate & (helps > self.config.motion_help) & (state["help_norm"] > 0)
         amplitude = torch.zeros(table.num, device=gate.device)
         if "motion" in table:
             amplitude = amplitude + table["motion"].norm(dim=-1).sum(dim=1)
+        if "motion_coef" in table and model.motion_bases is not None:
+            rows = gate.nonzero().squeeze(1)
+            coef = table["motion_coef"].detach()[rows]
+            amplitude[rows] += model.motion_bases.amplitude(coef, table["means"].detach()[rows])
         if "rot_motion" in table:
             amplitude = amplitude + 0.1 * table["rot_motion"].norm(dim=-1).sum(dim=1)  # ~0.1 m per radian
-        settle = gate & (self.was_dynamic > 0.5) & (amplitude < self.config.motion_min_m)
-        for name in ("motion", "rot_motion"):
+        settle = gate & (state["was_dynamic"] > 0.5) & (amplitude < self.config.motion_min_m)
+        for name in MOTION_COLUMNS:
             if name in table:
-                ctx.optimizer.zero_rows(name, settle)
+                optimizer.zero_rows(name, settle)
         table["motion_gate"].data[activate] = 1.0
+        if "motion_coef" in table and bool(activate.any()):
+            coef = table["motion_coef"]
+            coef.data[activate] = initial_coefficients(model.skin_weights().detach()[activate], coef.shape[1])
         table["motion_gate"].data[settle] = 0.0
-        self.was_dynamic = table["motion_gate"].detach().clone()
+        state["was_dynamic"] = table["motion_gate"].detach().clone()
         return {"motion_on": int(activate.sum()), "motion_off": int(settle.sum())}
-
-    def motion_threshold(self, trainer) -> float:
-        """delta (px per frame): see DensifyConfig.motion_floor_px / motion_relative."""
-        c = self.config
-        mags = [f.flow_magnitude for f in trainer.store.frames if f.flow is not None]
-        median = float(sorted(mags)[len(mags) // 2]) if mags else 0.0
-        return max(c.motion_floor_px, c.motion_relative * median)
 
     # --- helpers ---------------------------------------------------------------------------------
     def _room(self, model) -> int:
@@ -465,7 +569,7 @@ class DensifyStrategy:
     def _copy_rows(model, rows: torch.Tensor) -> dict[str, torch.Tensor]:
         return {name: model.table[name].detach()[rows].clone() for name in model.table.names()}
 
-    def _append(self, ctx: StepContext, rows: dict[str, torch.Tensor]) -> None:
+    def _append(self, optimizer, state: dict, rows: dict[str, torch.Tensor]) -> None:
         n = next(iter(rows.values())).shape[0]
-        ctx.optimizer.append(rows)
-        self._resize(added=n)
+        optimizer.append(rows)
+        self._resize(state, added=n)

@@ -21,6 +21,7 @@ skin_weights        (N, 24)          skinning weights from the body (fixed; rows
 skin_delta          (N, 24)          learned log-space correction of skin_weights (optional)
 motion_gate         (N,)             1 where the Gaussian may move (its motion terms learn), else 0
 motion              (N, n_p, 3)      b_ik: centre offset polynomial, canonical frame (optional)
+motion_coef         (N, B)           c_ib: weights of the shared motion bases (instead of motion)
 rot_motion          (N, n_q, 4)      c_ik, k >= 1: rotation polynomial (optional)
 t_center            (N,)             mu_i^tau: temporal centre, normalised time units
 t_log_scale         (N,)             log s_i: temporal scale, normalised time units
@@ -38,6 +39,8 @@ from stg_node.avatar.config import ModelConfig
 
 # Columns the optimiser never updates (carried along by row operations only).
 FIXED_COLUMNS = frozenset({"skin_weights", "motion_gate"})
+# Columns of the non-rigid motion (exact zeros on static Gaussians).
+MOTION_COLUMNS = ("motion", "motion_coef", "rot_motion")
 
 
 def logit(p: float) -> float:
@@ -102,7 +105,7 @@ class GaussianTable(nn.Module):
     def motion_active(self) -> torch.Tensor:
         """(N,) bool: rows with any non-zero motion or rotation-motion coefficient."""
         active = torch.zeros(self.num, dtype=torch.bool, device=self.params["means"].device)
-        for name in ("motion", "rot_motion"):
+        for name in MOTION_COLUMNS:
             if name in self.params:
                 active |= (self.params[name].detach() != 0).flatten(1).any(dim=1)
         return active
@@ -210,10 +213,12 @@ def new_columns(
         cols["features"] = feats
     if config.learn_skin_weights:
         cols["skin_delta"] = torch.zeros(n, skin_weights.shape[1], dtype=dtype, device=device)
-    if config.n_p > 0 or config.n_q > 0:
+    if config.n_p > 0 or config.n_q > 0 or config.n_b > 0:
         cols["motion_gate"] = torch.full((n,), float(dynamic), dtype=dtype, device=device)
     if config.n_p > 0:
         cols["motion"] = torch.zeros(n, config.n_p, 3, dtype=dtype, device=device)
+    if config.n_b > 0:
+        cols["motion_coef"] = torch.zeros(n, config.n_b, dtype=dtype, device=device)
     if config.n_q > 0:
         cols["rot_motion"] = torch.zeros(n, config.n_q, 4, dtype=dtype, device=device)
     if config.spacetime:

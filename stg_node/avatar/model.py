@@ -21,6 +21,7 @@ from stg_node.avatar.color import ColorMLP, sh_color
 from stg_node.avatar.color_cache import ColorCache
 from stg_node.avatar.config import ModelConfig
 from stg_node.avatar.gaussians import GaussianTable, cap_scale_ratio
+from stg_node.avatar.motion_basis import MotionBases
 from stg_node.avatar.rigid import QUAT_EPS, PosedBones, Skeleton, blend_weights, skin, skin_with_kernel
 from stg_node.avatar.shading import LightSpec, Shading, gaussian_normals
 from stg_node.avatar.spacetime import TimeAxis
@@ -155,6 +156,9 @@ class AvatarModel(nn.Module):
         self.shading = Shading(config.light_model, config.light_count) if config.shading else None
         self.time_axis = time_axis or TimeAxis(unit_s=config.time_unit_s)
         self.pose_index = pose_index or PoseTimeIndex()
+        self.motion_bases = (
+            MotionBases(config.n_b, config.basis_knot_s / self.time_axis.unit_s) if config.n_b else None
+        )
         self._skin_weight_cache: tuple | None = None  # (key, weights): see _render_skin_weights
 
     @property
@@ -193,8 +197,11 @@ class AvatarModel(nn.Module):
         return self.skeleton.bones(body.poses, body.Rh, body.Th)
 
     # --- deformation ---------------------------------------------------------------------------
-    def spacetime(self, u: float, *, skip_inactive: bool = False) -> spacetime.SpacetimeState:
-        """The spacetime terms of every Gaussian at normalised time ``u`` (None where a term is off)."""
+    def spacetime(
+        self, u: float, *, skip_inactive: bool = False, rows: torch.Tensor | None = None
+    ) -> spacetime.SpacetimeState:
+        """The spacetime terms of every Gaussian at normalised time ``u`` (None where a term is off;
+        ``rows``/``skip_inactive``: see spacetime.evaluate)."""
         cfg = self.config
         return spacetime.evaluate(
             self.table,
@@ -202,14 +209,28 @@ class AvatarModel(nn.Module):
             cfg.time_horizon,
             temporal_opacity=cfg.uses_temporal_opacity,
             skip_inactive=skip_inactive,
+            bases=self.motion_bases,
+            rows=rows,
         )
 
     def posed_means(
-        self, bones: PosedBones, u: float, state: spacetime.SpacetimeState | None = None
+        self,
+        bones: PosedBones,
+        u: float,
+        rows: torch.Tensor | None = None,
+        state: spacetime.SpacetimeState | None = None,
     ) -> torch.Tensor:
         """World centres only (cheap: the flow loss and densification need the next frame's);
-        ``state``: the spacetime terms at ``u`` when the caller has them already."""
-        st = state or spacetime.evaluate(self.table, u, self.config.time_horizon, temporal_opacity=False)
+        ``rows``: the rows whose motion terms are evaluated (see spacetime.evaluate); ``state``: the
+        spacetime terms at ``u`` when the caller has them already (then ``rows`` is not used)."""
+        st = state or spacetime.evaluate(
+            self.table,
+            u,
+            self.config.time_horizon,
+            temporal_opacity=False,
+            bases=self.motion_bases,
+            rows=rows,
+        )
         means = self.table["means"] if st.offsets is None else self.table["means"] + st.offsets
         fused = skin_with_kernel(
             means, self.table["skin_weights"], self.table.get("skin_delta"), bones, rotations=False

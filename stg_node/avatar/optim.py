@@ -169,3 +169,46 @@ class TableOptimizer:
             if s is not None:
                 p = group["params"][0]
                 self.adam.state[p] = {k: v.to(p.device) for k, v in s.items()}
+
+    @torch.no_grad()
+    def replace_dense(self, old: torch.Tensor, new: nn.Parameter) -> None:
+        """Put ``new`` (grown along any dimension) in ``old``'s place; its Adam moments keep the old
+        values where ``old`` had them and start at zero in the new part."""
+        if self.dense is None:
+            return
+        for group in self.dense.param_groups:
+            for i, p in enumerate(group["params"]):
+                if p is not old:
+                    continue
+                group["params"][i] = new
+                state = self.dense.state.pop(old, None)
+                if state:
+                    grown = {}
+                    for key, value in state.items():
+                        if torch.is_tensor(value) and value.shape == old.shape:
+                            padded = value.new_zeros(new.shape)
+                            padded[tuple(slice(0, n) for n in old.shape)] = value
+                            value = padded
+                        grown[key] = value
+                    self.dense.state[new] = grown
+                return
+
+    def dense_state(self) -> dict[str, dict[str, torch.Tensor]]:
+        """Adam state of the dense modules, keyed ``"<group>.<i>"`` (i: the parameter's place in it)."""
+        out = {}
+        if self.dense is not None:
+            for group in self.dense.param_groups:
+                for i, p in enumerate(group["params"]):
+                    state = self.dense.state.get(p)
+                    if state:
+                        out[f"{group['name']}.{i}"] = state
+        return out
+
+    def load_dense_state(self, states: dict[str, dict[str, torch.Tensor]]) -> None:
+        if self.dense is None:
+            return
+        for group in self.dense.param_groups:
+            for i, p in enumerate(group["params"]):
+                s = states.get(f"{group['name']}.{i}")
+                if s is not None:
+                    self.dense.state[p] = {k: v.to(p.device) for k, v in s.items()}

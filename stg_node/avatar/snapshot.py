@@ -8,6 +8,8 @@ The trainer node publishes exactly what ``stg-train`` saves: a GaussianSnapshot 
 - ``shading.<name>``: the learned light (``shading.light.*``: an ambient term and distant lights,
   or SH coefficients) and the mean training orientation (``shading.reference``,
   ``shading.orientation_sum``), shading mode "sh";
+- ``motion.bases`` (B, K, 3, 4): the shared affine motion bases at their K knots (``model.motion_basis``
+  > 0; motion_basis.py);
 - ``body.rest_joints`` (24, 3), ``body.parents`` (24,), ``body.big_pose_inverse`` (24, 4, 4),
   ``body.betas`` (S,), ``body.bounds`` (2, 3): the skeleton, so a renderer needs no body file;
 - ``time.pose_keys`` (F, 207), ``time.times`` (F,): the novel-pose time-code index;
@@ -43,6 +45,7 @@ from stg_node.avatar.config import (
 )
 from stg_node.avatar.gaussians import GaussianTable
 from stg_node.avatar.model import AvatarModel
+from stg_node.avatar.motion_basis import MotionBases
 from stg_node.avatar.rigid import Skeleton
 from stg_node.avatar.spacetime import TimeAxis
 from stg_node.avatar.timecode import PoseTimeIndex
@@ -109,6 +112,8 @@ def model_arrays(model: AvatarModel) -> dict[str, np.ndarray]:
     arrays["body.parents"] = _np(sk.parents.float())
     arrays["body.big_pose_inverse"] = _np(sk.big_pose_inverse)
     arrays["body.bounds"] = _np(model.bounds)
+    if model.motion_bases is not None:
+        arrays["motion.bases"] = _np(model.motion_bases.values)
     arrays["time.pose_keys"] = np.ascontiguousarray(model.pose_index.keys, np.float32)
     arrays["time.times"] = np.ascontiguousarray(model.pose_index.times, np.float32)
     return arrays
@@ -188,6 +193,14 @@ def model_from_snapshot(msg, device="cpu") -> AvatarModel:
         np.array(arrays.get("time.times", np.zeros((0,), np.float32))),
     )
     model = AvatarModel(config, table, skeleton, get("body.bounds"), axis, index).to(device)
+    if model.motion_bases is not None:
+        try:
+            model.motion_bases = MotionBases(
+                config.n_b, model.motion_bases.knot_units, values=get("motion.bases")
+            )
+        except ValueError as exc:
+            raise SnapshotError(f"motion bases do not fit the model settings: {exc}") from exc
+        model.motion_bases.to(device)
     if model.color_mlp is not None:
         state = {k[4:]: get(k) for k in arrays if k.startswith("mlp.")}
         state["bounds"] = model.bounds

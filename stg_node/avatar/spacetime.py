@@ -86,41 +86,76 @@ def polynomial(coeffs: torch.Tensor, tau: torch.Tensor) -> torch.Tensor:
 
 
 def evaluate(
-    table, u: float, horizon: float, *, temporal_opacity: bool, skip_inactive: bool = False
+    table,
+    u: float,
+    horizon: float,
+    *,
+    temporal_opacity: bool,
+    skip_inactive: bool = False,
+    bases=None,
+    rows: torch.Tensor | None = None,
 ) -> SpacetimeState:
-    """The spacetime terms of every Gaussian of ``table`` at normalised time ``u``."""
+    """The spacetime terms of every Gaussian of ``table`` at normalised time ``u``.
+
+    ``bases``: the model's MotionBases when its offsets are mixtures of shared trajectories.
+    ``rows``: evaluate the motion terms of these rows only; every other row keeps a zero offset and
+    its base rotation (static Gaussians, whose terms are exact zeros), and only finite temporal
+    windows are evaluated (the rest are 1). ``skip_inactive`` takes the rows with a non-zero motion
+    term. With no such rows the offsets are None: the rigid part alone, at its cost.
+    """
     quats = table["quats"]
     motion = table.get("motion")
+    coef = table.get("motion_coef") if bases is not None else None
     rot_motion = table.get("rot_motion")
     t_center = table.get("t_center")
     if t_center is None:
         return SpacetimeState(None, quats, None)
-    dt, tau = local_time(u, t_center, window(table, horizon))
+    if skip_inactive:
+        rows = table.motion_active().nonzero().squeeze(1)
+    restricted = rows is not None
+    has_offsets = motion is not None or coef is not None
     offsets = None
-    if motion is not None or rot_motion is not None:
-        if skip_inactive:
-            idx = table.motion_active().nonzero().squeeze(1)
-            if motion is not None:
-                offsets = torch.zeros_like(table["means"])
-                if idx.numel():
-                    offsets = offsets.index_put((idx,), polynomial(motion[idx], tau[idx]))
-            if rot_motion is not None and idx.numel():
-                quats = quats.index_put((idx,), quats[idx] + polynomial(rot_motion[idx], tau[idx]))
+    if (has_offsets or rot_motion is not None) and (not restricted or rows.numel()):
+        width = window(table, horizon)
+        if restricted:
+            tau = local_time(u, t_center[rows], width[rows])[1]
         else:
-            if motion is not None:
-                offsets = polynomial(motion, tau)
-            if rot_motion is not None:
+            tau = local_time(u, t_center, width)[1]
+        if has_offsets:
+            if coef is not None:
+                means = table["means"]
+                offsets = (
+                    bases.apply(bases.at(u), coef[rows], means[rows])
+                    if restricted
+                    else bases.apply(bases.at(u), coef, means)
+                )
+            else:
+                offsets = polynomial(motion[rows] if restricted else motion, tau)
+            if restricted:
+                offsets = torch.zeros_like(table["means"]).index_put((rows,), offsets)
+        if rot_motion is not None:
+            if restricted:
+                quats = quats.index_put((rows,), quats[rows] + polynomial(rot_motion[rows], tau))
+            else:
                 quats = quats + polynomial(rot_motion, tau)
     temporal = None
     if temporal_opacity:
         scale = table["t_log_scale"].exp()
-        temporal = torch.exp(-((dt / scale) ** 2))
-        temporal = torch.where(scale >= PERSISTENT_SCALE, torch.ones_like(temporal), temporal)
+        if restricted:
+            finite = (scale.detach() < PERSISTENT_SCALE).nonzero().squeeze(1)
+            if finite.numel():
+                factor = torch.exp(-(((u - t_center[finite]) / scale[finite]) ** 2))
+                temporal = torch.ones_like(scale).index_put((finite,), factor)
+        else:
+            temporal = torch.exp(-(((u - t_center) / scale) ** 2))
+            temporal = torch.where(scale >= PERSISTENT_SCALE, torch.ones_like(temporal), temporal)
     return SpacetimeState(offsets, quats, temporal)
 
 
-def velocity(table, u: float, horizon: float) -> torch.Tensor | None:
+def velocity(table, u: float, horizon: float, bases=None) -> torch.Tensor | None:
     """d offset / du (N, 3) at ``u`` (canonical frame, metres per time unit), or None without motion."""
+    if bases is not None and "motion_coef" in table:
+        return bases.apply(bases.derivative(u), table["motion_coef"], table["means"])
     motion = table.get("motion")
     if motion is None:
         return None

@@ -23,16 +23,17 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from stg_node.avatar import checkpoint, nonrigid, spacetime
 from stg_node.avatar import losses as L
-from stg_node.avatar import spacetime
-from stg_node.avatar.config import TrainConfig
-from stg_node.avatar.densify import DensifyStrategy, StepContext
+from stg_node.avatar.config import LBS_ONLY, TrainConfig
+from stg_node.avatar.densify import CanonicalSurface, DensifyInputs, DensifyStrategy, counts, motion_threshold
 from stg_node.avatar.frames import FrameStore, StoredFrame, TrainFrame
-from stg_node.avatar.gaussians import init_table, scale_ratio_percentile
+from stg_node.avatar.gaussians import MOTION_COLUMNS, init_table, scale_ratio_percentile
 from stg_node.avatar.isometry import IsometryGraph
 from stg_node.avatar.model import AvatarModel, BodyState, Camera3, render
+from stg_node.avatar.motion_priors import line_of_sight, world_offsets
 from stg_node.avatar.optim import TableOptimizer
-from stg_node.avatar.rigid import Skeleton
+from stg_node.avatar.rigid import Skeleton, skin
 from stg_node.avatar.rigidity import NeighbourGraph
 from stg_node.avatar.spacetime import TimeAxis
 from stg_node.body.canonical import big_pose_output
@@ -114,6 +115,8 @@ class Trainer:
         flow_cache=None,
     ):
         config.validate()
+        if config.nonrigid == "off":
+            config = config.replace(**LBS_ONLY)
         self.config = config
         self.device = torch.device(device)
         self.backend = backend
@@ -131,6 +134,7 @@ class Trainer:
         self.model: AvatarModel | None = None
         self.optimizer: TableOptimizer | None = None
         self.densifier = DensifyStrategy(config.densify, config.iterations)
+        self.densify_state: dict[str, torch.Tensor] = {}  # the strategy's state (ours, checkpointed)
         self.weights = L.AdaptiveWeights(config.loss)
         self.iteration = 0
         self.train_seconds = 0.0
@@ -143,6 +147,7 @@ class Trainer:
         self.neighbours = NeighbourGraph()  # local rigidity of the non-rigid motion
         self.isometry = IsometryGraph()  # canonical neighbours keep their distances when posed
         self.profile: StepProfile | None = None  # set to a StepProfile to time the phases of each step
+        self.decision: nonrigid.Decision | None = None  # what "auto" chose for the non-rigid part
         #: Numbers the caller keeps with the checkpoint, written and restored in the same file (the
         #: trainer node's wall time): nothing beside a checkpoint can disagree with it after a kill.
         self.notes: dict[str, float] = {}
@@ -154,6 +159,7 @@ class Trainer:
         if self.model is None:
             self._initialize(stored.frame)
         u = self.model.time_axis(frame.time)
+        self._cover_time(u)
         index = self.model.pose_index
         if not np.any(np.isclose(index.times, u, atol=1e-6)):  # a frame not seen before (resume: seen)
             index.add(np.asarray(frame.smpl.poses), u)
@@ -185,7 +191,7 @@ class Trainer:
             model = AvatarModel(cfg, table, skeleton, bounds, axis)
         self.attach_model(model, betas)
         self._build_optimizer()
-        self.densifier.reset(self.model)
+        self.densify_state = self.densifier.initialize_state(self.model)
         log.info(
             "initialised %d Gaussians on %s (%s colour, n_p=%d, n_q=%d%s)",
             table.num,
@@ -203,6 +209,7 @@ class Trainer:
         with torch.no_grad():
             self.canonical_vertices = big_pose_output(self.body, self.betas).vertices[0]
         self.canonical_faces = self.body.faces
+        self.surface = CanonicalSurface(self.canonical_vertices, self.canonical_faces, self.body.weights)
 
     def _build_optimizer(self) -> None:
         c = self.config
@@ -216,6 +223,7 @@ class Trainer:
             "features": c.lr_color,
             "skin_delta": c.lr_skin,
             "motion": c.lr_motion,
+            "motion_coef": c.lr_motion_coef,
             "rot_motion": c.lr_rot_motion,
             "t_center": c.lr_time,
             "t_log_scale": c.lr_time,
@@ -223,11 +231,24 @@ class Trainer:
         dense = {}
         if self.model.color_mlp is not None:
             dense["mlp"] = (list(self.model.color_mlp.parameters()), c.lr_mlp)
+        if self.model.motion_bases is not None:
+            dense["bases"] = ([self.model.motion_bases.values], c.lr_motion)
         if self.pose_deltas is not None:
             dense["pose"] = ([self.pose_deltas], c.lr_pose)
         if self.model.shading is not None:
             dense["light"] = (list(self.model.shading.light.parameters()), c.lr_light)
         self.optimizer = TableOptimizer(self.model.table, lrs, dense)
+
+    def _cover_time(self, u: float) -> None:
+        """Grow the shared motion bases' knots to reach time ``u`` (a stream's new frames)."""
+        bases = self.model.motion_bases
+        grown = None if bases is None else bases.grown(u)
+        if grown is None:
+            return
+        old = bases.values
+        bases.values = torch.nn.Parameter(grown.to(old.device))
+        if self.optimizer is not None:
+            self.optimizer.replace_dense(old, bases.values)
 
     def _pose_slot(self, frame_index: int) -> int:
         if frame_index in self.pose_slots:
@@ -268,10 +289,13 @@ class Trainer:
         started = time.perf_counter()
         timer = self.profile or _NoProfile()
         timer.start()
+        if self._deciding() and self.iteration >= self.config.nonrigid_decide_iter:
+            self._decide()
         c = self.config
         it = self.iteration
         gen = step_generator(self.seed, it)
-        stored = self.store.frames[int(torch.randint(len(self.store), (1,), generator=gen))]
+        frames = self._training_frames()
+        stored = frames[int(torch.randint(len(frames), (1,), generator=gen))]
         progress = it / max(c.iterations, 1)
         self.optimizer.set_schedule(progress, 0.01, c.lr_schedule_final)
         sh_degree = min(c.model.sh_degree, it // max(c.sh_increase_every, 1))
@@ -288,9 +312,11 @@ class Trainer:
 
         body = self.body_state(stored.frame)
         u = self.model.time_axis(stored.frame.time)
+        jitter = self._time_jitter(stored, gen, progress)  # the spacetime terms see u + jitter
         bones, key = self._frame_bones(stored, body, "now")
         timer.mark("data")
-        state = self.model.spacetime(u)
+        moving = self._moving_rows()  # only these carry motion terms (the gate); the rest are rigid
+        state = self.model.spacetime(u + jitter, rows=moving)
         posed = self.model.pose(
             body, u, camera.center, sh_degree=sh_degree, bones=bones, key=key, state=state, camera=camera
         )
@@ -302,11 +328,13 @@ class Trainer:
         use_flow = flow_pair is not None and c.loss.flow > 0
         table = self.model.table
         want_temporal = c.loss.temporal > 0 and "t_center" in table and stored.next_time is not None
-        next_state = None  # the next frame's spacetime terms: one evaluation for the flow and temporal terms
+        # The next frame's spacetime terms (at its time + the same jitter, on the moving rows): one
+        # evaluation for the flow and temporal terms.
+        next_state = None
         if use_flow or want_temporal:
-            next_state = self.model.spacetime(self.model.time_axis(stored.next_time))
+            u_next = self.model.time_axis(stored.next_time) + jitter
+            next_state = self.model.spacetime(u_next, rows=moving)
         if use_flow:
-            u_next = self.model.time_axis(stored.next_time)
             next_body = self.body_state(stored.frame, smpl=stored.next_smpl)
             means_next = self.model.posed_means(
                 self._frame_bones(stored, next_body, "next")[0], u_next, state=next_state
@@ -329,7 +357,9 @@ class Trainer:
             terms["flow"] = L.flow_loss(image[..., 3:5], alpha, fwd, valid)
         if want_temporal:
             terms["temporal"] = self._temporal_term(state, next_state)
-        if c.loss.rigidity > 0 and state.offsets is not None:
+        if c.loss.line_of_sight > 0 and state.offsets is not None:
+            terms["line_of_sight"] = self._line_of_sight(state, bones, camera)
+        if c.loss.rigidity > 0 and state.offsets is not None and self.model.motion_bases is None:
             terms["rigidity"] = self.neighbours.loss(table, state.offsets, state.temporal)
         if c.loss.isometry > 0:
             terms["isometry"] = self.isometry.loss(table, posed.means, posed.canonical, posed.index)
@@ -339,7 +369,9 @@ class Trainer:
             "flow": c.loss.flow,
             "temporal": c.loss.temporal,
             "rigidity": c.loss.rigidity,
+            "line_of_sight": c.loss.line_of_sight,
             "motion_smooth": c.loss.motion_smooth,
+            "basis_smooth": c.loss.basis_smooth,
             "scale": c.loss.scale,
             "opacity": c.loss.opacity,
             "skin": c.loss.skin,
@@ -366,16 +398,14 @@ class Trainer:
         else:
             gate = self.model.table.motion_gate()
             if gate is not None:  # static Gaussians keep exactly zero motion terms
-                for name in ("motion", "rot_motion"):
+                for name in MOTION_COLUMNS:
                     self.optimizer.freeze_rows(name, ~gate)
             self.optimizer.step()
-            self.optimizer.soft_threshold("motion", c.loss.motion_sparsity)
-            self.optimizer.soft_threshold("rot_motion", c.loss.motion_sparsity)
+            for name in ("motion", "rot_motion"):  # a basis coefficient's sparsity is its row's gate
+                self.optimizer.soft_threshold(name, c.loss.motion_sparsity)
             timer.mark("update")
-            ctx = StepContext(
+            inputs = DensifyInputs(
                 iteration=it,
-                model=self.model,
-                optimizer=self.optimizer,
                 info=info,
                 index=posed.index,
                 camera=camera,
@@ -384,14 +414,16 @@ class Trainer:
                 target=target,
                 mask=mask,
                 flow=flow_pair,
-                frame=stored,
                 u=u,
                 bones=bones,
                 generator=gen,
-                trainer=self,
+                motion_threshold_px=self.motion_threshold(),
+                time_range=self.time_range(),
+                surface=self.surface,
                 rendered_flow=(image[..., 3:5] / alpha.clamp_min(0.5)).detach() if use_flow else None,
+                grow_in_time=not self._deciding(),
             )
-            report = self.densifier.step_post_backward(ctx)
+            report = self.densifier.step_post_backward(self.model, self.optimizer, self.densify_state, inputs)
             timer.mark("densify")
         if self.profile is not None:
             self.profile.steps += 1
@@ -414,6 +446,127 @@ class Trainer:
             densify=report,
         )
 
+    # --- the non-rigid part earns its place (nonrigid.py) -------------------------------------------
+    def _deciding(self) -> bool:
+        """Whether the non-rigid part is on trial: "auto", still on, not decided yet, and a schedule
+        long enough to reach the decision (a shorter one keeps the part on, with every frame)."""
+        c = self.config
+        return (
+            c.nonrigid == "auto"
+            and c.model.spacetime
+            and self.decision is None
+            and c.iterations > c.nonrigid_decide_iter
+        )
+
+    def _training_frames(self) -> list[StoredFrame]:
+        """The frames a step draws from: all, less the held-out ones while the trial runs."""
+        every = self.config.nonrigid_holdout_every
+        if not self._deciding():
+            return self.store.frames
+        kept = [f for f in self.store.frames if not nonrigid.held_out(f.frame.index, every)]
+        return kept or self.store.frames
+
+    def _held_out_views(self):
+        """(camera, body, u, target) of the held-out frames' crops (nonrigid.validation_gain)."""
+        every = self.config.nonrigid_holdout_every
+        for stored in self.store.frames:
+            if not nonrigid.held_out(stored.frame.index, every):
+                continue
+            camera = Camera3.from_camera(stored.frame.camera, stored.crop, self.device)
+            x0, y0, w, h = stored.crop
+            target = torch.from_numpy(stored.image[y0 : y0 + h, x0 : x0 + w]).to(self.device).float() / 255.0
+            body = self.body_state(stored.frame)
+            yield camera, body, self.model.time_axis(stored.frame.time), target
+
+    def _decide(self) -> None:
+        """Keep the non-rigid part or switch it off, from the evidence so far (nonrigid.py)."""
+        c = self.config
+        state = self.densify_state
+        seen = state["resid_w"] > 0
+        evidence = {
+            "moving_fraction": nonrigid.moving_fraction(state["resid_w"], seen, c.densify.residual_motion_px),
+            "active_motion_fraction": self.stats()["active_motion_fraction"],
+        }
+        if evidence["moving_fraction"] < c.nonrigid_min_moving:
+            why = (
+                f"the rigid model explains the motion: {100 * evidence['moving_fraction']:.1f} % of the "
+                f"Gaussians see flow it misses by more than {c.densify.residual_motion_px:g} px per frame "
+                f"(needs >= {100 * c.nonrigid_min_moving:g} %)"
+            )
+            chose = "off"
+        else:
+            rigid, _ = nonrigid.rigid_part(self.model)
+            evidence |= nonrigid.validation_gain(self.model, rigid, self._held_out_views(), self.backend)
+            gain = evidence["gain_db"]
+            pays = gain >= c.nonrigid_min_gain_db
+            chose = "on" if pays else "off"
+            why = (
+                f"on held-out frames the non-rigid terms change {100 * evidence['changed_fraction']:.1f} % "
+                f"of the pixels and gain {gain:+.2f} dB there ({'>=' if pays else '<'} "
+                f"{c.nonrigid_min_gain_db:g} dB); {100 * evidence['moving_fraction']:.1f} % of the "
+                "Gaussians see flow the rigid model misses"
+            )
+        self.decision = nonrigid.Decision(chose, why, self.iteration, evidence)
+        log.info("non-rigid part %s at iteration %d: %s", chose, self.iteration, why)
+        if chose == "off":
+            self._switch_off()
+
+    def _switch_off(self) -> None:
+        """Continue as LBS only: the rigid part of the model, its Adam state and statistics kept."""
+        rigid, keep = nonrigid.rigid_part(self.model)
+        table_state = {
+            name: {k: (v[keep] if torch.is_tensor(v) and v.dim() > 0 else v) for k, v in s.items()}
+            for name, s in self.optimizer.table_state().items()
+            if name in rigid.table.names()
+        }
+        dense_state = {k: v for k, v in self.optimizer.dense_state().items() if not k.startswith("bases.")}
+        self.config = self.config.replace(**LBS_ONLY)
+        self.attach_model(rigid, self.betas)
+        self._build_optimizer()
+        self.optimizer.load_table_state(table_state)
+        self.optimizer.load_dense_state(dense_state)
+        self.densifier = DensifyStrategy(self.config.densify, self.config.iterations)
+        DensifyStrategy._resize(self.densify_state, keep=keep)
+        self.densify_state["was_dynamic"].zero_()
+        self.neighbours = NeighbourGraph()
+
+    def nonrigid_report(self) -> dict:
+        """What the run chose for the non-rigid part and why (the run's summary)."""
+        if self.decision is not None:
+            return self.decision.to_dict()
+        if not self.config.model.spacetime:
+            how = "nonrigid=off" if self.config.nonrigid == "off" else "model.spacetime=false"
+            return {"chose": "off", "why": f"{how}: LBS only from the start"}
+        if self.config.nonrigid == "on":
+            return {"chose": "on", "why": "nonrigid=on: kept whatever the evidence"}
+        c = self.config
+        if c.iterations <= c.nonrigid_decide_iter:
+            return {
+                "chose": "on",
+                "why": f"no trial: {c.iterations} iterations end before nonrigid_decide_iter "
+                f"({c.nonrigid_decide_iter})",
+            }
+        return {
+            "chose": "on",
+            "why": f"not decided yet: the trial ends at iteration {c.nonrigid_decide_iter}",
+        }
+
+    def motion_threshold(self) -> float:
+        """delta (px per frame) of the frames held now (densify.motion_threshold)."""
+        return motion_threshold(
+            self.config.densify, [f.flow_magnitude for f in self.store.frames if f.flow is not None]
+        )
+
+    def time_range(self) -> tuple[float, float]:
+        """Normalised times of the earliest and latest frame held now."""
+        times = [self.model.time_axis(f.frame.time) for f in self.store.frames]
+        return (min(times), max(times)) if times else (0.0, 0.0)
+
+    @property
+    def densify_counts(self) -> dict[str, int]:
+        """What densification did so far (cloned, split, pruned, flow_added, ...)."""
+        return counts(self.densify_state)
+
     def _frame_bones(self, stored: StoredFrame, body: BodyState, which: str):
         """A frame's bones and pose code; cached on the frame unless its pose is being refined."""
         if body.poses.requires_grad:
@@ -428,12 +581,43 @@ class Trainer:
             cache = stored.extras[which] = (bones, key)
         return cache
 
+    def _time_jitter(self, stored: StoredFrame, gen: torch.Generator, progress: float) -> float:
+        """Annealed time noise (Deformable 3DGS): N(0, s^2) time units, s = ``time_noise_frames`` frame
+        intervals at the start, falling linearly to 0 at ``time_noise_until`` of the schedule."""
+        c = self.config
+        if c.time_noise_frames <= 0 or progress >= c.time_noise_until:
+            return 0.0
+        interval_s = stored.next_time - stored.frame.time if stored.next_time is not None else 1 / 30
+        scale = (
+            c.time_noise_frames
+            * (1.0 - progress / c.time_noise_until)
+            * interval_s
+            / self.model.time_axis.unit_s
+        )
+        return scale * float(torch.randn((), generator=gen))
+
+    def _line_of_sight(self, state: spacetime.SpacetimeState, bones, camera: Camera3) -> torch.Tensor:
+        """Motion along the training camera's rays, of the Gaussians that may move (motion_priors)."""
+        table = self.model.table
+        gate = table.motion_gate()
+        rows = gate.nonzero().squeeze(1) if gate is not None else torch.arange(table.num, device=self.device)
+        weights = self.model.skin_weights()[rows]
+        offsets = state.offsets[rows]
+        posed = skin(table["means"][rows] + offsets, weights, bones, rotations=False).means
+        presence = state.temporal[rows] if state.temporal is not None else None
+        return line_of_sight(world_offsets(offsets, weights, bones), posed, camera.center, presence)
+
+    def _moving_rows(self) -> torch.Tensor | None:
+        """Rows whose motion terms may be non-zero (the motion gate), or None without a gate."""
+        gate = self.model.table.motion_gate()
+        return None if gate is None else gate.nonzero().squeeze(1)
+
     def _temporal_term(self, now: spacetime.SpacetimeState, nxt: spacetime.SpacetimeState) -> torch.Tensor:
         table = self.model.table
         out = table["means"].new_zeros(())
-        if now.offsets is not None:
+        if now.offsets is not None and self.model.motion_bases is None:  # bases: their own smoothness
             out = out + 100.0 * (nxt.offsets - now.offsets).abs().sum(1).mean()
-        if now.temporal is not None:
+        if now.temporal is not None and nxt.temporal is not None:
             out = out + (nxt.temporal - now.temporal).abs().mean()
         return out
 
@@ -445,6 +629,8 @@ class Trainer:
         if motion is not None and motion.shape[1] > 1:
             order = torch.arange(1, motion.shape[1] + 1, device=motion.device, dtype=motion.dtype)
             out["motion_smooth"] = (motion.abs().sum(-1) * (order - 1)).sum(1).mean()
+        if self.model.motion_bases is not None and c.basis_smooth > 0:
+            out["basis_smooth"] = self.model.motion_bases.roughness()
         if c.scale > 0:
             out["scale"] = torch.relu(table.scales().max(dim=1).values - c.scale_max_m).mean() * 100.0
         if c.opacity > 0:
@@ -477,20 +663,64 @@ class Trainer:
 
     def save(self, path: str | Path) -> Path:
         """Checkpoint everything needed to resume exactly (one GaussianSnapshot file, atomic)."""
-        from stg_node.avatar import checkpoint
-
-        return checkpoint.save(self, path)
+        if self.model is None:
+            raise RuntimeError("no model yet: add a frame first")
+        slots = sorted(self.pose_slots.items(), key=lambda kv: kv[1])
+        state = checkpoint.TrainingState(
+            model=self.model,
+            config=self.config,
+            body_model=self.body_reference,
+            seed=self.seed,
+            betas=self.betas,
+            iteration=self.iteration,
+            train_seconds=self.train_seconds,
+            skipped_steps=self.skipped_steps,
+            frames_seen=self.store.seen,
+            model_version=self.model_version,
+            table_adam=self.optimizer.table_state(),
+            dense_adam=self.optimizer.dense_state(),
+            pose_deltas=self.pose_deltas,
+            pose_frames=[f for f, _ in slots],
+            densify=self.densify_state,
+            loss_ema=dict(self.weights.ema),
+            nonrigid={} if self.decision is None else self.decision.to_dict(),
+            isometry=self.isometry.state_arrays(),
+            notes=dict(self.notes),
+        )
+        return checkpoint.save(path, state)
 
     @classmethod
     def load(
         cls, path: str | Path, *, body_model=None, device="cpu", backend="auto", flow_cache=None
     ) -> Trainer:
         """Resume from a checkpoint written by :meth:`save`; frames must be added again."""
-        from stg_node.avatar import checkpoint
-
-        return checkpoint.load(
-            path, body_model=body_model, device=device, backend=backend, flow_cache=flow_cache
+        state = checkpoint.load(path, device=device)
+        body = body_model if body_model is not None else state.body_model
+        trainer = cls(
+            state.config, body, device=device, backend=backend, seed=state.seed, flow_cache=flow_cache
         )
+        trainer._restore(state)
+        return trainer
+
+    def _restore(self, state: checkpoint.TrainingState) -> None:
+        self.attach_model(state.model, state.betas)
+        if state.pose_deltas is not None:
+            self.pose_slots = {f: i for i, f in enumerate(state.pose_frames)}
+            self.pose_deltas = torch.nn.Parameter(state.pose_deltas.to(self.device))
+        self._build_optimizer()
+        self.optimizer.load_table_state(state.table_adam)
+        self.optimizer.load_dense_state(state.dense_adam)
+        self.densify_state = self.densifier.initialize_state(self.model) | {
+            k: v.to(self.device) for k, v in state.densify.items()
+        }
+        self.weights.ema = dict(state.loss_ema)
+        self.notes = dict(state.notes)
+        self.isometry.load_state_arrays(state.isometry, self.model.table)
+        self.iteration = state.iteration
+        self.train_seconds = state.train_seconds
+        self.skipped_steps = state.skipped_steps
+        self.model_version = state.model_version
+        self.decision = nonrigid.Decision.from_dict(state.nonrigid)
 
     # --- reporting -------------------------------------------------------------------------------
     def stats(self) -> dict:
@@ -501,7 +731,7 @@ class Trainer:
 
         table = self.model.table
         n = table.num
-        active = float(table.motion_active().float().mean()) if n and ("motion" in table) else 0.0
+        active = float(table.motion_active().float().mean()) if n else 0.0
         return {
             "gaussians": n,
             "active_motion_fraction": active,

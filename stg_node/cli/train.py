@@ -272,7 +272,8 @@ def _train(args, frames, stop: StopSignals) -> int:
         "frames": len(trainer.store),
         "preset": config.preset,
         **stats,
-        "densify": dict(trainer.densifier.counts),
+        "densify": trainer.densify_counts,
+        "nonrigid": trainer.nonrigid_report(),
     }
     write_json(run.summary, summary)
     tlog.close()

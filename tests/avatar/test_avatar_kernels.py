@@ -30,8 +30,9 @@ def _kernels():
 @pytest.fixture(scope="module")
 def trained(tiny_frames):
     """A model after 40 steps, then roughened so every path is exercised: learned weight
-    corrections, moving Gaussians with rotations, a few transparent ones (culled rows)."""
-    trainer = Trainer(small_config(), seed=0)
+    corrections, moving Gaussians with rotations, a few transparent ones (culled rows). Per-Gaussian
+    polynomials: the kernels skin whatever offsets the spacetime terms give, polynomial or bases."""
+    trainer = Trainer(small_config(**{"model.motion_basis": 0}), seed=0)
     trainer.add_frames(tiny_frames)
     for _ in range(40):
         trainer.step()

@@ -137,38 +137,21 @@ def test_model_config_refuses_nonsense():
 
 def test_temporal_split_spreads_copies_of_an_always_on_gaussian_over_the_training_time(tiny_frames):
     """Spacetime densification: a dynamic Gaussian present at all times becomes copies on short
-    windows, centred evenly over the frames' time range, each crossing its neighbour at ~half opacity."""
+    windows, centred evenly over the frames' time range, each crossing its neighbour at ~half opacity
+    (per-Gaussian polynomials: shared bases are not split in time)."""
     from avatar_helpers import small_config
 
-    from stg_node.avatar.densify import StepContext
     from stg_node.avatar.trainer import Trainer
 
-    trainer = Trainer(small_config(), seed=0)
+    trainer = Trainer(small_config(**{"model.motion_basis": 0}), seed=0)
     trainer.add_frames(tiny_frames)
     model, d = trainer.model, trainer.densifier
     rows = torch.tensor([3, 7])
     model.table["motion_gate"].data[rows] = 1.0
     hot = torch.zeros(model.table.num, dtype=torch.bool)
     hot[rows] = True
-    ctx = StepContext(
-        0,
-        model,
-        trainer.optimizer,
-        {},
-        None,
-        None,
-        (0, 0, 1, 1),
-        None,
-        None,
-        None,
-        None,
-        None,
-        0.0,
-        None,
-        None,
-        trainer,
-    )
-    sources, new = d._temporal_split_rows(ctx, hot, torch.ones(model.table.num), room=1000)
+    time_range = trainer.time_range()
+    sources, new = d._temporal_split_rows(model, time_range, hot, torch.ones(model.table.num), room=1000)
     times = sorted(model.time_axis(f.frame.time) for f in trainer.store.frames)
     span = times[-1] - times[0]
     k = new["means"].shape[0] // 2
@@ -182,14 +165,14 @@ def test_temporal_split_spreads_copies_of_an_always_on_gaussian_over_the_trainin
     assert torch.equal(new["means"][:k], model.table["means"][3].expand(k, 3))
     # No room, no split; room for one Gaussian's copies only, only the first (by gradient) is split.
     grads = torch.ones(model.table.num)
-    assert d._temporal_split_rows(ctx, hot, grads, room=0) is None
-    assert d._temporal_split_rows(ctx, hot, grads, room=k - 1) is None  # not even one whole set
+    assert d._temporal_split_rows(model, time_range, hot, grads, room=0) is None
+    assert d._temporal_split_rows(model, time_range, hot, grads, room=k - 1) is None  # not even one whole set
     grads[7] = 2.0
-    sources, new = d._temporal_split_rows(ctx, hot, grads, room=k)
+    sources, new = d._temporal_split_rows(model, time_range, hot, grads, room=k)
     assert sources.tolist() == [7] and new["means"].shape[0] == k
     # Not dynamic, no split.
     model.table["motion_gate"].data[rows] = 0.0
-    assert d._temporal_split_rows(ctx, hot, torch.ones(model.table.num), room=1000) is None
+    assert d._temporal_split_rows(model, time_range, hot, torch.ones(model.table.num), room=1000) is None
 
 
 def test_rigidity_pulls_a_dynamic_gaussian_towards_its_neighbours_motion():

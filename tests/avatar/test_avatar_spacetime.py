@@ -12,6 +12,7 @@ from stg_node.avatar.gaussians import GaussianTable, new_columns
 
 
 def _table(n=5, seed=0, **model):
+    model.setdefault("motion_basis", 0)  # per-Gaussian polynomials (the shared bases: motion_priors tests)
     cfg = ModelConfig(num_gaussians=n, max_gaussians=max(n, 10), **model)
     gen = torch.Generator().manual_seed(seed)
     cols = new_columns(
@@ -84,7 +85,17 @@ def test_skipping_inactive_rows_changes_nothing_but_the_work():
     skipped = spacetime.evaluate(table, 0.7, cfg.time_horizon, temporal_opacity=True, skip_inactive=True)
     assert torch.equal(full.offsets, skipped.offsets)
     assert torch.equal(full.quats, skipped.quats)
+    assert torch.equal(full.temporal, skipped.temporal)
     assert int(table.motion_active().sum()) == 10
+    # Nothing moving and every window persistent: the rigid part alone, nothing evaluated.
+    with torch.no_grad():
+        table["motion"].zero_()
+        table["rot_motion"].zero_()
+        table["t_log_scale"].fill_(math.log(2 * spacetime.PERSISTENT_SCALE))
+    still = spacetime.evaluate(table, 0.7, cfg.time_horizon, temporal_opacity=True, skip_inactive=True)
+    assert still.offsets is None and still.temporal is None and still.quats is table["quats"]
+    every = spacetime.evaluate(table, 0.7, cfg.time_horizon, temporal_opacity=True)
+    assert torch.equal(every.offsets, torch.zeros(20, 3)) and torch.equal(every.temporal, torch.ones(20))
 
 
 def test_spacetime_off_gives_no_terms():

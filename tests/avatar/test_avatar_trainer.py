@@ -12,6 +12,7 @@ import torch
 from avatar_helpers import small_config
 
 from stg_node.avatar import losses as L
+from stg_node.avatar.gaussians import MOTION_COLUMNS
 from stg_node.avatar.renderer import AvatarRenderer
 from stg_node.avatar.trainer import Trainer
 
@@ -54,7 +55,11 @@ def test_full_model_overfits_a_tiny_sequence(tiny_frames):
     stats = trainer.stats()
     snap = trainer.snapshot()
     motion = np.concatenate(
-        [np.asarray(snap.arrays[f"g.{n}"]).reshape(snap.num_gaussians, -1) for n in ("motion", "rot_motion")],
+        [
+            np.asarray(snap.arrays[f"g.{n}"]).reshape(snap.num_gaussians, -1)
+            for n in MOTION_COLUMNS
+            if f"g.{n}" in snap.arrays
+        ],
         1,
     )
     assert stats["gaussians"] == snap.num_gaussians > 0
@@ -68,8 +73,11 @@ def test_full_model_overfits_a_tiny_sequence(tiny_frames):
         ({"model.spacetime": False}, {"motion", "rot_motion", "t_center", "t_log_scale"}),
         ({"densify.flow_guided": False}, set()),
         ({"model.color": "sh", "model.sh_degree": 2}, {"features"}),
-        ({"model.motion_order": 0, "model.rotation_order": 0}, {"motion", "rot_motion"}),
-        ({"model.motion_order": 3}, set()),
+        (
+            {"model.motion_order": 0, "model.rotation_order": 0, "model.motion_basis": 0},
+            {"motion", "rot_motion"},
+        ),
+        ({"model.motion_order": 3, "model.motion_basis": 0}, {"motion_coef"}),
         ({"model.learn_skin_weights": False, "model.skin_init": "nearest"}, {"skin_delta"}),
     ],
 )
@@ -115,8 +123,13 @@ def test_resumed_checkpoint_continues_exactly_like_the_uninterrupted_run(tiny_fr
     config = small_config(iterations=50, lr_pose=1e-4)
     straight = _train(tiny_frames, config)
     first = _train(tiny_frames, config, steps=25)
+    first.notes = {"wall_s": 12.5}
     path = first.save(tmp_path / "ck.stgsnap")
     resumed = Trainer.load(path)
+    # The caller's notes and the isometry loss's neighbour graph come back as they were saved.
+    assert resumed.notes == {"wall_s": 12.5}
+    assert first.isometry.neighbours is not None
+    assert torch.equal(resumed.isometry.neighbours, first.isometry.neighbours)
     resumed.add_frames(tiny_frames)
     assert resumed.iteration == 25
     for _ in range(25):
@@ -131,6 +144,11 @@ def test_resumed_checkpoint_continues_exactly_like_the_uninterrupted_run(tiny_fr
     ):
         assert k == k2 and torch.equal(v, v2), k
     assert torch.equal(straight.pose_deltas, resumed.pose_deltas)
+    # The densification strategy's state is a dict the trainer owns, stored as it is.
+    assert straight.densify_state.keys() == resumed.densify_state.keys()
+    for key, value in straight.densify_state.items():
+        assert torch.equal(value, resumed.densify_state[key]), key
+    assert straight.densify_counts == resumed.densify_counts and "flow_added" in straight.densify_counts
 
 
 def test_a_non_finite_step_is_skipped_and_never_written(tiny_frames, monkeypatch, caplog):

@@ -1,0 +1,185 @@
+"""The non-rigid part earns its place: the decision (evidence, switch-off, forced choices), the held-out
+frames of the trial, the rigid model a switch-off continues with, and the gain's arithmetic."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from avatar_helpers import small_config
+
+from stg_node.avatar import nonrigid
+from stg_node.avatar.trainer import Trainer
+
+
+def _trial_config(**changes):
+    """Shared bases, a trial of 12 steps on every 3rd frame held out, 20 steps in all."""
+    base = {
+        "model.motion_basis": 24,
+        "iterations": 20,
+        "nonrigid_decide_iter": 12,
+        "nonrigid_holdout_every": 3,
+        "densify.start_iter": 4,
+        "densify.interval": 4,
+    }
+    return small_config(**(base | changes))
+
+
+def _trainer(frames, config, steps):
+    trainer = Trainer(config, seed=0)
+    trainer.add_frames(frames)
+    drawn = [trainer.step().frame for _ in range(steps)]
+    return trainer, drawn
+
+
+def test_validation_gain_pools_squared_errors_over_the_pixels_the_terms_change(monkeypatch):
+    """Two 1x4 views; the renders differ on 3 pixels. Full-model errors there 0.1, 0.1 and 0 (the last
+    view's), rigid-model errors 0.2, 0.2, 0.2: gain = 10 log10((3 x 0.04) / (2 x 0.01)) = 7.78 dB."""
+    target = torch.zeros(1, 4, 3)
+    renders = iter(
+        [
+            torch.tensor([[0.1, 0.1, 0.5, 0.0]]),  # view 1, full model
+            torch.tensor([[0.2, 0.2, 0.5, 0.0]]),  # view 1, rigid part: differs on pixels 0, 1
+            torch.tensor([[0.0, 0.3, 0.0, 0.0]]),  # view 2, full model
+            torch.tensor([[0.2, 0.3, 0.0, 0.0]]),  # view 2, rigid part: differs on pixel 0
+        ]
+    )
+    monkeypatch.setattr(nonrigid, "_render", lambda *a: next(renders)[..., None].expand(1, 4, 3))
+    out = nonrigid.validation_gain(None, None, [(None, None, 0.0, target), (None, None, 0.1, target)])
+    assert out["gain_db"] == pytest.approx(10 * math.log10(3 * 0.04 / (2 * 0.01)), rel=1e-5)
+    assert out["changed_fraction"] == pytest.approx(3 / 8)
+    whole_full = (0.01 * 2 + 0.25 + 0.09) / 8
+    assert out["psnr_full"] == pytest.approx(-10 * math.log10(whole_full), rel=1e-5)
+
+
+def test_a_trial_holds_frames_out_and_nothing_moving_switches_the_part_off(tiny_frames, tmp_path):
+    """No Gaussian sees flow the rigid model misses: at the decision the trainer drops the motion
+    columns, carries on as LBS only, says why, and a checkpoint keeps the choice; the held-out frames
+    are never drawn during the trial and are drawn after it."""
+    config = _trial_config()
+    trainer, drawn = _trainer(tiny_frames, config, 12)
+    held = {f.index for f in tiny_frames if nonrigid.held_out(f.index, 3)}
+    assert held and not held & set(drawn)
+    trainer.densify_state["resid_w"].fill_(0.01)  # seen, but everything explained
+    before = trainer.model.table.num
+    drawn = [trainer.step().frame for _ in range(8)]  # the decision, then 8 steps as LBS only
+    assert trainer.decision.chose == "off" and trainer.decision.iteration == 12
+    assert "rigid model explains the motion" in trainer.decision.why
+    assert trainer.config.model.spacetime is False and trainer.config.densify.flow_guided is False
+    assert not {"motion_coef", "motion_gate", "t_center"} & set(trainer.model.table.names())
+    assert trainer.model.motion_bases is None and trainer.stats()["active_motion_fraction"] == 0.0
+    assert trainer.model.table.num >= before - 50  # the same Gaussians (densification may prune a few)
+    assert held & set(drawn) or len(held) * 8 < len(tiny_frames)  # held-out frames train again
+    report = trainer.nonrigid_report()
+    assert report["chose"] == "off" and report["evidence"]["moving_fraction"] == 0.0
+    resumed = Trainer.load(trainer.save(tmp_path / "ck.stgsnap"))
+    assert resumed.decision == trainer.decision and resumed.config.model.spacetime is False
+    resumed.add_frames(tiny_frames)
+    assert not resumed._deciding()
+
+
+@pytest.mark.parametrize("gain, chose", [(1.0, "on"), (0.1, "off")])
+def test_with_motion_the_held_out_gain_decides(tiny_frames, monkeypatch, gain, chose):
+    config = _trial_config()
+    trainer, _ = _trainer(tiny_frames, config, 12)
+    trainer.densify_state["resid_w"].fill_(10.0)  # everything moves
+    seen = []
+
+    def fake_gain(model, rigid, views, backend):
+        seen.extend(view[2] for view in views)
+        assert "motion_coef" not in rigid.table.names() and "motion_coef" in model.table.names()
+        return {"gain_db": gain, "changed_fraction": 0.2, "psnr_full": 30.0, "psnr_rigid": 29.0}
+
+    monkeypatch.setattr(nonrigid, "validation_gain", fake_gain)
+    trainer.step()
+    held_times = {trainer.model.time_axis(f.time) for f in tiny_frames if nonrigid.held_out(f.index, 3)}
+    assert set(seen) == held_times  # judged on the held-out frames, at their own times
+    assert trainer.decision.chose == chose and f"{gain:+.2f} dB" in trainer.decision.why
+    assert ("motion_coef" in trainer.model.table.names()) == (chose == "on")
+
+
+def test_forced_on_never_decides_and_short_runs_keep_every_frame(tiny_frames):
+    trainer, drawn = _trainer(tiny_frames, _trial_config(nonrigid="on"), 20)
+    assert trainer.decision is None and trainer.nonrigid_report()["why"].startswith("nonrigid=on")
+    assert "motion_coef" in trainer.model.table.names()
+    short, _ = _trainer(tiny_frames, _trial_config(iterations=10), 10)
+    assert not short._deciding() and len(short._training_frames()) == len(tiny_frames)
+    assert short.nonrigid_report()["why"].startswith("no trial")
+    off = Trainer(_trial_config(nonrigid="off"), seed=0)
+    assert off.config.model.spacetime is False and off.config.densify.flow_guided is False
+    assert off.nonrigid_report() == {"chose": "off", "why": "nonrigid=off: LBS only from the start"}
+    with pytest.raises(ValueError, match="nonrigid must be one of"):
+        _trial_config(nonrigid="maybe").validate()
+
+
+def test_the_rigid_part_renders_like_the_model_with_its_terms_at_zero(tiny_frames):
+    """With every motion term zero and no temporal copies, dropping the non-rigid part changes no pixel;
+    Gaussians on a finite temporal window are dropped."""
+    from stg_node.avatar.model import Camera3
+
+    config = _trial_config(nonrigid="on")
+    trainer, _ = _trainer(tiny_frames, config, 2)
+    model = trainer.model
+    rigid, keep = nonrigid.rigid_part(model)
+    assert bool(keep.all()) and rigid.table.num == model.table.num
+    frame = tiny_frames[3]
+    camera = Camera3.from_camera(frame.camera)
+    body = trainer.body_state(frame)
+    u = model.time_axis(frame.time)
+    a = nonrigid._render(model, camera, body, u, "auto")
+    b = nonrigid._render(rigid, camera, body, u, "auto")
+    assert torch.equal(a, b)
+    with torch.no_grad():
+        model.table["t_log_scale"][:5] = math.log(0.2)
+    _, keep = nonrigid.rigid_part(model)
+    assert keep.tolist()[:6] == [False] * 5 + [True] and int(keep.sum()) == model.table.num - 5
+
+
+def test_runs_stored_before_the_trial_and_the_bases_resume_as_they_were():
+    """A config or snapshot written before these settings existed keeps the polynomial motion and no
+    trial (what those runs did), not today's defaults."""
+    from stg_node.avatar.config import ModelConfig, TrainConfig
+    from stg_node.avatar.snapshot import model_config_from_meta, model_config_meta
+
+    old = TrainConfig().to_dict()
+    del old["nonrigid"], old["model"]["motion_basis"]
+    restored = TrainConfig.from_dict(old)
+    assert restored.nonrigid == "on" and restored.model.motion_basis == 0
+    assert TrainConfig.from_dict(TrainConfig().to_dict()) == TrainConfig()
+    meta = model_config_meta(ModelConfig())
+    assert model_config_from_meta(meta).motion_basis == ModelConfig().motion_basis == 24
+    del meta["model.motion_basis"]
+    assert model_config_from_meta(meta).motion_basis == 0
+
+
+def test_a_gate_opens_on_flow_the_model_misses_or_where_moving_helps_not_on_motion_skinning_explains(
+    tiny_frames,
+):
+    """Row 0: large flow the model's own motion explains (a turn): stays static. Row 1: flow it misses
+    and the image pulls: opens. Row 2: no missed flow, but moving with its bones' shared motions
+    would lower the loss (the normalised sum -<g, m> = 0.8): opens. Row 3: pulled, but moving would
+    raise the loss: stays static. Each newly moving row starts with its skinning weights as
+    coefficients."""
+    from types import SimpleNamespace
+
+    from stg_node.avatar.motion_basis import initial_coefficients
+
+    trainer, _ = _trainer(tiny_frames, _trial_config(nonrigid="on"), 1)
+    model, state, c = trainer.model, trainer.densify_state, trainer.config.densify
+    n = model.table.num
+    for key in ("flow_w", "resid_w", "help_dot", "help_norm"):
+        state[key] = torch.zeros(n)
+    state["flow_w"][0] = 50.0
+    state["resid_w"][1] = 2 * c.residual_motion_px
+    state["help_dot"][2], state["help_norm"][2] = -0.8, 1.0
+    state["help_dot"][3], state["help_norm"][3] = 0.8, 1.0
+    grads = torch.zeros(n)
+    grads[:4] = c.grad_threshold  # the image pulls on all four
+    inputs = SimpleNamespace(motion_threshold_px=1.0)
+    report = trainer.densifier._gate_motion(model, trainer.optimizer, state, inputs, grads)
+    gate = model.table.motion_gate()
+    assert gate[:4].tolist() == [False, True, True, False] and report["motion_on"] == 2
+    expected = initial_coefficients(model.skin_weights().detach()[1:3], model.motion_bases.count)
+    assert torch.allclose(model.table["motion_coef"].detach()[1:3], expected)
+    assert not bool(model.table["motion_coef"].detach()[[0, 3]].any())
