@@ -57,6 +57,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--train-camera", default=None, help="training camera name (default: the protocol's, camera 1)"
     )
+    p.add_argument(
+        "--train-cameras",
+        default=None,
+        metavar="A,B,...",
+        help="several training cameras (a rig; the novel views are then every other camera): docs/RIGS.md",
+    )
     p.add_argument("--iters", type=int, default=None, help="training iterations (default: the preset's)")
     p.add_argument(
         "--checkpoint-every",
@@ -127,6 +133,7 @@ def run(args: argparse.Namespace) -> int:
         frames = parse_frame_range(args.train_frames)
     except ValueError as exc:
         raise UsageError(str(exc)) from exc
+    train_cameras = rig_cameras_option(args)
     if args.format != "video" and (args.intrinsics is not None or args.fov is not None):
         raise UsageError("--intrinsics and --fov describe the camera of a video: only with --format video")
     if args.fov is not None and not 1.0 <= args.fov <= 170.0:
@@ -145,9 +152,24 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--set: {exc}") from exc
     if args.set and args.resume and RunDir(Path(args.out)).checkpoint.is_file():
         raise UsageError(f"--set changes a new run's settings; {args.out} resumes with its own (config.json)")
+    args.train_cameras_tuple = train_cameras
     configure_threads(args.threads)
     with StopSignals() as stop:
         return _train(args, frames, stop)
+
+
+def rig_cameras_option(args) -> tuple[str, ...] | None:
+    """``--train-cameras A,B`` as a tuple (None without it), checked against ``--train-camera``."""
+    if args.train_cameras is None:
+        return None
+    if args.train_camera is not None:
+        raise UsageError("give --train-camera (one camera) or --train-cameras (several), not both")
+    names = tuple(n.strip() for n in args.train_cameras.split(","))
+    if not all(names) or len(set(names)) != len(names):
+        raise UsageError(
+            f"--train-cameras must be distinct names separated by commas, got {args.train_cameras!r}"
+        )
+    return names
 
 
 def _device(args) -> str:
@@ -184,7 +206,14 @@ def _train(args, frames, stop: StopSignals) -> int:
                 progress=not args.no_progress,
             )
         )
-    spec = DataSpec(str(Path(data_root).resolve()), args.format, frames, args.train_camera, args.size)
+    spec = DataSpec(
+        str(Path(data_root).resolve()),
+        args.format,
+        frames,
+        args.train_camera,
+        args.size,
+        args.train_cameras_tuple,
+    )
     device = _device(args)
     flow_cache = FlowCache(run.flow_cache)
     resumed = False
