@@ -50,9 +50,13 @@ TORSO = ("left_shoulder", "right_shoulder", "left_hip", "right_hip")
 class MultiViewConfig:
     max_side: int = 512  # detect and mask on frames scaled to at most this long side (0 = native)
     smoothing: bool = True
-    rotation_filter: OneEuroConfig = field(default_factory=OneEuroConfig)
+    # Lighter than one camera's (2 Hz / 1 Hz): several views leave little noise to remove, and
+    # the filter's lag costs more than it saves (docs/TRACKING.md#several-cameras).
+    rotation_filter: OneEuroConfig = field(
+        default_factory=lambda: OneEuroConfig(min_cutoff_hz=12.0, beta=20.0)
+    )
     translation_filter: OneEuroConfig = field(
-        default_factory=lambda: OneEuroConfig(min_cutoff_hz=1.0, beta=2.0)
+        default_factory=lambda: OneEuroConfig(min_cutoff_hz=8.0, beta=4.0)
     )
     bad_fit_units: float = 4.0
     single_view_factor: float = 0.5
