@@ -282,3 +282,26 @@ def synthetic_capture(
                 camera, R, t, texture, TEXTURE_PPM, supersample=supersample, noise_std=noise_std, rng=rng
             )
     return SyntheticCapture(rig, spec, poses, images)
+
+
+def _rotation_error_deg(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(a.T @ b) - 1) / 2, -1, 1))))
+
+
+def rig_errors(estimated: Rig, truth: Rig) -> list[tuple[float, float]]:
+    """(camera centre error in metres, rotation error in degrees) per camera, after the rigid motion
+    that best aligns the estimated rig with the truth: the world frame is a choice (the first
+    camera's, the board's); the rig's shape and size are what a calibration finds. Scale is not
+    aligned (the board fixes it). The alignment's rotation is the chordal mean of the cameras'
+    orientation differences, its translation the mean centre difference."""
+    from stg_node.calibration.solve import mean_rotation
+
+    # world_truth = A @ world_estimated + b; each camera's orientation gives A = R_true^T R_est.
+    A = mean_rotation([tru.R.T @ est.R for est, tru in zip(estimated.cameras, truth.cameras, strict=True)])
+    centres = np.array([c.center for c in estimated.cameras]) @ A.T
+    true_centres = np.array([c.center for c in truth.cameras])
+    centres = centres + (true_centres - centres).mean(axis=0)
+    return [
+        (float(np.linalg.norm(centre - tru.center)), _rotation_error_deg(est.R @ A.T, tru.R))
+        for est, tru, centre in zip(estimated.cameras, truth.cameras, centres, strict=True)
+    ]

@@ -17,33 +17,13 @@ import pytest
 from stg_node.calibration.board import BoardDetector, BoardSpec
 from stg_node.calibration.rig import RigError, read_rig, write_rig
 from stg_node.calibration.solve import CalibrationError, calibrate_rig, project
-from stg_node.calibration.synthetic import ring_rig, synthetic_capture
+from stg_node.calibration.synthetic import rig_errors, ring_rig, synthetic_capture
 from stg_node.cli import calibrate as cli
 
 SPEC = BoardSpec(9, 6, 0.07, 0.052)  # 63 x 42 cm: an A2 print
 
 
-def rotation_error_deg(a: np.ndarray, b: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(a.T @ b) - 1) / 2, -1, 1))))
-
-
-def errors_against_truth(estimated, truth):
-    """(centre error m, rotation error deg) per camera after the rigid motion that best aligns the
-    estimated rig with the truth (the world frame is a choice: the first camera's, the board's;
-    the rig's shape and size are what the calibration found). Scale is not aligned: the board
-    fixes it. The rotation of the alignment comes from the cameras' orientations (chordal mean),
-    its translation from their centres."""
-    from stg_node.calibration.solve import mean_rotation
-
-    # world_truth = A @ world_est + b; a camera's orientation gives A = R_true^T R_est each.
-    A = mean_rotation([tru.R.T @ est.R for est, tru in zip(estimated.cameras, truth.cameras, strict=True)])
-    est_centres = np.array([c.center for c in estimated.cameras]) @ A.T
-    tru_centres = np.array([c.center for c in truth.cameras])
-    b = (tru_centres - est_centres).mean(axis=0)
-    out = []
-    for est, tru, centre in zip(estimated.cameras, truth.cameras, est_centres + b, strict=True):
-        out.append((float(np.linalg.norm(centre - tru.center)), rotation_error_deg(est.R @ A.T, tru.R)))
-    return out
+errors_against_truth = rig_errors
 
 
 @pytest.fixture(scope="module")
