@@ -244,10 +244,14 @@ class MultiViewTracker:
             return self._hold(frames, timestamp, ("too_few_keypoints",), keypoints)
         views_used = sum(
             1
-            for k in keypoints
-            if k is not None and int((np.asarray(k.score) >= self.config.fit.min_keypoint_score).sum()) >= 4
+            for v, k in enumerate(keypoints)
+            if k is not None
+            and v not in self.fitter.dropped_views
+            and int((np.asarray(k.score) >= self.config.fit.min_keypoint_score).sum()) >= 4
         )
         confidence, flags = self._confidence(keypoints, fit, views_used)
+        if self.fitter.dropped_views:
+            flags.append("view_disagrees")
         self.fitter.add_calibration(fit, confidence)
         self._last_raw_rh = fit.Rh
         body_pose, Rh, Th = fit.body_pose, fit.Rh, fit.Th

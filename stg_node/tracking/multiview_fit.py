@@ -45,6 +45,8 @@ from stg_node.tracking.priors import limit_excess
 MIN_VIEW_TARGETS = 4  # a view with fewer usable targets adds nothing
 TORSO = ("left_shoulder", "right_shoulder", "left_hip", "right_hip")
 MIN_DEPTH_M = 0.05
+DISAGREE_UNITS = 8.0  # a view's fit RMS (1 % of the person's height) beyond which it may be left out ...
+DISAGREE_FACTOR = 3.0  # ... if it is also this many times the other views' median
 
 
 @dataclass(frozen=True)
@@ -170,6 +172,7 @@ class MultiViewFitter(SmplFitter):
         self._torso_targets = [names.index(n) for n in TORSO if n in names]
         self._rotation = np.eye(3)
         self._translation = np.zeros(3)
+        self.dropped_views: tuple[int, ...] = ()  # the last fit's views left out as disagreeing
 
     @property
     def num_views(self) -> int:
@@ -234,7 +237,33 @@ class MultiViewFitter(SmplFitter):
             parts.append(betas / cfg.shape_sigma)
         return torch.cat(parts, dim=1), norms
 
-    def _reprojection_error(self, theta, obs: _MultiObservation, ctx) -> tuple[float, float, int]:
+    def view_errors(self, theta, obs: _MultiObservation, ctx) -> np.ndarray:
+        """(V,) weighted RMS residual of each view in its noise units (NaN: the view has no targets)."""
+        with torch.no_grad():
+            _, norms = self._residuals(theta[None], obs, dict(ctx, robust=torch.ones_like(obs.weight)))
+        weight = obs.weight.reshape(obs.views, obs.targets)
+        squares = (weight * norms[0].reshape(obs.views, obs.targets) ** 2).sum(1)
+        total = weight.sum(1)
+        return np.where(total.numpy() > 0, np.sqrt((squares / total.clamp(min=1e-9)).numpy()), np.nan)
+
+    def _drop_disagreeing_view(
+        self, theta, obs: _MultiObservation, ctx, active
+    ) -> tuple[torch.Tensor, tuple]:
+        """With three or more views, a view the fit cannot explain (its RMS above
+        ``max(DISAGREE_UNITS, DISAGREE_FACTOR x the others' median)``: the detector found someone
+        else, or a mirror image) is left out and the fit refined without it; up to one view."""
+        errors = self.view_errors(theta, obs, ctx)
+        seen = np.flatnonzero(np.isfinite(errors))
+        if len(seen) < 3:
+            return theta, ()
+        worst = int(seen[np.argmax(errors[seen])])
+        others = np.median(errors[seen[seen != worst]])
+        if errors[worst] <= max(DISAGREE_UNITS, DISAGREE_FACTOR * others):
+            return theta, ()
+        rows = slice(worst * obs.targets, (worst + 1) * obs.targets)
+        obs.weight[rows] = 0.0
+        theta, _ = self._solve(theta, active, obs, ctx, self.config.init_iterations)
+        return theta, (worst,)
         with torch.no_grad():
             ctx = dict(ctx, robust=torch.ones_like(obs.weight))
             _, norms = self._residuals(theta[None], obs, ctx)
@@ -287,6 +316,7 @@ class MultiViewFitter(SmplFitter):
                 fresh = self._initialise_views(obs, dict(ctx, previous=None), active)
                 if fresh is not None and self._cost(fresh[0], obs, fresh[1]) < self._cost(theta, obs, ctx):
                     (theta, ctx), rescued = fresh, True
+        theta, self.dropped_views = self._drop_disagreeing_view(theta, obs, ctx, active)
         rotation = ctx["base_rotation"].numpy() @ lbs.axis_angle_to_matrix(theta[:3]).numpy()
         self._rotation = rotation
         self._translation = theta[3:6].numpy().copy()

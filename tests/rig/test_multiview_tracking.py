@@ -289,3 +289,32 @@ def test_a_rigs_videos_train_with_every_camera(recordings, tmp_path, capsys):
 
 def synth_rig_R(recordings, name):
     return recordings[2][name].R
+
+
+@needs_blazepose
+def test_the_nodes_rig_estimator_tracks_bus_frames_in_the_world(body, subject, recordings):
+    from stg_node.bus import Frame
+    from stg_node.data.io import read_image
+    from stg_node.nodes.rig import RigTrackingEstimator
+
+    _, _, rig = recordings
+    estimator = RigTrackingEstimator(max_side=256)
+    gt = true_joints(body, subject, range(4))
+    for i in range(4):
+        frames = []
+        for camera in rig.cameras:
+            frame = Frame(index=i, time=i / 30, camera_id=camera.name,
+                          image=read_image(subject / f"Camera_B{camera.name}" / f"{i:06d}.png"),
+                          K=camera.K, R=camera.R, t=camera.t)  # fmt: skip
+            frame.header.stamp_ns = int((100 + i / 30) * 1e9)
+            frames.append(frame)
+        result = estimator.estimate_set(frames)
+        assert result.confidence > 0.4 and len(result.masks) == 3
+        pelvis = joints_from_params(body, result.smpl.poses.reshape(1, 72), result.smpl.Rh[None],
+                                    result.smpl.Th[None], result.smpl.betas[None])[0, 0]  # fmt: skip
+        assert np.linalg.norm(pelvis - gt[i, 0]) < 0.1  # the rig's world frame, not a camera's
+    tracker = estimator.tracker
+    estimator.estimate_set(frames)  # the same cameras: the same tracker
+    assert estimator.tracker is tracker
+    with pytest.raises(ValueError, match="not available for a rig"):
+        RigTrackingEstimator(mask="plate", plate="x.png")

@@ -4,6 +4,7 @@ the trainer reading every camera's topic, and the launch file."""
 
 from __future__ import annotations
 
+import json
 import time
 
 import cv2
@@ -227,3 +228,36 @@ def test_the_rig_launch_file_validates_and_is_documented(tmp_path):
     assert tracker.params.sync_tolerance_s == pytest.approx(0.02)
     assert "rig_v4l2.yaml" in (ROOT / "docs" / "LAUNCH.md").read_text()
     assert "rig_v4l2.yaml" in (ROOT / "docs" / "RIGS.md").read_text()
+
+
+@pytest.mark.slow
+def test_the_rig_launch_on_videos_tracks_and_trains_from_every_camera(tmp_path):
+    """stg-launch launch/rig_v4l2.yaml videos:=... (no cameras): three synthetic cameras played together,
+    the multi-view tracker, the trainer (the tests' stand-in avatar) learning from all three."""
+    from nodehelpers import run_launch
+
+    from stg_node.tracking.evaluation import write_video
+    from stg_node.tracking.rig_evaluation import synth_rig
+
+    subject = tmp_path / "subject"
+    from stg_node.data.synth.generate import SynthConfig, generate
+
+    generate(SynthConfig(out=subject, seed=5, num_frames=30, size=256, num_novel_views=5, view_every=1000,
+                         train_cameras=(0, 2, 4), supersample=1), progress=False)  # fmt: skip
+    names = ["1", "3", "5"]
+    videos = [
+        write_video(sorted((subject / f"Camera_B{c}").glob("*.png")), tmp_path / f"{c}.avi", 10.0)
+        for c in names
+    ]
+    rig = write_rig(tmp_path / "rig.json", synth_rig(subject, names))
+    out = tmp_path / "out"
+    args = [
+        str(ROOT / "launch" / "rig_v4l2.yaml"),
+        f"calibration:={rig}",
+        f"videos:={','.join(map(str, videos))}",
+    ]
+    args += [f"out:={out}", f"bus:=ipc://{tmp_path}/bus", "iters:=30", "max_side:=256"]
+    run = run_launch([*args, "avatar:=tests.nodes.fake_avatar"], timeout=400)
+    assert run.code == 0, run.log[-3000:]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["iterations"] == 30 and summary["frames_added"] >= 3, summary
