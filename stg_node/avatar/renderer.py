@@ -28,6 +28,13 @@ class RenderOutput:
     num_rendered: int  # Gaussians that reached the rasterizer
 
 
+@dataclass
+class PointsOutput:
+    positions: np.ndarray  # (N, 3) float32 world centres of the Gaussians kept (opacity >= ALPHA_MIN)
+    colors: np.ndarray  # (N, 3) uint8 RGB, as seen from the camera centre given
+    alpha: np.ndarray  # (N,) uint8 opacity (temporal opacity included)
+
+
 class AvatarRenderer:
     def __init__(self, model: AvatarModel, *, backend: str = "auto"):
         self.model = model.eval()
@@ -82,6 +89,27 @@ class AvatarRenderer:
         img = (image.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
         a = (alpha[..., 0].clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
         return RenderOutput(img, a, out_depth, (_now() - started) * 1e3, u, int(posed.means.shape[0]))
+
+    @torch.no_grad()
+    def points(self, smpl, time: float | None = None, *, camera_center=None) -> PointsOutput:
+        """The Gaussians posed as :meth:`render` poses them, as coloured points (what a 3D viewer,
+        the foxglove node's point cloud, shows). ``camera_center`` (world, metres; default 3 m
+        along +z from the root) picks the viewing direction of view-dependent colours."""
+        u = self.time_for(smpl, time)
+        body = BodyState.from_smpl(smpl, self.device)
+        if camera_center is None:
+            camera_center = np.asarray(smpl.Th, np.float64).reshape(3) + np.array([0.0, 0.0, 3.0])
+        center = torch.as_tensor(np.asarray(camera_center, np.float32).reshape(3), device=self.device)
+        posed = self.model.pose(body, u, center, skip_inactive=True)
+
+        def u8(t: torch.Tensor) -> np.ndarray:
+            return (t.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
+
+        return PointsOutput(
+            positions=posed.means.cpu().numpy().astype(np.float32),
+            colors=u8(posed.colors),
+            alpha=u8(posed.opacities.reshape(-1)),
+        )
 
 
 def _now() -> float:

@@ -4,6 +4,8 @@
     python -m stg_node.nodes renderer --params '{"size": 256}' --bus tcp://127.0.0.1:7400
     python -m stg_node.nodes trainer --describe          # its parameters, types, defaults
     python -m stg_node.nodes --list                      # the node kinds
+    stg-node foxglove --port 8765                        # the bus, live in Foxglove
+    stg-node web --port 8080 [--host 0.0.0.0]            # the page: / (operator), /avatar (screen)
 
 ``--params`` takes JSON (or ``@file.json``); ``--param k=v`` (repeatable) wins over it, its value
 parsed as the parameter's type. ``--remap from:=to`` renames a topic for this node; ``--ack TOPIC``
@@ -45,6 +47,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--lane", action="append", default=[], metavar="TOPIC=LANE", help="move a topic to another lane"
     )
+    parser.add_argument("--port", type=int, metavar="N", help="foxglove, web: same as --param port=N")
+    parser.add_argument("--host", metavar="ADDR", help="foxglove, web: same as --param host=ADDR")
     parser.add_argument("--heartbeat", type=float, default=1.0, metavar="S", help="NodeStatus period")
     parser.add_argument(
         "--ack",
@@ -108,6 +112,11 @@ def run(args: argparse.Namespace) -> int:
             print(describe(args.kind, cls))
             return 0
         values = {**_load_params(args.params), **_pairs(args.param, "=", "--param")}
+        for option in ("port", "host"):
+            if getattr(args, option) is not None:
+                if option not in {info.name for info in describe_params(cls.Params)}:
+                    raise ValueError(f"--{option}: node kind {args.kind!r} has no parameter {option!r}")
+                values[option] = getattr(args, option)
         params = parse_params(cls.Params, values, where=f"node {name!r} ({args.kind})")
         remap = _pairs(args.remap, ":=", "--remap")
         config: BusConfig = bus_config(args)

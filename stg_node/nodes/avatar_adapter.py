@@ -99,6 +99,14 @@ class TrainerAdapter:
             skipped=bool(r.skipped),
         )
 
+    def model_stats(self) -> dict[str, float]:
+        """Figures of the model now (``active_motion_fraction``, ...) when the implementation
+        reports them (``stats()``); numbers only."""
+        stats = getattr(self._trainer, "stats", None)
+        if stats is None:
+            return {}
+        return {str(k): float(v) for k, v in stats().items() if isinstance(v, (int, float))}
+
     def snapshot(self, version: int) -> GaussianSnapshot:
         msg = self._trainer.snapshot()
         msg.model_version = int(version)
@@ -140,4 +148,19 @@ class RendererAdapter:
             if getattr(out, "depth", None) is None
             else np.ascontiguousarray(out.depth, np.float32),
             render_ms=float(out.render_ms),
+        )
+
+    def points(
+        self, smpl: SmplParams, time: float | None = None, camera_center=None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The posed avatar as coloured points: positions (N, 3) float32 world, colours (N, 3)
+        uint8, opacities (N,) uint8; None when the implementation has no ``points``."""
+        points = getattr(self._renderer, "points", None)
+        if points is None:
+            return None
+        out = points(smpl, time=time, camera_center=camera_center)
+        return (
+            np.ascontiguousarray(out.positions, np.float32).reshape(-1, 3),
+            np.ascontiguousarray(out.colors, np.uint8).reshape(-1, 3),
+            np.ascontiguousarray(out.alpha, np.uint8).reshape(-1),
         )

@@ -169,6 +169,7 @@ class TrainerNode(Node):
         self.frames_unsure = 0  # skipped: pose confidence below min_confidence
         self.last: StepInfo | None = None
         self.published_version = -1
+        self.model_figures: dict[str, float] = {}  # active_motion_fraction, model_mb: at each snapshot
         self.finished = False
         if p.rig:  # each camera its own frame and pose topics (docs/RIGS.md)
             from stg_node.nodes.rig import rig_camera_names, rig_subscriptions
@@ -241,6 +242,7 @@ class TrainerNode(Node):
                     "frames_added": float(self.frames_added),
                     "frames_buffered": float(self.frames_in_buffer),
                     "frames_low_confidence": float(self.frames_unsure),
+                    **self.model_figures,
                 },
             )
         )
@@ -250,6 +252,8 @@ class TrainerNode(Node):
             return
         msg = self.trainer.snapshot(version=self.iteration)
         self.publish(msg)
+        self.model_figures = self.trainer.model_stats()  # with the snapshot: it walks the model too
+        self.model_figures.pop("gaussians", None)  # num_gaussians has its own field
         self.published_version = self.iteration
         self.last_snapshot_time = time.monotonic()
         self.log.info("snapshot v%d (%d Gaussians)", self.iteration, msg.num_gaussians)

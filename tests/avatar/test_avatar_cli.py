@@ -73,6 +73,25 @@ def test_eval_json_is_the_last_line_with_the_contract_keys(run_dir, capsys):
     )
 
 
+def test_eval_both_splits_reports_the_gap_body_parts_and_the_condition(run_dir, capsys):
+    assert (
+        eval_cli.main([str(run_dir), "--split", "both", "--json", "--no-progress", "--lpips", "none"]) == 0
+    )
+    result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    nv, np_ = result["novel_view"], result["novel_pose"]
+    assert result["gap_db"] == pytest.approx(nv["psnr"] - np_["psnr"])
+    assert set(nv["parts"]) == {"head", "torso", "arms", "hands", "legs", "feet"}
+    assert all(5.0 < v < 80.0 for v in nv["parts"].values() if v == v)
+    # The parts pool the same pixels as the whole image's body: the whole-image PSNR (body plus the
+    # background, which the avatar gets nearly right) is above the worst part's.
+    assert nv["psnr"] > min(v for v in nv["parts"].values() if v == v)
+    assert result["condition"]["shading"] == "lambert" and result["condition"]["motion"] == "dance"
+    assert result["condition"]["held_out"]["frames"] == 1  # frame 10: every 4th after the 10 training frames
+    assert eval_cli.main([str(run_dir), "--split", "novel_pose", "--no-progress", "--lpips", "none"]) == 0
+    text = capsys.readouterr().out
+    assert "per body part" in text and "benchmark: lambert light, trained on dance" in text
+
+
 def test_render_orbit_to_mp4_and_a_pose_file_to_pngs(run_dir, tmp_path, tiny_synth):
     video = tmp_path / "orbit.mp4"
     assert render_cli.main([str(run_dir), "-o", str(video), "--frames", "3", "--no-progress"]) == 0

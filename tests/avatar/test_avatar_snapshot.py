@@ -98,3 +98,23 @@ def test_an_interrupted_write_leaves_the_previous_file(trained, tmp_path, monkey
     with pytest.raises(OSError):
         write_snapshot_file(path, trained.snapshot())
     assert path.read_bytes() == before
+
+
+def test_points_are_the_gaussians_the_renderer_draws_where_it_draws_them(trained, tiny_frames):
+    """AvatarRenderer.points (the foxglove node's point cloud): as many points as Gaussians reach
+    the rasterizer, and those visible at all project onto the avatar's own silhouette in the render."""
+    renderer = AvatarRenderer.from_snapshot(trained.snapshot())
+    frame = tiny_frames[2]
+    out = renderer.render(frame.camera, frame.smpl, frame.time)
+    points = renderer.points(frame.smpl, frame.time, camera_center=-frame.camera.R.T @ frame.camera.t)
+    n = len(points.positions)
+    assert n == out.num_rendered and points.colors.shape == (n, 3) and points.alpha.shape == (n,)
+    assert points.colors.dtype == np.uint8 and points.alpha.dtype == np.uint8
+    cam = points.positions @ np.asarray(frame.camera.R).T + np.asarray(frame.camera.t)
+    pix = cam @ np.asarray(frame.camera.K).T
+    uv = np.floor(pix[:, :2] / pix[:, 2:]).astype(int)
+    h, w = out.alpha.shape
+    opaque = (points.alpha >= 8) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+    assert opaque.sum() > 0.3 * n
+    on_silhouette = out.alpha[uv[opaque, 1], uv[opaque, 0]] > 0
+    assert on_silhouette.mean() > 0.95

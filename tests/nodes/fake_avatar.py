@@ -8,7 +8,9 @@ simple enough to check from outside:
   the iteration and the mean colour of the buffered images' masked pixels; ``save``/``load``
   round-trip the iteration exactly (np.savez).
 - AvatarRenderer: draws a disc of the snapshot's colour at the projection of the body root
-  (``Th``) through the camera, radius = focal * 0.25 m / depth; alpha 255 inside.
+  (``Th``) through the camera, radius = focal * 0.25 m / depth; alpha 255 inside. ``points``:
+  a ring of ``POINTS`` points of radius 0.25 m around ``Th`` (in the world's x-y plane), in
+  that colour, fully opaque.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ import numpy as np
 from stg_node.bus import GaussianSnapshot
 
 BODY_RADIUS_M = 0.25
+POINTS = 32
 
 
 @dataclass
@@ -128,6 +131,13 @@ class Trainer:
 
 
 @dataclass
+class PointsOut:
+    positions: np.ndarray
+    colors: np.ndarray
+    alpha: np.ndarray
+
+
+@dataclass
 class RenderOut:
     image: np.ndarray
     alpha: np.ndarray
@@ -170,6 +180,16 @@ class AvatarRenderer:
             image[inside] = np.clip(np.rint(self.color * 255), 0, 255).astype(np.uint8)
             alpha[inside] = 255
         return RenderOut(image=image, alpha=alpha, depth=None, render_ms=(_now() - start) * 1000)
+
+    def points(self, smpl, time=None, *, camera_center=None) -> PointsOut:
+        angles = np.linspace(0.0, 2 * np.pi, POINTS, endpoint=False)
+        ring = np.stack([np.cos(angles), np.sin(angles), np.zeros_like(angles)], axis=1) * BODY_RADIUS_M
+        color = np.clip(np.rint(self.color * 255), 0, 255).astype(np.uint8)
+        return PointsOut(
+            positions=(ring + np.asarray(smpl.Th, np.float64)).astype(np.float32),
+            colors=np.tile(color, (POINTS, 1)),
+            alpha=np.full(POINTS, 255, np.uint8),
+        )
 
 
 def _now() -> float:
