@@ -215,13 +215,16 @@ def calibrate_rig(
     max_intrinsic_views: int = 40,
     refine_intrinsics: bool = True,
     k3: bool = False,
+    joint_refinement: bool = True,
 ) -> CalibrationResult:
     """Calibrate from ``detections[instant][camera]`` (None where a camera saw no board).
 
     ``k3``: fit the third radial coefficient too (wide-angle lenses); by default it is held at 0,
     as for most webcam and machine-vision lenses, where fitting it trades a better fit at the
     image corners for worse extrinsics (synthetic truth: camera centres 3-4 cm off instead of
-    under 1 cm when the board never reached the corners)."""
+    under 1 cm when the board never reached the corners). ``joint_refinement=False`` stops after
+    step 3 (each camera's own intrinsics, extrinsics chained through shared sightings): the
+    baseline tools/eval_calibration.py measures the bundle adjustment against."""
     if origin not in ORIGINS:
         raise ValueError(f"origin must be one of {ORIGINS}, got {origin!r}")
     count = len(names)
@@ -287,7 +290,14 @@ def calibrate_rig(
 
     # 4. bundle adjustment
     cameras, board_in_world, residuals, rejected = _bundle_adjust(
-        names, intrinsics, camera_from_world, board_in_world, detections, refine_intrinsics, k3
+        names,
+        intrinsics,
+        camera_from_world,
+        board_in_world,
+        detections,
+        refine_intrinsics,
+        k3,
+        MAX_ITERATIONS if joint_refinement else 0,
     )
 
     # world frame
@@ -487,7 +497,9 @@ def _levenberg_marquardt(
     return cams, boards
 
 
-def _bundle_adjust(names, intrinsics, camera_from_world, board_in_world, detections, refine_intrinsics, k3):
+def _bundle_adjust(
+    names, intrinsics, camera_from_world, board_in_world, detections, refine_intrinsics, k3, iterations
+):
     """Joint refinement (module docstring, step 4). Returns [(K, dist, T_cam<-world)], the board
     poses, each camera's per-corner reprojection errors (px) and its count of rejected corners."""
     count = len(names)
@@ -530,7 +542,7 @@ def _bundle_adjust(names, intrinsics, camera_from_world, board_in_world, detecti
     # detector put on a marker's edge, a reflection): more than OUTLIER_FACTOR x the camera's
     # median error and more than OUTLIER_MIN_PX.
     everything = np.ones(len(problem.obj), bool)
-    cameras, boards = _levenberg_marquardt(problem, MAX_ITERATIONS, everything)
+    cameras, boards = _levenberg_marquardt(problem, iterations, everything)
     errors = np.linalg.norm(problem.residuals(cameras, boards), axis=1)
     keep = everything.copy()
     for v in range(count):
@@ -540,7 +552,7 @@ def _bundle_adjust(names, intrinsics, camera_from_world, board_in_world, detecti
             keep &= ~mine | (errors <= limit)
     if not keep.all():
         problem.cameras, problem.boards = cameras, boards
-        cameras, boards = _levenberg_marquardt(problem, MAX_ITERATIONS, keep)
+        cameras, boards = _levenberg_marquardt(problem, iterations, keep)
     errors = np.linalg.norm(problem.residuals(cameras, boards), axis=1)
     if not (np.all(np.isfinite(cameras)) and np.all(np.isfinite(errors))):
         raise CalibrationError("the joint refinement diverged (non-finite parameters); check the board size")
