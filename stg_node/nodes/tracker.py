@@ -200,7 +200,6 @@ class TrackerNode(Node):
             self.rig = RigTracking(
                 self, load_estimator(p.estimator or BUILTIN_RIG_ESTIMATOR, p.estimator_params)
             )
-            self._mismatch_logged = self._error_logged = False
             return
         if p.mode == "replay":
             self.estimator: PoseEstimator = ReplayEstimator(
