@@ -180,3 +180,19 @@ def test_stg_train_with_several_cameras_end_to_end(ring, tmp_path, capsys):
         == 2
     )
     assert "not both" in capsys.readouterr().err
+
+
+def test_zju_mocap_trains_on_several_cameras(tmp_path):
+    from fixtures.datasets import write_zju_original
+
+    root = tmp_path / "CoreView_999"
+    write_zju_original(root, num_frames=40, num_cams=4)
+    spec = DataSpec(str(root), "zju", size=64, train_cameras=("1", "3"))
+    train = spec.open("train")
+    assert train.camera_names == ["1", "3"] and len(train) == 2 * 40
+    novel = spec.open("novel_view")
+    assert novel.camera_names == ["2", "4"] and novel.frames == [0, 30]
+    ranged = DataSpec(str(root), "zju", (0, 20), None, 64, ("1", "3"))
+    assert ranged.open("train").frames == list(range(20)) and ranged.open("novel_pose").frames == [20]
+    with pytest.raises(DatasetError, match=r"needs camera\(s\) \['9'\]"):
+        DataSpec(str(root), "zju", size=64, train_cameras=("1", "9")).open("train")
