@@ -123,6 +123,12 @@ SUBJECTS = {
         test_yaw_deg=150.0,
         title="three coloured room lights, turn held out",
     ),
+    "room_facing": Subject(
+        "turn",
+        "room",
+        train_yaw_deg=60.0,
+        title="room light, never turning (train and test facing the camera +-30 deg)",
+    ),
     "room_new_motions": Subject(
         "turn",
         "room",
@@ -283,6 +289,11 @@ def grid(base: str = "fast") -> list[Configuration]:
         }
         label = f"Gaussian budget {word} (initial and maximum x{factor:g})"
         ablations.append(Configuration(name, label, "ablation", "dance", base, changes))
+    ablations.append(
+        Configuration(
+            "baked", "colour baked, as before shading (BAKED)", "ablation", "dance", base, dict(BAKED)
+        )
+    )
     rows += ablations
     rows.append(Configuration(f"still_{base}", f"still subject, {base} preset", "economy", "still", base))
     rows.append(Configuration(f"mixed_{base}", f"mixed subject, {base} preset", "subject", "mixed", base))
@@ -300,15 +311,63 @@ def grid(base: str = "fast") -> list[Configuration]:
     return rows
 
 
-CONDITIONS = ("room_turn_held_out", "flat_turn_held_out", "env_turn_held_out", "room_new_motions")
+CONDITIONS = (
+    "room_turn_held_out",
+    "flat_turn_held_out",
+    "env_turn_held_out",
+    "room_facing",
+    "room_new_motions",
+)
+# The colour as it was before shading (issue 21): the light baked in, spherical initial Gaussians,
+# no cap on their scale ratio, no isometry term.
+BAKED = {
+    "model.shading": False,
+    "model.init_flatness": 1.0,
+    "model.max_scale_ratio": 0.0,
+    "loss.isometry": 0.0,
+}
+# Each of shading's parts switched off alone, on the room-light subject with a held-out turn.
+SHADING_ABLATIONS = (
+    (
+        "no_shading",
+        "no shading (the light baked into the colour; discs, cap, isometry kept)",
+        {"model.shading": False},
+    ),
+    ("no_scale_cap", "no cap on the scale ratio", {"model.max_scale_ratio": 0.0}),
+    ("no_isometry", "no as-isometric-as-possible term", {"loss.isometry": 0.0}),
+    ("sphere_init", "spherical initial Gaussians instead of discs", {"model.init_flatness": 1.0}),
+)
 
 
 def condition_rows(base: str) -> list[Configuration]:
-    """The ``base`` preset on each benchmark condition that separates geometry from shading."""
-    return [
-        Configuration(f"{name}_{base}", f"{SUBJECTS[name].title}, {base} preset", "condition", name, base)
-        for name in CONDITIONS
-    ]
+    """The ``base`` preset on each benchmark condition that separates geometry from shading, the colour
+    before shading (``baked``) on each, and shading's ablations on the room-light held-out turn."""
+    rows = []
+    for name in CONDITIONS:
+        title = SUBJECTS[name].title
+        rows.append(Configuration(f"{name}_{base}", f"{title}, {base} preset", "condition", name, base))
+        rows.append(
+            Configuration(
+                f"{name}_baked",
+                f"{title}, {base} preset, colour baked (before shading)",
+                "condition",
+                name,
+                base,
+                dict(BAKED),
+            )
+        )
+    for suffix, label, changes in SHADING_ABLATIONS:
+        rows.append(
+            Configuration(
+                f"room_turn_held_out_{suffix}",
+                f"room light, turn held out: {label}",
+                "shading",
+                "room_turn_held_out",
+                base,
+                changes,
+            )
+        )
+    return rows
 
 
 # --- data ---------------------------------------------------------------------------------------
@@ -346,9 +405,10 @@ def ensure_subject(cache: Path, subject: str, scale: Scale, seed: int = 0, fresh
         )
         held = meta.get("held_out") or {}
         same_held_out = (
-            (held.get("test_motion") or None, held.get("train_yaw_deg"), held.get("test_yaw_deg"))
-            == (_motions(spec.test_motion), spec.train_yaw_deg, spec.test_yaw_deg)
-        )
+            held.get("test_motion") or None,
+            held.get("train_yaw_deg"),
+            held.get("test_yaw_deg"),
+        ) == (_motions(spec.test_motion), spec.train_yaw_deg, spec.test_yaw_deg)
         if found == wanted and same_held_out and not fresh:
             return out
     except (FileNotFoundError, ValueError, KeyError):

@@ -95,9 +95,11 @@ def render_run(
     device="cpu",
     backend="auto",
     show_progress: bool = True,
+    light=None,
 ) -> int:
-    """Render a run (see module docstring); returns the number of frames written."""
-    run, renderer, corrections, _ = load_run_renderer(run_path, device=device, backend=backend)
+    """Render a run (see module docstring); returns the number of frames written. ``light``: a
+    shading.LightSpec (None: the model's learned light)."""
+    run, renderer, corrections, _ = load_run_renderer(run_path, device=device, backend=backend, light=light)
     spec = run.data_spec()
     if data:
         spec = spec.with_root(Path(data).resolve())

@@ -120,7 +120,8 @@ class DataSpec:
             return open_dataset(root, "zju", split, size=self.size, **options)
         if self.format == "thuman":
             return open_dataset(root, "thuman4", split, size=self.size, **options)
-        # video: the tracker turned it into the folder format (see stg_node.avatar.video).
+        # folder (docs/DATASETS.md), or video: the tracker turned it into the folder format
+        # (see stg_node.avatar.video).
         return open_dataset(root, "folder", split, size=self.size, **options)
 
     def _rig_protocol(self, root: Path, frames: FrameRange | None):

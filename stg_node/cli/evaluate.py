@@ -1,6 +1,6 @@
 """``stg-eval``: score a trained run on its novel-view or novel-pose split, or both.
 
-    stg-eval RUN_DIR --split novel_view|novel_pose|both [--data DIR] [--json] [--no-parts]
+    stg-eval RUN_DIR --split novel_view|novel_pose|both [--data DIR] [--json] [--no-parts] [--light L]
 
 The protocol (docs/METRICS.md, "full"): each view of the split rendered at the dataset's size on
 black, against the masked ground truth over the whole image; PSNR, SSIM (11x11 Gaussian),
@@ -11,7 +11,9 @@ goes to RUN_DIR/eval_<split>.png. On a synthetic benchmark (stg-synth) the repor
 per body part (from the ground-truth surface: stg_node.data.synth.body_parts) and the condition
 the benchmark tests (its light, motions, and how far the held-out frames are from training in
 pose and orientation); ``--split both`` scores the two splits and their gap (novel views minus
-novel poses, dB). Exit codes: 0 ok, 1 failed, 2 bad usage.
+novel poses, dB). ``--light`` renders an avatar with shading under another light than its
+learned one (``baked``: the light turning with the body, for comparison; as stg-render). Exit
+codes: 0 ok, 1 failed, 2 bad usage.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ import json
 import sys
 from pathlib import Path
 
-from stg_node.cli.runner import add_log_level_option, run_main
+from stg_node.cli.runner import UsageError, add_log_level_option, run_main
 from stg_node.threads import configure_threads
 
 
@@ -44,6 +46,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--no-parts", action="store_true", help="skip the per-body-part scores of a synthetic benchmark"
     )
+    p.add_argument(
+        "--light",
+        default="learned",
+        help="light of an avatar with shading: learned (default), baked, albedo, 27 SH numbers, or JSON",
+    )
     p.add_argument("--backend", default="auto", choices=("auto", "cpu", "cuda", "torch"))
     p.add_argument("--device", default="cpu")
     p.add_argument("--threads", default=None, help="CPU threads (default: STG_THREADS or 1)")
@@ -60,7 +67,13 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
+    from stg_node.avatar.shading import parse_light
+
     configure_threads(args.threads)
+    try:
+        args.light_spec = parse_light(getattr(args, "light", "learned"))
+    except ValueError as exc:
+        raise UsageError(str(exc)) from exc
     result = evaluate_run(args)
     if args.json:
         print(json.dumps(result))
@@ -116,7 +129,9 @@ def evaluate_run(args) -> dict:
     """Scores of ``args.split`` (one split's dict), or of both splits with their gap."""
     from stg_node.avatar.loading import load_run_renderer
 
-    loaded = load_run_renderer(Path(args.run), device=args.device, backend=args.backend)
+    loaded = load_run_renderer(
+        Path(args.run), device=args.device, backend=args.backend, light=getattr(args, "light_spec", None)
+    )
     spec = loaded[0].data_spec()
     if args.data:
         spec = spec.with_root(Path(args.data).resolve())

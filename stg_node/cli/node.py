@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import sys
 from pathlib import Path
 
@@ -26,7 +27,7 @@ from stg_node.cli.bus_options import add_bus_options, bus_config
 from stg_node.cli.runner import UsageError, add_log_level_option, run_main
 from stg_node.nodes import NODE_KINDS, UnknownNodeKind, load_node_class
 from stg_node.nodes.params import ParamError, describe_params, parse_params
-from stg_node.nodes.runtime import name_process
+from stg_node.nodes.runtime import ENV_RESPAWN, ENV_STANDBY, name_process
 from stg_node.signals import StopSignals
 
 log = logging.getLogger("stg_node.nodes")
@@ -125,6 +126,10 @@ def run(args: argparse.Namespace) -> int:
     except (UnknownNodeKind, ParamError, ValueError, OSError) as exc:
         raise UsageError(str(exc)) from exc
     name_process(name)
+    if os.environ.get(ENV_STANDBY):
+        taking_over = stand_by(name, cls, params)
+        if not taking_over:
+            return 0
     with StopSignals() as stop:  # the first SIGINT/SIGTERM ends the loop, teardown still runs
         try:
             node = cls(name, params, config, remap=remap, heartbeat_s=args.heartbeat, stop=stop, ack=args.ack)
@@ -134,6 +139,25 @@ def run(args: argparse.Namespace) -> int:
             log.error("%s: cannot start: %s", name, exc)
             return 1
         return node.execute()
+
+
+def stand_by(name: str, cls: type, params) -> bool:
+    """A standby copy (stg-launch ``standby: true``): prepare the node (imports done), then wait
+    for the launcher on stdin. ``go N``: take over as the node's respawn N (True); end of file:
+    not needed after all (False). Ctrl-C / SIGTERM while waiting end it like any node (exit 0)."""
+    try:
+        cls.prepare(params)
+    except Exception as exc:  # warming up is best effort: the real setup reports real problems
+        log.warning("%s: standby preparation failed: %s", name, exc)
+    log.info("standing by (pid %d)", os.getpid())
+    for line in sys.stdin:
+        word, _, respawns = line.strip().partition(" ")
+        if word == "go":
+            os.environ.pop(ENV_STANDBY, None)
+            os.environ[ENV_RESPAWN] = respawns if respawns.isdigit() else "1"
+            log.info("taking over (respawn %s)", os.environ[ENV_RESPAWN])
+            return True
+    return False
 
 
 def main(argv=None) -> int:
