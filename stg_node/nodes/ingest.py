@@ -151,7 +151,7 @@ class IngestNode(Node):
             if dropped > self.rig_dropped:  # frames a camera delivered faster than we published
                 self.drop("camera_backlog", dropped - self.rig_dropped)
                 self.rig_dropped = dropped
-        self.publish(frame, topic, stamp_ns=captured.stamp_ns or None)
+        self.publish(frame, topic=topic, stamp_ns=captured.stamp_ns or None)
         self.published += 1
 
     def run(self) -> None:
