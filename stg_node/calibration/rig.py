@@ -127,6 +127,14 @@ def _matrix(value, shape, where: str, what: str) -> np.ndarray:
     return array
 
 
+def _numbers(value, where: str, what: str) -> np.ndarray:
+    """``value`` as a flat float array, or a RigError naming the field."""
+    try:
+        return np.asarray(value, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise RigError(f"{where}: {what} is not a list of numbers") from None
+
+
 def camera_from_json(name: str, entry, where: str = "rig") -> RigCamera:
     """A :class:`RigCamera` from one ``cameras`` entry, every field checked."""
     where = f"{where}: camera {name!r}"
@@ -140,14 +148,14 @@ def camera_from_json(name: str, entry, where: str = "rig") -> RigCamera:
     K = _matrix(entry["K"], (3, 3), where, "K")
     if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0, 0, 1]) or K[1, 0] != 0:
         raise RigError(f"{where}: K must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0")
-    dist = np.asarray(entry.get("dist") or [], dtype=np.float64).reshape(-1)
+    dist = _numbers(entry.get("dist") or [], where, "dist")
     if dist.size not in DIST_COUNTS or not np.all(np.isfinite(dist)):
         raise RigError(f"{where}: dist must hold {DIST_COUNTS[1:]} finite values (or none), got {dist.size}")
     R = _matrix(entry["R"], (3, 3), where, "R")
     if not np.allclose(R @ R.T, np.eye(3), atol=1e-5) or np.linalg.det(R) < 0.99:
         raise RigError(f"{where}: R is not a rotation (R R^T = I, det 1), det {np.linalg.det(R):.4f}")
     t = _matrix(entry["t"], (3,), where, "t")
-    size = np.asarray(entry["image_size"]).reshape(-1)
+    size = _numbers(entry["image_size"], where, "image_size")
     if size.size != 2 or not np.all(size > 0) or not np.all(np.equal(np.mod(size, 1), 0)):
         raise RigError(f"{where}: image_size must be [width, height] in pixels, got {entry['image_size']}")
     width, height = int(size[0]), int(size[1])
