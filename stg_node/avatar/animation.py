@@ -150,9 +150,18 @@ def _subject_center(renderer, smpl, camera) -> np.ndarray:
 
 
 def _dataset_cameras(spec, size):
-    """The training camera, then the held-out ones, at ``size``."""
-    from stg_node.avatar.data_spec import DataSpec
+    """The training camera(s), then the held-out ones (a rig that trains on all has none), at ``size``."""
+    import dataclasses
 
-    sized = DataSpec(spec.root, spec.format, spec.train_frames, spec.train_camera, size or spec.size)
-    train, held_out = sized.open("train"), sized.open("novel_view")
-    return [train.camera(train.camera_names[0])] + [held_out.camera(n) for n in held_out.camera_names]
+    from stg_node.data.errors import DatasetError
+
+    sized = dataclasses.replace(spec, size=size or spec.size)
+    train = sized.open("train")
+    cameras = [train.camera(name) for name in train.camera_names]
+    try:
+        held_out = sized.open("novel_view")
+    except DatasetError:
+        if not sized.rig:
+            raise
+        return cameras
+    return cameras + [held_out.camera(n) for n in held_out.camera_names]

@@ -53,6 +53,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="render the held-out cameras every K-th frame (default %(default)s, the ZJU-MoCap protocol)",
     )
     parser.add_argument(
+        "--train-cameras",
+        default="1",
+        metavar="N,...",
+        help="cameras that render every frame, by number (1 = Camera_B1, the training camera; e.g. 1,7,13,18 "
+        "for multi-view training with --views 22: docs/RIGS.md); the others every --view-every-th",
+    )
+    parser.add_argument(
         "--train-fraction",
         type=float,
         default=defaults.train_fraction,
@@ -114,6 +121,12 @@ def run(args: argparse.Namespace) -> int:
 
     from stg_node.data.synth.generate import SynthConfig, generate
 
+    try:
+        train_cameras = tuple(int(n) - 1 for n in args.train_cameras.split(","))
+    except ValueError:
+        raise UsageError(
+            f"--train-cameras must be camera numbers like 1,7,13, got {args.train_cameras!r}"
+        ) from None
     config = SynthConfig(
         out=args.out,
         seed=args.seed,
@@ -131,6 +144,7 @@ def run(args: argparse.Namespace) -> int:
         test_yaw_deg=args.test_yaw,
         write_depth=args.depth,
         overwrite=args.overwrite,
+        train_cameras=train_cameras,
     )
     try:
         config.validate()

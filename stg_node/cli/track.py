@@ -1,6 +1,7 @@
 """``stg-track``: SMPL pose and person mask per frame of a video or an image folder -> POSES.npz.
 
     stg-track INPUT --out POSES.npz [--intrinsics FILE.json | --fov DEG] [--smpl-model FILE] [--masks DIR]
+    stg-track CAM1 CAM2 ... --calibration rig.json --out POSES.npz [--cameras NAME,...]  (docs/RIGS.md)
 
 Exit codes as every command (docs/CLI.md): 0 done, 1 the tracking failed (unreadable input,
 missing network files, ...), 2 bad usage, 130 interrupted (POSES.npz is then not written).
@@ -27,7 +28,12 @@ def build_parser() -> argparse.ArgumentParser:
         description="Estimate the SMPL pose, shape and a person mask for every frame of a video file or an "
         "image folder, in the camera's frame, and write them to POSES.npz.",
     )
-    parser.add_argument("input", type=Path, help="a video file or a folder of images")
+    parser.add_argument(
+        "input",
+        nargs="+",
+        type=Path,
+        help="a video file or a folder of images; with --calibration, one per camera of the rig",
+    )
     parser.add_argument("--out", required=True, type=Path, help="the POSES.npz to write")
     camera = parser.add_mutually_exclusive_group()
     camera.add_argument(
@@ -72,6 +78,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="detect on frames scaled to this long side (default %(default)s)",
     )
     parser.add_argument("--no-smoothing", action="store_true", help="no One-Euro smoothing of the parameters")
+    from stg_node.cli.track_rig import add_rig_options
+
+    add_rig_options(parser)
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--threads", default=None, help="CPU threads (default: STG_THREADS or 1)")
     add_log_level_option(parser)
@@ -83,6 +92,11 @@ def run(args: argparse.Namespace) -> int:
         threads = configure_threads(args.threads)
     except ValueError as exc:
         raise UsageError(str(exc)) from exc
+    if args.calibration is not None or len(args.input) > 1:
+        from stg_node.cli.track_rig import run_rig
+
+        return run_rig(args, threads)
+    args.input = args.input[0]
     if not args.input.exists():
         raise UsageError(f"INPUT {args.input} does not exist (a video file or a folder of images)")
     if args.out.suffix != ".npz":

@@ -75,13 +75,19 @@ class TrainerParams:
         doc="continue from checkpoint_dir's checkpoint: when respawned by stg-launch, always, or never",
     )
     out: str = param("", doc="folder for summary.json at the end (empty: none)")
+    rig: str = param("", doc="a rig.json: train from each of its cameras' NAME/camera/frame (docs/RIGS.md)")
 
 
 class FramePairs:
-    """Frames and poses waiting for each other, keyed by (frame_index, frame_seq); bounded."""
+    """Frames and poses waiting for each other, keyed by (frame_index, frame_seq); bounded.
 
-    def __init__(self, limit: int):
+    ``camera_of(msg)``: which camera a message belongs to, for a rig whose cameras each have their
+    own frame and pose topics (seq numbers count per topic, so they repeat across cameras); the
+    key then starts with it. Default: one camera."""
+
+    def __init__(self, limit: int, camera_of=None):
         self.limit = limit
+        self.camera_of = camera_of or (lambda msg: "")
         self.frames: OrderedDict = OrderedDict()
         self.poses: OrderedDict = OrderedDict()
         self.rejected: OrderedDict = OrderedDict()  # keys of frames whose pose was refused
@@ -98,7 +104,7 @@ class FramePairs:
         return evicted
 
     def add_frame(self, frame):
-        key = (frame.index, frame.header.seq)
+        key = (self.camera_of(frame), frame.index, frame.header.seq)
         if self.rejected.pop(key, None) is not None:
             return None
         pose = self.poses.pop(key, None)
@@ -108,7 +114,7 @@ class FramePairs:
         return None
 
     def add_pose(self, pose):
-        key = (pose.frame_index, pose.frame_seq)
+        key = (self.camera_of(pose), pose.frame_index, pose.frame_seq)
         frame = self.frames.pop(key, None)
         if frame is not None:
             return frame, pose
@@ -117,7 +123,7 @@ class FramePairs:
 
     def reject(self, pose) -> None:
         """``pose``'s frame is not wanted: drop it if it waits, else drop it when it comes."""
-        key = (pose.frame_index, pose.frame_seq)
+        key = (self.camera_of(pose), pose.frame_index, pose.frame_seq)
         if self.frames.pop(key, None) is None:
             self._bounded(self.rejected, key, True, self.limit)
 
@@ -168,7 +174,7 @@ class TrainerNode(Node):
                 max_frames=p.max_frames,
             )
             self.iteration = 0
-        self.pairs = FramePairs(p.pending)
+        self.pairs = FramePairs(p.pending)  # a rig: replaced below, keyed by camera too
         self.owed_steps = 0  # steps_per_frame: steps still owed to the frames received
         self.owed_acks: list = []  # messages acknowledged once the steps they brought are done
         self.frames_in_buffer = 0
@@ -178,8 +184,13 @@ class TrainerNode(Node):
         self.published_version = -1
         self.model_figures: dict[str, float] = {}  # active_motion_fraction, model_mb: at each snapshot
         self.finished = False
-        self.frames = self.subscribe("camera/frame")  # keep-last: the newest frame when we have time
-        self.poses = self.subscribe("body/pose")
+        if p.rig:  # each camera its own frame and pose topics (docs/RIGS.md)
+            from stg_node.nodes.rig import rig_camera_names, rig_subscriptions
+
+            self.frames, self.poses, self.pairs.camera_of = rig_subscriptions(self, rig_camera_names(p.rig))
+        else:
+            self.frames = self.subscribe("camera/frame")  # keep-last: the newest frame when we have time
+            self.poses = self.subscribe("body/pose")
         self.started = time.monotonic()
         self.last_snapshot_time = self.started
         self.last_checkpoint_time = self.started

@@ -63,6 +63,9 @@ class SynthConfig:
     betas_std: float = 0.5
     overwrite: bool = False
     garment: GarmentParams = field(default_factory=GarmentParams)
+    # Multi-view training (docs/RIGS.md): 0-based cameras that render every frame, as camera 0
+    # does; the others render every view_every-th frame.
+    train_cameras: tuple[int, ...] = (0,)
 
     def validate(self) -> None:
         if self.motion not in MOTIONS:
@@ -88,6 +91,14 @@ class SynthConfig:
             raise ValueError(f"--supersample must be >= 1, got {self.supersample}")
         if not self.fps > 0:
             raise ValueError(f"--fps must be positive, got {self.fps}")
+        count = self.num_novel_views + 1
+        if not self.train_cameras or len(set(self.train_cameras)) != len(self.train_cameras):
+            raise ValueError(f"--train-cameras must name distinct cameras, got {self.train_cameras}")
+        outside = [k + 1 for k in self.train_cameras if not 0 <= k < count]
+        if outside:
+            raise ValueError(
+                f"--train-cameras {outside}: the rig has cameras 1-{count} (--views {count - 1})"
+            )
 
     @property
     def num_train_frames(self) -> int:
@@ -113,10 +124,11 @@ def held_out_frames(config: SynthConfig) -> list[int]:
 
 
 def render_schedule(config: SynthConfig) -> list[list[int]]:
-    """Cameras per frame: the training camera always, the held-out ones on :func:`held_out_frames`."""
-    novel = list(range(1, config.num_novel_views + 1))
+    """Cameras per frame: the training cameras always, the held-out ones on :func:`held_out_frames`."""
+    train = sorted(config.train_cameras)
+    novel = [k for k in range(config.num_novel_views + 1) if k not in train]
     strided = set(held_out_frames(config))
-    return [[0] + (novel if frame in strided else []) for frame in range(config.num_frames)]
+    return [sorted(train + (novel if frame in strided else [])) for frame in range(config.num_frames)]
 
 
 def split_spec(config: SynthConfig) -> dict[str, list[dict]]:
@@ -126,10 +138,11 @@ def split_spec(config: SynthConfig) -> dict[str, list[dict]]:
     every held-out frame from the training camera (the monocular camera's own novel poses).
     """
     n_train = config.num_train_frames
-    novel = list(range(1, config.num_novel_views + 1))
+    train = sorted(config.train_cameras)
+    novel = [k for k in range(config.num_novel_views + 1) if k not in train]
     strided = held_out_frames(config)
     splits: dict[str, list[dict]] = {
-        "train": [{"cameras": [0], "frames": list(range(n_train))}],
+        "train": [{"cameras": train, "frames": list(range(n_train))}],
         "novel_view": [],
         "novel_pose": [],
     }
@@ -137,7 +150,7 @@ def split_spec(config: SynthConfig) -> dict[str, list[dict]]:
     if novel and view_frames:
         splits["novel_view"].append({"cameras": novel, "frames": view_frames})
     if n_train < config.num_frames:
-        splits["novel_pose"].append({"cameras": [0], "frames": list(range(n_train, config.num_frames))})
+        splits["novel_pose"].append({"cameras": train, "frames": list(range(n_train, config.num_frames))})
         pose_frames = [f for f in strided if f >= n_train]
         if novel and pose_frames:
             splits["novel_pose"].append({"cameras": novel, "frames": pose_frames})
@@ -349,7 +362,7 @@ def generate(config: SynthConfig, body=None, progress: bool = True) -> SynthResu
             "in_new_vertices": True,
         },
         "cameras": [
-            {"index": k, "name": cam.name, "role": "train" if k == 0 else "novel_view"}
+            {"index": k, "name": cam.name, "role": "train" if k in config.train_cameras else "novel_view"}
             for k, cam in enumerate(cameras)
         ],
         "num_train_frames": n_train,
