@@ -341,6 +341,7 @@ SHADING_ABLATIONS = (
     ("no_scale_cap", "no cap on the scale ratio", {"model.max_scale_ratio": 0.0}),
     ("no_isometry", "no as-isometric-as-possible term", {"loss.isometry": 0.0}),
     ("sphere_init", "spherical initial Gaussians instead of discs", {"model.init_flatness": 1.0}),
+    ("sh_light", "free second-order SH light instead of distant lights", {"model.light_model": "sh"}),
 )
 
 
