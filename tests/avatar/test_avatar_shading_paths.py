@@ -26,8 +26,9 @@ from stg_node.splat import build
 def lit(tiny_frames):
     """A shaded model after 30 steps, then lit by a strong light from +x and a weaker one from
     above (fixed in the world), with learned weight corrections, moving Gaussians and a few
-    transparent rows, so that every path is exercised and shading changes colours visibly."""
-    trainer = Trainer(small_config(), seed=0)
+    transparent rows, so that every path is exercised and shading changes colours visibly.
+    Per-Gaussian polynomials (motion_basis=0): their ``motion`` column is set directly."""
+    trainer = Trainer(small_config(**{"model.motion_basis": 0}), seed=0)
     trainer.add_frames(tiny_frames)
     for _ in range(30):
         trainer.step()
