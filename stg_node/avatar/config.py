@@ -92,6 +92,7 @@ class LossConfig:
     opacity: float = 0.0  # entropy-style push of opacities towards 0 or 1
     skin: float = 0.01  # keeps the learned skinning correction small
     pose_refine: float = 1e-3  # keeps per-frame pose corrections small
+    pose_smooth: float = 0.0  # refined poses smooth in time (pose_refine.py; on for tracked poses)
     adaptive: bool = True  # balance the auxiliary terms against the photometric term (see losses.py)
     warmup_iters: int = 300  # auxiliary terms ramp in over these iterations
 

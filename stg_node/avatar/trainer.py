@@ -31,6 +31,7 @@ from stg_node.avatar.frames import FrameStore, StoredFrame, TrainFrame
 from stg_node.avatar.gaussians import init_table
 from stg_node.avatar.model import AvatarModel, BodyState, Camera3, render
 from stg_node.avatar.optim import TableOptimizer
+from stg_node.avatar.pose_refine import PoseTrack
 from stg_node.avatar.rigid import Skeleton
 from stg_node.avatar.rigidity import NeighbourGraph
 from stg_node.avatar.spacetime import TimeAxis
@@ -136,6 +137,7 @@ class Trainer:
             None  # (slots, 75) per-frame pose (72) and Th (3) correction
         )
         self.pose_slots: dict[int, int] = {}
+        self.pose_track = PoseTrack()  # the tracked poses, for the refined poses' smoothness
         self.neighbours = NeighbourGraph()  # local rigidity of the non-rigid motion
         self.profile: StepProfile | None = None  # set to a StepProfile to time the phases of each step
 
@@ -151,6 +153,8 @@ class Trainer:
             index.add(np.asarray(frame.smpl.poses), u)
         if self.config.lr_pose > 0:
             self._pose_slot(frame.index)
+            if self.config.loss.pose_smooth > 0:
+                self.pose_track.add(frame.index, frame.smpl, self.device)
 
     def add_frames(self, frames) -> None:
         for frame in frames:
@@ -314,6 +318,10 @@ class Trainer:
         if c.loss.rigidity > 0 and state.offsets is not None:
             terms["rigidity"] = self.neighbours.loss(table, state.offsets, state.temporal)
         terms.update(self._regularisers(body))
+        if c.loss.pose_smooth > 0 and self.pose_deltas is not None:
+            smooth = self.pose_track.smoothness(self.pose_deltas, self.pose_slots, stored.frame.index)
+            if smooth is not None:
+                terms["pose_smooth"] = smooth
         weights = {
             "mask": c.loss.mask,
             "flow": c.loss.flow,
@@ -324,6 +332,7 @@ class Trainer:
             "opacity": c.loss.opacity,
             "skin": c.loss.skin,
             "pose": c.loss.pose_refine,
+            "pose_smooth": c.loss.pose_smooth,
         }
         total, applied = self.weights.combine(terms, weights, it)
         timer.mark("loss")

@@ -139,8 +139,13 @@ def run(args: argparse.Namespace) -> int:
     from stg_node.avatar.presets import preset
     from stg_node.avatar.run import RunDir
 
+    base = preset(args.preset)
+    if args.format == "video":  # a tracker's poses: refined harder, kept smooth (avatar/pose_refine.py)
+        from stg_node.avatar.pose_refine import refinement_for
+
+        base = refinement_for(base, "tracked")
     try:
-        args.config = apply_settings(preset(args.preset), args.set)
+        args.config = apply_settings(base, args.set)
     except ValueError as exc:
         raise UsageError(f"--set: {exc}") from exc
     if args.set and args.resume and RunDir(Path(args.out)).checkpoint.is_file():
@@ -182,6 +187,7 @@ def _train(args, frames, stop: StopSignals) -> int:
                 intrinsics=args.intrinsics,
                 fov_deg=args.fov,
                 progress=not args.no_progress,
+                preview=run.path / "fit_preview.mp4",
             )
         )
     spec = DataSpec(str(Path(data_root).resolve()), args.format, frames, args.train_camera, args.size)

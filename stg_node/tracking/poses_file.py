@@ -14,7 +14,11 @@ Extra arrays (readers may ignore them): ``frames`` (N,) int frame index in the i
 (N,) float seconds, ``K`` (3, 3) the pinhole camera the parameters belong to, ``dist`` (n,) the
 input's distortion coefficients (empty when none), ``image_size`` (2,) width and height, ``fps``,
 ``body`` the body model's name, ``reprojection_px`` (N,) the fit's keypoint residual (NaN when
-no fit). The required keys are also what ``stg_node.body.load_smpl_params`` and the folder
+no fit), ``flags`` (N,) str why a frame's confidence is low (comma-separated: ``no_person``,
+``cut_by_border``, ``motion_blur``, ``multiple_people``, ...; empty when nothing is wrong),
+``camera`` a JSON object saying where ``K`` came from (a file, a given field of view, or the
+focal length estimated from the footage with its interval and whether it is sure). The
+required keys are also what ``stg_node.body.load_smpl_params`` and the folder
 dataset's ``poses.npz`` read, so the file drops into either.
 """
 
@@ -49,6 +53,8 @@ class TrackedPoses:
     fps: float
     body: str = ""
     reprojection_px: np.ndarray | None = None  # (N,)
+    flags: np.ndarray | None = None  # (N,) str, comma-separated reasons for a low confidence
+    camera: str = ""  # JSON: where K came from (stg_node.tracking.focal)
 
     def __len__(self) -> int:
         return int(self.poses.shape[0])
@@ -77,6 +83,8 @@ class TrackedPoses:
                 raise PosesFileError(f"{where}: {name} contains NaN or infinite values")
         if np.any((self.confidence < 0) | (self.confidence > 1)):
             raise PosesFileError(f"{where}: confidence must lie in [0, 1]")
+        if self.flags is not None and np.shape(self.flags) != (n,):
+            raise PosesFileError(f"{where}: flags has shape {np.shape(self.flags)}, expected ({n},)")
 
 
 def write_poses(path: str | Path, tracked: TrackedPoses) -> Path:
@@ -100,6 +108,10 @@ def write_poses(path: str | Path, tracked: TrackedPoses) -> Path:
     }
     if tracked.reprojection_px is not None:
         arrays["reprojection_px"] = np.asarray(tracked.reprojection_px, dtype=np.float32)
+    if tracked.flags is not None:
+        arrays["flags"] = np.asarray(tracked.flags, dtype=str)
+    if tracked.camera:
+        arrays["camera"] = np.array(tracked.camera)
     with tempfile.NamedTemporaryFile(dir=path.parent, prefix=path.name, suffix=".tmp", delete=False) as fh:
         np.savez_compressed(fh, **arrays)
     os.replace(fh.name, path)
@@ -134,6 +146,8 @@ def read_poses(path: str | Path) -> TrackedPoses:
         fps=float(data.get("fps", 0.0)),
         body=str(data.get("body", "")),
         reprojection_px=data.get("reprojection_px"),
+        flags=data.get("flags"),
+        camera=str(data.get("camera", "")),
     )
     tracked.validate(str(path))
     return tracked
