@@ -63,6 +63,8 @@ def training_state(trainer) -> tuple[dict, dict]:
         arrays["train.pose_deltas"] = _np(trainer.pose_deltas)
         slots = sorted(trainer.pose_slots.items(), key=lambda kv: kv[1])
         arrays["train.pose_frames"] = np.asarray([f for f, _ in slots], np.float32)
+    for name, value in trainer.exposure.state_arrays().items():
+        arrays[f"train.exposure.{name}"] = value
     d = trainer.densifier
     for name, value in d.state_arrays().items():
         arrays[f"train.densify.{name}"] = _np(value)
@@ -114,6 +116,9 @@ def load(path: str | Path, *, body_model=None, device="cpu", backend="auto", flo
         trainer.pose_slots = {f: i for i, f in enumerate(frames)}
         trainer.pose_deltas = torch.nn.Parameter(t("train.pose_deltas"))
     trainer._build_optimizer()
+    trainer.exposure.load_state_arrays(
+        {k[len("train.exposure.") :]: v for k, v in arrays.items() if k.startswith("train.exposure.")}
+    )
     table_states = {}
     for name in model.table.trainable_names():
         key = f"train.adam.{name}.step"

@@ -93,6 +93,7 @@ class LossConfig:
     skin: float = 0.01  # keeps the learned skinning correction small
     pose_refine: float = 1e-3  # keeps per-frame pose corrections small
     pose_smooth: float = 0.0  # refined poses smooth in time (pose_refine.py; on for tracked poses)
+    exposure: float = 1e-3  # keeps the per-frame colour correction's log-gains near 0 (exposure.py)
     adaptive: bool = True  # balance the auxiliary terms against the photometric term (see losses.py)
     warmup_iters: int = 300  # auxiliary terms ramp in over these iterations
 
@@ -155,6 +156,7 @@ class TrainConfig:
     lr_time: float = 1e-3
     lr_skin: float = 1e-3
     lr_pose: float = 1e-4  # per-frame pose refinement (0 = off)
+    lr_exposure: float = 1e-2  # per-frame exposure / white-balance log-gains (0 = off; exposure.py)
     lr_schedule_final: float = 0.1  # every rate but the means' decays to this fraction (cosine)
     crop_margin_px: int = 16  # render the mask's bounding box plus this margin, not the whole frame
     full_frame_every: int = 0  # every K-th step renders the whole frame (0 = never)

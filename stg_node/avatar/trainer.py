@@ -27,6 +27,7 @@ from stg_node.avatar import losses as L
 from stg_node.avatar import spacetime
 from stg_node.avatar.config import TrainConfig
 from stg_node.avatar.densify import DensifyStrategy, StepContext
+from stg_node.avatar.exposure import ExposureCorrection
 from stg_node.avatar.frames import FrameStore, StoredFrame, TrainFrame
 from stg_node.avatar.gaussians import init_table
 from stg_node.avatar.model import AvatarModel, BodyState, Camera3, render
@@ -138,6 +139,9 @@ class Trainer:
         )
         self.pose_slots: dict[int, int] = {}
         self.pose_track = PoseTrack()  # the tracked poses, for the refined poses' smoothness
+        self.exposure = ExposureCorrection(  # per-frame colour correction, training only
+            config.lr_exposure, config.loss.exposure, config.loss.warmup_iters, self.device
+        )
         self.neighbours = NeighbourGraph()  # local rigidity of the non-rigid motion
         self.profile: StepProfile | None = None  # set to a StepProfile to time the phases of each step
 
@@ -155,6 +159,8 @@ class Trainer:
             self._pose_slot(frame.index)
             if self.config.loss.pose_smooth > 0:
                 self.pose_track.add(frame.index, frame.smpl, self.device)
+        if self.exposure.enabled:
+            self.exposure.add(frame.index)
 
     def add_frames(self, frames) -> None:
         for frame in frames:
@@ -303,7 +309,7 @@ class Trainer:
 
         image, alpha, info = render(posed, camera, background=0.0, backend=self.backend, extra_channels=extra)
         timer.mark("render")
-        rgb = image[..., :3]
+        rgb = self.exposure.apply(image[..., :3], stored.frame.index, it)
         l1, dssim = L.photometric(rgb, target, c.loss.ssim)
         terms["photo"] = (1 - c.loss.ssim) * l1 + c.loss.ssim * dssim
         if mask is not None and c.loss.mask > 0:
@@ -322,6 +328,9 @@ class Trainer:
             smooth = self.pose_track.smoothness(self.pose_deltas, self.pose_slots, stored.frame.index)
             if smooth is not None:
                 terms["pose_smooth"] = smooth
+        gauge = self.exposure.penalty()
+        if gauge is not None:
+            terms["exposure"] = gauge
         weights = {
             "mask": c.loss.mask,
             "flow": c.loss.flow,
@@ -333,6 +342,7 @@ class Trainer:
             "skin": c.loss.skin,
             "pose": c.loss.pose_refine,
             "pose_smooth": c.loss.pose_smooth,
+            "exposure": c.loss.exposure,
         }
         total, applied = self.weights.combine(terms, weights, it)
         timer.mark("loss")
@@ -350,12 +360,14 @@ class Trainer:
                 "step %d: non-finite loss or gradients (frame %d); step skipped", it, stored.frame.index
             )
             self.optimizer.zero_grad()
+            self.exposure.discard()
         else:
             gate = self.model.table.motion_gate()
             if gate is not None:  # static Gaussians keep exactly zero motion terms
                 for name in ("motion", "rot_motion"):
                     self.optimizer.freeze_rows(name, ~gate)
             self.optimizer.step()
+            self.exposure.step()
             self.optimizer.soft_threshold("motion", c.loss.motion_sparsity)
             self.optimizer.soft_threshold("rot_motion", c.loss.motion_sparsity)
             timer.mark("update")

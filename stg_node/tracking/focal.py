@@ -33,8 +33,8 @@ from stg_node.tracking.types import Keypoints
 
 log = logging.getLogger(__name__)
 
-GRID_FOV_DEG = (25.0, 30.0, 35.0, 40.0, 45.0, 50.0, 56.0, 63.0, 70.0, 78.0, 87.0, 97.0, 110.0)
-MAX_FRAMES = 90  # frames re-fitted per focal length (a spread of the confident ones)
+GRID_FOV_DEG = (25.0, 31.0, 38.0, 46.0, 55.0, 65.0, 76.0, 88.0, 102.0)  # ~20 % steps in focal length
+MAX_FRAMES = 48  # frames re-fitted per focal length (a spread of the confident ones)
 MIN_FRAMES = 20
 MIN_CONFIDENCE = 0.5
 SURE_RELATIVE = 0.10  # the 16-84 % interval within +-10 % of the estimate
