@@ -212,6 +212,7 @@ def _train(args, frames, stop: StopSignals) -> int:
         config = args.config
         if args.iters is not None:
             config = config.replace(iterations=args.iters)
+        config = _scaled_budget(args, config, spec)
         trainer = Trainer(
             config,
             args.smpl_model,
@@ -276,6 +277,8 @@ def _train(args, frames, stop: StopSignals) -> int:
         "skipped_steps": trainer.skipped_steps,
         "frames": len(trainer.store),
         "preset": config.preset,
+        "budget": getattr(args, "budget", None),
+        "tracking": _tracking_report(run),
         **stats,
         "densify": dict(trainer.densifier.counts),
     }
@@ -289,6 +292,28 @@ def _train(args, frames, stop: StopSignals) -> int:
         )
         return 130
     return 0
+
+
+def _tracking_report(run):
+    """What ``--format video``'s tracking kept, skipped (and why) and its camera; None otherwise."""
+    from stg_node.tracking.pipeline import TRACKING_REPORT
+
+    path = run.path / "video_data" / TRACKING_REPORT
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def _scaled_budget(args, config, spec):
+    """The preset's budget scaled with the person's size in pixels (stg_node/avatar/budget.py); what
+    the user set (``--set``, ``--iters``) stays as given."""
+    from stg_node.avatar.budget import SCALED, sample_masks, scale_budget
+
+    fixed = tuple(key for key in SCALED if any(item.split("=", 1)[0].strip() == key for item in args.set))
+    if args.iters is not None:
+        fixed += ("iterations",)
+    config, budget = scale_budget(config, sample_masks(spec.open("train")), fixed=fixed)
+    log.info("%s", budget.describe())
+    args.budget = budget.as_dict()
+    return config
 
 
 def _versions() -> dict:
