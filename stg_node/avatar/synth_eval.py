@@ -105,15 +105,16 @@ def evaluate_on_synth(
     synth_dir: str | Path,
     split: str = "novel_view",
     *,
+    protocol: str = "full",
     lpips_nets: tuple[str, ...] = ("alex",),
     parts: bool = True,
     device="cpu",
     backend="auto",
     show_progress: bool = True,
 ) -> dict:
-    """A run scored on an stg-synth subject's ``split`` (module docstring): PSNR / SSIM / LPIPS over
-    the whole image (the ``full`` protocol of stg-eval), PSNR per body part, the alignment used and
-    the views that had no pose (a frame the tracker was unsure of)."""
+    """A run scored on an stg-synth subject's ``split`` (module docstring): PSNR / SSIM / LPIPS under
+    ``protocol`` (``full``: the whole image, as stg-eval; ``bbox``: the person's box), PSNR per body
+    part, the alignment used and the views that had no pose (a frame the tracker was unsure of)."""
     from stg_node.avatar.data_spec import DataSpec
     from stg_node.avatar.loading import corrected, load_run_renderer
     from stg_node.body import load_body_model
@@ -143,7 +144,7 @@ def evaluate_on_synth(
     else:
         alignment = WorldAlignment.identity()
     dataset = truth.open(split)
-    evaluator = Evaluator("full", lpips_nets=lpips_nets)
+    evaluator = Evaluator(protocol, lpips_nets=lpips_nets)
     part_errors = PartErrors()
     faces = body.faces.cpu().numpy()
     parts_of_faces = face_parts(faces, vertex_parts(body.weights.cpu().numpy()))
@@ -171,6 +172,7 @@ def evaluate_on_synth(
     lpips = report["lpips"].get(lpips_nets[0], math.nan) if lpips_nets else math.nan
     return {
         "split": split,
+        "protocol": protocol,
         "format": spec.format,
         "psnr": report["psnr"],
         "ssim": report["ssim"],
