@@ -13,9 +13,11 @@ tracking pass, so nothing is detected twice) for each focal length of a grid, wi
 calibrated on those frames and then held, and sums each frame's robust fit cost. The estimate is
 the minimum of that profile (a parabola through the best three grid points, in log focal
 length); its spread comes from a block bootstrap over frames (contiguous blocks keep the
-frames' correlation). It is **sure** when the 16-84 % bootstrap interval is within
-``SURE_RELATIVE`` of the estimate and the minimum lies inside the grid; otherwise the caller keeps
-its default field of view and says it is unsure, with the interval.
+frames' correlation). It is **sure** when the minimum lies inside the grid, stands out from its
+neighbours (at least ``MIN_DEPTH`` lower: a flat profile means the motion does not pin the focal
+length, whatever a bootstrap of a systematic bias says) and the 16-84 % bootstrap interval is
+within ``SURE_RELATIVE`` of the estimate; otherwise the caller keeps its default field of view and
+says it is unsure, with the interval.
 """
 
 from __future__ import annotations
@@ -34,8 +36,9 @@ from stg_node.tracking.types import Keypoints
 log = logging.getLogger(__name__)
 
 GRID_FOV_DEG = (25.0, 31.0, 38.0, 46.0, 55.0, 65.0, 76.0, 88.0, 102.0)  # ~20 % steps in focal length
-MAX_FRAMES = 48  # frames re-fitted per focal length (a spread of the confident ones)
+MAX_FRAMES = 36  # frames re-fitted per focal length (a spread of the confident ones)
 MIN_FRAMES = 20
+MIN_DEPTH = 0.005  # the minimum must lie this much (relative) below both grid neighbours
 MIN_CONFIDENCE = 0.5
 SURE_RELATIVE = 0.10  # the 16-84 % interval within +-10 % of the estimate
 BOOTSTRAP = 200
