@@ -157,9 +157,6 @@ class TrainConfig:
     lr_skin: float = 1e-3
     lr_pose: float = 1e-4  # per-frame pose refinement (0 = off)
     lr_exposure: float = 1e-2  # per-frame exposure / white-balance log-gains (0 = off; exposure.py)
-    pose_align_rounds: int = (
-        0  # before step 0: rounds of fitting each frame's pose to its mask (pose_refine.py)
-    )
     lr_schedule_final: float = 0.1  # every rate but the means' decays to this fraction (cosine)
     crop_margin_px: int = 16  # render the mask's bounding box plus this margin, not the whole frame
     full_frame_every: int = 0  # every K-th step renders the whole frame (0 = never)

@@ -139,7 +139,6 @@ class Trainer:
         )
         self.pose_slots: dict[int, int] = {}
         self.pose_track = PoseTrack()  # the tracked poses, for the refined poses' smoothness
-        self.align_report = None  # what aligning the poses to the masks did (pose_refine.py)
         self.exposure = ExposureCorrection(  # per-frame colour correction, training only
             config.lr_exposure, config.loss.exposure, config.loss.warmup_iters, self.device
         )
@@ -264,15 +263,10 @@ class Trainer:
     def step(self) -> StepResult:
         if self.model is None or len(self.store) == 0:
             raise RuntimeError("Trainer.step() needs at least one frame: call add_frame() first")
-        c = self.config
-        if self.iteration == 0 and c.pose_align_rounds > 0 and self.align_report is None:
-            from stg_node.avatar.pose_refine import align_to_masks
-
-            self.align_report = align_to_masks(self, c.pose_align_rounds, seed=self.seed)
-            log.info("training poses aligned to the masks: %s", self.align_report.as_dict())
         started = time.perf_counter()
         timer = self.profile or _NoProfile()
         timer.start()
+        c = self.config
         it = self.iteration
         gen = step_generator(self.seed, it)
         stored = self.store.frames[int(torch.randint(len(self.store), (1,), generator=gen))]
