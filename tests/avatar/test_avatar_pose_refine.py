@@ -28,7 +28,7 @@ def test_smoothness_is_the_scaled_second_difference_of_the_refined_trajectory():
     value = track.smoothness(deltas, slots, 1)
     # Hand computed: elbow 0 - 2 * 0.3 + 0.2 = -0.4 rad; root x 0 - 0.2 + 0.2 = 0.
     expected = ((-0.4 / ROTATION_SIGMA_RAD) ** 2) / 75
-    assert float(value) == pytest.approx(expected, rel=1e-5)
+    assert float(value.detach()) == pytest.approx(expected, rel=1e-5)
     value.backward()
     # Lowering the middle frame's elbow correction smooths it: its gradient is positive (d/dx of (a - 2x)^2).
     assert float(deltas.grad[0, 18 * 3 + 1]) > 0 and float(deltas.grad[2, 18 * 3 + 1]) < 0
