@@ -129,10 +129,10 @@ class ExposureCorrection:
         self.slots = {f: i for i, f in enumerate(frames)}
 
         def t(name):
-            return torch.as_tensor(np.asarray(arrays[name], np.float32), device=self.device).reshape(-1, 3)
+            return torch.as_tensor(np.array(arrays[name], np.float32), device=self.device).reshape(-1, 3)
 
         self.gains, self.exp_avg, self.exp_avg_sq = t("gains"), t("exp_avg"), t("exp_avg_sq")
-        self.steps = torch.as_tensor(np.asarray(arrays["steps"]).round().astype(np.int64))
+        self.steps = torch.as_tensor(np.array(arrays["steps"]).round().astype(np.int64))
 
 
 def log_gain_error(learnt: dict[int, np.ndarray], truth: dict[int, np.ndarray]) -> float:
