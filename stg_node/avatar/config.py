@@ -156,6 +156,7 @@ class TrainConfig:
     lr_time: float = 1e-3
     lr_skin: float = 1e-3
     lr_pose: float = 1e-4  # per-frame pose refinement (0 = off)
+    pose_refine_joints: bool = True  # False: refine each frame's alignment only (root rotation, Th)
     lr_exposure: float = 1e-2  # per-frame exposure / white-balance log-gains (0 = off; exposure.py)
     lr_schedule_final: float = 0.1  # every rate but the means' decays to this fraction (cosine)
     crop_margin_px: int = 16  # render the mask's bounding box plus this margin, not the whole frame

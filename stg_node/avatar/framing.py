@@ -31,7 +31,8 @@ DEFAULT_FRACTION = 2.0 / 3.0  # of the image height
 DEFAULT_MARGIN = 0.04  # of the image width, kept free on each side
 DEFAULT_QUANTILE = 0.005  # the body's box: between these quantiles of its points, per image axis
 MIN_CLEARANCE_M = 0.05  # the camera stays at least this far in front of every point
-MAX_POINTS = 4096  # a frame's points are thinned to at most this many (the box hardly changes)
+MAX_POINTS = 2048  # a frame's points are thinned to at most this many (the box hardly changes)
+BISECTIONS = 32  # distance search steps: 2^-32 of the bracket
 
 
 @dataclass(frozen=True)
@@ -71,65 +72,38 @@ def thin(points: np.ndarray, limit: int = MAX_POINTS) -> np.ndarray:
     return points[np.linspace(0, len(points) - 1, limit).round().astype(np.int64)]
 
 
-def _box(u: np.ndarray, q: float) -> tuple[float, float]:
-    if q <= 0 or len(u) < 3:
-        return float(u.min()), float(u.max())
-    lo, hi = np.quantile(u, [q, 1.0 - q])
-    return float(lo), float(hi)
-
-
 def _projected_box(rel: np.ndarray, distance: float, K: np.ndarray, q: float):
     """(u0, u1, v0, v1) pixel box of points ``rel`` (camera axes, relative to the aim point) seen from
-    ``distance`` behind the aim point; principal point subtracted."""
+    ``distance`` behind the aim point, between the ``q`` and ``1 - q`` quantiles; principal point
+    subtracted."""
     depth = distance + rel[:, 2]
-    u = K[0, 0] * rel[:, 0] / depth
-    v = K[1, 1] * rel[:, 1] / depth
-    return (*_box(u, q), *_box(v, q))
+    uv = np.stack([K[0, 0] * rel[:, 0] / depth, K[1, 1] * rel[:, 1] / depth])
+    if q <= 0 or len(rel) < 3:
+        lo, hi = uv.min(axis=1), uv.max(axis=1)
+    else:
+        lo, hi = np.quantile(uv, [q, 1.0 - q], axis=1)
+    return float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1])
 
 
 def _distance_for(rel: np.ndarray, K: np.ndarray, half_w: float, half_h: float, q: float) -> float:
-    """The smallest distance at which the points' box fits in [-half_w, half_w] x [-half_h, half_h]
-    about the principal point (the box shrinks monotonically as the camera backs off)."""
+    """The smallest distance at which at most a ``q`` share of the points falls outside
+    [-half_w, half_w] x [-half_h, half_h] about the principal point, on each side: closed form.
+
+    A point at ``(x, y, z)`` (camera axes, relative to the aim point) with ``y > 0`` stays inside
+    the lower edge while ``f y / (d + z) <= half_h``, i.e. for ``d >= f y / half_h - z``; so the
+    distance that lets at most ``k`` points out on that side is the ``(k + 1)``-th largest of
+    those bounds. The same for the other three sides; the largest of the four wins."""
+    n = len(rel)
     near = max(float(-rel[:, 2].min()) + MIN_CLEARANCE_M, MIN_CLEARANCE_M)
-
-    def fits(d: float) -> bool:
-        u0, u1, v0, v1 = _projected_box(rel, d, K, q)
-        return max(-u0, u1) <= half_w and max(-v0, v1) <= half_h
-
-    lo, hi = near, max(near * 2.0, 1.0)
-    while not fits(hi):
-        hi *= 2.0
-        if hi > 1e7:
-            raise ValueError("cannot frame the avatar: its points do not fit at any distance")
-    if fits(lo):
-        return lo
-    for _ in range(60):
-        mid = 0.5 * (lo + hi)
-        lo, hi = (lo, mid) if fits(mid) else (mid, hi)
-    return hi
-
-
-def _box_distance(rel: np.ndarray, K: np.ndarray, width: int, height: int, rule: FramingRule) -> float:
-    """The distance at which the (centred) box is ``fraction`` tall or fills the usable width."""
-    near = max(float(-rel[:, 2].min()) + MIN_CLEARANCE_M, MIN_CLEARANCE_M)
-    target_h = rule.fraction * height
-    target_w = (1.0 - 2.0 * rule.margin) * width
-
-    def too_big(d: float) -> bool:
-        u0, u1, v0, v1 = _projected_box(rel, d, K, rule.quantile)
-        return (v1 - v0) > target_h or (u1 - u0) > target_w
-
-    lo, hi = near, max(near * 2.0, 1.0)
-    while too_big(hi):
-        hi *= 2.0
-        if hi > 1e7:
-            raise ValueError("cannot frame the avatar: its points do not fit at any distance")
-    if not too_big(lo):
-        return lo
-    for _ in range(60):
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if too_big(mid) else (lo, mid)
-    return hi
+    k = int(q * n) if q > 0 else 0
+    if k >= n:
+        return near
+    need = near
+    for coord, focal, half in ((rel[:, 0], K[0, 0], half_w), (rel[:, 1], K[1, 1], half_h)):
+        for side in (coord, -coord):
+            bounds = np.where(side > 0, focal * side / half - rel[:, 2], -np.inf)
+            need = max(need, float(np.partition(bounds, n - 1 - k)[n - 1 - k]))
+    return need
 
 
 def aim(
@@ -151,9 +125,11 @@ def aim(
     R = np.asarray(rotation, np.float64)
     target = points.mean(axis=0)
     distance = 1.0
-    for _ in range(6):  # re-centre, re-measure: converges in a few rounds
+    half_h = 0.5 * rule.fraction * height
+    half_w = 0.5 * (1.0 - 2.0 * rule.margin) * width
+    for _ in range(8):  # re-centre, re-measure: converges in a few rounds
         rel = (points - target) @ R.T
-        distance = _box_distance(rel, K, width, height, rule)
+        distance = _distance_for(rel, K, half_w, half_h, rule.quantile)
         u0, u1, v0, v1 = _projected_box(rel, distance, K, rule.quantile)
         du, dv = 0.5 * (u0 + u1), 0.5 * (v0 + v1)
         if abs(du) < 0.25 and abs(dv) < 0.25:
@@ -161,6 +137,8 @@ def aim(
         # A pixel offset at the depth of the box's middle, back to metres along right/down.
         depth = distance + float(np.median(rel[:, 2]))
         target = target + R[0] * du * depth / K[0, 0] + R[1] * dv * depth / K[1, 1]
+    else:  # not settled within the rounds: the distance that keeps the last aim's box inside
+        distance = _distance_for((points - target) @ R.T, K, half_w, half_h, rule.quantile)
     return target, distance
 
 

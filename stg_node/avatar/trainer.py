@@ -254,6 +254,8 @@ class Trainer:
         body = BodyState.from_smpl(smpl if smpl is not None else stored_frame.smpl, self.device)
         if refine and self.pose_deltas is not None and smpl is None and stored_frame.index in self.pose_slots:
             delta = self.pose_deltas[self.pose_slots[stored_frame.index]]
+            if not self.config.pose_refine_joints:  # the frame's alignment only: root rotation, Th
+                delta = torch.cat([delta[:3], torch.zeros_like(delta[3:72]), delta[72:75]])
             body = BodyState(
                 body.poses + delta[: 24 * 3].reshape(1, 24, 3), body.Rh, body.Th + delta[72:75][None]
             )
