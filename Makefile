@@ -3,7 +3,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.stg-setup-done
 
-.PHONY: setup demo test test-slow test-all lint
+.PHONY: setup demo test test-slow test-all test-repeat lint
 
 setup: $(STAMP)
 
@@ -23,6 +23,21 @@ demo: $(STAMP)
 # The default suite (slow tests excluded; stays under 15 minutes on a 2-core machine).
 test: $(STAMP)
 	$(PY) -m pytest $(ARGS)
+
+# The default suite N times, with per-test failure counts (tools/test_repeat.py):
+#   make test-repeat 5 [BUSY=2] [BACKGROUND=1] [ARGS="tests/nodes"]   (or N=5)
+# BUSY=K: the first K runs beside a busy loop; BACKGROUND=K: the last K as a background job.
+ifeq (test-repeat,$(firstword $(MAKECMDGOALS)))
+  REPEAT_COUNT := $(word 2,$(MAKECMDGOALS))
+  ifneq ($(REPEAT_COUNT),)
+    $(eval $(REPEAT_COUNT):;@:)
+  endif
+endif
+N ?= $(or $(REPEAT_COUNT),5)
+BUSY ?= 0
+BACKGROUND ?= 0
+test-repeat: $(STAMP)
+	$(PY) tools/test_repeat.py $(N) --busy-runs $(BUSY) --background-runs $(BACKGROUND) -- $(ARGS)
 
 test-slow: $(STAMP)
 	$(PY) -m pytest -m slow $(ARGS)

@@ -32,6 +32,8 @@ import collections
 import functools
 import io
 import pickle
+import zipfile
+import zlib
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -46,6 +48,54 @@ _SAFE_BUILTINS = frozenset(
 _NUMPY_MULTIARRAY = ("numpy.core.multiarray", "numpy._core.multiarray")
 _NUMPY_NUMERIC = ("numpy.core.numeric", "numpy._core.numeric")
 NPY_MAGIC = b"\x93NUMPY"
+
+
+class UnreadableFileError(ValueError):
+    """A file that is not what it should be (truncated, another format, an array header that
+    promises more bytes than the file holds); the message names the file."""
+
+
+def _array_header(fh) -> tuple[tuple, np.dtype, int]:
+    """(shape, dtype, bytes the array needs) from a ``.npy`` stream at its start; ValueError if
+    the header is not one."""
+    version = np.lib.format.read_magic(fh)
+    if version == (1, 0):
+        shape, _fortran, dtype = np.lib.format.read_array_header_1_0(fh)
+    elif version in ((2, 0), (3, 0)):
+        shape, _fortran, dtype = np.lib.format.read_array_header_2_0(fh)
+    else:
+        raise ValueError(f"unsupported .npy format version {version}")
+    count = 1
+    for n in shape:
+        count *= int(n)
+    return shape, dtype, count * dtype.itemsize
+
+
+def _check_array_size(fh, available: int, where: str) -> None:
+    """Refuse an array whose header promises more bytes than ``available`` after the header: read
+    as it is, numpy would first allocate what it promises (a 16-byte file can ask for terabytes)."""
+    start = fh.tell()
+    try:
+        shape, dtype, nbytes = _array_header(fh)
+    except ValueError as exc:
+        raise UnreadableFileError(f"{where}: not a .npy array ({_short(exc)})") from None
+    held = available - (fh.tell() - start)
+    fh.seek(start)
+    if not dtype.hasobject and nbytes > held:
+        raise UnreadableFileError(
+            f"{where}: its header promises a {'x'.join(map(str, shape)) or 'scalar'} {dtype} array "
+            f"({nbytes} bytes) but {max(held, 0)} bytes follow (truncated or damaged)"
+        )
+
+
+def _short(exc: BaseException, limit: int = 200) -> str:
+    """An exception as one short line (a damaged zip's quotes kilobytes of its bytes)."""
+    text = " ".join(str(exc).split())
+    return f"{type(exc).__name__}: " + (text if len(text) <= limit else text[: limit - 3] + "...")
+
+
+#: What reading a damaged .npy/.npz raises, besides ValueError: wrapped into UnreadableFileError.
+_READ_ERRORS = (EOFError, OSError, zipfile.BadZipFile, zlib.error, pickle.UnpicklingError, MemoryError)
 
 
 class RefusedPickleError(pickle.UnpicklingError):
@@ -123,13 +173,17 @@ def load_npy(path: str | Path, unpickler: type[pickle.Unpickler] = SafeUnpickler
     """
     path = Path(path)
     with open(path, "rb") as fh:
-        try:
-            return np.load(fh, allow_pickle=False)
-        except ValueError as exc:
-            if not _is_object_array_error(exc):
-                raise
-        fh.seek(0)
         bare_pickle = fh.read(len(NPY_MAGIC)) != NPY_MAGIC
+        fh.seek(0)
+        if not bare_pickle:
+            _check_array_size(fh, path.stat().st_size, str(path))
+            try:
+                return np.load(fh, allow_pickle=False)
+            except ValueError as exc:
+                if not _is_object_array_error(exc):
+                    raise UnreadableFileError(f"{path}: cannot be read as .npy ({_short(exc)})") from None
+            except _READ_ERRORS as exc:
+                raise UnreadableFileError(f"{path}: cannot be read as .npy ({_short(exc)})") from None
         fh.seek(0)
         try:
             if bare_pickle:
@@ -137,6 +191,9 @@ def load_npy(path: str | Path, unpickler: type[pickle.Unpickler] = SafeUnpickler
             return _unwrap_object_array(_read_object_payload(fh, unpickler))
         except RefusedPickleError as exc:
             raise RefusedPickleError(f"{path}: {exc}") from None
+        except (ValueError, *_READ_ERRORS) as exc:
+            what = "a pickle" if bare_pickle else "an object .npy"
+            raise UnreadableFileError(f"{path}: cannot be read as {what} ({_short(exc)})") from None
 
 
 def load_npz(path: str | Path, unpickler: type[pickle.Unpickler] | None = None) -> dict[str, Any]:
@@ -148,25 +205,40 @@ def load_npz(path: str | Path, unpickler: type[pickle.Unpickler] | None = None) 
     """
     path = Path(path)
     out: dict[str, Any] = {}
-    with np.load(path, allow_pickle=False) as archive:
+    if not zipfile.is_zipfile(path):
+        raise UnreadableFileError(f"{path}: not an .npz archive (a zip file of .npy arrays)")
+    try:
+        archive = np.load(path, allow_pickle=False)
+    except (ValueError, *_READ_ERRORS) as exc:
+        raise UnreadableFileError(f"{path}: cannot be read as .npz ({_short(exc)})") from None
+    with archive:
         for key in archive.files:
+            where = f"{path} member {key!r}"
             try:
+                with archive.zip.open(f"{key}.npy") as member:
+                    _check_array_size(member, archive.zip.getinfo(f"{key}.npy").file_size, where)
                 out[key] = archive[key]
                 continue
             except ValueError as exc:
-                if not _is_object_array_error(exc):
+                if isinstance(exc, UnreadableFileError):
                     raise
+                if not _is_object_array_error(exc):
+                    raise UnreadableFileError(f"{where}: cannot be read ({_short(exc)})") from None
+            except _READ_ERRORS as exc:
+                raise UnreadableFileError(f"{where}: cannot be read ({_short(exc)})") from None
             if unpickler is None:
                 raise RefusedPickleError(
                     f"{path}: refusing member {key!r}: it holds pickled Python objects, which are not "
                     "loaded from .npz (re-save it with plain arrays)"
                 )
-            with archive.zip.open(f"{key}.npy") as member:
-                payload = io.BytesIO(member.read())
             try:
+                with archive.zip.open(f"{key}.npy") as member:
+                    payload = io.BytesIO(member.read())
                 out[key] = _unwrap_object_array(_read_object_payload(payload, unpickler))
             except RefusedPickleError as exc:
                 raise RefusedPickleError(f"{path} member {key!r}: {exc}") from None
+            except (ValueError, *_READ_ERRORS) as exc:
+                raise UnreadableFileError(f"{where}: cannot be read ({_short(exc)})") from None
     return out
 
 

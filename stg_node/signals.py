@@ -10,6 +10,14 @@ point installs its handlers itself, through this module:
 - :class:`StopSignals`: the first SIGINT/SIGTERM only sets an event (a node finishes its
   current step and flushes what it owes); a second one raises ``KeyboardInterrupt``.
 
+A Python signal handler runs in the main thread between two bytecodes, wherever that thread is,
+including inside the handler itself (a second signal) or inside ``threading.Event.set``/``wait``
+of the very event the handler sets. ``threading.Event``'s lock is not re-entrant, so that was a
+deadlock: a node whose launcher was killed (the kernel's parent-death signal can arrive several
+times as the launcher's threads exit) hung for ever in its handler and survived the launch. The
+stop event here takes a re-entrant lock, and a signal that lands while the handler runs is part
+of the same stop.
+
 Both restore the previous handlers on exit and do nothing outside the main thread (Python only
 lets the main thread install signal handlers).
 """
@@ -46,6 +54,15 @@ def interrupt_on_signals():
             signal.signal(sig, handler)
 
 
+class StopEvent(threading.Event):
+    """A ``threading.Event`` that a signal handler may set while the main thread is inside this
+    event's own ``set``/``wait`` (its lock is re-entrant; see the module docstring)."""
+
+    def __init__(self):
+        super().__init__()
+        self._cond = threading.Condition(threading.RLock())
+
+
 class StopSignals:
     """Graceful stop on the first SIGINT/SIGTERM (sets :attr:`event`), KeyboardInterrupt on the next.
 
@@ -57,10 +74,11 @@ class StopSignals:
     """
 
     def __init__(self, on_stop=None):
-        self.event = threading.Event()
+        self.event = StopEvent()
         self.signal_name: str | None = None
         self._on_stop = on_stop
         self._previous: dict = {}
+        self._handling = False  # a signal handler of ours is running (further signals join it)
 
     @property
     def requested(self) -> bool:
@@ -75,10 +93,16 @@ class StopSignals:
                 self._on_stop()
 
     def _handle(self, signum, frame):
+        if self._handling:  # landed while this handler runs: the same stop, already under way
+            return
         if self.event.is_set():  # the second signal: stop now
             raise KeyboardInterrupt
-        self.signal_name = signal.Signals(signum).name
-        self.request(self.signal_name)
+        self._handling = True
+        try:
+            self.signal_name = signal.Signals(signum).name
+            self.request(self.signal_name)
+        finally:
+            self._handling = False
 
     def install(self) -> StopSignals:
         if _in_main_thread() and not self._previous:

@@ -107,9 +107,7 @@ def test_a_stop_signal_interrupts_a_job_with_130(sig, capsys):
         return 0
 
     before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
-    start = time.monotonic()
-    assert _run(job) == EXIT_INTERRUPTED == 130
-    assert time.monotonic() - start < 4
+    assert _run(job) == EXIT_INTERRUPTED == 130  # (a job that slept on would have returned 0)
     assert "stg-test: interrupted" in capsys.readouterr().err
     assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before  # restored
 

@@ -73,6 +73,11 @@ CASES = [
     ),
     # Dense and opaque: many pixels stop early on the transmittance threshold, alphas clamp.
     dict(n=2500, width=64, height=48, seed=8, channels=3, max_opacity=1.0),
+    # Channel counts of the other tile paths: 6 compiled in; 7 and 9 at run time, with the
+    # colours outside the per-Gaussian records.
+    dict(n=600, width=40, height=52, seed=9, channels=6, max_opacity=1.0),
+    dict(n=600, width=52, height=40, seed=10, channels=6, render_depth=True),
+    dict(n=400, width=48, height=48, seed=11, channels=9),
 ]
 
 

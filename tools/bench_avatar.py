@@ -1,40 +1,71 @@
-"""Speed of the avatar's training step (phase by phase) and of its rendering, with same-run baselines.
+"""Speed of the avatar's training step and posed render, against an older revision in the same run.
 
-    python tools/bench_avatar.py [--data DIR] [--steps 60] [--threads 1] [--gaussians 20000 50000]
+    python tools/bench_avatar.py [--data DIR] [--baseline REV | --no-baseline] [--rounds 3]
+                                 [--gaussians 20000 50000] [--only step render extremes ssim skip]
 
-1. Training step at the benchmark's 512x512 (the person's crop is rendered): per-phase wall time
-   (data, pose = LBS + spacetime + colour, flow target, render, loss, backward, update, densify),
-   and the whole step against the rasterizer's own forward+backward on the same Gaussians
-   (the baseline: what a step costs beyond splatting).
-2. SSIM loss (forward+backward, a 420x200 crop): the C++ kernel (stg_node.splat.image_ops.ssim) against
-   the torch implementation (depthwise separable convolutions, autograd; the fallback) and kornia's.
-3. Rendering a posed avatar at 512x512 (pose + colour + splat) with N Gaussians, with 0 %, 10 %
-   and 100 % of them carrying motion terms; the zero-motion skip against evaluating every row,
-   and against the bare rasterizer (baseline).
+Every timed case runs in a child process (``--worker``), once on this tree and once on the
+baseline revision (tools/baseline.py exports it; default: the code before issue 24), alternating
+which goes first, ``--rounds`` times; the figure is the median over rounds of each child's
+median. Children report wall time and their own CPU time (``time.thread_time``): on a machine
+shared with other processes the CPU time is what the code costs, the wall time what a user saw.
+The 1-minute load average is printed with every row.
+
+1. step: a training step of the balanced preset at a fixed Gaussian count (the person's crop of a
+   512x512 frame is rendered): per-phase CPU time (data, pose = LBS + spacetime + colour, flow
+   target, render, loss, backward, update, densify) and the whole step against the rasterizer's
+   own forward+backward on the same Gaussians and crop (what a step costs beyond splatting).
+   Target (issue 24): step <= 2x the rasterizer.
+2. render: a posed avatar at 512x512 (pose + colour + splat, AvatarRenderer) over 60 consecutive
+   frames of the benchmark (one camera following the body): ``exact`` (every colour every frame)
+   and ``stream`` (colours recomputed in turns, every 2nd frame: the renderer node's default,
+   ``color_refresh``), against the baseline's renderer. Targets: >= 60 FPS at 20k Gaussians,
+   >= 30 FPS at 50k, one thread.
+3. extremes: the tiny and huge cases of docs/STABILITY.md: a posed render at 16x16, 64x64 and
+   2048x2048 (20k Gaussians) and of 1,000,000 Gaussians at 512x512, and a training step at
+   64x64. Target: nothing slower than the baseline.
+4. ssim: the loss's SSIM, forward+backward on a 420x200 crop: the C++ kernel against the torch
+   implementation and kornia's (this tree only, one process).
+5. skip: posed renders with 0 %, 10 %, 100 % of the Gaussians moving, with and without the
+   zero-motion skip, against the bare rasterizer (this tree only, one process).
+6. streams: what a colour stream costs in the image: a fast-preset model trained 300 steps,
+   30 consecutive frames rendered with colours recomputed every 2nd, 3rd, 4th frame against
+   the exact renders (PSNR of the 8-bit images, largest difference in grey levels; this tree).
 
 The data is generated if --data is not given (stg-synth, 125 frames, 100 for training).
-Figures go to docs/BENCHMARKS.md with this command line and the machine.
+Figures go to docs/BENCHMARKS.md with this command line, the machine and the load.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import os
 import platform
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-import torch
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tools"))
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from baseline import BASELINE_REV, export_revision  # noqa: E402
 
-from stg_node.threads import configure_threads  # noqa: E402
+STEP_TARGET = 2.0  # step / rasterizer fwd+bwd
+RENDER_TARGETS = {20_000: 60.0, 50_000: 30.0}  # FPS, one thread, 512x512
+EXTREME_RENDERS = (
+    ("20k at 16x16", 20_000, 16),
+    ("20k at 64x64", 20_000, 64),
+    ("20k at 2048x2048", 20_000, 2048),
+)
+MILLION = ("1M at 512x512", 1_000_000, 512)
 
 
 def _machine() -> str:
-    return f"{platform.machine()}, {torch.get_num_threads()} torch thread(s), {platform.processor() or 'cpu'}"
+    cpu = platform.processor() or "cpu"
+    return f"{platform.machine()}, {os.cpu_count()} cpus, {cpu}, Python {platform.python_version()}"
 
 
 def ensure_data(path: str | None) -> Path:
@@ -42,42 +73,75 @@ def ensure_data(path: str | None) -> Path:
         return Path(path)
     out = Path(tempfile.gettempdir()) / "stg_bench_avatar_synth"
     if not (out / "synth.json").is_file():
+        sys.path.insert(0, str(ROOT))
         from stg_node.data.synth.generate import SynthConfig, generate
 
         generate(SynthConfig(out=out, num_frames=125, overwrite=True), progress=False)
     return out
 
 
-def bench_step(data: Path, steps: int, gaussians: int) -> dict:
-    from stg_node.avatar import Trainer, preset
-    from stg_node.avatar.data_spec import DataSpec
-    from stg_node.avatar.model import render
+# ---- the children ----------------------------------------------------------------------------------
+
+
+def _timed(fn, repeats: int, warmup: int = 2) -> dict:
+    for _ in range(warmup):
+        fn()
+    wall, cpu = [], []
+    for _ in range(repeats):
+        w, c = time.perf_counter(), time.thread_time()
+        fn()
+        cpu.append(time.thread_time() - c)
+        wall.append(time.perf_counter() - w)
+    return {"wall_ms": 1e3 * statistics.median(wall), "cpu_ms": 1e3 * statistics.median(cpu)}
+
+
+def _cpu_profile_class():
+    """StepProfile counting this thread's CPU time (written here: older trees have no clock option)."""
     from stg_node.avatar.trainer import StepProfile
 
-    config = preset("balanced").replace(
-        **{
-            "model.num_gaussians": gaussians,
-            "model.max_gaussians": gaussians,
-            "densify.start_iter": 10,
-            "densify.interval": 20,
-        }
-    )
+    class CpuProfile(StepProfile):
+        def start(self) -> None:
+            self._last = time.thread_time()
+
+        def mark(self, phase: str) -> None:
+            now = time.thread_time()
+            self.seconds[phase] += now - self._last
+            self._last = now
+
+    return CpuProfile
+
+
+def _balanced(n: int, **more):
+    from stg_node.avatar import preset
+
+    return preset("balanced").replace(**{"model.num_gaussians": n, "model.max_gaussians": n, **more})
+
+
+def worker_step(spec: dict) -> dict:
+    import torch
+
+    from stg_node.avatar import Trainer
+    from stg_node.avatar.data_spec import DataSpec
+    from stg_node.avatar.model import BodyState, Camera3, render
+
+    n, steps = spec["gaussians"], spec["steps"]
+    config = _balanced(n, **{"densify.start_iter": 10, "densify.interval": 20})
     trainer = Trainer(config, seed=0)
-    t0 = time.perf_counter()
-    trainer.add_frames(DataSpec(str(data), "synthetic").open("train"))
-    load_s = time.perf_counter() - t0
+    size = spec.get("size")
+    frames = DataSpec(spec["data"], "synthetic", **({"size": size} if size else {})).open("train")
+    trainer.add_frames(frames)
     for _ in range(5):
         trainer.step()
-    trainer.profile = StepProfile()
-    t0 = time.perf_counter()
+    trainer.profile = _cpu_profile_class()()
+    wall, cpu = [], []
     for _ in range(steps):
+        w, c = time.perf_counter(), time.thread_time()
         trainer.step()
-    step_ms = 1e3 * (time.perf_counter() - t0) / steps
+        cpu.append(time.thread_time() - c)
+        wall.append(time.perf_counter() - w)
     phases = trainer.profile.per_step_ms()
-    # Baseline: the rasterizer alone, forward + backward, on the same posed Gaussians and crops.
+    # the rasterizer alone, forward + backward, on the same posed Gaussians and crop
     stored = trainer.store.frames[0]
-    from stg_node.avatar.model import BodyState, Camera3
-
     cam = Camera3.from_camera(stored.frame.camera, stored.crop)
     with torch.no_grad():
         posed = trainer.model.pose(BodyState.from_smpl(stored.frame.smpl), 0.0, cam.center)
@@ -85,22 +149,227 @@ def bench_step(data: Path, steps: int, gaussians: int) -> dict:
         t.detach().clone().requires_grad_(True)
         for t in (posed.means, posed.quats, posed.scales, posed.opacities, posed.colors)
     ]
-    times = []
-    for _ in range(max(steps // 2, 5)):
+
+    def raster():
         posed.means, posed.quats, posed.scales, posed.opacities, posed.colors = leaves
-        t = time.perf_counter()
         image, alpha, _ = render(posed, cam, background=0.0, backend=trainer.backend)
         (image.sum() + alpha.sum()).backward()
-        times.append(time.perf_counter() - t)
-    raster_ms = 1e3 * statistics.median(times)
+
+    alone = _timed(raster, max(steps // 2, 5))
     return {
         "gaussians": trainer.model.table.num,
-        "load_s": load_s,
-        "step_ms": step_ms,
-        "phases_ms": phases,
-        "raster_fwd_bwd_ms": raster_ms,
-        "step_over_raster": step_ms / raster_ms,
+        "step_wall_ms": 1e3 * statistics.median(wall),
+        "step_cpu_ms": 1e3 * statistics.median(cpu),
+        "phases_cpu_ms": phases,
+        "raster_wall_ms": alone["wall_ms"],
+        "raster_cpu_ms": alone["cpu_ms"],
     }
+
+
+def worker_render(spec: dict) -> dict:
+    """Posed renders of an avatar with N Gaussians over consecutive frames (one camera following the
+    body): ``mode`` exact (every colour every frame) or stream (colours in turns, every 2nd frame)."""
+    import inspect
+
+    import torch
+
+    from stg_node.avatar import AvatarRenderer, Trainer, TrainFrame
+    from stg_node.avatar.data_spec import DataSpec
+    from stg_node.avatar.model import BodyState, Camera3, render
+
+    train = DataSpec(spec["data"], "synthetic").open("train")
+    trainer = Trainer(_balanced(spec["gaussians"]), seed=0)
+    trainer.add_frame(TrainFrame.from_sample(train[0]))
+    model = trainer.model
+    stream = spec["mode"] == "stream"
+    if stream:
+        if "color_refresh_every" not in inspect.signature(AvatarRenderer).parameters:
+            return {"unsupported": "no colour streams in this tree"}
+        renderer = AvatarRenderer(model, color_refresh_every=2)
+    else:
+        renderer = AvatarRenderer(model)
+    frames = [train[i] for i in range(min(len(train), spec["frames"]))]
+    from stg_node.nodes.convert import resized_camera
+
+    cameras = [resized_camera(f.camera, spec["size"]) for f in frames]
+    extra = {"stream": "bench"} if stream else {}
+    wall, cpu, drawn = [], [], 0
+    for _ in range(spec["passes"]):
+        for frame, camera in zip(frames, cameras, strict=False):
+            w, c = time.perf_counter(), time.thread_time()
+            out = renderer.render(camera, frame.smpl, time=frame.time, **extra)
+            cpu.append(time.thread_time() - c)
+            wall.append(time.perf_counter() - w)
+            drawn = out.num_rendered
+    skip = min(5, len(wall) // 4)  # the first renders build caches (effective weights, colours)
+    result = {
+        "gaussians": model.table.num,
+        "wall_ms": 1e3 * statistics.median(wall[skip:]),
+        "cpu_ms": 1e3 * statistics.median(cpu[skip:]),
+        "rendered": drawn,
+    }
+    # the rasterizer alone on the first frame's posed Gaussians
+    cam = Camera3.from_camera(cameras[0])
+    with torch.no_grad():
+        posed = model.pose(BodyState.from_smpl(frames[0].smpl), model.time_axis(frames[0].time), cam.center)
+
+    def raster():
+        with torch.no_grad():
+            render(posed, cam, background=0.0)
+
+    alone = _timed(raster, 10)
+    result["raster_wall_ms"], result["raster_cpu_ms"] = alone["wall_ms"], alone["cpu_ms"]
+    return result
+
+
+WORKERS = {"step": worker_step, "render": worker_render}
+
+
+def run_worker(spec_text: str, root: str) -> None:
+    sys.path.insert(0, root)
+    from stg_node.threads import configure_threads
+
+    configure_threads("1")
+    spec = json.loads(spec_text)
+    print(json.dumps(WORKERS[spec["case"]](spec)), flush=True)
+
+
+# ---- the parent ------------------------------------------------------------------------------------
+
+
+def spawn(spec: dict, root: Path) -> dict:
+    env = dict(os.environ, STG_THREADS="1", PYTHONPATH=str(root))
+    cmd = [sys.executable, __file__, "--worker", json.dumps(spec), "--root", str(root)]
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise SystemExit(f"bench: the {spec['case']} child on {root} failed:\n{done.stderr[-4000:]}")
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def interleaved(spec: dict, trees: dict[str, Path], rounds: int) -> dict[str, dict]:
+    """Each tree's results (median over rounds of every numeric field), the trees alternating."""
+    runs: dict[str, list[dict]] = {name: [] for name in trees}
+    loads = []
+    names = list(trees)
+    for r in range(rounds):
+        for name in names if r % 2 == 0 else names[::-1]:
+            loads.append(os.getloadavg()[0])
+            runs[name].append(spawn(spec, trees[name]))
+    out = {}
+    for name, results in runs.items():
+        merged: dict = {}
+        for key, value in results[0].items():
+            if isinstance(value, (int, float)):
+                merged[key] = statistics.median(r[key] for r in results)
+            elif isinstance(value, dict):
+                merged[key] = {k: statistics.median(r[key][k] for r in results) for k in value}
+            else:
+                merged[key] = value
+        out[name] = merged
+    out["load"] = (min(loads), max(loads))
+    return out
+
+
+def _ratio(new: float, old: float) -> str:
+    return f"{old / new:.2f}x" if new > 0 else "-"
+
+
+def section_step(args, trees) -> list[dict]:
+    rows = []
+    for n in args.gaussians:
+        spec = {"case": "step", "data": str(args.data), "gaussians": n, "steps": args.steps}
+        res = interleaved(spec, trees, args.rounds)
+        for name in trees:
+            r = res[name]
+            r["ratio_cpu"] = r["step_cpu_ms"] / r["raster_cpu_ms"]
+            ok = "OK" if r["ratio_cpu"] <= STEP_TARGET else "MISSED"
+            phases = ", ".join(f"{k} {v:.1f}" for k, v in r["phases_cpu_ms"].items())
+            print(
+                f"step {n} Gaussians [{name}]: {r['step_cpu_ms']:.1f} ms CPU "
+                f"({r['step_wall_ms']:.1f} ms wall); "
+                f"rasterizer fwd+bwd alone {r['raster_cpu_ms']:.1f} ms CPU; step / rasterizer = "
+                f"{r['ratio_cpu']:.2f}x (target <= {STEP_TARGET:g}x: {ok}); phases (ms CPU): {phases}; "
+                f"load {res['load'][0]:.1f}-{res['load'][1]:.1f}",
+                flush=True,
+            )
+        if "baseline" in trees:
+            print(
+                f"step {n}: this tree {_ratio(res['new']['step_cpu_ms'], res['baseline']['step_cpu_ms'])} "
+                "faster than the baseline (CPU time)",
+                flush=True,
+            )
+        rows.append({"gaussians": n, **res})
+    return rows
+
+
+def section_render(args, trees) -> list[dict]:
+    rows = []
+    for n in args.gaussians:
+        spec = {
+            "case": "render",
+            "data": str(args.data),
+            "gaussians": n,
+            "size": 512,
+            "frames": 60,
+            "passes": 1,
+        }
+        exact = interleaved({**spec, "mode": "exact"}, trees, args.rounds)
+        streamed = interleaved({**spec, "mode": "stream"}, {"new": trees["new"]}, args.rounds)
+        base = exact.get("baseline")
+        cases = [("exact", exact["new"]), ("stream (colour every 2nd frame)", streamed["new"])]
+        if base is not None:
+            cases.append(("baseline", base))
+        target = RENDER_TARGETS.get(n)
+        for label, r in cases:
+            fps = 1e3 / r["cpu_ms"]
+            verdict = "" if target is None or label == "baseline" else (" OK" if fps >= target else " MISSED")
+            vs = (
+                f", {_ratio(r['cpu_ms'], base['cpu_ms'])} the baseline"
+                if base and label != "baseline"
+                else ""
+            )
+            print(
+                f"render 512x512 {n} Gaussians [{label}]: {r['cpu_ms']:.1f} ms CPU = {fps:.1f} FPS "
+                f"({r['wall_ms']:.1f} ms wall){vs}; target >= {target} FPS{verdict}; rasterizer alone "
+                f"{r['raster_cpu_ms']:.1f} ms CPU; load {exact['load'][0]:.1f}-{exact['load'][1]:.1f}",
+                flush=True,
+            )
+        rows.append({"gaussians": n, "exact": exact, "stream": streamed})
+    return rows
+
+
+def section_extremes(args, trees) -> list[dict]:
+    rows = []
+    cases = [*EXTREME_RENDERS] + ([] if args.no_million else [MILLION])
+    for label, n, size in cases:
+        frames = 3 if n >= 1_000_000 else 20
+        spec = {"case": "render", "data": str(args.data), "gaussians": n, "size": size, "frames": frames,
+                "passes": 1, "mode": "exact"}  # fmt: skip
+        res = interleaved(spec, trees, args.rounds)
+        rows.append({"case": label, **res})
+        _print_extreme(f"render {label}", res)
+    spec = {"case": "step", "data": str(args.data), "gaussians": 20_000, "steps": 20, "size": 64}
+    res = interleaved(spec, trees, args.rounds)
+    rows.append({"case": "step at 64x64", **res})
+    new, base = res["new"], res.get("baseline")
+    vs = (
+        f", {_ratio(new['step_cpu_ms'], base['step_cpu_ms'])} the baseline ({base['step_cpu_ms']:.1f} ms)"
+        if base
+        else ""
+    )
+    print(f"extreme step 20k at 64x64: {new['step_cpu_ms']:.1f} ms CPU{vs}", flush=True)
+    return rows
+
+
+def _print_extreme(label: str, res: dict) -> None:
+    new, base = res["new"], res.get("baseline")
+    vs = f", {_ratio(new['cpu_ms'], base['cpu_ms'])} the baseline ({base['cpu_ms']:.1f} ms)" if base else ""
+    slower = " SLOWER" if base and new["cpu_ms"] > 1.05 * base["cpu_ms"] else ""
+    print(
+        f"extreme {label}: {new['cpu_ms']:.1f} ms CPU{vs}{slower}; "
+        f"load {res['load'][0]:.1f}-{res['load'][1]:.1f}",
+        flush=True,
+    )
 
 
 def bench_ssim(repeats: int) -> dict:
@@ -108,6 +377,7 @@ def bench_ssim(repeats: int) -> dict:
     (image_ops.ssim, analytic backward) against the torch implementation it replaced (and keeps as
     the fallback) and kornia's ssim_loss, in the same run."""
     import kornia
+    import torch
 
     from stg_node.avatar.losses import ssim_torch
     from stg_node.splat.image_ops import ssim as ssim_kernel
@@ -124,14 +394,7 @@ def bench_ssim(repeats: int) -> dict:
     contenders = {"kernel": ssim_kernel, "torch": ssim_torch, "kornia": ssim_kornia}
     out = {}
     for name, fn in contenders.items():
-        for _ in range(3):
-            (1 - fn(a, b)).backward()
-        runs = []
-        for _ in range(repeats):
-            t = time.perf_counter()
-            (1 - fn(a, b)).backward()
-            runs.append(time.perf_counter() - t)
-        out[name] = 1e3 * statistics.median(runs)
+        out[name] = _timed(lambda fn=fn: (1 - fn(a, b)).backward(), repeats, warmup=3)["wall_ms"]
     with torch.no_grad():
         values = {name: float(fn(a, b)) for name, fn in contenders.items()}
     out["agree"] = max(abs(values["kernel"] - values[k]) for k in ("torch", "kornia"))
@@ -140,24 +403,21 @@ def bench_ssim(repeats: int) -> dict:
     return out
 
 
-def bench_render(data: Path, gaussians: int, repeats: int) -> list[dict]:
-    from stg_node.avatar import AvatarRenderer, preset
+def bench_skip(data: Path, gaussians: int, repeats: int) -> list[dict]:
+    """The zero-motion skip (spacetime terms evaluated only on moving rows) against evaluating every
+    row and against the bare rasterizer; the three alternate render by render."""
+    import torch
+
+    from stg_node.avatar import Trainer, TrainFrame
     from stg_node.avatar.data_spec import DataSpec
     from stg_node.avatar.model import BodyState, Camera3, render
-    from stg_node.avatar.trainer import Trainer
 
-    train = DataSpec(str(data), "synthetic").open("train")
-    sample = train[0]
-    config = preset("balanced").replace(
-        **{"model.num_gaussians": gaussians, "model.max_gaussians": gaussians}
-    )
-    trainer = Trainer(config, seed=0)
-    trainer.add_frame(__import__("stg_node.avatar", fromlist=["TrainFrame"]).TrainFrame.from_sample(sample))
+    sample = DataSpec(str(data), "synthetic").open("train")[0]
+    trainer = Trainer(_balanced(gaussians), seed=0)
+    trainer.add_frame(TrainFrame.from_sample(sample))
     model = trainer.model
-    renderer = AvatarRenderer(model)
     table = model.table
     gen = torch.Generator().manual_seed(0)
-    rows = []
     cam = Camera3.from_camera(sample.camera)
     with torch.no_grad():
         posed = model.pose(BodyState.from_smpl(sample.smpl), 0.0, cam.center)
@@ -166,71 +426,139 @@ def bench_render(data: Path, gaussians: int, repeats: int) -> list[dict]:
         body = BodyState.from_smpl(sample.smpl)
         return render(model.pose(body, 0.1, cam.center, skip_inactive=skip), cam, background=0.0)
 
-    # The three alternate run by run, so load on a shared machine falls on each alike.
     cases = {
         "ms_skip": lambda: pose_and_render(True),
         "ms_all": lambda: pose_and_render(False),
         "ms_raster_only": lambda: render(posed, cam, background=0.0),
     }
+    rows = []
     for fraction in (0.0, 0.1, 1.0):
         with torch.no_grad():
             active = torch.rand(table.num, generator=gen) < fraction
             for name in ("motion", "rot_motion"):
                 table[name].zero_()
                 table[name][active] = 1e-3
-        result = {"gaussians": table.num, "active_fraction": fraction}
         runs = {name: [] for name in cases}
         for _ in range(repeats + 2):
             for name, case in cases.items():
-                t = time.perf_counter()
+                t = time.thread_time()
                 with torch.no_grad():
                     case()
-                runs[name].append(time.perf_counter() - t)
-        for name, times in runs.items():
-            result[name] = 1e3 * statistics.median(times[2:])
-        result["fps_skip"] = 1e3 / result["ms_skip"]
-        rows.append(result)
-    del renderer
+                runs[name].append(time.thread_time() - t)
+        rows.append(
+            {"gaussians": table.num, "active_fraction": fraction}
+            | {name: 1e3 * statistics.median(times[2:]) for name, times in runs.items()}
+        )
+    return rows
+
+
+def bench_streams(data: Path, steps: int = 300) -> list[dict]:
+    """Streamed colours against exact ones on a briefly trained model (see the module docstring)."""
+    import numpy as np
+
+    from stg_node.avatar import AvatarRenderer, Trainer, preset
+    from stg_node.avatar.data_spec import DataSpec
+
+    train = DataSpec(str(data), "synthetic").open("train")
+    trainer = Trainer(preset("fast").replace(iterations=steps), seed=0)
+    trainer.add_frames([train[i] for i in range(0, len(train), 2)])
+    for _ in range(steps):
+        trainer.step()
+    frames = [train[i] for i in range(40, min(len(train), 70))]
+    exact = AvatarRenderer(trainer.model)
+    truth = [exact.render(f.camera, f.smpl, time=f.time).image.astype(np.float64) for f in frames]
+    rows = []
+    for every in (2, 3, 4):
+        streamed = AvatarRenderer(trainer.model, color_refresh_every=every)
+        psnr, worst = [], 0
+        for frame, want in zip(frames, truth, strict=True):
+            got = streamed.render(frame.camera, frame.smpl, time=frame.time, stream="bench").image
+            diff = got.astype(np.float64) - want
+            psnr.append(10 * np.log10(255.0**2 / max(float(np.mean(diff**2)), 1e-10)))
+            worst = max(worst, int(np.abs(diff).max()))
+        rows.append(
+            {
+                "every": every,
+                "psnr_min": min(psnr[1:]),
+                "psnr_median": float(np.median(psnr[1:])),
+                "worst": worst,
+            }
+        )
     return rows
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", default=None, help="an stg-synth folder (default: generated once in /tmp)")
-    parser.add_argument("--steps", type=int, default=60)
-    parser.add_argument("--repeats", type=int, default=20)
-    parser.add_argument("--threads", default="1")
+    parser.add_argument(
+        "--baseline", default=BASELINE_REV, help=f"git revision to compare with (default {BASELINE_REV})"
+    )
+    parser.add_argument("--no-baseline", action="store_true", help="time this tree only")
+    parser.add_argument("--rounds", type=int, default=3, help="children per tree and case, alternating")
+    parser.add_argument("--steps", type=int, default=40, help="training steps timed per child")
+    parser.add_argument("--repeats", type=int, default=20, help="ssim and skip repetitions")
     parser.add_argument("--gaussians", type=int, nargs="+", default=[20000, 50000])
-    parser.add_argument("--skip", nargs="*", default=[], choices=("step", "ssim", "render"))
+    parser.add_argument(
+        "--only", nargs="*", choices=("step", "render", "extremes", "ssim", "skip", "streams")
+    )
+    parser.add_argument(
+        "--no-million", action="store_true", help="extremes: leave out the 1M-Gaussian render"
+    )
+    parser.add_argument("--json", type=Path, help="also write the results here")
+    parser.add_argument("--worker", help=argparse.SUPPRESS)
+    parser.add_argument("--root", default=str(ROOT), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
-    configure_threads(args.threads)
-    data = ensure_data(args.data)
-    print(f"# machine: {_machine()}")
-    if "ssim" not in args.skip:
+    if args.worker:
+        run_worker(args.worker, args.root)
+        return 0
+    sys.path.insert(0, str(ROOT))
+    from stg_node.threads import configure_threads
+
+    configure_threads("1")
+    args.data = ensure_data(args.data)
+    trees = {"new": ROOT}
+    if not args.no_baseline:
+        trees["baseline"] = export_revision(args.baseline)
+    print(f"# machine: {_machine()}; trees: " + ", ".join(f"{k} = {v}" for k, v in trees.items()), flush=True)
+    sections = args.only or ["step", "render", "extremes", "ssim", "skip", "streams"]
+    results: dict = {"machine": _machine(), "baseline": None if args.no_baseline else args.baseline}
+    if "step" in sections:
+        results["step"] = section_step(args, trees)
+    if "render" in sections:
+        results["render"] = section_render(args, trees)
+    if "extremes" in sections:
+        results["extremes"] = section_extremes(args, trees)
+    if "ssim" in sections:
         s = bench_ssim(args.repeats)
+        results["ssim"] = s
         print(
             f"ssim fwd+bwd 420x200: C++ kernel {s['kernel']:.2f} ms, torch {s['torch']:.1f} ms, "
             f"kornia {s['kornia']:.1f} ms (torch / kernel = {s['torch_over_kernel']:.1f}x, "
-            f"kornia / kernel = {s['kornia_over_kernel']:.1f}x; values agree to {s['agree']:.1e})"
+            f"kornia / kernel = {s['kornia_over_kernel']:.1f}x; values agree to {s['agree']:.1e})",
+            flush=True,
         )
-    for n in args.gaussians:
-        if "step" not in args.skip:
-            r = bench_step(data, args.steps, n)
-            phases = ", ".join(f"{k} {v:.1f}" for k, v in r["phases_ms"].items())
-            print(
-                f"step {r['gaussians']} Gaussians: {r['step_ms']:.1f} ms ({1e3 / r['step_ms']:.1f} it/s); "
-                f"rasterizer fwd+bwd alone {r['raster_fwd_bwd_ms']:.1f} ms "
-                f"(step / raster = {r['step_over_raster']:.2f}x); "
-                f"phases ms: {phases}; loading 100 frames + flow {r['load_s']:.1f} s"
-            )
-        if "render" not in args.skip:
-            for r in bench_render(data, n, args.repeats):
+    if "skip" in sections:
+        results["skip"] = []
+        for n in args.gaussians:
+            for r in bench_skip(args.data, n, args.repeats):
+                results["skip"].append(r)
                 print(
-                    f"render 512x512 {r['gaussians']} Gaussians, {100 * r['active_fraction']:.0f}% moving: "
-                    f"{r['ms_skip']:.1f} ms ({r['fps_skip']:.1f} FPS) with the zero-motion skip, "
-                    f"{r['ms_all']:.1f} ms evaluating every row (x{r['ms_all'] / r['ms_skip']:.2f}); "
-                    f"rasterizer alone {r['ms_raster_only']:.1f} ms"
+                    f"skip: render 512x512 {r['gaussians']} Gaussians, "
+                    f"{100 * r['active_fraction']:.0f}% moving: {r['ms_skip']:.1f} ms CPU with the "
+                    f"zero-motion skip, {r['ms_all']:.1f} ms evaluating every row "
+                    f"(x{r['ms_all'] / r['ms_skip']:.2f}); rasterizer alone {r['ms_raster_only']:.1f} ms",
+                    flush=True,
                 )
+    if "streams" in sections:
+        results["streams"] = bench_streams(args.data)
+        for r in results["streams"]:
+            print(
+                f"streams: colours every {r['every']} frames against exact: PSNR {r['psnr_min']:.1f} dB at "
+                f"worst, {r['psnr_median']:.1f} dB median, at most {r['worst']} grey level(s) apart",
+                flush=True,
+            )
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=2, default=str) + "\n")
     return 0
 
 

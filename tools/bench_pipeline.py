@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""The running system's figures: pose-to-pixels latency, snapshot hot-swap pause, memory on a long stream.
+"""The running system's figures: pose-to-pixels latency, snapshot hot-swap pause, memory on a long stream,
+live rendering beside the trainer.
 
 Every node runs as its own process under stg-launch's supervisor (a private ipc bus); this tool
 watches from outside over the bus.
@@ -15,9 +16,29 @@ watches from outside over the bus.
 3. memory: ingest (dataset replay in a loop at --stream-rate Hz, i.e. sped up), tracker, trainer
    and renderer for --stream-s seconds; resident memory (VmRSS) of each process sampled every
    second; the growth over the second half of the run, in MB per hour of stream time.
+4. live: the whole pipeline at camera rate: ingest replays the data at --live-rate Hz (30) at
+   --live-size (512), the tracker publishes poses, the trainer (fast preset) trains and publishes
+   snapshots, and the renderer renders a standing view (the data's camera at --live-size) for
+   every pose, beside the trainer. Over --live-s seconds once the first image arrived: images
+   rendered per second, poses per second, and frame age (a pose's source stamp to the receipt of
+   its image) p50/p95. With --baseline REV the same run is repeated on that git revision
+   (tools/baseline.py), alternating, in the same invocation.
+5. soak (only with ``--only soak``; --soak-s, 30 minutes by default): the live pipeline in real
+   time from a video at 30 fps: ingest (the subject's training camera as a looped MP4), tracker
+   (live: BlazePose + SMPL fit), online trainer, renderer, and a recorder (zstd) of the whole
+   bus, as launch/live_v4l2.yaml runs them, under stg-launch. Measured from outside: each
+   process's resident memory every 5 s and its slope after the warm-up (MB per hour; target
+   <= +20), the frame age (the time from a frame's capture to the arrival of what came of it:
+   body/pose from the tracker, avatar/image from the renderer) p50/p95 over the first and the
+   last --soak-window-s of the run (target: the last p95 within 20 % of the first), and the
+   backlog of every lossless stream (messages a node has published on a topic that a lossless
+   subscriber has not yet taken, from their heartbeats) first vs last window: a queue that
+   grows shows there.
 
     python tools/bench_pipeline.py --data runs/demo/subject [--avatar stg_node.avatar] [--json out.json]
+    python tools/bench_pipeline.py --data DIR --only live --live-size 512 --baseline 6bbdca2
     python tools/bench_pipeline.py --data DIR --avatar tests.nodes.fake_avatar --quick    # smoke run
+    python tools/bench_pipeline.py --data runs/zju_subject --only soak --json soak.json    # 30 minutes
 
 Figures go to docs/BENCHMARKS.md only from an idle machine (the lead's final run).
 """
@@ -30,6 +51,7 @@ import json
 import os
 import platform
 import statistics
+import subprocess
 import sys
 import tempfile
 import textwrap
@@ -38,8 +60,9 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
+if "--root" in sys.argv:  # a child timing another tree (--baseline): import that one's stg_node
+    ROOT = Path(sys.argv[sys.argv.index("--root") + 1]).resolve()
+sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
 
@@ -318,6 +341,327 @@ def bench_memory(args, workdir: Path) -> dict:
     return out
 
 
+def bench_live(args, workdir: Path) -> dict:
+    from stg_node.nodes.sources import DatasetSource
+
+    first = next(iter(DatasetSource(args.data, size=args.live_size).frames()))
+    camera = resized_camera(first.camera, args.live_size)
+    nodes = f"""
+    - name: tracker
+      kind: tracker
+      params: {{path: {args.data}}}
+    - name: trainer
+      kind: trainer
+      params: {{avatar: {args.avatar}, device: {args.device}, preset: fast,
+                 max_frames: 64, snapshot_every_s: 5}}
+    - name: renderer
+      kind: renderer
+      params: {{avatar: {args.avatar}, device: {args.device}, default_view: none, idle_rate_hz: 0}}
+    - name: ingest
+      kind: ingest
+      params: {{path: {args.data}, size: {args.live_size}, rate_hz: {args.live_rate}, loop: true}}
+      after: [tracker, trainer]
+    """
+    launcher, thread, url = start_launch(workdir, "live", textwrap.dedent(nodes))
+    ages, render_ms, arrivals, poses = [], [], [], []
+    try:
+        wait_ready(url, {"ingest", "tracker", "trainer", "renderer"})
+        with (
+            Bus(url, node="bench", heartbeat_s=0) as bus,
+            Subscriber(BusConfig(url=url), ["avatar/image", "body/pose"]) as sub,
+        ):
+            bus.publisher.wait_for_subscribers("avatar/view", 30)
+            view = ViewRequest(
+                request_id=1, width=camera.width, height=camera.height, follow_live=True,
+                K=camera.K, R=camera.R, t=camera.t,
+            )  # fmt: skip
+            bus.publish(view)
+            deadline = time.monotonic() + args.live_warmup_s
+            while not isinstance(sub.recv(timeout=0.5), RenderedImage):  # the first snapshot is in
+                if time.monotonic() > deadline:
+                    raise SystemExit(
+                        f"bench: no image within {args.live_warmup_s:g} s (see {workdir}/live.log)"
+                    )
+            settle = time.monotonic() + 5.0
+            while time.monotonic() < settle:
+                sub.recv(timeout=0.1)
+            start = time.monotonic()
+            while time.monotonic() - start < args.live_s:
+                msg = sub.recv(timeout=0.5)
+                now_ns = time.time_ns()
+                if isinstance(msg, RenderedImage):
+                    arrivals.append(time.monotonic())
+                    render_ms.append(msg.render_ms)
+                    if msg.source_stamp_ns:
+                        ages.append((now_ns - msg.source_stamp_ns) / 1e6)
+                elif msg is not None:
+                    poses.append(time.monotonic())
+            duration = time.monotonic() - start
+    finally:
+        stop_launch(launcher, thread)
+    if not arrivals:
+        raise SystemExit(f"bench: no image in {args.live_s:g} s of the live run (see {workdir}/live.log)")
+    return {
+        "size": [camera.width, camera.height],
+        "camera_hz": args.live_rate,
+        "seconds": duration,
+        "images_per_s": len(arrivals) / duration,
+        "poses_per_s": len(poses) / duration,
+        "age_ms_p50": percentile(ages, 50),
+        "age_ms_p95": percentile(ages, 95),
+        "render_ms_p50": percentile(render_ms, 50),
+        "render_ms_p95": percentile(render_ms, 95),
+    }
+
+
+def live_with_baseline(args) -> dict:
+    """The live run on this tree and on ``args.baseline``, alternating, each in a child process
+    that imports its own tree (and launches its nodes from it)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from baseline import export_revision
+
+    trees = {"new": Path(__file__).resolve().parents[1], "baseline": export_revision(args.baseline)}
+    out: dict[str, list] = {name: [] for name in trees}
+    names = list(trees)
+    for r in range(args.rounds):
+        for name in names if r % 2 == 0 else names[::-1]:
+            cmd = [sys.executable, str(Path(__file__).resolve()), "--root", str(trees[name]), "--live-child"]
+            cmd += [
+                "--data",
+                str(Path(args.data).resolve()),
+                "--avatar",
+                args.avatar,
+                "--device",
+                args.device,
+            ]
+            cmd += ["--live-s", str(args.live_s), "--live-rate", str(args.live_rate)]
+            cmd += ["--live-size", str(args.live_size), "--live-warmup-s", str(args.live_warmup_s)]
+            env = dict(os.environ, PYTHONPATH=str(trees[name]))
+            done = subprocess.run(cmd, env=env, cwd=trees[name], capture_output=True, text=True)
+            if done.returncode != 0:
+                raise SystemExit(f"bench: the live child on {trees[name]} failed:\n{done.stderr[-4000:]}")
+            result = json.loads(done.stdout.strip().splitlines()[-1])
+            result["load"] = os.getloadavg()[0]
+            out[name].append(result)
+            print(f"live [{name}]: {json.dumps(result)}", flush=True)
+    return out
+
+
+# --- soak: the live pipeline in real time ------------------------------------------------------------
+
+
+def make_clip(data: str, folder: Path, fps: float = 30.0) -> tuple[Path, Path]:
+    """The training camera of ``data`` as an MP4 at ``fps`` and its calibration JSON (K, R, t)."""
+    import cv2
+
+    from stg_node.nodes.sources import DatasetSource
+
+    source = DatasetSource(data, size=None)
+    first = source.views[0].camera
+    video, calibration = folder / "clip.mp4", folder / "camera.json"
+    writer = None
+    camera = None
+    for frame in source.frames():
+        if frame.camera.name != first:
+            continue
+        if writer is None:
+            camera = frame.camera
+            h, w = frame.image.shape[:2]
+            writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
+        writer.write(np.ascontiguousarray(frame.image[..., ::-1]))  # OpenCV writes BGR
+    writer.release()
+    calibration.write_text(
+        json.dumps({"K": camera.K.tolist(), "R": camera.R.tolist(), "t": np.ravel(camera.t).tolist()})
+    )
+    return video, calibration
+
+
+def soak_launch(args, workdir: Path, video: Path, calibration: Path) -> Path:
+    """The nodes of launch/live_v4l2.yaml (source:=video), the recorder compressed."""
+    path = workdir / "soak.yaml"
+    path.write_text(
+        textwrap.dedent(
+            f"""
+            bus: {{url: "ipc://{workdir}/soak"}}
+            env: {{STG_THREADS: "1"}}
+            nodes:
+              - name: recorder
+                kind: recorder
+                params: {{path: {workdir}/soak.mcap, compression: zstd}}
+                sigint_timeout: 60
+              - name: tracker
+                kind: tracker
+                params: {{mode: live, input_topic: raw/camera/frame, frame_topic: camera/frame,
+                          estimator_params: {{max_side: "512", mask: segmentation}}}}
+              - name: trainer
+                kind: trainer
+                params: {{avatar: {args.avatar}, preset: fast, device: {args.device}, snapshot_every_s: 5,
+                          checkpoint_dir: {workdir}/checkpoint, out: {workdir}/out}}
+                sigint_timeout: 60
+              - name: renderer
+                kind: renderer
+                params: {{avatar: {args.avatar}, device: {args.device}}}
+              - name: ingest
+                kind: ingest
+                params: {{source: video, path: {video}, calibration: {calibration}, loop: true}}
+                remap: {{camera/frame: raw/camera/frame}}
+                after: [tracker, trainer, recorder]
+            """
+        )
+    )
+    return path
+
+
+class SoakWatch:
+    """Heartbeats, poses and images as they arrive (with when), in a thread."""
+
+    def __init__(self, url: str):
+        self.sub = Subscriber(BusConfig(url=url), ["node/status", "body/pose", "avatar/image"])
+        self.lock = threading.Lock()
+        self.status: dict[str, NodeStatus] = {}
+        self.backlog: list[tuple[float, dict[str, int]]] = []  # (t, stream -> messages not yet taken)
+        self.pose_age: list[tuple[float, float]] = []  # (t, ms from capture to arrival)
+        self.image_age: list[tuple[float, float]] = []
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self.run, daemon=True)
+        self.thread.start()
+
+    def run(self) -> None:
+        from stg_node.bus.messages import BodyPose
+
+        while not self.stop.is_set():
+            msg = self.sub.recv(timeout=0.2)
+            now, wall = time.monotonic(), time.time_ns()
+            with self.lock:
+                if isinstance(msg, NodeStatus):
+                    self.status[msg.node] = msg
+                    self.backlog.append((now, self._backlog()))
+                elif isinstance(msg, BodyPose):
+                    self.pose_age.append((now, (wall - msg.header.stamp_ns) / 1e6))
+                elif isinstance(msg, RenderedImage) and msg.source_stamp_ns:
+                    self.image_age.append((now, (wall - msg.source_stamp_ns) / 1e6))
+
+    LOSSLESS = {"trainer": ("body/pose",), "recorder": ("body/pose", "trainer/metrics", "avatar/snapshot")}
+
+    def _backlog(self) -> dict[str, int]:
+        """Per lossless stream (a topic into a subscriber that takes every message of it): what
+        every node has published on it minus what the subscriber has taken, from their latest
+        heartbeats (which are up to a period apart: a steady backlog of about a second's worth of
+        messages is in flight; one that grows is a queue). Keep-last topics (frames, images) and
+        heartbeats (which the broker sends too) are left out."""
+        out = {}
+        for sub_name, topics in self.LOSSLESS.items():
+            sub = self.status.get(sub_name)
+            if sub is None:
+                continue
+            for topic in topics:
+                published = sum(s.published.get(topic, 0) for s in self.status.values())
+                out[f"{topic} -> {sub_name}"] = max(0, published - sub.received.get(topic, 0))
+        return out
+
+    def close(self) -> None:
+        self.stop.set()
+        self.thread.join(2)
+        self.sub.close()
+
+
+def window_stats(samples: list[tuple[float, float]], start: float, end: float) -> dict:
+    values = [v for t, v in samples if start <= t < end]
+    return {"n": len(values), "p50_ms": percentile(values, 50), "p95_ms": percentile(values, 95)}
+
+
+def bench_soak(args, workdir: Path) -> dict:
+    import signal
+    import subprocess
+
+    video, calibration = make_clip(args.data, workdir)
+    path = soak_launch(args, workdir, video, calibration)
+    log = (workdir / "soak.log").open("w")
+    launcher = subprocess.Popen(
+        [sys.executable, "-m", "stg_node.cli.launch", str(path), "--no-color"],
+        cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
+    )  # fmt: skip
+    url = f"ipc://{workdir}/soak"
+    watch = SoakWatch(url)
+    memory: dict[str, list[tuple[float, float]]] = {}
+    try:
+        pids = wait_ready(url, {"ingest", "tracker", "trainer", "renderer", "recorder"}, timeout=600)
+        pids["launcher+broker"] = launcher.pid
+        deadline = time.monotonic() + 600  # the pipeline is up when the avatar shows
+        while not watch.image_age and time.monotonic() < deadline:
+            time.sleep(1.0)
+        if not watch.image_age:
+            raise SystemExit(
+                f"bench: no avatar/image within 600 s of the soak's start; see {workdir / 'soak.log'}"
+            )
+        start = time.monotonic()
+        next_report = start + 60
+        while (now := time.monotonic()) < start + args.soak_s:
+            for name, pid in pids.items():
+                memory.setdefault(name, []).append((now - start, rss_mb(pid)))
+            if now >= next_report:
+                rss = ", ".join(f"{n} {pts[-1][1]:.0f}" for n, pts in memory.items())
+                print(f"soak: {(now - start) / 60:.0f} min, RSS MB: {rss}", flush=True)
+                next_report += 60
+            if launcher.poll() is not None:
+                raise SystemExit(f"bench: the soak's launch ended early; see {workdir / 'soak.log'}")
+            time.sleep(5.0)
+        end = time.monotonic()
+    finally:
+        if launcher.poll() is None:
+            launcher.send_signal(signal.SIGINT)
+            try:
+                launcher.wait(300)
+            except subprocess.TimeoutExpired:
+                launcher.kill()
+        watch.close()
+        log.close()
+    w = args.soak_window_s
+    first, last = (start, start + w), (end - w, end)
+    out = {
+        "minutes": (end - start) / 60,
+        "warmup_minutes": args.soak_warmup_s / 60,
+        "window_minutes": w / 60,
+        "memory": {},
+        "pose_age": {
+            "first": window_stats(watch.pose_age, *first),
+            "last": window_stats(watch.pose_age, *last),
+        },
+        "image_age": {
+            "first": window_stats(watch.image_age, *first),
+            "last": window_stats(watch.image_age, *last),
+        },
+        "backlog": {},
+        "status": {
+            n: {"drops": dict(s.drops), "published": dict(s.published), "received": dict(s.received)}
+            for n, s in watch.status.items()
+        },
+    }
+    for name, points in memory.items():
+        t, mb = np.array(points).T
+        after = t >= args.soak_warmup_s
+        slope = float(np.polyfit(t[after], mb[after], 1)[0]) * 3600 if after.sum() >= 2 else float("nan")
+        out["memory"][name] = {
+            "at_warmup_mb": float(mb[after][0]) if after.any() else float("nan"),
+            "end_mb": float(mb[-1]),
+            "peak_mb": float(np.nanmax(mb)),
+            "mb_per_hour": slope,
+        }
+    streams = sorted({k for _t, b in watch.backlog for k in b})
+    for stream in streams:
+        firsts = [b[stream] for t, b in watch.backlog if first[0] <= t < first[1] and stream in b]
+        lasts = [b[stream] for t, b in watch.backlog if last[0] <= t < last[1] and stream in b]
+        out["backlog"][stream] = {
+            "first_median": statistics.median(firsts) if firsts else None,
+            "last_median": statistics.median(lasts) if lasts else None,
+            "last_max": max(lasts) if lasts else None,
+        }
+    for kind in ("pose_age", "image_age"):
+        a, b = out[kind]["first"]["p95_ms"], out[kind]["last"]["p95_ms"]
+        out[kind]["last_over_first_p95"] = b / a if a and a == a and b == b else float("nan")
+    return out
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -340,24 +684,66 @@ def main() -> int:
     parser.add_argument(
         "--stream-rate", type=float, default=300.0, help="frames per second of the sped-up stream"
     )
+    parser.add_argument("--live-s", type=float, default=60.0, help="seconds measured in the live run")
+    parser.add_argument("--live-rate", type=float, default=30.0, help="camera rate of the live run (Hz)")
+    parser.add_argument("--live-size", type=int, default=512, help="image size of the live run (longer side)")
     parser.add_argument(
-        "--only", choices=("latency", "swap", "memory"), action="append", help="run only these"
+        "--live-warmup-s",
+        type=float,
+        default=120.0,
+        help="live run: wait at most this long for the first image",
     )
+    parser.add_argument(
+        "--baseline", help="live run: also time this git revision, alternating (tools/baseline.py)"
+    )
+    parser.add_argument("--rounds", type=int, default=1, help="live run with --baseline: runs per tree")
+    parser.add_argument("--root", help=argparse.SUPPRESS)
+    parser.add_argument("--live-child", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument(
+        "--only",
+        choices=("latency", "swap", "memory", "live", "soak"),
+        action="append",
+        help="run only these",
+    )
+    parser.add_argument("--soak-s", type=float, default=1800.0, help="seconds of the soak (after warm-up)")
+    parser.add_argument("--soak-warmup-s", type=float, default=300.0, help="memory slope only after this")
+    parser.add_argument("--soak-window-s", type=float, default=300.0, help="first/last windows compared")
     parser.add_argument("--quick", action="store_true", help="a smoke run: few samples, short runs")
     parser.add_argument("--json", type=Path, help="also write the results here")
     args = parser.parse_args()
     if args.quick:
         args.train_steps, args.requests, args.swap_s, args.stream_s = 5, 10, 5.0, 8.0
+        args.live_s = min(args.live_s, 10.0)
+        args.soak_s, args.soak_warmup_s, args.soak_window_s = 60.0, 20.0, 20.0
     os.environ.setdefault("STG_THREADS", "1")
+    if args.live_child:
+        with tempfile.TemporaryDirectory(prefix="stgbench-") as tmp:
+            print(json.dumps(bench_live(args, Path(tmp))), flush=True)
+        return 0
+    if args.baseline and (args.only or []) == ["live"]:
+        results = live_with_baseline(args)
+        _print_live(results)
+        if args.json:
+            args.json.write_text(json.dumps(results, indent=2) + "\n")
+        return 0
     results = {
         "machine": f"{platform.node()} {platform.machine()} {os.cpu_count()} cpus",
         "avatar": args.avatar,
     }
     with tempfile.TemporaryDirectory(prefix="stgbench-") as tmp:
         workdir = Path(tmp)
-        for name, fn in (("latency", bench_latency), ("swap", bench_swap), ("memory", bench_memory)):
-            if args.only and name not in args.only:
-                continue
+        benches = (
+            ("latency", bench_latency),
+            ("swap", bench_swap),
+            ("memory", bench_memory),
+            ("live", bench_live),
+            ("soak", bench_soak),
+        )
+        for name, fn in benches:
+            if (args.only and name not in args.only) or (
+                name == "soak" and not (args.only and "soak" in args.only)
+            ):
+                continue  # (the soak runs only when asked for: it takes half an hour)
             results[name] = fn(args, workdir)
             print(f"{name}: {json.dumps(results[name], indent=None)}", flush=True)
     lat = results.get("latency")
@@ -367,9 +753,36 @@ def main() -> int:
             f"pose-to-pixels at {lat['size'][0]}x{lat['size'][1]}: request {lat['request_ms_median']:.1f} ms "
             f"(p95 {lat['request_ms_p95']:.1f}), pose {lat['pose_ms_median']:.1f} ms: {ok} the 50 ms target"
         )
+    if "live" in results:
+        _print_live({"new": [results["live"]]})
+    soak = results.get("soak")
+    if soak:
+        for name, m in soak["memory"].items():
+            mb = f"{m['at_warmup_mb']:7.0f} -> {m['end_mb']:7.0f} MB"
+            print(f"soak memory {name:16s} {mb}, {m['mb_per_hour']:+7.1f} MB/h")
+        for kind in ("pose_age", "image_age"):
+            a, b = soak[kind]["first"], soak[kind]["last"]
+            ratio = soak[kind]["last_over_first_p95"]
+            print(
+                f"soak {kind}: p95 {a['p95_ms']:.0f} -> {b['p95_ms']:.0f} ms (x{ratio:.2f}), "
+                f"p50 {a['p50_ms']:.0f} -> {b['p50_ms']:.0f} ms, {a['n']} / {b['n']} samples"
+            )
+        for stream, q in soak["backlog"].items():
+            print(f"soak backlog {stream}: {q['first_median']} -> {q['last_median']} (max {q['last_max']})")
     if args.json:
         args.json.write_text(json.dumps(results, indent=2) + "\n")
     return 0
+
+
+def _print_live(results: dict) -> None:
+    for name, runs in results.items():
+        for r in runs:
+            print(
+                f"live [{name}] {r['size'][0]}x{r['size'][1]}, camera {r['camera_hz']:g} Hz, trainer beside: "
+                f"{r['images_per_s']:.1f} images/s for {r['poses_per_s']:.1f} poses/s; frame age p50 "
+                f"{r['age_ms_p50']:.0f} ms, p95 {r['age_ms_p95']:.0f} ms; "
+                f"render p50 {r['render_ms_p50']:.1f} ms"
+            )
 
 
 if __name__ == "__main__":

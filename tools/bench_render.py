@@ -15,6 +15,12 @@ within one run.
 
     python tools/bench_render.py [--threads 1 2] [--repeats 20] [--torch-repeats 2]
                                  [--cases 10000x256 50000x512] [--no-torch] [--png docs/splat_person.png]
+                                 [--baseline REV [--rounds 3]]
+
+With ``--baseline REV`` every child runs once more on that git revision (tools/baseline.py exports
+it; its kernels build once), the two trees alternating ``--rounds`` times; a second table gives
+the cpu backend's speed-up over the baseline (medians over rounds) and the live-rate targets
+(issue 24: forward >= 160 FPS at 10k/256x256 and >= 60 FPS at 50k/512x512 with 2 threads).
 """
 
 from __future__ import annotations
@@ -31,12 +37,15 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+if "--root" in sys.argv:  # a child timing another tree (--baseline): import that one's stg_node
+    ROOT = Path(sys.argv[sys.argv.index("--root") + 1]).resolve()
 sys.path.insert(0, str(ROOT))
 
 TARGETS = {  # the issue's targets for the cpu backend on the 2-core reference machine
     (10_000, 256): {"fwd_fps": 30.0, "fwdbwd_s": 0.12},
     (50_000, 512): {"fwd_fps": 8.0},
 }
+LIVE_TARGETS = {(10_000, 256, "2"): 160.0, (50_000, 512, "2"): 60.0}  # issue 24: forward FPS, 2 threads
 
 
 def _time(fn, repeats: int, warmup: int = 2, sync=None) -> dict:
@@ -176,7 +185,10 @@ def main() -> int:
     )
     parser.add_argument("--no-torch", action="store_true", help="skip the (slow) torch reference baseline")
     parser.add_argument("--png", type=Path, help="also render the scene (colour | depth) into this PNG")
+    parser.add_argument("--baseline", help="also time this git revision, alternating (tools/baseline.py)")
+    parser.add_argument("--rounds", type=int, default=1, help="with --baseline: children per tree")
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--root", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
         _child(args)
@@ -184,23 +196,37 @@ def main() -> int:
     if args.png:
         _write_png(args.png)
 
-    rows = []
-    for threads in args.threads:
-        env = dict(os.environ, STG_THREADS=str(threads))
-        cmd = [
-            sys.executable,
-            __file__,
-            "--child",
-            "--repeats",
-            str(args.repeats),
-            "--torch-repeats",
-            str(args.torch_repeats),
-            "--cases",
-            *args.cases,
-        ] + (["--no-torch"] if args.no_torch else [])
-        # stdout carries the JSON rows; stderr (progress) goes straight to the terminal.
-        out = subprocess.run(cmd, env=env, check=True, stdout=subprocess.PIPE, text=True).stdout
-        rows += [json.loads(line) for line in out.splitlines() if line.startswith("{")]
+    trees = {"this tree": ROOT}
+    if args.baseline:
+        sys.path.insert(0, str(Path(__file__).resolve().parent))
+        from baseline import export_revision
+
+        trees["baseline"] = export_revision(args.baseline)
+    runs: dict[str, list[list[dict]]] = {name: [] for name in trees}
+    names = list(trees)
+    for r in range(args.rounds if args.baseline else 1):
+        for name in names if r % 2 == 0 else names[::-1]:
+            found = []
+            for threads in args.threads:
+                env = dict(os.environ, STG_THREADS=str(threads), PYTHONPATH=str(trees[name]))
+                cmd = [
+                    sys.executable,
+                    __file__,
+                    "--child",
+                    "--root",
+                    str(trees[name]),
+                    "--repeats",
+                    str(args.repeats),
+                    "--torch-repeats",
+                    str(args.torch_repeats),
+                    "--cases",
+                    *args.cases,
+                ] + (["--no-torch"] if args.no_torch or name != "this tree" else [])
+                # stdout carries the JSON rows; stderr (progress) goes straight to the terminal.
+                out = subprocess.run(cmd, env=env, check=True, stdout=subprocess.PIPE, text=True).stdout
+                found += [json.loads(line) for line in out.splitlines() if line.startswith("{")]
+            runs[name].append(found)
+    rows = _median_rows(runs["this tree"])
 
     print(
         f"date: {datetime.date.today()}  machine: {platform.machine()} {os.cpu_count()} cores, "
@@ -249,6 +275,8 @@ def main() -> int:
             print(f"cuda failed: {r['cuda_error']}")
     print()
     failed = False
+    if args.baseline:
+        failed |= _print_against_baseline(rows, _median_rows(runs["baseline"]), args.baseline)
     for r in rows:
         target = TARGETS.get((r["n"], r["size"]), {})
         fps = 1 / r["cpu_fwd"]["median_s"]
@@ -267,6 +295,54 @@ def main() -> int:
                 f"{r['cpu_fwdbwd']['median_s']:.3f} s <= {target['fwdbwd_s']} {'OK' if ok else 'MISSED'}"
             )
     return 1 if failed else 0
+
+
+def _median_rows(rounds: list[list[dict]]) -> list[dict]:
+    """Rows of several rounds merged: medians of the timings, the load's range."""
+    merged = []
+    for i, first in enumerate(rounds[0]):
+        same = [rows[i] for rows in rounds]
+        row = dict(first)
+        for key in ("cpu_fwd", "cpu_fwdbwd", "torch_fwd", "torch_fwdbwd"):
+            if key in first:
+                row[key] = {k: statistics.median(r[key][k] for r in same) for k in first[key]}
+        row["cpu_stages_ms"] = {
+            k: statistics.median(r["cpu_stages_ms"][k] for r in same) for k in first["cpu_stages_ms"]
+        }
+        row["load_before"] = min(r["load_before"] for r in same)
+        row["load_after"] = max(r["load_after"] for r in same)
+        merged.append(row)
+    return merged
+
+
+def _print_against_baseline(rows: list[dict], base: list[dict], rev: str) -> bool:
+    """The speed-up table over the baseline revision and issue 24's targets; True if one is missed."""
+    print(f"against the baseline {rev} (same run, alternating; medians over rounds):")
+    print(
+        "| scene | threads | fwd | fwd FPS | baseline fwd | speed-up | fwd+bwd | baseline fwd+bwd | "
+        "speed-up | load |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    failed = False
+    for r, b in zip(rows, base, strict=True):
+        fwd, bfwd = r["cpu_fwd"]["median_s"], b["cpu_fwd"]["median_s"]
+        fb, bfb = r["cpu_fwdbwd"]["median_s"], b["cpu_fwdbwd"]["median_s"]
+        print(
+            f"| {r['n'] // 1000}k Gaussians {r['size']}x{r['size']} | {r['threads']} | {_fmt_ms(fwd)} | "
+            f"{1 / fwd:.1f} | {_fmt_ms(bfwd)} | {bfwd / fwd:.2f}x | {_fmt_ms(fb)} | {_fmt_ms(bfb)} | "
+            f"{bfb / fb:.2f}x | {min(r['load_before'], b['load_before']):.1f}-"
+            f"{max(r['load_after'], b['load_after']):.1f} |"
+        )
+    for r in rows:
+        target = LIVE_TARGETS.get((r["n"], r["size"], str(r["threads"])))
+        if target is not None:
+            fps = 1 / r["cpu_fwd"]["median_s"]
+            ok = fps >= target
+            failed |= not ok
+            print(f"target {r['n']}@{r['size']} threads={r['threads']}: forward {fps:.1f} FPS >= {target:g} "
+                  f"{'OK' if ok else 'MISSED'} (issue 24)")  # fmt: skip
+    print()
+    return failed
 
 
 if __name__ == "__main__":

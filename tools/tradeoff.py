@@ -8,9 +8,13 @@ What runs. Synthetic subjects are generated deterministically (``stg_node.data.s
 seed 0) into ``--data-cache``: ``dance`` (fast, garment dynamics: the main subject), ``still``
 (standing, breathing: the model-economy check) and the default ``mixed``; 125 frames at
 512 x 512, so frames 0-99 train (camera 1) and 100-124 are held-out poses; 8 held-out cameras
-render every 10th frame. Every configuration trains with :class:`stg_node.avatar.Trainer`
-through the public API only (``preset(...)``, ``TrainConfig.replace`` with dotted keys), is saved
-as a run folder ``stg-eval`` / ``stg-render`` open (``--out/runs/NAME``), and is scored:
+render every 10th frame. The benchmark conditions (:data:`SUBJECTS`, :data:`CONDITIONS`) train on
+the same 100 frames under a light fixed in the room, flat light or three coloured lights, and
+hold out orientations (a turn) or motions (docs/SYNTH.md); each row also reports its novel-pose
+PSNR per body part and the held-out frames' distances from training. Every configuration trains
+with :class:`stg_node.avatar.Trainer` through the public API only (``preset(...)``,
+``TrainConfig.replace`` with dotted keys), is saved as a run folder ``stg-eval`` / ``stg-render``
+open (``--out/runs/NAME``), and is scored:
 
 - training time (optimisation steps only; loading frames and optical flow, computed once per
   subject, are reported apart) and it/s;
@@ -61,8 +65,78 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 log = logging.getLogger("tradeoff")
 
 RESULT_VERSION = 1
-SUBJECTS = ("dance", "still", "mixed")
 LPIPS_NET = "alex"
+
+
+@dataclass(frozen=True)
+class Subject:
+    """A synthetic subject: what ``stg-synth`` generates beyond the scale's sizes (docs/SYNTH.md).
+
+    ``held_out_factor`` lengthens the held-out tail (n_train stays the scale's), for conditions
+    that play several held-out motions one after another.
+    """
+
+    motion: str
+    shading: str = "lambert"
+    test_motion: str | None = None
+    train_yaw_deg: float | None = None
+    test_yaw_deg: float | None = None
+    held_out_factor: int = 1
+    title: str = ""
+
+    def synth_options(self) -> dict:
+        return {
+            "motion": self.motion,
+            "shading": self.shading,
+            "test_motion": self.test_motion,
+            "train_yaw_deg": self.train_yaw_deg,
+            "test_yaw_deg": self.test_yaw_deg,
+        }
+
+
+# The subjects (benchmark conditions) rows train on, by name. The first three have a light that
+# turns with the body and a held-out tail that continues the training motion; the conditions
+# below separate geometry (poses never seen: another motion) from shading (a light fixed in the
+# room, orientations never seen: a turn held out), each against flat light.
+SUBJECTS = {
+    "dance": Subject("dance", title="dance, light turning with the body"),
+    "still": Subject("still", title="still, light turning with the body"),
+    "mixed": Subject("mixed", title="mixed, light turning with the body"),
+    "room_turn_held_out": Subject(
+        "turn",
+        "room",
+        train_yaw_deg=60.0,
+        test_yaw_deg=150.0,
+        title="room light, turn held out (train facing the camera +-30 deg, test turned 150 deg)",
+    ),
+    "flat_turn_held_out": Subject(
+        "turn",
+        "none",
+        train_yaw_deg=60.0,
+        test_yaw_deg=150.0,
+        title="flat light, turn held out (as above, albedo only)",
+    ),
+    "env_turn_held_out": Subject(
+        "turn",
+        "environment",
+        train_yaw_deg=60.0,
+        test_yaw_deg=150.0,
+        title="three coloured room lights, turn held out",
+    ),
+    "room_facing": Subject(
+        "turn",
+        "room",
+        train_yaw_deg=60.0,
+        title="room light, never turning (train and test facing the camera +-30 deg)",
+    ),
+    "room_new_motions": Subject(
+        "turn",
+        "room",
+        test_motion="wave,dance,crouch,arms_up",
+        held_out_factor=4,
+        title="room light, full turn in training, held-out motions wave / dance / crouch / arms up",
+    ),
+}
 
 
 # --- the scale of a run ------------------------------------------------------------------------
@@ -72,7 +146,7 @@ class Scale:
 
     name: str
     size: int  # square image size, generated and evaluated
-    frames: int  # frames generated (80 % train)
+    frames: int  # frames generated (80 % train; subjects with a longer held-out tail add to it)
     views: int  # held-out cameras
     view_every: int  # held-out cameras render every K-th frame
     supersample: int
@@ -144,8 +218,8 @@ class Configuration:
 
     name: str  # file names and --only
     label: str  # the table's first column
-    group: str  # "preset", "ablation", "economy", "subject"
-    subject: str  # synthetic motion
+    group: str  # "preset", "ablation", "economy", "subject", "condition"
+    subject: str  # a key of SUBJECTS
     preset: str
     changes: dict = field(default_factory=dict)  # dotted TrainConfig keys -> values
     alias_of: str | None = None  # the same run as another row (shown again for the reader)
@@ -215,6 +289,11 @@ def grid(base: str = "fast") -> list[Configuration]:
         }
         label = f"Gaussian budget {word} (initial and maximum x{factor:g})"
         ablations.append(Configuration(name, label, "ablation", "dance", base, changes))
+    ablations.append(
+        Configuration(
+            "baked", "colour baked, as before shading (BAKED)", "ablation", "dance", base, dict(BAKED)
+        )
+    )
     rows += ablations
     rows.append(Configuration(f"still_{base}", f"still subject, {base} preset", "economy", "still", base))
     rows.append(Configuration(f"mixed_{base}", f"mixed subject, {base} preset", "subject", "mixed", base))
@@ -228,6 +307,66 @@ def grid(base: str = "fast") -> list[Configuration]:
             {"model.spacetime": False, "densify.flow_guided": False},
         )
     )
+    rows += condition_rows(base)
+    return rows
+
+
+CONDITIONS = (
+    "room_turn_held_out",
+    "flat_turn_held_out",
+    "env_turn_held_out",
+    "room_facing",
+    "room_new_motions",
+)
+# The colour as it was before shading (issue 21): the light baked in, spherical initial Gaussians,
+# no cap on their scale ratio, no isometry term.
+BAKED = {
+    "model.shading": False,
+    "model.init_flatness": 1.0,
+    "model.max_scale_ratio": 0.0,
+    "loss.isometry": 0.0,
+}
+# Each of shading's parts switched off alone, on the room-light subject with a held-out turn.
+SHADING_ABLATIONS = (
+    (
+        "no_shading",
+        "no shading (the light baked into the colour; discs, cap, isometry kept)",
+        {"model.shading": False},
+    ),
+    ("no_scale_cap", "no cap on the scale ratio", {"model.max_scale_ratio": 0.0}),
+    ("no_isometry", "no as-isometric-as-possible term", {"loss.isometry": 0.0}),
+    ("sphere_init", "spherical initial Gaussians instead of discs", {"model.init_flatness": 1.0}),
+)
+
+
+def condition_rows(base: str) -> list[Configuration]:
+    """The ``base`` preset on each benchmark condition that separates geometry from shading, the colour
+    before shading (``baked``) on each, and shading's ablations on the room-light held-out turn."""
+    rows = []
+    for name in CONDITIONS:
+        title = SUBJECTS[name].title
+        rows.append(Configuration(f"{name}_{base}", f"{title}, {base} preset", "condition", name, base))
+        rows.append(
+            Configuration(
+                f"{name}_baked",
+                f"{title}, {base} preset, colour baked (before shading)",
+                "condition",
+                name,
+                base,
+                dict(BAKED),
+            )
+        )
+    for suffix, label, changes in SHADING_ABLATIONS:
+        rows.append(
+            Configuration(
+                f"room_turn_held_out_{suffix}",
+                f"room light, turn held out: {label}",
+                "shading",
+                "room_turn_held_out",
+                base,
+                changes,
+            )
+        )
     return rows
 
 
@@ -236,18 +375,41 @@ def subject_folder(cache: Path, subject: str, scale: Scale, seed: int) -> Path:
     return cache / f"{subject}_{scale.frames}f_{scale.size}px_v{scale.views}e{scale.view_every}_s{seed}"
 
 
+def subject_frames(subject: str, scale: Scale) -> tuple[int, float]:
+    """(frames, train fraction) of ``subject`` at ``scale``: the scale's training frames, and its
+    held-out tail times the subject's ``held_out_factor``."""
+    n_train = max(1, min(scale.frames, int(round(0.8 * scale.frames))))
+    frames = n_train + SUBJECTS[subject].held_out_factor * (scale.frames - n_train)
+    return frames, n_train / frames
+
+
 def ensure_subject(cache: Path, subject: str, scale: Scale, seed: int = 0, fresh: bool = False) -> Path:
     """The synthetic subject's folder, generated once (deterministic: same seed, same files);
     ``fresh`` generates it again (and drops the fast regions computed from the old one)."""
     from stg_node.data.synth.generate import SynthConfig, generate
     from stg_node.data.synth.writer import read_metadata
 
+    spec = SUBJECTS[subject]
+    frames, fraction = subject_frames(subject, scale)
     out = subject_folder(cache, subject, scale, seed)
     try:
         meta = read_metadata(out)
-        wanted = (subject, scale.frames, [scale.size, scale.size], scale.view_every, seed)
-        found = (meta["motion"], meta["num_frames"], meta["size"], meta["view_every"], meta["seed"])
-        if found == wanted and not fresh:
+        wanted = (spec.motion, frames, [scale.size, scale.size], scale.view_every, seed, spec.shading)
+        found = (
+            meta["motion"],
+            meta["num_frames"],
+            meta["size"],
+            meta["view_every"],
+            meta["seed"],
+            meta["shading"]["mode"],
+        )
+        held = meta.get("held_out") or {}
+        same_held_out = (
+            held.get("test_motion") or None,
+            held.get("train_yaw_deg"),
+            held.get("test_yaw_deg"),
+        ) == (_motions(spec.test_motion), spec.train_yaw_deg, spec.test_yaw_deg)
+        if found == wanted and same_held_out and not fresh:
             return out
     except (FileNotFoundError, ValueError, KeyError):
         pass
@@ -258,17 +420,40 @@ def ensure_subject(cache: Path, subject: str, scale: Scale, seed: int = 0, fresh
         SynthConfig(
             out=out,
             seed=seed,
-            num_frames=scale.frames,
+            num_frames=frames,
             size=scale.size,
-            motion=subject,
             num_novel_views=scale.views,
             view_every=scale.view_every,
+            train_fraction=fraction,
             supersample=scale.supersample,
             overwrite=True,
+            **spec.synth_options(),
         ),
         progress=False,
     )
     return out
+
+
+def subject_text(name: str, scale: Scale) -> str:
+    """How a subject is generated, in stg-synth's words."""
+    spec = SUBJECTS[name]
+    frames, fraction = subject_frames(name, scale)
+    options = [f"--motion {spec.motion}", f"--shading {spec.shading}", f"--frames {frames}"]
+    if fraction != 0.8:
+        options.append(f"--train-fraction {fraction:g}")
+    if spec.test_motion:
+        options.append(f"--test-motion {spec.test_motion}")
+    if spec.train_yaw_deg is not None:
+        options.append(f"--train-yaw {spec.train_yaw_deg:g}")
+    if spec.test_yaw_deg is not None:
+        options.append(f"--test-yaw {spec.test_yaw_deg:g}")
+    return f"{spec.title} (`{' '.join(options)}`)"
+
+
+def _motions(test_motion: str | None) -> list[str] | None:
+    from stg_node.data.synth.motions import held_out_motions
+
+    return list(held_out_motions(test_motion)) or None
 
 
 def fast_regions(folder: Path, scale: Scale) -> dict[str, dict[tuple[int, str], object]]:
@@ -294,10 +479,13 @@ def fast_regions(folder: Path, scale: Scale) -> dict[str, dict[tuple[int, str], 
     meta = read_metadata(folder)
     faces = load_body_model().faces.cpu().numpy()
     spec = DataSpec(str(folder), "synthetic", size=scale.size)
+    cuts = tuple((meta.get("held_out") or {}).get("cuts", ()))
     packed = {}
     for split in regions:
         for sample in spec.open(split):
-            flow = benchmark_true_flow(folder, sample.index, sample.camera, faces, int(meta["num_frames"]))
+            flow = benchmark_true_flow(
+                folder, sample.index, sample.camera, faces, int(meta["num_frames"]), cuts=cuts
+            )
             region = fast_region(flow, threshold)
             regions[split][(sample.index, sample.camera.name)] = region
             packed[f"{split}|{sample.index}|{sample.camera.name}"] = np.packbits(region)
@@ -439,16 +627,21 @@ def measure_render(run_dir: Path, scale: Scale, loaded=None) -> dict:
 
 
 def evaluate_run(run_dir: Path, regions: dict, scale: Scale) -> dict:
-    """Quality on both held-out splits (stg-eval's protocol), fast-region PSNR, render speed."""
+    """Quality on both held-out splits (stg-eval's protocol), fast-region and per-body-part PSNR,
+    the benchmark's condition (held-out distances), render speed."""
     import numpy as np
 
     from stg_node.avatar.evaluate import evaluate_split
     from stg_node.avatar.loading import load_run_renderer
     from stg_node.data.metrics import psnr
+    from stg_node.data.synth.body_parts import SynthPartLabeller
+    from stg_node.data.synth.split_distances import benchmark_condition
+    from stg_node.data.synth.writer import read_metadata
 
     loaded = load_run_renderer(run_dir)
     run, renderer, corrections, _ = loaded
     spec = run.data_spec()
+    labeller = SynthPartLabeller(spec.root)
     out: dict = {}
     for split in ("novel_view", "novel_pose"):
         dataset = spec.open(split)
@@ -460,6 +653,7 @@ def evaluate_run(run_dir: Path, regions: dict, scale: Scale) -> dict:
             pose_corrections=corrections if split == "novel_view" else None,
             show_progress=False,
             keep_images=len(dataset),
+            regions=labeller.regions,
         )
         pred_px, gt_px, body_px = [], [], 0
         for index, camera, pred, gt in kept:
@@ -476,8 +670,12 @@ def evaluate_run(run_dir: Path, regions: dict, scale: Scale) -> dict:
             "fast_pixels": int(fast[0].shape[0]),
             "fast_fraction_of_body": fast[0].shape[0] / max(body_px, 1),
             "fast_psnr": psnr(fast[0][None], fast[1][None]) if fast[0].shape[0] else math.nan,
+            "parts": {name: value["psnr"] for name, value in report["regions"].items()},
             "protocol": report["protocol"],
         }
+        if split == "novel_pose":
+            frames = sorted({int(f) for f in dataset.frames})
+            out["condition"] = benchmark_condition(read_metadata(Path(spec.root)), frames)
     out["render"] = measure_render(run_dir, scale, loaded)
     return out
 
@@ -646,7 +844,7 @@ def run(args: argparse.Namespace, argv: list[str]) -> int:
         else (out / "tradeoff_pareto_quick.png" if args.quick else REPO / "docs/tradeoff_pareto.png")
     )
     selected = [r for r in rows if not r.alias_of and (not args.only or r.name in args.only)]
-    subjects = sorted({r.subject for r in selected}, key=SUBJECTS.index)
+    subjects = sorted({r.subject for r in selected}, key=list(SUBJECTS).index)
     data, regions = {}, {}
     for subject in progress(subjects, desc="subjects", unit="subject", enabled=not args.no_progress):
         data[subject] = ensure_subject(cache, subject, scale, fresh=args.fresh)
@@ -678,6 +876,7 @@ def run(args: argparse.Namespace, argv: list[str]) -> int:
         date=datetime.date.today().isoformat(),
         plot=plot,
         docs=docs,
+        subjects={name: subject_text(name, scale) for name in SUBJECTS},
     )
     report = tradeoff_report.build(rows, results, context)
     (out / "results.json").write_text(json.dumps(report.records, indent=1, default=float))

@@ -19,7 +19,10 @@ GROUP_TITLES = {
     "ablation": "ablations of the {base} preset (dance subject)",
     "economy": "model economy: the still subject, {base} preset",
     "subject": "a second subject with garment dynamics: mixed (turn, walk, wave, dance)",
+    "condition": "benchmark conditions: light and held-out poses ({base} preset)",
+    "shading": "ablations of shading on the room-light subject with a held-out turn ({base} preset)",
 }
+PARTS = ("head", "torso", "arms", "hands", "legs", "feet")  # stg_node.data.synth.body_parts.PARTS
 LBS_CLAIM_DB = 1.5  # the issue's bar for full model vs LBS only (the paper: 31.46 vs 25.59 dB)
 MEANINGFUL_DB = 0.1  # a smaller PSNR difference between two runs is not called a win
 
@@ -34,6 +37,7 @@ class ReportContext:
     date: str
     plot: Path
     docs: Path
+    subjects: dict | None = None  # subject name -> how it was generated (condition rows)
 
 
 @dataclass
@@ -104,6 +108,41 @@ HEADER = (
     "| NV PSNR | NV SSIM | NV LPIPS | NP PSNR | NP SSIM | NP LPIPS | fast NV PSNR | fast NP PSNR |\n"
     "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
 )
+
+
+GAP_HEADER = (
+    "| configuration | subject | NV PSNR | NP PSNR | gap NV-NP | "
+    + " | ".join(f"NP {p}" for p in PARTS)
+    + " | held-out pose dist. | held-out orientation dist. |\n"
+    + "|---" * (7 + len(PARTS))
+    + "|"
+)
+
+
+def _distance(condition: dict | None, key: str) -> str:
+    held = (condition or {}).get("held_out")
+    if not held or not held.get("frames"):
+        return "—"
+    return f"{held[key]['median']:.0f} deg"
+
+
+def gap_row(label: str, r: dict | None) -> str:
+    """One row of the gap table: both splits, their gap, novel-pose PSNR per body part, distances."""
+    if r is None:
+        return f"| {label} | not measured in this run |" + " |" * (6 + len(PARTS))
+    nv, np_ = r["novel_view"], r["novel_pose"]
+    parts = np_.get("parts") or {}
+    cells = [
+        label,
+        r["subject"],
+        _num(nv["psnr"], ".2f"),
+        _num(np_["psnr"], ".2f"),
+        _signed(_delta(nv["psnr"], np_["psnr"]), ""),
+        *(_num(parts.get(p), ".2f") for p in PARTS),
+        _distance(r.get("condition"), "pose_rms_deg"),
+        _distance(r.get("condition"), "orientation_deg"),
+    ]
+    return "| " + " | ".join(cells) + " |"
 
 
 # --- the comparisons the issue asks for ----------------------------------------------------------
@@ -361,6 +400,7 @@ def build(rows, results: dict[str, dict], context: ReportContext) -> Report:
         "over repeated renders of held-out views; CUDA only where a GPU was present. Active motion: "
         "Gaussians with any non-zero motion or rotation coefficient (their count).",
         "",
+        *_subjects_text(rows, context),
         HEADER,
     ]
     group = None
@@ -369,11 +409,41 @@ def build(rows, results: dict[str, dict], context: ReportContext) -> Report:
             group = row.group
             lines.append(f"| **{GROUP_TITLES[group].format(base=context.base)}** |" + " |" * 15)
         lines.append(table_row(row.label, results.get(row.alias_of or row.name)))
+    lines += [
+        "",
+        "**Novel views against novel poses**, every configuration: the gap (NV - NP, dB), novel-pose "
+        "PSNR per body part (pixels where the true surface shows that part, squared errors pooled "
+        "over the split's views: stg_node/data/synth/body_parts.py), and how far the held-out frames "
+        "are from training (medians over the novel-pose frames: RMS joint-rotation angle to the "
+        "nearest training pose, rotation angle to the nearest training orientation; "
+        "stg_node/data/synth/split_distances.py). '—': not recorded (a subject generated before "
+        "these were).",
+        "",
+        GAP_HEADER,
+    ]
+    for row in rows:
+        if not row.alias_of:
+            lines.append(gap_row(row.label, results.get(row.name)))
     lines += ["", f"![Pareto plot: quality against training time and render speed]({plot_rel})", ""]
     lines += ["What the table shows (computed from the rows above by the tool):", ""]
     lines += _claims_text(f, context.base)
     lines += ["", END]
     return Report("\n".join(lines) + "\n", records, f)
+
+
+def _subjects_text(rows, context: ReportContext) -> list[str]:
+    """One line naming the subjects of the condition rows (their generator settings), if any."""
+    subjects = context.subjects or {}
+    used = [r.subject for r in rows if r.group == "condition"]
+    names = [n for n in dict.fromkeys(used) if n in subjects]
+    if not names:
+        return []
+    described = "; ".join(f"`{n}`: {subjects[n]}" for n in names)
+    return [
+        f"Benchmark conditions (`stg-synth` options in docs/SYNTH.md; the same training frames): "
+        f"{described}.",
+        "",
+    ]
 
 
 def write_section(path: Path, section: str) -> Path:

@@ -122,18 +122,20 @@ def render_run(
     backend="auto",
     show_progress: bool = True,
     rule: FramingRule | None = None,
+    light=None,
 ) -> RenderSummary:
     """Render a run (see module docstring).
 
     ``views``: ``orbit`` (a turntable around the avatar), ``follow`` (the training camera's bearing,
     or the body's front when animating, following the body) or ``dataset`` (the dataset's own
     cameras, tiled); None: ``follow`` with ``poses``, else ``orbit``. Orbit and follow cameras
-    frame the avatar by ``rule`` (stg_node.avatar.framing: centred, 2/3 of the height)."""
+    frame the avatar by ``rule`` (stg_node.avatar.framing: centred, 2/3 of the height).
+    ``light``: a shading.LightSpec (None: the model's learned light)."""
     if views is None:
         views = "follow" if poses is not None else "orbit"
     if views not in VIEWS:
         raise ValueError(f"views must be one of {', '.join(VIEWS)}, got {views!r}")
-    run, renderer, corrections, _ = load_run_renderer(run_path, device=device, backend=backend)
+    run, renderer, corrections, _ = load_run_renderer(run_path, device=device, backend=backend, light=light)
     spec = run.data_spec()
     if data:
         spec = spec.with_root(Path(data).resolve())

@@ -3,7 +3,8 @@
 What the model needs is the published snapshot (snapshot.py); a checkpoint adds, as ``train.*``
 arrays and meta: the Adam moments of every column and dense module, the densification
 statistics, the per-frame pose corrections, the adaptive-weight averages, the counters, and
-the TrainConfig (JSON bytes) and the subject's betas (to rebuild the canonical mesh). Frames are not
+the TrainConfig (JSON bytes, the frame store's bound ``max_frames`` with it), the subject's betas
+(to rebuild the canonical mesh) and the caller's ``notes``. Frames are not
 saved: ``stg-train --resume`` re-reads them from the dataset, the online trainer from the
 stream. Because every random choice of step k is a function of (seed, k), a run resumed at
 checkpoint k is the uninterrupted run.
@@ -71,10 +72,14 @@ def training_state(trainer) -> tuple[dict, dict]:
     if d.initial_part_counts is not None:
         arrays["train.densify.initial_parts"] = _np(d.initial_part_counts)
     meta["train.densify.steps_seen"] = float(d.steps_seen)
+    for name, value in trainer.isometry.state_arrays().items():
+        arrays[f"train.isometry.{name}"] = _np(value)
     for name, value in d.counts.items():
         meta[f"train.densify.count.{name}"] = float(value)
     for name, value in trainer.weights.ema.items():
         meta[f"train.ema.{name}"] = float(value)
+    for name, value in trainer.notes.items():
+        meta[f"train.notes.{name}"] = float(value)
     return arrays, meta
 
 
@@ -153,6 +158,12 @@ def load(path: str | Path, *, body_model=None, device="cpu", backend="auto", flo
     trainer.weights.ema = {
         k[len("train.ema.") :]: float(v) for k, v in meta.items() if k.startswith("train.ema.")
     }
+    trainer.notes = {
+        k[len("train.notes.") :]: float(v) for k, v in meta.items() if k.startswith("train.notes.")
+    }
+    trainer.isometry.load_state_arrays(
+        {k[len("train.isometry.") :]: t(k) for k in arrays if k.startswith("train.isometry.")}, model.table
+    )
     trainer.iteration = int(meta["train.iteration"])
     trainer.train_seconds = float(meta["train.seconds"])
     trainer.skipped_steps = int(meta["train.skipped"])

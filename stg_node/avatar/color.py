@@ -18,7 +18,9 @@ import math
 import torch
 from torch import nn
 
+from stg_node.avatar import kernels
 from stg_node.avatar.config import ModelConfig
+from stg_node.splat import mlp_ops
 
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
@@ -120,12 +122,19 @@ class ColorMLP(nn.Module):
         x = (canonical_means - lo) / (hi - lo).clamp_min(1e-6) * 2.0 - 1.0
         parts = [positional_encoding(x, self.config.pos_freqs), features]
         n = canonical_means.shape[0]
-        if self.pose_encoder is not None:
-            parts.append(self.pose_encoder(pose_key).expand(n, -1))
+        pose = None if self.pose_encoder is None else self.pose_encoder(pose_key)
         basis = sh_basis(self.config.sh_degree, view_dirs)
         if sh_degree < self.config.sh_degree:  # bands not yet switched on are fed as zeros
             keep = (sh_degree + 1) ** 2
             basis = torch.cat([basis[:, :keep], basis.new_zeros(n, basis.shape[1] - keep)], dim=1)
+        layers = mlp_ops.layers_of(self.net, "sigmoid")
+        if layers is not None and kernels.use_kernels(canonical_means, features, *self.net.parameters()):
+            if pose is not None:  # the same pose code in every row: folded into the first bias
+                start = sum(p.shape[1] for p in parts)
+                layers = mlp_ops.fold_constant_inputs(layers, slice(start, start + pose.shape[1]), pose[0])
+            return mlp_ops.mlp(torch.cat([*parts, basis], dim=-1), layers)
+        if pose is not None:
+            parts.append(pose.expand(n, -1))
         parts.append(basis)
         return torch.sigmoid(self.net(torch.cat(parts, dim=-1)))
 

@@ -19,6 +19,14 @@ from dataclasses import dataclass, field
 
 COLOR_MODES = ("mlp", "sh")
 SKIN_INIT = ("barycentric", "nearest")
+LIGHT_MODELS = ("distant", "sh")  # the learned light: an ambient term and distant lights, or free SH
+# What settings added later mean for a model or configuration written before they existed: the
+# behaviour it was trained with (snapshot.model_config_from_meta, TrainConfig.from_dict).
+PREDATING_DEFAULTS = {
+    "model": {"shading": False, "init_flatness": 1.0, "max_scale_ratio": 0.0},
+    "loss": {"isometry": 0.0},
+    "train": {"lr_exposure": 0.0},  # TrainConfig's own fields
+}
 
 
 @dataclass(frozen=True)
@@ -44,8 +52,24 @@ class ModelConfig:
     mlp_layers: int = 2  # hidden layers
     pos_freqs: int = 4  # gamma(mu): sin/cos frequencies of the positional encoding
     pose_dim: int = 8  # gamma(theta): the body pose is encoded to this many features (0 = no pose input)
+    # Shading (shading.py): the colour above is the albedo, times the irradiance of each Gaussian's
+    # world normal (its shortest axis) under a light fixed in the world, learned; False = the colour
+    # as is, the training clip's light baked in (the earlier behaviour).
+    shading: bool = True
+    light_model: str = "distant"  # the learned light: ambient + light_count distant lights, or free SH
+    light_count: int = 2
+    init_flatness: float = 0.3  # initial Gaussians: discs along the surface, normal axis x this (1 = spheres)
+    max_scale_ratio: float = 10.0  # largest / smallest axis of a rendered Gaussian at most this (0 = no cap)
 
     def validate(self) -> None:
+        if self.light_model not in LIGHT_MODELS:
+            raise ValueError(f"light_model must be one of {LIGHT_MODELS}, got {self.light_model!r}")
+        if not 1 <= self.light_count <= 4:
+            raise ValueError(f"light_count must be 1..4, got {self.light_count}")
+        if not 0.0 < self.init_flatness <= 1.0:
+            raise ValueError(f"init_flatness must be in (0, 1], got {self.init_flatness}")
+        if self.max_scale_ratio != 0 and self.max_scale_ratio < 1.0:
+            raise ValueError(f"max_scale_ratio must be 0 (no cap) or >= 1, got {self.max_scale_ratio}")
         if self.color not in COLOR_MODES:
             raise ValueError(f"color must be one of {COLOR_MODES}, got {self.color!r}")
         if self.skin_init not in SKIN_INIT:
@@ -92,6 +116,10 @@ class LossConfig:
     opacity: float = 0.0  # entropy-style push of opacities towards 0 or 1
     skin: float = 0.01  # keeps the learned skinning correction small
     pose_refine: float = 1e-3  # keeps per-frame pose corrections small
+    # Shading and shape (shading.py, isometry.py).
+    light: float = 1e-3  # keeps the learned light near uniform (mean square of its non-constant terms)
+    isometry: float = 0.05  # posed distances between canonical neighbours stay as in canonical space (cm)
+    # Real footage (pose_refine.py, exposure.py).
     pose_smooth: float = 0.0  # refined poses smooth in time (pose_refine.py; on for tracked poses)
     exposure: float = 1e-3  # keeps the per-frame colour correction's log-gains near 0 (exposure.py)
     adaptive: bool = True  # balance the auxiliary terms against the photometric term (see losses.py)
@@ -156,6 +184,8 @@ class TrainConfig:
     lr_time: float = 1e-3
     lr_skin: float = 1e-3
     lr_pose: float = 1e-4  # per-frame pose refinement (0 = off)
+    lr_light: float = 5e-3  # the learned light's SH coefficients (shading.py)
+    # Real footage (pose_refine.py, exposure.py).
     pose_refine_joints: bool = True  # False: refine each frame's alignment only (root rotation, Th)
     lr_exposure: float = 1e-2  # per-frame exposure / white-balance log-gains (0 = off; exposure.py)
     lr_schedule_final: float = 0.1  # every rate but the means' decays to this fraction (cosine)
@@ -193,7 +223,7 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, data: dict) -> TrainConfig:
-        data = dict(data)
+        data = {**PREDATING_DEFAULTS["train"], **data}
         groups = {"model": ModelConfig, "loss": LossConfig, "densify": DensifyConfig}
         kwargs = {}
         for f in dataclasses.fields(cls):
@@ -202,6 +232,8 @@ class TrainConfig:
             value = data[f.name]
             if f.name in groups:
                 known = {g.name for g in dataclasses.fields(groups[f.name])}
+                # Written before some settings existed: those take the value it trained with.
+                value = {**PREDATING_DEFAULTS.get(f.name, {}), **value}
                 value = groups[f.name](**{k: v for k, v in value.items() if k in known})
             kwargs[f.name] = value
         return cls(**kwargs)

@@ -23,7 +23,7 @@ from pathlib import Path
 from stg_node.data.errors import DatasetError
 from stg_node.data.splits import FrameRange, SplitSpec
 
-FORMATS = ("zju", "synthetic", "thuman", "video")
+FORMATS = ("zju", "synthetic", "thuman", "folder", "video")
 SPLITS = ("train", "novel_view", "novel_pose")
 
 
@@ -91,7 +91,8 @@ class DataSpec:
             return open_dataset(root, "zju", split, size=self.size, **options)
         if self.format == "thuman":
             return open_dataset(root, "thuman4", split, size=self.size, **options)
-        # video: the tracker turned it into the folder format (see stg_node.avatar.video).
+        # folder (docs/DATASETS.md), or video: the tracker turned it into the folder format
+        # (see stg_node.avatar.video).
         return open_dataset(root, "folder", split, size=self.size, **options)
 
     def _open_synth(self, root: Path, split: str):

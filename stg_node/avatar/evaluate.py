@@ -29,12 +29,20 @@ def evaluate_split(
     pose_corrections: dict | None = None,
     show_progress: bool = True,
     keep_images: int = 0,
+    regions=None,
 ) -> tuple[dict, list]:
     """Metrics over ``dataset`` (a SequenceDataset split); ``pose_corrections``: frame -> learned
-    (75,) correction of the training pose (novel views of training frames)."""
+    (75,) correction of the training pose (novel views of training frames).
+
+    ``regions``: optional ``(frame, camera) -> {name: (H, W) bool}`` (e.g. the synthetic benchmark's
+    body parts, stg_node.data.synth.body_parts); the report then has ``regions``: name -> {psnr,
+    pixels}, squared errors pooled over the split's views per region.
+    """
     from stg_node.data.metrics import Evaluator
+    from stg_node.data.synth.body_parts import RegionScores
 
     evaluator = Evaluator(protocol, lpips_nets=lpips_nets)
+    region_scores = RegionScores() if regions is not None else None
     kept = []
     times = []
     for sample in progress(dataset, desc=f"eval {split}", unit="view", enabled=show_progress):
@@ -46,10 +54,14 @@ def evaluate_split(
         out = renderer.render(sample.camera, smpl, time_s)
         times.append(out.render_ms)
         evaluator.add(out.image, image, sample.mask)
+        if region_scores is not None:
+            region_scores.add(out.image, image, regions(sample.index, sample.camera))
         if len(kept) < keep_images:
             kept.append((sample.index, sample.camera.name, out.image, image))
     report = evaluator.report().as_dict()
     report["render_ms_mean"] = float(np.mean(times)) if times else 0.0
+    if region_scores is not None:
+        report["regions"] = region_scores.report()
     return report, kept
 
 

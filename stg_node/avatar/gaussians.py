@@ -55,6 +55,14 @@ class GaussianTable(nn.Module):
         self.params = nn.ParameterDict()
         for name, tensor in columns.items():
             self.params[name] = nn.Parameter(tensor.detach().clone(), requires_grad=name not in FIXED_COLUMNS)
+        #: Bumped by every edit of the rows (append, prune, a column set anew): what caches built
+        #: on the rows (the rigidity neighbour graph) compare, never ``id()`` of a tensor, which
+        #: a new tensor may reuse once the old one is freed.
+        self.version = 0
+
+    def rows_changed(self) -> None:
+        """Say that rows were added, removed or replaced (done by set_column and the optimiser)."""
+        self.version += 1
 
     @property
     def num(self) -> int:
@@ -77,6 +85,7 @@ class GaussianTable(nn.Module):
 
     def set_column(self, name: str, tensor: torch.Tensor) -> None:
         self.params[name] = nn.Parameter(tensor.detach().clone(), requires_grad=name not in FIXED_COLUMNS)
+        self.rows_changed()
 
     # --- activated views ----------------------------------------------------------------------
     def scales(self) -> torch.Tensor:
@@ -100,6 +109,27 @@ class GaussianTable(nn.Module):
 
     def nbytes(self) -> int:
         return sum(p.numel() * p.element_size() for p in self.params.values())
+
+
+def cap_scale_ratio(scales: torch.Tensor, max_ratio: float) -> torch.Tensor:
+    """``scales`` (N, 3) with every axis raised to at least ``largest / max_ratio`` (0: unchanged).
+
+    A Gaussian far longer than it is thick is a needle: under a pose it was never trained in it
+    sticks out of the body as a streak. The cap keeps the posed largest / smallest axis ratio at
+    most ``max_ratio``; the gradient of a raised axis goes to the largest one (torch.maximum).
+    """
+    if max_ratio <= 0:
+        return scales
+    floor = scales.max(dim=1, keepdim=True).values / max_ratio
+    return torch.maximum(scales, floor)
+
+
+def scale_ratio_percentile(scales: torch.Tensor, q: float = 99.0) -> float:
+    """The ``q``-th percentile over Gaussians of largest / smallest axis of ``scales`` (N, 3)."""
+    if scales.shape[0] == 0:
+        return float("nan")
+    ratio = scales.max(dim=1).values / scales.min(dim=1).values.clamp_min(1e-12)
+    return float(torch.quantile(ratio.detach().double().cpu(), q / 100.0))
 
 
 def sample_surface(
@@ -145,15 +175,25 @@ def new_columns(
     rgb: torch.Tensor | None = None,
     generator: torch.Generator | None = None,
     dynamic: bool = False,
+    normals: torch.Tensor | None = None,
 ) -> dict[str, torch.Tensor]:
-    """Fresh rows for every column the config asks for (used at init, by re-sampling and by tests)."""
+    """Fresh rows for every column the config asks for (used at init, by re-sampling and by tests).
+
+    With surface ``normals`` (n, 3) each Gaussian is a disc in the surface: its local z axis along
+    the normal, that axis ``config.init_flatness`` times the others; without, a sphere.
+    """
     n = means.shape[0]
     dtype, device = means.dtype, means.device
     scale_t = torch.as_tensor(scale, dtype=dtype, device=device).expand(n).clamp_min(1e-6)
+    log_scales = scale_t.log()[:, None].expand(n, 3).clone()
+    quats = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=dtype, device=device).expand(n, 4).clone()
+    if normals is not None and config.init_flatness != 1.0:
+        quats = quaternion_z_to(normals.to(dtype))
+        log_scales[:, 2] += math.log(config.init_flatness)
     cols: dict[str, torch.Tensor] = {
         "means": means,
-        "log_scales": scale_t.log()[:, None].expand(n, 3).clone(),
-        "quats": torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=dtype, device=device).expand(n, 4).clone(),
+        "log_scales": log_scales,
+        "quats": quats,
         "opacity_logits": torch.full((n,), logit(opacity), dtype=dtype, device=device),
         "skin_weights": skin_weights,
     }
@@ -198,7 +238,20 @@ def init_table(
     points, face, bary = sample_surface(vertices, faces, config.num_gaussians, generator)
     weights = surface_skin_weights(faces, vertex_weights, face, bary, config.skin_init)
     tri = vertices[faces]
-    area = float(0.5 * torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]).norm(dim=1).sum())
+    cross = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    area = float(0.5 * cross.norm(dim=1).sum())
     scale = config.init_scale_factor * mean_spacing(area, config.num_gaussians)
-    cols = new_columns(config, points, weights, scale, opacity=0.5, t_center=t_center, generator=generator)
+    normals = cross[face] / cross[face].norm(dim=1, keepdim=True).clamp_min(1e-12)
+    cols = new_columns(
+        config, points, weights, scale, opacity=0.5, t_center=t_center, generator=generator, normals=normals
+    )
     return GaussianTable(cols)
+
+
+def quaternion_z_to(directions: torch.Tensor) -> torch.Tensor:
+    """(n, 4) unit wxyz quaternions turning the z axis onto unit ``directions`` (n, 3) (shortest arc)."""
+    x, y, z = directions.unbind(-1)
+    q = torch.stack([1.0 + z, -y, x, torch.zeros_like(z)], dim=-1)
+    flipped = torch.tensor([0.0, 1.0, 0.0, 0.0], dtype=directions.dtype, device=directions.device)
+    q = torch.where((1.0 + z)[:, None] < 1e-9, flipped.expand_as(q), q)  # z onto -z: half turn about x
+    return q / q.norm(dim=1, keepdim=True)

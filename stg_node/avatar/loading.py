@@ -32,8 +32,9 @@ def corrected(smpl, correction: np.ndarray | None):
     )
 
 
-def load_run_renderer(path: Path, *, device="cpu", backend="auto"):
-    """(RunDir, AvatarRenderer, pose corrections, summary dict) of a run folder."""
+def load_run_renderer(path: Path, *, device="cpu", backend="auto", light=None):
+    """(RunDir, AvatarRenderer, pose corrections, summary dict) of a run folder; ``light``: a
+    shading.LightSpec the renderer uses (None: the model's learned light)."""
     run = RunDir(Path(path))
     run.read_config()  # a clear error when the folder is not a run
     model_file = run.model_file()
@@ -41,6 +42,6 @@ def load_run_renderer(path: Path, *, device="cpu", backend="auto"):
     corrections = pose_corrections(msg)
     if not corrections and run.checkpoint.is_file() and model_file != run.checkpoint:
         corrections = pose_corrections(read_snapshot_file(run.checkpoint))
-    renderer = AvatarRenderer.from_snapshot(msg, device=device, backend=backend)
+    renderer = AvatarRenderer.from_snapshot(msg, device=device, backend=backend, light=light)
     summary = json.loads(run.summary.read_text()) if run.summary.is_file() else {}
     return run, renderer, corrections, summary

@@ -2,7 +2,8 @@
 
 ``AvatarModel.pose(...)`` turns the canonical table into world-space Gaussians for one body
 pose and one instant (rigid part: :mod:`rigid`; non-rigid part: :mod:`spacetime`; colour:
-:mod:`color`), and :func:`render` splats them into a camera through ``stg_node.splat``.
+:mod:`color`, then the light it is seen under: :mod:`shading`), and :func:`render` splats them
+into a camera through ``stg_node.splat``.
 Everything a renderer needs lives in the model (the skeleton, not the body mesh), so
 :mod:`snapshot` can rebuild it from a GaussianSnapshot alone.
 """
@@ -17,14 +18,17 @@ from torch import nn
 
 from stg_node.avatar import spacetime
 from stg_node.avatar.color import ColorMLP, sh_color
+from stg_node.avatar.color_cache import ColorCache
 from stg_node.avatar.config import ModelConfig
-from stg_node.avatar.gaussians import GaussianTable
-from stg_node.avatar.rigid import PosedBones, Skeleton, blend_weights, skin
+from stg_node.avatar.gaussians import GaussianTable, cap_scale_ratio
+from stg_node.avatar.rigid import QUAT_EPS, PosedBones, Skeleton, blend_weights, skin, skin_with_kernel
+from stg_node.avatar.shading import LightSpec, Shading, gaussian_normals
 from stg_node.avatar.spacetime import TimeAxis
 from stg_node.avatar.timecode import PoseTimeIndex, pose_key
 from stg_node.body import lbs
 from stg_node.splat import rasterize
 from stg_node.splat.constants import ALPHA_MIN
+from stg_node.splat.culling import may_be_visible
 
 
 @dataclass
@@ -55,6 +59,7 @@ class PosedGaussians:
     opacities: torch.Tensor  # (M,) including temporal opacity
     colors: torch.Tensor  # (M, 3)
     index: torch.Tensor | None  # (M,) rows of the table, or None when every row is kept
+    canonical: torch.Tensor | None = None  # (M, 3) canonical centres (with offsets) the means came from
 
 
 @dataclass
@@ -127,7 +132,7 @@ def _normalise(q: torch.Tensor) -> torch.Tensor:
     norm = q.norm(dim=-1, keepdim=True)
     identity = torch.zeros_like(q)
     identity[..., 0] = 1.0
-    return torch.where(norm > 1e-12, q / norm.clamp_min(1e-12), identity)
+    return torch.where(norm > QUAT_EPS, q / norm.clamp_min(QUAT_EPS), identity)
 
 
 class AvatarModel(nn.Module):
@@ -147,8 +152,10 @@ class AvatarModel(nn.Module):
         self.skeleton = skeleton
         self.register_buffer("bounds", bounds.float().clone())  # (2, 3) canonical body box
         self.color_mlp = ColorMLP(config, bounds) if config.color == "mlp" else None
+        self.shading = Shading(config.light_model, config.light_count) if config.shading else None
         self.time_axis = time_axis or TimeAxis(unit_s=config.time_unit_s)
         self.pose_index = pose_index or PoseTimeIndex()
+        self._skin_weight_cache: tuple | None = None  # (key, weights): see _render_skin_weights
 
     @property
     def device(self) -> torch.device:
@@ -161,6 +168,24 @@ class AvatarModel(nn.Module):
 
     def skin_weights(self) -> torch.Tensor:
         return blend_weights(self.table["skin_weights"], self.table.get("skin_delta"))
+
+    def _render_skin_weights(self) -> torch.Tensor | None:
+        """The effective skinning weights without gradient, computed once for a model that does not
+        change (a renderer's): frames then skin without redoing the correction. None while
+        gradients are on."""
+        if torch.is_grad_enabled():
+            return None
+        columns = [self.table["skin_weights"], self.table.get("skin_delta")]
+        key = tuple((id(c), c._version, c.shape[0]) for c in columns if c is not None)
+        cached = self._skin_weight_cache
+        if cached is None or cached[0] != key:
+            cached = (key, self.skin_weights().detach())
+            self._skin_weight_cache = cached
+        return cached[1]
+
+    def scales(self) -> torch.Tensor:
+        """(N, 3) the Gaussians' scales as rendered: the table's, largest / smallest axis capped."""
+        return cap_scale_ratio(self.table.scales(), self.config.max_scale_ratio)
 
     def bones(self, body: BodyState) -> PosedBones:
         return self.skeleton.bones(body.poses, body.Rh, body.Th)
@@ -177,10 +202,18 @@ class AvatarModel(nn.Module):
             skip_inactive=skip_inactive,
         )
 
-    def posed_means(self, bones: PosedBones, u: float) -> torch.Tensor:
-        """World centres only (cheap: the flow loss and densification need the next frame's)."""
-        st = spacetime.evaluate(self.table, u, self.config.time_horizon, temporal_opacity=False)
+    def posed_means(
+        self, bones: PosedBones, u: float, state: spacetime.SpacetimeState | None = None
+    ) -> torch.Tensor:
+        """World centres only (cheap: the flow loss and densification need the next frame's);
+        ``state``: the spacetime terms at ``u`` when the caller has them already."""
+        st = state or spacetime.evaluate(self.table, u, self.config.time_horizon, temporal_opacity=False)
         means = self.table["means"] if st.offsets is None else self.table["means"] + st.offsets
+        fused = skin_with_kernel(
+            means, self.table["skin_weights"], self.table.get("skin_delta"), bones, rotations=False
+        )
+        if fused is not None:
+            return fused.means
         return skin(means, self.skin_weights(), bones, rotations=False).means
 
     def pose(
@@ -195,8 +228,16 @@ class AvatarModel(nn.Module):
         bones: PosedBones | None = None,
         key: torch.Tensor | None = None,
         state: spacetime.SpacetimeState | None = None,
+        camera: Camera3 | None = None,
+        color_cache: ColorCache | None = None,
+        light: LightSpec | None = None,
     ) -> PosedGaussians:
-        """World-space Gaussians for one body pose at normalised time ``u``, seen from ``camera_center``."""
+        """World-space Gaussians for one body pose at normalised time ``u``, seen from ``camera_center``.
+
+        ``camera``: leave out the Gaussians it cannot see (splat.culling) before they are coloured.
+        ``color_cache``: colours of a live stream, recomputed in turns (color_cache.py; rendering
+        only, ignored when gradients are on).
+        ``light``: how a model with shading is lit (default: its learned light, shading.py)."""
         cfg = self.config
         table = self.table
         bones = bones or self.bones(body)
@@ -215,23 +256,66 @@ class AvatarModel(nn.Module):
 
         canonical = table["means"] if st.offsets is None else table["means"] + st.offsets
         canonical = rows(canonical)
-        skinned = skin(canonical, rows(self.skin_weights()), bones)
-        quats = quat_multiply(skinned.quats, _normalise(rows(st.quats)))
-        scales = rows(table.scales())
+        means, quats, view_canonical = self._skin(canonical, bones, rows(st.quats), camera_center, rows)
+        scales = rows(self.scales())
+        if camera is not None:  # what the camera cannot see needs no colour
+            seen = may_be_visible(means, scales, camera.viewmat, camera.K, camera.width, camera.height)
+            if not bool(seen.all()):
+                keep = seen.nonzero().squeeze(1)
+                index = keep if index is None else index[keep]
+                canonical, means, quats, view_canonical, scales = (
+                    t[keep] for t in (canonical, means, quats, view_canonical, scales)
+                )
         degree = cfg.sh_degree if sh_degree is None else min(sh_degree, cfg.sh_degree)
-        with torch.no_grad():  # the viewing direction in each Gaussian's canonical frame
-            view = skinned.means - camera_center
-            view = view / view.norm(dim=1, keepdim=True).clamp_min(1e-9)
-            view_canonical = rotate(conjugate(skinned.quats), view)
         if self.color_mlp is not None:
             if body.poses.requires_grad:  # pose refinement: keep the pose code differentiable
                 key = lbs.axis_angle_to_matrix(body.poses[0, 1:]).reshape(1, 23 * 9)
             elif key is None:
                 key = torch.as_tensor(pose_key(body.poses.detach().cpu().numpy()), device=self.device)
-            colors = self.color_mlp(canonical, rows(table["features"]), key, view_canonical, degree)
+            features = rows(table["features"])
+
+            def evaluate(sel):
+                if sel is None:
+                    return self.color_mlp(canonical, features, key, view_canonical, degree)
+                return self.color_mlp(canonical[sel], features[sel], key, view_canonical[sel], degree)
+
+            if color_cache is not None and not torch.is_grad_enabled():
+                versions = (table["features"]._version, *(p._version for p in self.color_mlp.parameters()))
+                colors = color_cache.colors(evaluate, index, table.num, (id(self), degree, versions))
+            else:
+                colors = evaluate(None)
         else:
             colors = sh_color(rows(table["sh"]), view_canonical, degree)
-        return PosedGaussians(skinned.means, quats, scales, rows(opacity), colors, index)
+        if self.shading is not None:
+            normals = gaussian_normals(quats, scales, means, camera_center)
+            root = None
+            if light is not None and light.mode == "baked":
+                root = lbs.axis_angle_to_matrix(body.Rh[0]) @ lbs.axis_angle_to_matrix(body.poses[0, 0])
+            colors = self.shading(colors, normals, light, root)
+        return PosedGaussians(means, quats, scales, rows(opacity), colors, index, canonical)
+
+    def _skin(self, canonical, bones: PosedBones, local_quats, camera_center, rows):
+        """Posed centres, orientations (blended bones x local rotation) and the viewing direction in
+        each Gaussian's canonical frame (no gradient): the fused kernel, or torch (the reference)."""
+        table = self.table
+        effective = self._render_skin_weights()
+        fused = skin_with_kernel(
+            canonical,
+            rows(table["skin_weights"] if effective is None else effective),
+            rows(table.get("skin_delta")) if effective is None else None,
+            bones,
+            local_quats=local_quats,
+            camera_center=camera_center,
+        )
+        if fused is not None:
+            return fused.means, fused.quats, fused.view_dirs
+        skinned = skin(canonical, rows(self.skin_weights()), bones)
+        quats = quat_multiply(skinned.quats, _normalise(local_quats))
+        with torch.no_grad():
+            view = skinned.means - camera_center
+            view = view / view.norm(dim=1, keepdim=True).clamp_min(1e-9)
+            view_canonical = rotate(conjugate(skinned.quats), view)
+        return skinned.means, quats, view_canonical
 
 
 def render(

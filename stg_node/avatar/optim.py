@@ -16,6 +16,14 @@ from torch import nn
 from stg_node.avatar.gaussians import GaussianTable
 
 
+def _fusable(groups) -> bool | None:
+    """torch's fused Adam (one kernel per parameter instead of a dozen ops: about 5x faster on a
+    CPU table) where it runs: floating-point CPU or CUDA tensors; else None (torch's default)."""
+    params = [p for g in groups for p in g["params"]]
+    ok = params and all(p.is_floating_point() and p.device.type in ("cpu", "cuda") for p in params)
+    return True if ok else None
+
+
 class TableOptimizer:
     """One torch Adam for the table (a group per column) and one for dense modules (MLP, pose)."""
 
@@ -26,14 +34,16 @@ class TableOptimizer:
         for name in table.trainable_names():
             lr = lrs.get(name, 0.0)
             groups.append({"params": [table[name]], "lr": lr, "name": name})
-        self.adam = torch.optim.Adam(groups, lr=0.0, eps=1e-15)
+        self.adam = torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=_fusable(groups))
         dense_groups = []
         for name, (params, lr) in dense.items():
             params = [p for p in params if p.requires_grad]
             if params:
                 dense_groups.append({"params": params, "lr": lr, "name": name})
                 self.base_lrs[name] = lr
-        self.dense = torch.optim.Adam(dense_groups, lr=0.0, eps=1e-15) if dense_groups else None
+        self.dense = None
+        if dense_groups:
+            self.dense = torch.optim.Adam(dense_groups, lr=0.0, eps=1e-15, fused=_fusable(dense_groups))
 
     def groups(self):
         yield from self.adam.param_groups
@@ -81,6 +91,7 @@ class TableOptimizer:
                     }
                 break
         self.table.params[name] = param
+        self.table.rows_changed()
 
     def append(self, rows: dict[str, torch.Tensor]) -> None:
         """Append rows (every column must be given) with zero Adam moments."""

@@ -4,18 +4,27 @@ renderer node call.
 Built from a model or straight from a GaussianSnapshot (the renderer node hot-swaps those).
 Without a time the pose's time code comes from the nearest training pose (timecode.py); with
 ``follow`` state kept between calls, an animation keeps its time code stable (hysteresis).
-Rendering runs without gradients and skips motion terms that are exactly zero.
+Rendering runs without gradients, skips motion terms that are exactly zero (except on a CPU,
+where that costs more than it saves), and colours only the Gaussians the camera can see. A live
+stream (``render(..., stream=name)``: one camera following one body, frame after frame) can carry
+its colours from frame to frame and recompute them in turns (``color_refresh_every``;
+color_cache.py); a render without a stream is always exact.
+A model with shading is lit by its learned light (fixed in the world), by a light the caller gives,
+with the light carried along with the body (``baked``), or not at all (``albedo``): :mod:`shading`.
 """
 
 from __future__ import annotations
 
 import time
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
+from stg_node.avatar.color_cache import ColorCache
 from stg_node.avatar.model import AvatarModel, BodyState, Camera3, render
+from stg_node.avatar.shading import LightSpec
 
 
 @dataclass
@@ -28,17 +37,63 @@ class RenderOutput:
     num_rendered: int  # Gaussians that reached the rasterizer
 
 
+MAX_STREAMS = 8  # colour caches kept per renderer (the least recently used goes first)
+
+
+@dataclass
+class PointsOutput:
+    positions: np.ndarray  # (N, 3) float32 world centres of the Gaussians kept (opacity >= ALPHA_MIN)
+    colors: np.ndarray  # (N, 3) uint8 RGB, as seen from the camera centre given
+    alpha: np.ndarray  # (N,) uint8 opacity (temporal opacity included)
+
+
 class AvatarRenderer:
-    def __init__(self, model: AvatarModel, *, backend: str = "auto"):
+    def __init__(
+        self,
+        model: AvatarModel,
+        *,
+        backend: str = "auto",
+        color_refresh_every: int = 1,
+        light: LightSpec | None = None,
+    ):
+        if int(color_refresh_every) < 1:
+            raise ValueError(f"color_refresh_every must be >= 1, got {color_refresh_every}")
         self.model = model.eval()
         self.backend = backend
+        self.color_refresh_every = int(color_refresh_every)
+        self.light = light  # None: the model's learned light (shading.py)
         self._last_key: int | None = None
+        self._streams: OrderedDict[str, ColorCache] = OrderedDict()
+        # Skipping the exactly-zero motion terms costs more than it saves on a CPU, where the
+        # polynomials are cheap next to the index bookkeeping (docs/BENCHMARKS.md, "Live rate").
+        self.skip_inactive = self.device.type != "cpu"
 
     @classmethod
-    def from_snapshot(cls, msg, device="cpu", backend: str = "auto") -> AvatarRenderer:
+    def from_snapshot(
+        cls,
+        msg,
+        device="cpu",
+        backend: str = "auto",
+        color_refresh_every: int = 1,
+        light: LightSpec | None = None,
+    ) -> AvatarRenderer:
         from stg_node.avatar.snapshot import model_from_snapshot
 
-        return cls(model_from_snapshot(msg, device=device), backend=backend)
+        return cls(
+            model_from_snapshot(msg, device=device),
+            backend=backend,
+            color_refresh_every=color_refresh_every,
+            light=light,
+        )
+
+    def _color_cache(self, stream: str | None) -> ColorCache | None:
+        if stream is None or self.color_refresh_every == 1:
+            return None
+        cache = self._streams.pop(stream, None) or ColorCache(self.color_refresh_every)
+        self._streams[stream] = cache
+        while len(self._streams) > MAX_STREAMS:
+            self._streams.popitem(last=False)
+        return cache
 
     @property
     def device(self) -> torch.device:
@@ -93,14 +148,30 @@ class AvatarRenderer:
         background=(0.0, 0.0, 0.0),
         follow: bool = False,
         depth: bool = False,
+        stream: str | None = None,
+        light: LightSpec | None = None,
     ) -> RenderOutput:
-        """Render ``smpl`` (SmplParams) seen by ``camera`` (stg_node.data.types.Camera) at ``time`` (s)."""
+        """Render ``smpl`` (SmplParams) seen by ``camera`` (stg_node.data.types.Camera) at ``time`` (s).
+
+        ``stream`` names a live stream whose colours may be carried between frames (see the
+        module docstring); None renders exactly. ``light`` overrides the renderer's light for this
+        render."""
         started = _now()
         u = self.time_for(smpl, time, follow=follow)
         cam = Camera3.from_camera(camera, device=self.device)
         body = BodyState.from_smpl(smpl, self.device)
-        posed = self.model.pose(body, u, cam.center, skip_inactive=True)
+        posed = self.model.pose(
+            body,
+            u,
+            cam.center,
+            skip_inactive=self.skip_inactive,
+            camera=cam,
+            color_cache=self._color_cache(stream),
+            light=light or self.light,
+        )
         bg = torch.as_tensor(background, dtype=torch.float32, device=self.device)
+        if not bool(bg.any()):  # black: nothing to blend
+            bg = None
         image, alpha, info = render(posed, cam, background=bg, backend=self.backend, render_depth=depth)
         out_depth = None
         if depth:
@@ -108,9 +179,31 @@ class AvatarRenderer:
             out_depth = (
                 torch.where(alpha[..., 0] > 0, d, torch.zeros_like(d)).cpu().numpy().astype(np.float32)
             )
-        img = (image.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
-        a = (alpha[..., 0].clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
+        img = _to_uint8(image)
+        a = _to_uint8(alpha[..., 0])
         return RenderOutput(img, a, out_depth, (_now() - started) * 1e3, u, int(posed.means.shape[0]))
+
+    @torch.no_grad()
+    def points(self, smpl, time: float | None = None, *, camera_center=None) -> PointsOutput:
+        """The Gaussians posed as :meth:`render` poses them, as coloured points (what a 3D viewer,
+        the foxglove node's point cloud, shows). ``camera_center`` (world, metres; default 3 m
+        along +z from the root) picks the viewing direction of view-dependent colours."""
+        u = self.time_for(smpl, time)
+        body = BodyState.from_smpl(smpl, self.device)
+        if camera_center is None:
+            camera_center = np.asarray(smpl.Th, np.float64).reshape(3) + np.array([0.0, 0.0, 3.0])
+        center = torch.as_tensor(np.asarray(camera_center, np.float32).reshape(3), device=self.device)
+        posed = self.model.pose(body, u, center, skip_inactive=self.skip_inactive)
+        return PointsOutput(
+            positions=posed.means.cpu().numpy().astype(np.float32),
+            colors=_to_uint8(posed.colors),
+            alpha=_to_uint8(posed.opacities.reshape(-1)),
+        )
+
+
+def _to_uint8(values: torch.Tensor) -> np.ndarray:
+    """[0, 1] floats -> uint8 levels, rounded (in place on the render's own buffer)."""
+    return values.mul(255.0).add_(0.5).clamp_(0.0, 255.0).to(torch.uint8).cpu().numpy()
 
 
 def _now() -> float:

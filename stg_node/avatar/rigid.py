@@ -19,8 +19,12 @@ from dataclasses import dataclass
 
 import torch
 
+from stg_node.avatar import kernels
 from stg_node.body import lbs
 from stg_node.body.canonical import big_pose_output
+
+SKIN_WEIGHT_EPS = 1e-4  # floor added to the body's weights before the learned correction (blend_weights)
+QUAT_EPS = 1e-12  # quaternions shorter than this are not divided by their norm
 
 
 @dataclass
@@ -88,7 +92,7 @@ def blend_weights(skin_weights: torch.Tensor, skin_delta: torch.Tensor | None) -
     """
     if skin_delta is None:
         return skin_weights
-    w = (skin_weights + 1e-4) * skin_delta.exp()
+    w = (skin_weights + SKIN_WEIGHT_EPS) * skin_delta.exp()
     return w / w.sum(dim=1, keepdim=True)
 
 
@@ -105,13 +109,13 @@ def blend(weights: torch.Tensor, bones: PosedBones) -> torch.Tensor:
     """Per-point blended transforms ``(N, 4, 4)`` of one frame (one matrix product)."""
     if bones.transforms.shape[0] != 1:
         raise ValueError("blend() poses one frame at a time")
-    return (weights @ bones.transforms[0].reshape(24, 16)).reshape(-1, 4, 4)
+    return (weights @ bones.transforms[0].reshape(-1, 16)).reshape(-1, 4, 4)
 
 
 def blend_rotation(weights: torch.Tensor, bones: PosedBones) -> torch.Tensor:
     """Per-point rotation ``(N, 4)``: the normalised weighted sum of the bones' quaternions."""
     q = weights @ bones.quats[0]
-    return q / q.norm(dim=1, keepdim=True).clamp_min(1e-12)
+    return q / q.norm(dim=1, keepdim=True).clamp_min(QUAT_EPS)
 
 
 def skin(means: torch.Tensor, weights: torch.Tensor, bones: PosedBones, rotations: bool = True) -> Skinned:
@@ -120,3 +124,36 @@ def skin(means: torch.Tensor, weights: torch.Tensor, bones: PosedBones, rotation
     world = (blended[:, :3, :3] @ means[..., None]).squeeze(-1) + blended[:, :3, 3]
     quats = blend_rotation(weights, bones) if rotations else None
     return Skinned(world, quats, blended)
+
+
+def skin_with_kernel(
+    means: torch.Tensor,
+    skin_weights: torch.Tensor,
+    skin_delta: torch.Tensor | None,
+    bones: PosedBones,
+    *,
+    local_quats: torch.Tensor | None = None,
+    camera_center: torch.Tensor | None = None,
+    rotations: bool = True,
+):
+    """The fused C++ skinning of ``means`` (stg_node.splat.skin_ops): ``blend_weights`` + ``skin``
+    (+ the local rotation and the canonical view direction, see AvatarModel.pose) in one pass,
+    or None where the kernel does not apply (kernels.use_kernels); the caller then runs torch."""
+    if bones.transforms.shape[0] != 1:
+        raise ValueError("skin_with_kernel() poses one frame at a time")
+    if not kernels.use_kernels(means, skin_weights, skin_delta, local_quats, bones.transforms, bones.quats):
+        return None
+    from stg_node.splat import skin_ops
+
+    return skin_ops.skin(
+        means,
+        skin_weights,
+        bones.transforms[0],
+        bones.quats[0],
+        weight_eps=SKIN_WEIGHT_EPS,
+        quat_eps=QUAT_EPS,
+        skin_delta=skin_delta,
+        local_quats=local_quats,
+        camera_center=camera_center,
+        rotations=rotations,
+    )

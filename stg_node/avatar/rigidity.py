@@ -11,10 +11,13 @@ attachment seams hold), weighted by how present both are at this instant:
 with ``w_ij = sigma_i(t) sigma_j(t)`` (temporal opacities, without gradient). Neighbours are found
 in canonical space with the temporal centre as a fourth coordinate (``TIME_METRES`` metres per
 time unit), so the copies of a Gaussian on other temporal windows do not count as its neighbours.
-The graph is rebuilt whenever the table's rows or the set of dynamic Gaussians change.
+The graph is rebuilt whenever the table's rows (its ``version``, bumped by every append, prune
+or column replacement) or the set of dynamic Gaussians (the gate, compared in full) change.
 """
 
 from __future__ import annotations
+
+import weakref
 
 import torch
 
@@ -28,18 +31,28 @@ class NeighbourGraph:
         self.k = k
         self.rows: torch.Tensor | None = None  # (D,) dynamic rows
         self.neighbours: torch.Tensor | None = None  # (D, k) rows of the whole table
-        self._key = None
+        self.builds = 0  # how many times the graph was built (tests, profiling)
+        self._table = None  # weak reference to the table the graph was built for
+        self._version = -1  # ... and its version then
+        self._gate: torch.Tensor | None = None  # ... and its gate then
 
     def _stale(self, table) -> bool:
+        # The table is compared by identity (a weak reference: never an id() a new object may
+        # reuse), its rows by version; the gate is edited in place (densification), so by value.
         gate = table.motion_gate()
-        key = (id(table["means"]), table.num, None if gate is None else int(gate.sum()))
-        if key != self._key:
-            self._key = key
-            return True
-        return False
+        same_gate = (gate is None and self._gate is None) or (
+            gate is not None and self._gate is not None and torch.equal(gate, self._gate)
+        )
+        built_for = self._table() if self._table is not None else None
+        if built_for is table and table.version == self._version and same_gate:
+            return False
+        self._table, self._version = weakref.ref(table), table.version
+        self._gate = None if gate is None else gate.clone()
+        return True
 
     @torch.no_grad()
     def rebuild(self, table) -> None:
+        self.builds += 1
         gate = table.motion_gate()
         if gate is None or not bool(gate.any()):
             self.rows = self.neighbours = None

@@ -5,6 +5,9 @@ The trainer node publishes exactly what ``stg-train`` saves: a GaussianSnapshot 
 
 - ``g.<column>``: every column of the Gaussian table (gaussians.py lists them);
 - ``mlp.<name>``: the colour MLP's weights (colour mode "mlp");
+- ``shading.<name>``: the learned light (``shading.light.*``: an ambient term and distant lights,
+  or SH coefficients) and the mean training orientation (``shading.reference``,
+  ``shading.orientation_sum``), shading mode "sh";
 - ``body.rest_joints`` (24, 3), ``body.parents`` (24,), ``body.big_pose_inverse`` (24, 4, 4),
   ``body.betas`` (S,), ``body.bounds`` (2, 3): the skeleton, so a renderer needs no body file;
 - ``time.pose_keys`` (F, 207), ``time.times`` (F,): the novel-pose time-code index;
@@ -31,7 +34,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from stg_node.avatar.config import COLOR_MODES, SKIN_INIT, ModelConfig
+from stg_node.avatar.config import (
+    COLOR_MODES,
+    LIGHT_MODELS,
+    PREDATING_DEFAULTS,
+    SKIN_INIT,
+    ModelConfig,
+)
 from stg_node.avatar.gaussians import GaussianTable
 from stg_node.avatar.model import AvatarModel
 from stg_node.avatar.rigid import Skeleton
@@ -40,7 +49,11 @@ from stg_node.avatar.timecode import PoseTimeIndex
 
 FORMAT = "stg-avatar/1"
 FILE_MAGIC = b"STGSNAP1"
-_STRING_CHOICES = {"color": COLOR_MODES, "skin_init": SKIN_INIT}
+_STRING_CHOICES = {
+    "color": COLOR_MODES,
+    "skin_init": SKIN_INIT,
+    "light_model": LIGHT_MODELS,
+}
 
 
 class SnapshotError(ValueError):
@@ -64,9 +77,12 @@ def model_config_meta(config: ModelConfig) -> dict[str, float]:
 
 def model_config_from_meta(meta: dict) -> ModelConfig:
     kwargs = {}
+    predating = PREDATING_DEFAULTS["model"]
     for f in dataclasses.fields(ModelConfig):
         key = f"model.{f.name}"
         if key not in meta:
+            if f.name in predating:  # a snapshot from before the setting: what it was made with
+                kwargs[f.name] = predating[f.name]
             continue
         value = meta[key]
         if f.name in _STRING_CHOICES:
@@ -85,6 +101,9 @@ def model_arrays(model: AvatarModel) -> dict[str, np.ndarray]:
         for name, value in model.color_mlp.state_dict().items():
             if name != "bounds":
                 arrays[f"mlp.{name}"] = _np(value)
+    if model.shading is not None:
+        for name, value in model.shading.state_dict().items():
+            arrays[f"shading.{name}"] = _np(value)
     sk = model.skeleton
     arrays["body.rest_joints"] = _np(sk.rest_joints)
     arrays["body.parents"] = _np(sk.parents.float())
@@ -176,6 +195,12 @@ def model_from_snapshot(msg, device="cpu") -> AvatarModel:
             model.color_mlp.load_state_dict(state)
         except RuntimeError as exc:
             raise SnapshotError(f"colour MLP weights do not fit the model settings: {exc}") from exc
+    if model.shading is not None:
+        state = {k[len("shading.") :]: get(k) for k in arrays if k.startswith("shading.")}
+        try:
+            model.shading.load_state_dict(state)
+        except RuntimeError as exc:
+            raise SnapshotError(f"snapshot's light does not fit its shading settings: {exc}") from exc
     return model
 
 

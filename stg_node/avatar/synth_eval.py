@@ -119,8 +119,7 @@ def evaluate_on_synth(
     from stg_node.avatar.loading import corrected, load_run_renderer
     from stg_node.body import load_body_model
     from stg_node.data.metrics import Evaluator
-    from stg_node.data.synth.body_parts import PartErrors, face_parts, part_labels, vertex_parts
-    from stg_node.data.synth.writer import read_frame_vertices
+    from stg_node.data.synth.body_parts import PARTS, RegionScores, SynthPartLabeller
     from stg_node.progress import progress
 
     if split not in ("novel_view", "novel_pose"):
@@ -145,9 +144,8 @@ def evaluate_on_synth(
         alignment = WorldAlignment.identity()
     dataset = truth.open(split)
     evaluator = Evaluator(protocol, lpips_nets=lpips_nets)
-    part_errors = PartErrors()
-    faces = body.faces.cpu().numpy()
-    parts_of_faces = face_parts(faces, vertex_parts(body.weights.cpu().numpy()))
+    part_scores = RegionScores()
+    labeller = SynthPartLabeller(synth_dir, body) if parts else None
     missing = 0
     for sample in progress(dataset, desc=f"eval {split}", unit="view", enabled=show_progress):
         if tracked:
@@ -163,11 +161,8 @@ def evaluate_on_synth(
         out = renderer.render(alignment.camera(sample.camera), smpl, time_s)
         target = np.where(sample.mask[..., None] > 127, sample.image, 0).astype(np.uint8)
         evaluator.add(out.image, target, sample.mask)
-        if parts:
-            labels = part_labels(
-                read_frame_vertices(synth_dir, sample.index), faces, parts_of_faces, sample.camera
-            )
-            part_errors.add(out.image, target, labels)
+        if labeller is not None:
+            part_scores.add(out.image, target, labeller.regions(sample.index, sample.camera))
     report = evaluator.report().as_dict()
     lpips = report["lpips"].get(lpips_nets[0], math.nan) if lpips_nets else math.nan
     return {
@@ -179,7 +174,7 @@ def evaluate_on_synth(
         "lpips": lpips,
         "views": report["views"],
         "views_without_pose": missing,
-        "parts_psnr": part_errors.psnr() if parts else {},
+        "parts_psnr": {name: part_scores.psnr(name) for name in PARTS} if parts else {},
         "alignment_scale": alignment.scale,
         "train_seconds": summary.get("train_seconds", math.nan),
         "gaussians": summary.get("gaussians"),

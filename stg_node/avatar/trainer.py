@@ -29,7 +29,8 @@ from stg_node.avatar.config import TrainConfig
 from stg_node.avatar.densify import DensifyStrategy, StepContext
 from stg_node.avatar.exposure import ExposureCorrection
 from stg_node.avatar.frames import FrameStore, StoredFrame, TrainFrame
-from stg_node.avatar.gaussians import init_table
+from stg_node.avatar.gaussians import init_table, scale_ratio_percentile
+from stg_node.avatar.isometry import IsometryGraph
 from stg_node.avatar.model import AvatarModel, BodyState, Camera3, render
 from stg_node.avatar.optim import TableOptimizer
 from stg_node.avatar.pose_refine import PoseTrack
@@ -45,18 +46,22 @@ PHASES = ("data", "pose", "flow_target", "render", "loss", "backward", "update",
 
 
 class StepProfile:
-    """Wall time of each phase of a step, summed over steps (``Trainer.profile = StepProfile()``)."""
+    """Wall time of each phase of a step, summed over steps (``Trainer.profile = StepProfile()``).
 
-    def __init__(self):
+    ``clock=time.thread_time`` counts this thread's CPU time instead: on a machine shared with
+    other processes, what the step itself costs."""
+
+    def __init__(self, clock=time.perf_counter):
         self.seconds = dict.fromkeys(PHASES, 0.0)
         self.steps = 0
+        self.clock = clock
         self._last = 0.0
 
     def start(self) -> None:
-        self._last = time.perf_counter()
+        self._last = self.clock()
 
     def mark(self, phase: str) -> None:
-        now = time.perf_counter()
+        now = self.clock()
         self.seconds[phase] += now - self._last
         self._last = now
 
@@ -109,7 +114,6 @@ class Trainer:
         backend: str = "auto",
         seed: int = 0,
         flow_cache=None,
-        max_frames: int | None = None,
     ):
         config.validate()
         self.config = config
@@ -120,7 +124,7 @@ class Trainer:
         self.body_reference = _body_reference(body_model)
         want_flow = config.loss.flow > 0 or (config.densify.enabled and config.densify.flow_guided)
         self.store = FrameStore(
-            capacity=config.max_frames if max_frames is None else max_frames,
+            capacity=config.max_frames,  # its one home: a checkpoint keeps it with the config
             crop_margin=config.crop_margin_px,
             flow=want_flow and config.model.spacetime or config.loss.flow > 0,
             flow_cache=flow_cache,
@@ -143,7 +147,11 @@ class Trainer:
             config.lr_exposure, config.loss.exposure, config.loss.warmup_iters, self.device
         )
         self.neighbours = NeighbourGraph()  # local rigidity of the non-rigid motion
+        self.isometry = IsometryGraph()  # canonical neighbours keep their distances when posed
         self.profile: StepProfile | None = None  # set to a StepProfile to time the phases of each step
+        #: Numbers the caller keeps with the checkpoint, written and restored in the same file (the
+        #: trainer node's wall time): nothing beside a checkpoint can disagree with it after a kill.
+        self.notes: dict[str, float] = {}
 
     # --- frames ----------------------------------------------------------------------------------
     def add_frame(self, frame: TrainFrame) -> None:
@@ -153,8 +161,10 @@ class Trainer:
             self._initialize(stored.frame)
         u = self.model.time_axis(frame.time)
         index = self.model.pose_index
-        if not np.any(np.isclose(index.times, u, atol=1e-6)):
+        if not np.any(np.isclose(index.times, u, atol=1e-6)):  # a frame not seen before (resume: seen)
             index.add(np.asarray(frame.smpl.poses), u)
+            if self.model.shading is not None:  # the mean training orientation (the baked light mode)
+                self.model.shading.add_orientation(_root_rotation(frame.smpl))
         if self.config.lr_pose > 0:
             self._pose_slot(frame.index)
             if self.config.loss.pose_smooth > 0:
@@ -225,6 +235,8 @@ class Trainer:
             dense["mlp"] = (list(self.model.color_mlp.parameters()), c.lr_mlp)
         if self.pose_deltas is not None:
             dense["pose"] = ([self.pose_deltas], c.lr_pose)
+        if self.model.shading is not None:
+            dense["light"] = (list(self.model.shading.light.parameters()), c.lr_light)
         self.optimizer = TableOptimizer(self.model.table, lrs, dense)
 
     def _pose_slot(self, frame_index: int) -> int:
@@ -292,7 +304,7 @@ class Trainer:
         timer.mark("data")
         state = self.model.spacetime(u)
         posed = self.model.pose(
-            body, u, camera.center, sh_degree=sh_degree, bones=bones, key=key, state=state
+            body, u, camera.center, sh_degree=sh_degree, bones=bones, key=key, state=state, camera=camera
         )
         timer.mark("pose")
 
@@ -300,10 +312,17 @@ class Trainer:
         extra = None
         flow_pair = stored.flow if stored.next_smpl is not None else None
         use_flow = flow_pair is not None and c.loss.flow > 0
+        table = self.model.table
+        want_temporal = c.loss.temporal > 0 and "t_center" in table and stored.next_time is not None
+        next_state = None  # the next frame's spacetime terms: one evaluation for the flow and temporal terms
+        if use_flow or want_temporal:
+            next_state = self.model.spacetime(self.model.time_axis(stored.next_time))
         if use_flow:
             u_next = self.model.time_axis(stored.next_time)
             next_body = self.body_state(stored.frame, smpl=stored.next_smpl)
-            means_next = self.model.posed_means(self._frame_bones(stored, next_body, "next")[0], u_next)
+            means_next = self.model.posed_means(
+                self._frame_bones(stored, next_body, "next")[0], u_next, state=next_state
+            )
             if posed.index is not None:
                 means_next = means_next[posed.index]
             extra = camera.project(means_next) - camera.project(posed.means)
@@ -320,11 +339,12 @@ class Trainer:
             fwd = torch.from_numpy(flow_pair.forward[y0 : y0 + h, x0 : x0 + w]).to(self.device)
             valid = torch.from_numpy(flow_pair.valid_forward[y0 : y0 + h, x0 : x0 + w]).to(self.device)
             terms["flow"] = L.flow_loss(image[..., 3:5], alpha, fwd, valid)
-        table = self.model.table
-        if c.loss.temporal > 0 and "t_center" in table and stored.next_time is not None:
-            terms["temporal"] = self._temporal_term(state, self.model.time_axis(stored.next_time))
+        if want_temporal:
+            terms["temporal"] = self._temporal_term(state, next_state)
         if c.loss.rigidity > 0 and state.offsets is not None:
             terms["rigidity"] = self.neighbours.loss(table, state.offsets, state.temporal)
+        if c.loss.isometry > 0:
+            terms["isometry"] = self.isometry.loss(table, posed.means, posed.canonical, posed.index)
         terms.update(self._regularisers(body))
         if c.loss.pose_smooth > 0 and self.pose_deltas is not None:
             smooth = self.pose_track.smoothness(self.pose_deltas, self.pose_slots, stored.frame.index)
@@ -343,6 +363,8 @@ class Trainer:
             "opacity": c.loss.opacity,
             "skin": c.loss.skin,
             "pose": c.loss.pose_refine,
+            "isometry": c.loss.isometry,
+            "light": c.loss.light,
             "pose_smooth": c.loss.pose_smooth,
             "exposure": c.loss.exposure,
         }
@@ -429,9 +451,8 @@ class Trainer:
             cache = stored.extras[which] = (bones, key)
         return cache
 
-    def _temporal_term(self, now: spacetime.SpacetimeState, u_next: float) -> torch.Tensor:
+    def _temporal_term(self, now: spacetime.SpacetimeState, nxt: spacetime.SpacetimeState) -> torch.Tensor:
         table = self.model.table
-        nxt = self.model.spacetime(u_next)
         out = table["means"].new_zeros(())
         if now.offsets is not None:
             out = out + 100.0 * (nxt.offsets - now.offsets).abs().sum(1).mean()
@@ -456,6 +477,8 @@ class Trainer:
             out["skin"] = table["skin_delta"].pow(2).mean()
         if self.pose_deltas is not None and c.pose_refine > 0:
             out["pose"] = self.pose_deltas.pow(2).sum(1).mean()
+        if self.model.shading is not None and c.light > 0:
+            out["light"] = self.model.shading.penalty()
         return out
 
     def _grads_finite(self) -> bool:
@@ -506,7 +529,18 @@ class Trainer:
             "gaussians": n,
             "active_motion_fraction": active,
             "model_mb": model_nbytes(self.model) / 1e6,
+            # largest / smallest axis of the Gaussians as rendered (skinning turns them, never stretches)
+            "scale_ratio_p99": scale_ratio_percentile(self.model.scales().detach()),
         }
+
+
+def _root_rotation(smpl) -> torch.Tensor:
+    """(3, 3) a frame's body orientation in the world: ``R(Rh) @ R(poses[0])``."""
+    from stg_node.body import lbs
+
+    poses = torch.as_tensor(np.array(smpl.poses, np.float32)).reshape(24, 3)
+    Rh = torch.as_tensor(np.array(smpl.Rh, np.float32)).reshape(3)
+    return lbs.axis_angle_to_matrix(Rh) @ lbs.axis_angle_to_matrix(poses[0])
 
 
 def _load_body(body_model, device):

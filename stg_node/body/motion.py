@@ -34,7 +34,10 @@ NUM_POSE = SMPL_NUM_JOINTS * 3
 def _field(data: dict, names: tuple[str, ...], source: str, width: int | None = None) -> np.ndarray:
     for name in names:
         if name in data:
-            value = np.asarray(data[name], dtype=np.float32)
+            try:
+                value = np.asarray(data[name], dtype=np.float32)
+            except (TypeError, ValueError) as exc:
+                raise ValueError(f"{source}: {name!r} is not numeric ({exc})") from None
             if value.ndim == 1:
                 value = value[None]
             if value.ndim == 3 and width == NUM_POSE and value.shape[1:] == (SMPL_NUM_JOINTS, 3):
@@ -47,17 +50,30 @@ def _field(data: dict, names: tuple[str, ...], source: str, width: int | None = 
     raise ValueError(f"{source}: missing {' or '.join(repr(n) for n in names)} (keys: {sorted(data)})")
 
 
+def _scalar(data: dict, name: str, source: str) -> float | None:
+    """An optional positive number (a frame rate); None when absent."""
+    if name not in data:
+        return None
+    try:
+        value = float(np.asarray(data[name], dtype=np.float64).reshape(-1)[0])
+    except (TypeError, ValueError, IndexError) as exc:
+        raise ValueError(f"{source}: {name!r} is not a number ({exc})") from None
+    if not (np.isfinite(value) and value > 0):
+        raise ValueError(f"{source}: {name!r} must be a positive number, got {value}")
+    return value
+
+
 def _from_dict(data: dict, source: str) -> SmplSequence:
     if not isinstance(data, dict):
         raise ValueError(f"{source}: expected a dict of SMPL parameters, got {type(data).__name__}")
     if "trans" in data and "Th" not in data:  # AMASS-style
-        poses = np.asarray(data["poses"], dtype=np.float32)
+        poses = _field(data, ("poses",), source)
         if poses.ndim != 2 or poses.shape[1] < 66:
             raise ValueError(f"{source}: AMASS 'poses' has shape {poses.shape}, expected (T, >= 66)")
         body = np.concatenate([poses[:, :66], np.zeros((len(poses), 6), np.float32)], axis=1)
         trans = _field(data, ("trans",), source, 3)
-        betas = np.asarray(data.get("betas", np.zeros(10)), dtype=np.float32).reshape(-1)[:16]
-        fps = float(data["mocap_framerate"]) if "mocap_framerate" in data else None
+        betas = _field({"betas": data.get("betas", np.zeros(10))}, ("betas",), source).reshape(-1)[:16]
+        fps = _scalar(data, "mocap_framerate", source)
         return SmplSequence(body, np.zeros_like(trans), trans, betas, fps, source)
     poses = _field(data, ("poses", "pose"), source, NUM_POSE)
     rh = _field(data, ("Rh",), source, 3)
@@ -69,7 +85,7 @@ def _from_dict(data: dict, source: str) -> SmplSequence:
             f"{source}: inconsistent frame counts poses {count}, Rh {len(rh)}, Th {len(th)}, "
             f"shapes {len(betas)}"
         )
-    fps = float(np.asarray(data["fps"])) if "fps" in data else None
+    fps = _scalar(data, "fps", source)
     return SmplSequence(poses, rh, th, betas[0] if len(betas) == 1 and count > 1 else betas, fps, source)
 
 

@@ -30,8 +30,26 @@ from stg_node.body.smpl_io import SMPL_NUM_JOINTS
 MODEL_TAGS = ("smpl", "smplx")
 
 
+#: The largest magnitude a value of each field can plausibly have: far beyond any real capture
+#: (radians for poses and Rh, metres for Th, shape units for betas), far below what breaks the
+#: arithmetic downstream (a pose of 1e30 is finite, and turns into NaN vertices). One place:
+#: the datasets' readers check the same limits (stg_node.data.base).
+LIMITS = {"poses": 1e3, "Rh": 1e3, "Th": 1e4, "betas": 1e3}
+
+
+def magnitude_problem(name: str, array: np.ndarray) -> str:
+    """Why ``array`` (finite) is not a plausible value of SMPL field ``name`` (empty: it is)."""
+    limit = LIMITS.get(name.split("/")[0])
+    peak = float(np.abs(array).max()) if limit is not None and array.size else 0.0
+    if peak > limit:
+        unit = {"Th": " m", "poses": " rad", "Rh": " rad"}.get(name, "")
+        return f"{name} has values up to {peak:.3g}{unit}, beyond the plausible +-{limit:g}{unit}"
+    return ""
+
+
 def _float32(value, name: str, shape: tuple, owner: str) -> np.ndarray:
-    """``value`` as a finite float32 array of ``shape`` (None = any length there), else ValueError."""
+    """``value`` as a finite, plausibly sized float32 array of ``shape`` (None = any length
+    there), else ValueError."""
     try:
         array = np.asarray(value, dtype=np.float32)
     except (TypeError, ValueError) as exc:
@@ -45,6 +63,9 @@ def _float32(value, name: str, shape: tuple, owner: str) -> np.ndarray:
         raise ValueError(f"{owner}.{name} has shape {array.shape}, expected {wanted}")
     if not np.isfinite(array).all():
         raise ValueError(f"{owner}.{name} contains NaN or infinite values")
+    problem = magnitude_problem(name, array)
+    if problem:
+        raise ValueError(f"{owner}.{problem}")
     return array
 
 
@@ -99,12 +120,13 @@ class SmplSequence:
         if poses.ndim == 2 and poses.shape[1] == SMPL_NUM_JOINTS * 3:
             poses = poses.reshape(len(poses), SMPL_NUM_JOINTS, 3)
         set_ = object.__setattr__
-        set_(self, "poses", _float32(poses, "poses", (None, SMPL_NUM_JOINTS, 3), "SmplSequence"))
+        owner = f"{self.source}: SmplSequence" if self.source else "SmplSequence"  # the file, if any
+        set_(self, "poses", _float32(poses, "poses", (None, SMPL_NUM_JOINTS, 3), owner))
         count = len(self.poses)
-        set_(self, "Rh", _float32(self.Rh, "Rh", (count, 3), "SmplSequence"))
-        set_(self, "Th", _float32(self.Th, "Th", (count, 3), "SmplSequence"))
+        set_(self, "Rh", _float32(self.Rh, "Rh", (count, 3), owner))
+        set_(self, "Th", _float32(self.Th, "Th", (count, 3), owner))
         betas = np.asarray(self.betas)
-        betas = _float32(betas, "betas", (None,) if betas.ndim == 1 else (count, None), "SmplSequence")
+        betas = _float32(betas, "betas", (None,) if betas.ndim == 1 else (count, None), owner)
         if betas.shape[-1] == 0:
             raise ValueError("SmplSequence.betas is empty; expected at least one shape coefficient")
         set_(self, "betas", betas)

@@ -41,6 +41,9 @@ SMPL_JOINT_NAMES = (
 )  # fmt: skip
 
 GENDERS = ("neutral", "male", "female")
+#: No value of a body model in metres (vertices, displacements per unit coefficient, regressor
+#: weights) comes near this; a larger one is a damaged file, and would break the arithmetic.
+MAX_MODEL_VALUE = 1e3
 _GENDER_LETTER = {"neutral": "neutral", "male": "m", "female": "f"}
 SMPL_DOWNLOAD_HINT = (
     "SMPL model files are licensed by their authors and are not shipped: register and download "
@@ -379,13 +382,21 @@ def validate_model_arrays(data: dict, source: str) -> ModelArrays:
     if faces.ndim != 2 or faces.shape[1] != 3:
         raise _shape_error(source, "f", faces, "(F, 3)")
     faces = faces.astype(np.int64)
-    if faces.size and (faces.min() < 0 or faces.max() >= num_verts):
+    if not faces.size:
+        raise BodyModelError(f"{source}: 'f' holds no faces (expected (F, 3) with F >= 1: a surface)")
+    if faces.min() < 0 or faces.max() >= num_verts:
         raise BodyModelError(f"{source}: faces index vertices outside [0, {num_verts})")
 
     for key, value in (("v_template", v_template), ("shapedirs", shapedirs), ("posedirs", posedirs),
                        ("J_regressor", j_regressor), ("weights", weights)):  # fmt: skip
         if not np.all(np.isfinite(value)):
             raise BodyModelError(f"{source}: {key!r} contains NaN or infinite values")
+        peak = float(np.abs(value).max()) if value.size else 0.0
+        if peak > MAX_MODEL_VALUE:  # metres of a body, or displacements per unit coefficient
+            raise BodyModelError(
+                f"{source}: {key!r} has values up to {peak:.3g}, beyond the plausible +-{MAX_MODEL_VALUE:g} "
+                "(a body in metres)"
+            )
     sums = weights.sum(axis=1)
     if np.abs(sums - 1).max() > 1e-3:
         raise BodyModelError(

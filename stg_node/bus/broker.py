@@ -96,6 +96,9 @@ class Broker:
         self.latch_lanes = frozenset(self.configs[0].lane_of(name).name for name in self.latched)
         self.traffic = Traffic()
         self.cache: dict[bytes, list] = {}  # latched topic -> last message's frames
+        #: (Un)subscriptions applied so far: what shows that a subscriber's arrival or departure
+        #: has been dealt with (tests and tools wait for it rather than for a guessed time).
+        self.subscription_events = 0
         self._own_context = context is None
         self._context = context or zmq.Context()
         self._stop = threading.Event()
@@ -244,6 +247,7 @@ class Broker:
                 else:
                     xpub.setsockopt(zmq.UNSUBSCRIBE, prefix)
                 xsub.send(event)
+                self.subscription_events += 1
             # The first send after reading a (un)subscription goes to that subscriber only.
             if replay:
                 for frames in replay:  # beyond the first, these reach every matching subscriber

@@ -13,6 +13,12 @@ A Publisher opens one XPUB socket per lane (so it can see subscriptions:
 is, so do not modify an array until the message has left (publish a fresh array per
 message, as camera drivers naturally do).
 
+On lanes with short queues (keep-last, bulk) the Publisher reads its socket's EVENTS before
+each send: that makes libzmq apply the read acknowledgements the receiving side has sent (it
+otherwise applies them only now and then), so a queue the reader has in fact drained is never
+taken for full and the newest message dropped in its place. Without it, two frames sent back
+to back to a subscriber that keeps up could lose the second one.
+
 A Subscriber opens one SUB socket per lane its topics live on. On keep-last lanes a small
 thread drains the socket continuously and keeps only the newest message per topic
 (channels.LatestChannel explains why a thread). It
@@ -47,6 +53,8 @@ from stg_node.bus.topics import LANES, Lane
 log = logging.getLogger(__name__)
 
 WILDCARDS = ("", "*", "#")
+#: Lanes with a high-water mark up to this apply read acknowledgements before each send.
+SHORT_QUEUE = 64
 _as_config = as_config  # its former private home; config.as_config is the one to import
 
 
@@ -86,6 +94,7 @@ class Publisher:
         self._routes: dict[tuple[str, type], tuple[str, bytes, zmq.Socket]] = {}
         self._seq: dict[str, int] = {}
         self._subscriptions: dict[zmq.Socket, dict[bytes, int]] = {}  # per lane socket
+        self._short_queues: set[zmq.Socket] = set()  # lanes whose sends first apply read acks
         self._closed = False
         self._lock = threading.Lock()
         self._published = 0
@@ -94,6 +103,8 @@ class Publisher:
                 lane = LANES[name]
                 sock = sockets.make_socket(self._context, zmq.XPUB, lane)
                 self._sockets[lane.name] = sock
+                if lane.hwm <= SHORT_QUEUE:
+                    self._short_queues.add(sock)
                 if bind:
                     sockets.bind(sock, self.config.endpoint(lane, "out"), self.config)
                 else:
@@ -136,6 +147,8 @@ class Publisher:
             seq = self._seq.get(full, 0)
             stamp = stamp_ns or msg.header.stamp_ns or time.time_ns()
             frames, nbytes = encode_counted(msg, topic=full, seq=seq, src=self.node, stamp_ns=stamp)
+            if sock in self._short_queues:
+                sock.get(EVENTS)  # apply pending read acknowledgements (module docstring)
             send_frames(sock, frames)
             self._seq[full] = seq + 1
             self.traffic.count(full, nbytes)
@@ -163,6 +176,8 @@ class Publisher:
                 raise ValueError(
                     f"topic {env.topic!r} travels on lane {lane.name!r}, which this publisher did not open"
                 )
+            if sock in self._short_queues:
+                sock.get(EVENTS)
             send_frames(sock, frames)
             self.traffic.count(env.topic, env.nbytes)
             self._published += 1

@@ -4,6 +4,8 @@
     python -m stg_node.nodes renderer --params '{"size": 256}' --bus tcp://127.0.0.1:7400
     python -m stg_node.nodes trainer --describe          # its parameters, types, defaults
     python -m stg_node.nodes --list                      # the node kinds
+    stg-node foxglove --port 8765                        # the bus, live in Foxglove
+    stg-node web --port 8080 [--host 0.0.0.0]            # the page: / (operator), /avatar (screen)
 
 ``--params`` takes JSON (or ``@file.json``); ``--param k=v`` (repeatable) wins over it, its value
 parsed as the parameter's type. ``--remap from:=to`` renames a topic for this node; ``--ack TOPIC``
@@ -16,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import sys
 from pathlib import Path
 
@@ -24,7 +27,7 @@ from stg_node.cli.bus_options import add_bus_options, bus_config
 from stg_node.cli.runner import UsageError, add_log_level_option, run_main
 from stg_node.nodes import NODE_KINDS, UnknownNodeKind, load_node_class
 from stg_node.nodes.params import ParamError, describe_params, parse_params
-from stg_node.nodes.runtime import name_process
+from stg_node.nodes.runtime import ENV_RESPAWN, ENV_STANDBY, name_process
 from stg_node.signals import StopSignals
 
 log = logging.getLogger("stg_node.nodes")
@@ -45,6 +48,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--lane", action="append", default=[], metavar="TOPIC=LANE", help="move a topic to another lane"
     )
+    parser.add_argument("--port", type=int, metavar="N", help="foxglove, web: same as --param port=N")
+    parser.add_argument("--host", metavar="ADDR", help="foxglove, web: same as --param host=ADDR")
     parser.add_argument("--heartbeat", type=float, default=1.0, metavar="S", help="NodeStatus period")
     parser.add_argument(
         "--ack",
@@ -108,6 +113,11 @@ def run(args: argparse.Namespace) -> int:
             print(describe(args.kind, cls))
             return 0
         values = {**_load_params(args.params), **_pairs(args.param, "=", "--param")}
+        for option in ("port", "host"):
+            if getattr(args, option) is not None:
+                if option not in {info.name for info in describe_params(cls.Params)}:
+                    raise ValueError(f"--{option}: node kind {args.kind!r} has no parameter {option!r}")
+                values[option] = getattr(args, option)
         params = parse_params(cls.Params, values, where=f"node {name!r} ({args.kind})")
         remap = _pairs(args.remap, ":=", "--remap")
         config: BusConfig = bus_config(args)
@@ -116,6 +126,10 @@ def run(args: argparse.Namespace) -> int:
     except (UnknownNodeKind, ParamError, ValueError, OSError) as exc:
         raise UsageError(str(exc)) from exc
     name_process(name)
+    if os.environ.get(ENV_STANDBY):
+        taking_over = stand_by(name, cls, params)
+        if not taking_over:
+            return 0
     with StopSignals() as stop:  # the first SIGINT/SIGTERM ends the loop, teardown still runs
         try:
             node = cls(name, params, config, remap=remap, heartbeat_s=args.heartbeat, stop=stop, ack=args.ack)
@@ -125,6 +139,25 @@ def run(args: argparse.Namespace) -> int:
             log.error("%s: cannot start: %s", name, exc)
             return 1
         return node.execute()
+
+
+def stand_by(name: str, cls: type, params) -> bool:
+    """A standby copy (stg-launch ``standby: true``): prepare the node (imports done), then wait
+    for the launcher on stdin. ``go N``: take over as the node's respawn N (True); end of file:
+    not needed after all (False). Ctrl-C / SIGTERM while waiting end it like any node (exit 0)."""
+    try:
+        cls.prepare(params)
+    except Exception as exc:  # warming up is best effort: the real setup reports real problems
+        log.warning("%s: standby preparation failed: %s", name, exc)
+    log.info("standing by (pid %d)", os.getpid())
+    for line in sys.stdin:
+        word, _, respawns = line.strip().partition(" ")
+        if word == "go":
+            os.environ.pop(ENV_STANDBY, None)
+            os.environ[ENV_RESPAWN] = respawns if respawns.isdigit() else "1"
+            log.info("taking over (respawn %s)", os.environ[ENV_RESPAWN])
+            return True
+    return False
 
 
 def main(argv=None) -> int:

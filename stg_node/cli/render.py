@@ -1,6 +1,7 @@
 """``stg-render``: novel views and animations of a trained avatar, as an MP4 or a folder of PNGs.
 
-    stg-render RUN_DIR -o OUT(.mp4|dir) [--views orbit|follow|dataset] [--poses FILE]
+    stg-render RUN_DIR -o OUT(.mp4|dir) [--views orbit|follow|dataset] [--poses FILE] [--fill F]
+               [--light LIGHT]
 
 ``--views orbit`` (default without --poses): a turntable around the avatar.
 ``--views follow`` (default with --poses): the training camera's bearing (when animating: the
@@ -13,6 +14,10 @@ grid per frame, as they are.
 ``new_params`` folder, or a subject folder holding one); the avatar keeps its own body shape
 (the file's betas are ignored) and each pose takes the time code of the nearest training pose,
 kept stable along the sequence (docs/AVATAR.md). Without --poses the training frames are used.
+``--light`` (an avatar trained with shading): ``learned`` (default: its learned light, fixed in the
+world, so the avatar is lit by the room as it turns), ``baked`` (the light turns with the body, as
+a colour without shading), ``albedo`` (unlit), 27 comma-separated SH irradiance numbers, or a JSON
+file with ``sh`` or ``ambient`` and ``lights`` (docs/AVATAR.md).
 """
 
 from __future__ import annotations
@@ -51,6 +56,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--size", type=int, default=None, help="image size (default: the dataset's)")
     p.add_argument("--fps", type=float, default=30.0, help="MP4 frame rate (default %(default)s)")
+    p.add_argument(
+        "--light",
+        default="learned",
+        help="learned (default), baked, albedo, 27 comma-separated SH numbers, or a JSON file",
+    )
     p.add_argument("--data", default=None, help="dataset folder (default: the one the run trained on)")
     p.add_argument("--backend", default="auto", choices=("auto", "cpu", "cuda", "torch"))
     p.add_argument("--device", default="cpu")
@@ -78,6 +88,12 @@ def run(args: argparse.Namespace) -> int:
     configure_threads(args.threads)
     from stg_node.avatar.animation import render_run
     from stg_node.avatar.framing import FramingRule
+    from stg_node.avatar.shading import parse_light
+
+    try:
+        light = parse_light(args.light)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from exc
 
     rule = FramingRule() if args.fill is None else FramingRule(fraction=args.fill)
     summary = render_run(
@@ -93,6 +109,7 @@ def run(args: argparse.Namespace) -> int:
         backend=args.backend,
         show_progress=not args.no_progress,
         rule=rule,
+        light=light,
     )
     print(f"wrote {summary.frames} frames to {out}")
     framing = summary.framing

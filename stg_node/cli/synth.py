@@ -1,6 +1,7 @@
 """``stg-synth``: generate the synthetic benchmark (ground truth images, masks, SMPL, vertices; ZJU layout).
 
     stg-synth --out DIR [--seed S --frames N --size PX --motion NAME --views C --view-every K ...]
+              [--shading lambert|none|room|environment] [--test-motion NAMES] [--train-yaw DEG --test-yaw DEG]
 
 See docs/SYNTH.md for what is rendered, the garment model, the cameras and splits, and the layout.
 Exit 2 for bad usage (an invalid option value, an --out that holds other files without
@@ -67,7 +68,32 @@ def build_parser() -> argparse.ArgumentParser:
         "--shading",
         choices=SHADING_MODES,
         default=defaults.shading,
-        help="lighting (default %(default)s: Lambert, light fixed in the body frame)",
+        help="lighting (default %(default)s: a light fixed in the body frame, turning with it; "
+        "none: albedo only; room: a light fixed in the world; environment: several coloured lights "
+        "fixed in the world)",
+    )
+    parser.add_argument(
+        "--test-motion",
+        default=None,
+        metavar="NAMES",
+        help="motion(s) of the held-out frames, comma-separated, played in equal parts "
+        f"({', '.join(MOTIONS)}; default: a fresh draw of --motion)",
+    )
+    parser.add_argument(
+        "--train-yaw",
+        type=float,
+        default=None,
+        metavar="DEG",
+        help="the training frames face the camera within a window of DEG degrees "
+        "(default: they turn through at least one full revolution)",
+    )
+    parser.add_argument(
+        "--test-yaw",
+        type=float,
+        default=None,
+        metavar="DEG",
+        help="the held-out frames' window is turned DEG degrees from the training one "
+        "(orientations never seen in training; needs --train-yaw)",
     )
     parser.add_argument("--depth", action="store_true", help="also write depth/ (uint16 PNG, millimetres)")
     filming = parser.add_argument_group("filming conditions (real footage)")
@@ -124,6 +150,9 @@ def run(args: argparse.Namespace) -> int:
         train_fraction=args.train_fraction,
         supersample=args.supersample,
         shading=args.shading,
+        test_motion=args.test_motion,
+        train_yaw_deg=args.train_yaw,
+        test_yaw_deg=args.test_yaw,
         write_depth=args.depth,
         overwrite=args.overwrite,
         camera_distance=args.distance,
@@ -144,6 +173,14 @@ def run(args: argparse.Namespace) -> int:
     except FileExistsError as exc:  # --out holds something else: the command line must change
         raise UsageError(str(exc)) from exc
     print(f"wrote {result.num_views} views of {config.num_frames} frames to {result.out}")
+    summary = result.metadata["held_out"]["summary"]
+    if summary["frames"]:
+        pose, turn = summary["pose_rms_deg"], summary["orientation_deg"]
+        print(
+            f"held-out frames: {summary['frames']}; distance to the nearest training pose "
+            f"{pose['median']:.1f} deg RMS over the joints (median; max {pose['max']:.1f}), "
+            f"to the nearest training orientation {turn['median']:.1f} deg (median; max {turn['max']:.1f})"
+        )
     return 0
 
 

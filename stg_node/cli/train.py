@@ -1,7 +1,8 @@
 """``stg-train``: train an STG-Avatar on a monocular video with per-frame SMPL parameters.
 
-    stg-train --data DIR --format zju|synthetic|thuman|video --out RUN_DIR [--preset fast|balanced|quality]
-              [--smpl-model FILE] [--train-frames A:B] [--train-camera NAME] [--iters N]
+    stg-train --data DIR --format zju|synthetic|thuman|folder|video --out RUN_DIR
+              [--preset fast|balanced|quality] [--smpl-model FILE] [--train-frames A:B]
+              [--train-camera NAME] [--iters N]
               [--backend auto|cpu|cuda|torch] [--threads T] [--seed S] [--resume]
     stg-train --data VIDEO --format video --out RUN_DIR [--intrinsics FILE.json | --fov DEG] [...]
 

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from stg_node.body.params import LIMITS, magnitude_problem
 from stg_node.data.errors import DatasetError
 from stg_node.data.io import as_array, read_image, read_mask
 from stg_node.data.splits import MonocularProtocol, SplitSpec
@@ -48,16 +49,19 @@ def image_size(path: Path) -> tuple[int, int]:
 
 def smpl_from_arrays(*, poses, Rh, Th, betas, path, model: str = "smpl") -> SmplParams:
     """Validated :class:`SmplParams`: poses (24, 3) (72 values, or more: SMPL-H/X extras dropped)."""
-    poses = np.asarray(poses, dtype=np.float64).reshape(-1)
+    poses = np.asarray(as_array(poses, (np.size(poses),), path=path, name="poses")).reshape(-1)
     if poses.size < 72:
         raise DatasetError(path, f"poses has {poses.size} values", "72 (24 joints x 3 axis-angle)")
     poses = as_array(poses[:72], (24, 3), path=path, name="poses")
     Rh = as_array(Rh, (3,), path=path, name="Rh")
     Th = as_array(Th, (3,), path=path, name="Th")
-    betas = np.asarray(betas, dtype=np.float64).reshape(-1)
-    betas = as_array(betas, (betas.size,), path=path, name="shapes/betas")
+    betas = as_array(betas, (np.size(betas),), path=path, name="shapes/betas")
     if betas.size == 0:
         raise DatasetError(path, "shapes/betas is empty", "at least one shape coefficient")
+    for name, value in (("poses", poses), ("Rh", Rh), ("Th", Th), ("betas", betas)):
+        problem = magnitude_problem(name, value)
+        if problem:
+            raise DatasetError(path, problem, f"{name} within +-{LIMITS[name]:g}")
     return SmplParams(
         poses=poses.astype(np.float32),
         Rh=Rh.astype(np.float32),

@@ -25,7 +25,15 @@ import numpy as np
 
 from stg_node.data.base import SequenceDataset, smpl_from_arrays
 from stg_node.data.errors import DatasetError
-from stg_node.data.io import IMAGE_SUFFIXES, as_array, load_json, load_npz_arrays
+from stg_node.data.io import (
+    IMAGE_SUFFIXES,
+    as_array,
+    as_distortion,
+    as_rows,
+    as_size,
+    load_json,
+    load_npz_arrays,
+)
 from stg_node.data.splits import FrameRange, MonocularProtocol, SplitSpec
 from stg_node.data.types import SmplParams
 from stg_node.data.views import RawCamera
@@ -80,10 +88,20 @@ class FolderDataset(SequenceDataset):
             raise DatasetError(
                 cameras_path, "has no 'cameras' object", '{"cameras": {"name": {"K", "R", "t", ...}}}'
             )
+        for name, entry in cams.items():
+            if not isinstance(entry, dict):
+                raise DatasetError(
+                    cameras_path,
+                    f"camera {name!r} is {type(entry).__name__}, not an object",
+                    '{"K", "R", "t", ...}',
+                )
         self._cams = cams
         self.all_camera_names = list(cams)
         if self._fps_arg is None and "fps" in doc:
-            self.fps = float(doc["fps"])
+            fps = as_array(doc["fps"], (1,), path=cameras_path, name="fps")[0]
+            if fps <= 0:
+                raise DatasetError(cameras_path, f"fps is {fps}", "a positive frame rate")
+            self.fps = float(fps)
 
         single = len(cams) == 1
         self._images: dict[str, dict[int, Path]] = {}
@@ -132,6 +150,9 @@ class FolderDataset(SequenceDataset):
         missing = [k for k in ("poses", "Th", "betas") if k not in data]
         if missing:
             raise DatasetError(path, f"lacks {missing}", "arrays poses (N, 72), Th (N, 3), betas (10,)")
+        for key in ("poses", "Th", "Rh", "betas", "frames", "times"):
+            if key in data:
+                data[key] = as_rows(data[key], path=path, name=key)
         count = len(data["poses"])
         rows = data.get("frames")
         if rows is not None:
@@ -151,6 +172,11 @@ class FolderDataset(SequenceDataset):
                     "one row per frame (or a 'frames' array naming each row's frame)",
                 )
             rows = frames
+        betas = data["betas"]
+        if betas.ndim == 2 and len(betas) != count:
+            raise DatasetError(
+                path, f"betas has {len(betas)} rows but poses {count}", "(S,) or one row per frame"
+            )
         for key in ("Th", "Rh"):
             if key in data and len(data[key]) != count:
                 raise DatasetError(
@@ -183,16 +209,15 @@ class FolderDataset(SequenceDataset):
                 raise DatasetError(
                     where, f"camera {name!r} lacks {key!r}", "K, R, t, width, height (D optional)"
                 )
-        D = np.asarray(entry.get("D", np.zeros(5)), dtype=np.float64).reshape(-1)
-        D = as_array(D, (D.size,), path=where, name=f"{name}.D")
+        D = as_distortion(entry.get("D", np.zeros(5)), path=where, name=f"{name}.D")
         return RawCamera(
             name=name,
             K=as_array(entry["K"], (3, 3), path=where, name=f"{name}.K"),
             D=D,
             R=as_array(entry["R"], (3, 3), path=where, name=f"{name}.R"),
             t=as_array(entry["t"], (3,), path=where, name=f"{name}.t"),
-            width=int(entry["width"]),
-            height=int(entry["height"]),
+            width=as_size(entry["width"], path=where, name=f"{name}.width"),
+            height=as_size(entry["height"], path=where, name=f"{name}.height"),
         )
 
     def image_path(self, frame: int, camera: str) -> Path:

@@ -108,7 +108,7 @@ def load_npz_arrays(path: str | Path, expected: str) -> dict[str, np.ndarray]:
         ) from None
     except Exception as exc:
         raise DatasetError(
-            path, f"cannot be read ({type(exc).__name__}: {exc})", f"an .npz archive: {expected}"
+            path, f"cannot be read ({type(exc).__name__}: {short(exc)})", f"an .npz archive: {expected}"
         ) from exc
 
 
@@ -135,6 +135,49 @@ def as_array(
     array = array.reshape(shape)
     if not np.all(np.isfinite(array)):
         raise DatasetError(path, f"{name} contains NaN or infinite values", f"finite {name}")
+    return array
+
+
+#: OpenCV's distortion models: how many coefficients each takes (0: none).
+DISTORTION_COUNTS = (0, 4, 5, 8, 12, 14)
+
+
+def as_distortion(value: Any, *, path: str | Path, name: str) -> np.ndarray:
+    """OpenCV distortion coefficients: finite, and as many as one of its models takes."""
+    D = as_array(value, (np.size(value),), path=path, name=name)
+    if D.size not in DISTORTION_COUNTS:
+        raise DatasetError(
+            path, f"{name} has {D.size} coefficients", f"{name}: one of {DISTORTION_COUNTS} (OpenCV)"
+        )
+    return D
+
+
+def short(exc: BaseException, limit: int = 200) -> str:
+    """An exception as one short line (some, a damaged zip's, quote kilobytes of its bytes)."""
+    text = " ".join(str(exc).split())
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def as_size(value: Any, *, path: str | Path, name: str) -> int:
+    """An image dimension: a positive whole number, else an error naming ``path`` and ``name``."""
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        number = float("nan")
+    if not (np.isfinite(number) and number >= 1 and number == int(number) and number < 1e6):
+        raise DatasetError(path, f"{name} is {value!r}", f"{name} as a positive whole number of pixels")
+    return int(number)
+
+
+def as_rows(value: Any, *, path: str | Path, name: str) -> np.ndarray:
+    """An array with a leading axis of one row per frame (at least 1-D), else an error."""
+    array = np.asarray(value)
+    if array.ndim < 1 or array.dtype.kind not in "biuf":
+        raise DatasetError(
+            path,
+            f"{name} is a {array.dtype} array of shape {array.shape}",
+            f"{name}: numbers, one row per frame",
+        )
     return array
 
 

@@ -31,7 +31,7 @@ import numpy as np
 
 from stg_node.data.base import SequenceDataset, image_size, smpl_from_arrays
 from stg_node.data.errors import DatasetError
-from stg_node.data.io import as_array, load_json, load_npz_arrays
+from stg_node.data.io import as_array, as_size, load_json, load_npz_arrays
 from stg_node.data.splits import FrameRange, MonocularProtocol, SplitSpec
 from stg_node.data.types import SmplParams
 from stg_node.data.views import RawCamera
@@ -67,6 +67,13 @@ class THuman4Dataset(SequenceDataset):
             raise DatasetError(
                 calib_path, "is not a non-empty object", '{"cam00": {"K", "R", "T", "imgSize"}, ...}'
             )
+        for name, entry in calib.items():
+            if not isinstance(entry, dict):
+                raise DatasetError(
+                    calib_path,
+                    f"camera {name!r} is {type(entry).__name__}, not an object",
+                    '{"K", "R", "T", "imgSize"}',
+                )
         self._calib = calib
         self.all_camera_names = sorted(calib)
         params_path = self.root / "smpl_params.npz"
@@ -80,6 +87,11 @@ class THuman4Dataset(SequenceDataset):
         missing = [k for k in SMPLX_KEYS if k not in params]
         if missing:
             raise DatasetError(params_path, f"lacks {missing}", f"arrays {list(SMPLX_KEYS)}")
+        for key in SMPLX_KEYS:
+            if params[key].ndim < 1 or params[key].size == 0:
+                raise DatasetError(
+                    params_path, f"{key} has shape {params[key].shape}", f"{key}: one row per frame"
+                )
         count = len(params["global_orient"])
         for key in ("transl", "body_pose"):
             if len(params[key]) != count:
@@ -121,10 +133,16 @@ class THuman4Dataset(SequenceDataset):
         R = as_array(entry["R"], (3, 3), path=where, name=f"{name}.R")
         T = as_array(entry["T"], (3,), path=where, name=f"{name}.T")
         dist = next((entry[k] for k in ("D", "dist", "distCoeff", "distortion") if k in entry), None)
-        D = np.zeros(5) if dist is None else np.asarray(dist, dtype=np.float64).reshape(-1)
+        D = np.zeros(5) if dist is None else as_array(dist, (np.size(dist),), path=where, name=f"{name}.D")
         first = next((f for f in self.all_frames if self._has_view(f, name)), self.all_frames[0])
         width, height = image_size(self.image_path(first, name))
-        if "imgSize" in entry and [int(v) for v in entry["imgSize"]] != [width, height]:
+        size = entry.get("imgSize")
+        if size is not None and (not isinstance(size, list) or len(size) != 2):
+            raise DatasetError(where, f"camera {name} imgSize is {size!r}", "imgSize = [width, height]")
+        if size is not None and [as_size(v, path=where, name=f"{name}.imgSize") for v in size] != [
+            width,
+            height,
+        ]:
             raise DatasetError(
                 where,
                 f"camera {name} imgSize {entry['imgSize']} but its images are {width}x{height}",

@@ -32,7 +32,7 @@ import numpy as np
 
 from stg_node.data.base import SequenceDataset, image_size, smpl_from_arrays
 from stg_node.data.errors import DatasetError
-from stg_node.data.io import as_array, find_image, load_npy_dict, read_mask
+from stg_node.data.io import as_array, as_distortion, find_image, load_npy_dict, read_mask
 from stg_node.data.splits import FrameRange, MonocularProtocol, SplitSpec, zju_protocol
 from stg_node.data.types import SmplParams
 from stg_node.data.views import RawCamera
@@ -217,8 +217,7 @@ class ZJUMoCapDataset(SequenceDataset):
         i = self._cam_index[name]
         where = self.root / "annots.npy"
         K = as_array(self._cams_raw["K"][i], (3, 3), path=where, name=f"cams['K'][{i}]")
-        D = np.asarray(self._cams_raw["D"][i], dtype=np.float64).reshape(-1)
-        D = as_array(D, (D.size,), path=where, name=f"cams['D'][{i}]")
+        D = as_distortion(self._cams_raw["D"][i], path=where, name=f"cams['D'][{i}]")
         R = as_array(self._cams_raw["R"][i], (3, 3), path=where, name=f"cams['R'][{i}]")
         T = as_array(self._cams_raw["T"][i], (3,), path=where, name=f"cams['T'][{i}]") / 1000.0  # mm -> m
         if abs(np.linalg.det(R) - 1.0) > 1e-3:

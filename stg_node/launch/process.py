@@ -2,14 +2,22 @@
 
 Each process is the leader of a new session (``start_new_session``), so a terminal's Ctrl-C
 reaches only the launcher, which stops the nodes in order, and so signals sent to the group
-also reach anything the node started itself. On Linux the child also gets
-``PR_SET_PDEATHSIG`` (SIGTERM when the launcher dies, even by SIGKILL); nodes additionally watch
-their parent pid (stg_node.nodes.runtime). Nothing a node starts can outlive the launch.
+also reach anything the node started itself. When a process ends, what it left in its group
+is killed (a respawned node must not find its predecessor's helpers still running).
+
+A launcher killed outright (SIGKILL) cannot stop anything; three things stand in for it. The
+child gets ``PR_SET_PDEATHSIG`` (SIGTERM when the launcher dies), and then checks that its
+parent is still the launcher, since a launcher that died between the fork and that call would
+never send it; nodes also watch their parent pid (stg_node.nodes.runtime); and the launch guard
+(:mod:`.guard`), a separate process told of every group, stops the groups (grandchildren
+included, which the death signal never reaches) once the launcher is gone. Nothing a node
+starts can outlive the launch.
 """
 
 from __future__ import annotations
 
 import ctypes
+import functools
 import os
 import signal
 import subprocess
@@ -20,6 +28,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TextIO
 
+from stg_node.launch.guard import Guard
+
 PR_SET_PDEATHSIG = 1
 try:  # resolved here, not in the child: preexec_fn must not import or allocate much
     _prctl = ctypes.CDLL(None, use_errno=True).prctl if sys.platform.startswith("linux") else None
@@ -27,9 +37,13 @@ except (OSError, AttributeError):  # pragma: no cover - not glibc
     _prctl = None
 
 
-def _die_with_parent() -> None:
+def _die_with_parent(launcher_pid: int) -> None:
+    """preexec_fn (in the child, between fork and exec): SIGTERM when the launcher dies, and exit
+    now if it already has (then the death signal would never come)."""
     if _prctl is not None:
         _prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
+    if os.getppid() != launcher_pid:
+        os._exit(1)
 
 
 _COLORS = (36, 33, 32, 35, 34, 91, 92, 93, 94, 95, 96)
@@ -94,6 +108,9 @@ class ChildProcess:
     env: dict[str, str]
     cwd: str | None
     sink: OutputSink
+    guard: Guard | None = None  # told of each run's process group (stops it if the launcher dies)
+    grace_s: float = 5.0  # for the guard: SIGTERM to SIGKILL
+    standby: bool = False  # a standby copy: stdin is a pipe it waits on for "go" (stg_node.cli.node)
     popen: subprocess.Popen | None = None
     runs: list[RunRecord] = field(default_factory=list)
     _pumps: list[threading.Thread] = field(default_factory=list)
@@ -103,13 +120,15 @@ class ChildProcess:
             self.argv,
             env=self.env,
             cwd=self.cwd,
-            stdin=subprocess.DEVNULL,
+            stdin=subprocess.PIPE if self.standby else subprocess.DEVNULL,
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             start_new_session=True,
-            preexec_fn=_die_with_parent,
+            preexec_fn=functools.partial(_die_with_parent, os.getpid()),
         )
         self.runs.append(RunRecord(self.popen.pid, time.monotonic()))
+        if self.guard is not None:
+            self.guard.watch(self.popen.pid, self.grace_s)
         self._pumps = [
             threading.Thread(target=self._pump, args=(stream,), name=f"out-{self.name}", daemon=True)
             for stream in (self.popen.stdout, self.popen.stderr)
@@ -122,6 +141,34 @@ class ChildProcess:
         with stream:
             for raw in iter(stream.readline, b""):
                 self.sink.line(self.name, raw.decode("utf-8", "replace").rstrip("\r\n"))
+
+    # -- standby copies -------------------------------------------------------------------------------
+
+    def hand_over(self, respawns: int) -> bool:
+        """Tell a standby copy to take over as respawn ``respawns``; False if it cannot hear it."""
+        if not self.standby or not self.running:
+            return False
+        try:
+            self.popen.stdin.write(f"go {respawns}\n".encode())
+            self.popen.stdin.flush()
+            return True
+        except (OSError, ValueError):  # it died meanwhile
+            return False
+
+    def dismiss(self) -> None:
+        """A standby copy that is not needed: end of file on its stdin, and it exits."""
+        if self.standby and self.popen is not None and self.popen.stdin is not None:
+            try:
+                self.popen.stdin.close()
+            except OSError:
+                pass
+
+    def adopt(self, spare: ChildProcess) -> int:
+        """Make ``spare`` (a standby copy that was just handed over) this node's current run."""
+        spare.name = self.name  # its output from now on carries the node's own prefix
+        self.popen, self._pumps = spare.popen, spare._pumps
+        self.runs.append(RunRecord(self.popen.pid, time.monotonic()))
+        return self.popen.pid
 
     @property
     def pid(self) -> int | None:
@@ -139,6 +186,9 @@ class ChildProcess:
         if code is not None and self.runs and self.runs[-1].returncode is None:
             self.runs[-1].returncode = code
             self.runs[-1].ended = time.monotonic()
+            self.signal_group(signal.SIGKILL)  # what it started and left behind
+            if self.guard is not None:
+                self.guard.forget(self.popen.pid)
             for pump in self._pumps:  # let the last lines out before anyone reports the exit
                 pump.join(timeout=1.0)
         return code

@@ -65,6 +65,11 @@ class NodeEntry:
     respawn_delay: float = param(1.0, min=0.0, unit="s", doc="first restart delay; doubles per failure")
     respawn_max_delay: float = param(30.0, min=0.0, unit="s", doc="longest restart delay")
     max_respawns: int = param(-1, min=-1, doc="restarts allowed (-1: no limit)")
+    standby: bool = param(
+        False,
+        doc="kind nodes with respawn: keep a second copy started and prepared (imports done), waiting; "
+        "a respawn hands over to it at once (costs that copy's memory)",
+    )
     required: bool = param(False, doc="when this node ends (after any respawns), the launch ends")
     after: list[str] = param([], doc="start only when these nodes are ready")
     ready: str = param(
@@ -405,6 +410,11 @@ class _Reader:
             )
         if entry.kind is None and entry.ack:
             raise doc.error((*key, "ack"), f"{label}: ack is for kind nodes (their runtime sends the Acks)")
+        if entry.standby and (entry.kind is None or not entry.respawn):
+            raise doc.error(
+                (*key, "standby"),
+                f"{label}: standby is for kind nodes with respawn: true (it takes over on a respawn)",
+            )
         if not NAMESPACE_PATTERN.match(entry.namespace):
             raise doc.error(
                 (*key, "namespace"), f"{label}: namespace {entry.namespace!r} is not a valid topic prefix"
@@ -489,6 +499,8 @@ def read_launch(path: str | Path, overrides: dict[str, str] | None = None) -> La
         raise doc.error(("bus",), f"bus: {exc}") from None
     for spec in reader.nodes:
         spec.namespace = _join_ns(section.namespace, spec.namespace)
+    if not reader.nodes and not reader.skipped:  # an empty or cut-off file: say so, do not run nothing
+        raise doc.error(("nodes",), "nothing to launch: the file (and its includes) lists no nodes")
     _check_graph(reader.nodes, set(reader.skipped))
     return LaunchSpec(
         path=path,

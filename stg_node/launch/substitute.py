@@ -1,6 +1,6 @@
 """Substitutions in launch-file strings: ``$(arg NAME)``, ``$(env NAME [DEFAULT])``, ``$(exists PATH)``,
-``$(nonempty TEXT)``, ``$(dirname)``, ``$(python)``. They nest (``$(exists $(arg out)/subject)``);
-inner ones first.
+``$(nonempty TEXT)``, ``$(nonzero NUMBER)``, ``$(dirname)``, ``$(python)``.
+They nest (``$(exists $(arg out)/subject)``); inner ones first.
 
 | form | value |
 |---|---|
@@ -8,6 +8,7 @@ inner ones first.
 | ``$(env NAME)`` / ``$(env NAME DEFAULT)`` | an environment variable; an error if unset and no default |
 | ``$(exists PATH)`` | ``true`` if the file or folder exists, else ``false`` (for ``if:`` / ``unless:``) |
 | ``$(nonempty TEXT)`` | ``true`` if TEXT is not empty, else ``false``: ``if: $(nonempty $(arg record))`` |
+| ``$(nonzero NUMBER)`` | ``true`` if NUMBER is a number but 0, else ``false``: ``if: $(nonzero $(arg x))`` |
 | ``$(dirname)`` | the folder of the launch file being read (for paths relative to it) |
 | ``$(python)`` | the Python interpreter running stg-launch |
 """
@@ -78,12 +79,21 @@ def _evaluate(expr: str, scope: Scope) -> str:
         return "true" if path.exists() else "false"
     if verb == "nonempty":
         return "true" if rest else "false"
+    if verb == "nonzero":
+        if len(rest) > 1:
+            raise SubstitutionError(f"$(nonzero NUMBER) takes one number, got $({expr})")
+        if not rest:
+            return "false"
+        try:
+            return "true" if float(rest[0]) != 0 else "false"
+        except ValueError:
+            raise SubstitutionError(f"$(nonzero NUMBER): {rest[0]!r} is not a number") from None
     if verb == "dirname":
         return str(scope.dirname)
     if verb == "python":
         return sys.executable
     raise SubstitutionError(
-        f"unknown substitution $({expr}); use arg, env, exists, nonempty, dirname or python"
+        f"unknown substitution $({expr}); use arg, env, exists, nonempty, nonzero, dirname or python"
     )
 
 

@@ -7,12 +7,15 @@
   NodeStatus heartbeat (kind nodes, matched by name and pid), when started, when it exited 0
   (``ready: exit``, one-shot steps), when a file exists, or after a delay;
 - restarts a failed node with ``respawn`` (delay doubling from ``respawn_delay`` up to
-  ``respawn_max_delay``; back to the first delay after a run longer than that);
+  ``respawn_max_delay``; back to the first delay after a run longer than that); with ``standby``
+  it keeps a second copy of the node started and prepared (its imports done), waiting on a pipe,
+  and a respawn hands over to it at once instead of starting a process from nothing;
 - ends the launch when a ``required`` node ends, when a node fails that others wait for, or
   when nothing is left running;
 - on SIGINT/SIGTERM (or the end) stops every node: SIGINT to its process group, SIGTERM after
   ``sigint_timeout``, SIGKILL after ``sigterm_timeout``; a second Ctrl-C skips to SIGTERM, a
-  third to SIGKILL; finally every process group is killed so no grandchild survives.
+  third to SIGKILL; finally every process group is killed so no grandchild survives;
+- keeps a guard process (:mod:`.guard`) that stops every group if the launcher itself is killed.
 
 The exit code: 0 when every node ended well, 1 when a node failed (exited non-zero and was not
 respawned, never became ready, or had to be killed), 2 is the CLI's for bad usage or files.
@@ -31,9 +34,10 @@ from pathlib import Path
 import stg_node
 from stg_node.bus import Broker, BrokerRunning, Subscriber
 from stg_node.bus.messages import NodeStatus
+from stg_node.launch.guard import Guard
 from stg_node.launch.process import ChildProcess, OutputSink
 from stg_node.launch.spec import LaunchSpec, NodeSpec
-from stg_node.nodes.runtime import ENV_LAUNCH_FILE, ENV_PARENT_PID, ENV_RESPAWN
+from stg_node.nodes.runtime import ENV_LAUNCH_FILE, ENV_PARENT_PID, ENV_RESPAWN, ENV_STANDBY
 
 log = logging.getLogger("stg_node.launch")
 
@@ -54,6 +58,8 @@ class NodeState:
     next_start: float = 0.0
     started_at: float = 0.0
     problems: list[str] = field(default_factory=list)
+    spare: ChildProcess | None = None  # the standby copy (``standby: true``), prepared and waiting
+    spare_due: float = float("inf")  # when to start the next standby copy
 
     @property
     def name(self) -> str:
@@ -70,11 +76,12 @@ class Launcher:
         self.states = [NodeState(n) for n in spec.nodes]
         self._by_name = {s.name: s for s in self.states}
         self._signals = 0
-        self._signal_lock = threading.Lock()
+        self._signal_lock = threading.RLock()  # taken in a signal handler: must be re-entrant
         self._ending: str | None = None
         self._failed = False
         self._broker: Broker | None = None
         self._status: Subscriber | None = None
+        self._guard: Guard | None = None
 
     # -- signals ------------------------------------------------------------------------------------
 
@@ -99,6 +106,7 @@ class Launcher:
             previous = {s: signal.signal(s, self._on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
         started = time.monotonic()
         try:
+            self._guard = Guard()
             self._open_bus()
             self._loop()
         except BrokerRunning as exc:
@@ -112,6 +120,9 @@ class Launcher:
                 self._shutdown()
             finally:
                 self._close_bus()
+                if self._guard is not None:
+                    self._guard.close()
+                    self._guard = None
                 for sig, handler in previous.items():
                     signal.signal(sig, handler)
         self._summary(time.monotonic() - started)
@@ -149,6 +160,8 @@ class Launcher:
                 self._check_ready(state, now)
             for state in self.states:
                 self._maybe_start(state, now)
+            for state in self.states:
+                self._keep_spare(state, now)
             if self._ending is None and all(s.phase in ("done", "failed") for s in self.states):
                 self._ending = "every node has ended"
             time.sleep(LOOP_S)
@@ -169,6 +182,55 @@ class Launcher:
     def _mark_ready(self, state: NodeState) -> None:
         state.ready = True
         log.info("%s is ready (%.1f s)", state.name, time.monotonic() - state.started_at)
+        if state.spec.standby and state.spare is None:
+            state.spare_due = min(state.spare_due, time.monotonic())  # prepared while the node runs
+
+    # -- standby copies -------------------------------------------------------------------------------
+
+    def _keep_spare(self, state: NodeState, now: float) -> None:
+        """Start a node's standby copy when due; notice one that died (and start another later)."""
+        if not state.spec.standby or self._ending is not None:
+            return
+        spare = state.spare
+        if spare is not None and spare.poll() is not None:
+            log.warning(
+                "%s: its standby copy (pid %d) ended (exit %s)", state.name, spare.pid, spare.popen.returncode
+            )
+            state.spare = None
+            state.spare_due = now + max(state.spec.respawn_delay, 5.0)
+        if state.spare is None and now >= state.spare_due and state.phase == "running" and state.ready:
+            spec = state.spec
+            env = {**self._env(spec), ENV_STANDBY: "1"}
+            spare = ChildProcess(
+                f"{spec.name}*",
+                spec.command(self.spec.bus),
+                env,
+                spec.cwd,
+                self.sink,
+                guard=self._guard,
+                grace_s=spec.sigint_timeout + spec.sigterm_timeout,
+                standby=True,
+            )
+            try:
+                pid = spare.start()
+            except OSError as exc:
+                log.warning("%s: cannot start a standby copy: %s", spec.name, exc)
+                state.spare_due = now + 30.0
+                return
+            state.spare, state.spare_due = spare, float("inf")
+            log.info("started %s's standby copy: pid %d", spec.name, pid)
+
+    def _take_over(self, state: NodeState) -> int | None:
+        """Hand the node over to its standby copy; its pid, or None if there is none to take it."""
+        spare, state.spare = state.spare, None
+        if spare is None or not spare.hand_over(state.respawns):
+            if spare is not None:
+                spare.dismiss()
+                spare.signal_group(signal.SIGKILL)
+                spare.poll()
+            return None
+        state.spare_due = float("inf")  # the next copy once this one is ready
+        return state.proc.adopt(spare)
 
     def _deps_ready(self, state: NodeState) -> bool:
         for dep in state.spec.after:
@@ -201,18 +263,30 @@ class Launcher:
         spec = state.spec
         argv = spec.command(self.spec.bus)
         if state.proc is None:
-            state.proc = ChildProcess(spec.name, argv, self._env(spec), spec.cwd, self.sink)
+            state.proc = ChildProcess(
+                spec.name,
+                argv,
+                self._env(spec),
+                spec.cwd,
+                self.sink,
+                guard=self._guard,
+                grace_s=spec.sigint_timeout + spec.sigterm_timeout,
+            )
         state.proc.env[ENV_RESPAWN] = str(state.respawns)
-        try:
-            pid = state.proc.start()
-        except OSError as exc:
-            self._fail(state, f"cannot start {argv[0]!r}: {exc}")
-            return
+        pid = self._take_over(state) if state.respawns else None
+        took_over = pid is not None
+        if not took_over:
+            try:
+                pid = state.proc.start()
+            except OSError as exc:
+                self._fail(state, f"cannot start {argv[0]!r}: {exc}")
+                return
         state.phase = "running"
         state.ready = spec.ready == "started"
         state.started_at = state.proc.runs[-1].started  # the process's own start: delays count from it
         again = f" (respawn {state.respawns})" if state.respawns else ""
-        log.info("started %s%s: pid %d", spec.name, again, pid)
+        how = "handed over to its standby copy" if took_over else "started"
+        log.info("%s %s%s: pid %d", how, spec.name, again, pid)
 
     def _check_ready(self, state: NodeState, now: float) -> None:
         if state.phase != "running" or state.ready:
@@ -286,6 +360,10 @@ class Launcher:
     def _shutdown(self) -> None:
         """SIGINT to every running node; each one that outlives its own sigint_timeout gets SIGTERM,
         then SIGKILL after its sigterm_timeout. Another Ctrl-C moves everyone one step on."""
+        for state in self.states:  # standby copies first: nothing will take over any more
+            if state.spare is not None:
+                state.spare.dismiss()
+                state.spare.signal_group(signal.SIGTERM)
         running = self._running()
         if running:
             log.info("stopping %s", ", ".join(s.name for s in running))
@@ -320,6 +398,10 @@ class Launcher:
                 break
             time.sleep(LOOP_S)
         for state in self.states:  # whatever the nodes left behind in their groups
+            if state.spare is not None:
+                state.spare.signal_group(signal.SIGKILL)
+                state.spare.poll()
+                state.spare = None
             if state.proc is not None:
                 state.proc.signal_group(signal.SIGKILL)
                 code = state.proc.poll()

@@ -52,6 +52,45 @@ class Located:
         return LaunchFileError(self.path, self.line(key), problem)
 
 
+#: A launch file is a few hundred values; YAML aliases can make a small file expand to billions
+#: (an "alias bomb"), which everything that walks the document would then walk. Refused beyond this.
+MAX_VALUES = 100_000
+#: Deeper than this is not a launch file (and would exhaust Python's recursion further on).
+MAX_DEPTH = 64
+
+
+def _expanded_size(node: yaml.Node, path: Path) -> int:
+    """How many values ``node`` stands for once its aliases are expanded (shared nodes counted once
+    per use, computed once per node); a LaunchFileError past MAX_VALUES or MAX_DEPTH."""
+    sizes: dict[int, int] = {}
+    stack: list[tuple[yaml.Node, int, bool]] = [(node, 0, False)]
+    while stack:
+        current, depth, children_done = stack.pop()
+        if id(current) in sizes:
+            continue
+        if depth > MAX_DEPTH:
+            raise LaunchFileError(path, current.start_mark.line + 1, f"nested deeper than {MAX_DEPTH} levels")
+        if isinstance(current, yaml.MappingNode):
+            children = [n for pair in current.value for n in pair]
+        elif isinstance(current, yaml.SequenceNode):
+            children = list(current.value)
+        else:
+            children = []
+        if not children_done and any(id(c) not in sizes for c in children):
+            stack.append((current, depth, True))
+            stack.extend((c, depth + 1, False) for c in children if id(c) not in sizes)
+            continue
+        sizes[id(current)] = 1 + sum(sizes[id(c)] for c in children)
+        if sizes[id(current)] > MAX_VALUES:
+            raise LaunchFileError(
+                path,
+                current.start_mark.line + 1,
+                f"expands to more than {MAX_VALUES} values (YAML aliases repeating aliases?); "
+                "a launch file is a few hundred",
+            )
+    return sizes[id(node)]
+
+
 def _walk(node: yaml.Node, key: Key, lines: dict, path: Path) -> None:
     lines[key] = node.start_mark.line + 1
     if isinstance(node, yaml.MappingNode):
@@ -78,9 +117,14 @@ def load_text(text: str, path: str | Path) -> Located:
         node = loader.get_single_node()
         if node is None:
             return Located(path, None, {(): 1})
+        _expanded_size(node, path)  # before anything walks it
         lines: dict = {}
         _walk(node, (), lines, path)
         data = loader.construct_document(node)
+    except RecursionError:  # PyYAML composes recursively: a document nested thousands deep
+        raise LaunchFileError(
+            path, None, f"not valid YAML: nested far deeper than {MAX_DEPTH} levels"
+        ) from None
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark or exc.context_mark
         line = mark.line + 1 if mark is not None else None

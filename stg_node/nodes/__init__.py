@@ -11,6 +11,8 @@ Each node is its own OS process, started by ``stg-launch`` or by hand:
 | trainer | :mod:`.trainer` | trains the avatar online; avatar/snapshot, trainer/metrics, checkpoints |
 | renderer | :mod:`.renderer` | renders avatar/view requests or default views on avatar/image |
 | recorder | :mod:`.recorder` | records the bus into an MCAP file (stg-bag record as a node) |
+| foxglove | :mod:`.foxglove_bridge` | serves the bus live to Foxglove (Foxglove WebSocket, foxglove-sdk) |
+| web | :mod:`.web` | serves a page: the live avatar for a robot's screen, an operator view |
 
 :mod:`.runtime` is the node base class and event loop, :mod:`.params` the typed parameters.
 Node modules import heavy packages (torch, OpenCV, depthai) only when a node starts, so that
@@ -28,6 +30,8 @@ NODE_KINDS = {
     "trainer": "stg_node.nodes.trainer:TrainerNode",
     "renderer": "stg_node.nodes.renderer:RendererNode",
     "recorder": "stg_node.nodes.recorder:RecorderNode",
+    "foxglove": "stg_node.nodes.foxglove_bridge:FoxgloveNode",
+    "web": "stg_node.nodes.web:WebNode",
 }
 
 

@@ -8,7 +8,9 @@ fake in the tests (tests/nodes/fake_avatar.py).
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
+import inspect
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -68,10 +70,10 @@ class TrainerAdapter:
         max_frames: int = 64,
     ) -> TrainerAdapter:
         avatar = avatar_module(module)
-        config = avatar.preset(preset)
-        trainer = avatar.Trainer(
-            config, body_model=body_model, device=device, backend=backend, seed=seed, max_frames=max_frames
-        )
+        # The frame store's bound lives in the config, the one thing a checkpoint keeps: a trainer
+        # resumed from one is bounded as the one that wrote it.
+        config = dataclasses.replace(avatar.preset(preset), max_frames=int(max_frames))
+        trainer = avatar.Trainer(config, body_model=body_model, device=device, backend=backend, seed=seed)
         return cls(trainer, avatar)
 
     @classmethod
@@ -80,6 +82,20 @@ class TrainerAdapter:
     ):
         avatar = avatar_module(module)
         return cls(avatar.Trainer.load(str(path), device=device, backend=backend), avatar)
+
+    @property
+    def iteration(self) -> int:
+        return int(self._trainer.iteration)
+
+    @property
+    def max_frames(self) -> int:
+        """Frames the trainer keeps at most (0: no bound), as its config says."""
+        return int(self._trainer.config.max_frames)
+
+    @property
+    def notes(self) -> dict[str, float]:
+        """What :meth:`save` kept beside the model (the node's wall time), restored by :meth:`load`."""
+        return dict(self._trainer.notes)
 
     def add_frame(self, *, index: int, time: float, image, mask, camera: Camera, smpl: SmplParams) -> None:
         frame = self._module.TrainFrame(
@@ -99,12 +115,22 @@ class TrainerAdapter:
             skipped=bool(r.skipped),
         )
 
+    def model_stats(self) -> dict[str, float]:
+        """Figures of the model now (``active_motion_fraction``, ...) when the implementation
+        reports them (``stats()``); numbers only."""
+        stats = getattr(self._trainer, "stats", None)
+        if stats is None:
+            return {}
+        return {str(k): float(v) for k, v in stats().items() if isinstance(v, (int, float))}
+
     def snapshot(self, version: int) -> GaussianSnapshot:
         msg = self._trainer.snapshot()
         msg.model_version = int(version)
         return msg
 
-    def save(self, path: str | Path) -> None:
+    def save(self, path: str | Path, notes: dict[str, float] | None = None) -> None:
+        """A checkpoint at ``path`` holding ``notes`` too (one file: they cannot disagree)."""
+        self._trainer.notes = {str(k): float(v) for k, v in (notes or {}).items()}
         self._trainer.save(str(path))
 
     def evaluate(self, data: str | Path) -> dict:
@@ -123,12 +149,21 @@ class TrainerAdapter:
         }
 
 
+def _accepts(fn, name: str) -> bool:
+    """Whether ``fn`` takes the keyword ``name`` (optional parts of the avatar API)."""
+    try:
+        return name in inspect.signature(fn).parameters
+    except (TypeError, ValueError):
+        return False
+
+
 class RendererAdapter:
     """Renders one snapshot for any camera and pose."""
 
     def __init__(self, renderer, version: int):
         self._renderer = renderer
         self.version = version
+        self._streams = _accepts(renderer.render, "stream")
 
     @classmethod
     def from_snapshot(
@@ -138,16 +173,32 @@ class RendererAdapter:
         module: str = DEFAULT_MODULE,
         device: str = "cpu",
         backend: str = "auto",
+        color_refresh_every: int = 1,
+        light: str = "learned",
     ) -> RendererAdapter:
         avatar = avatar_module(module)
-        return cls(
-            avatar.AvatarRenderer.from_snapshot(msg, device=device, backend=backend), msg.model_version
-        )
+        load = avatar.AvatarRenderer.from_snapshot
+        options = {}
+        if _accepts(load, "color_refresh_every"):
+            options["color_refresh_every"] = color_refresh_every
+        if light != "learned":  # the default needs nothing of a plug-in avatar package
+            from stg_node.avatar.shading import parse_light
+
+            options["light"] = parse_light(light)
+        return cls(load(msg, device=device, backend=backend, **options), msg.model_version)
 
     def render(
-        self, camera: Camera, smpl: SmplParams, time: float | None = None, background=(0, 0, 0)
+        self,
+        camera: Camera,
+        smpl: SmplParams,
+        time: float | None = None,
+        background=(0, 0, 0),
+        stream: str | None = None,
     ) -> RenderOutput:
-        out = self._renderer.render(camera, smpl, time=time, background=background)
+        """``stream`` names a live stream (one camera following the body) whose colours the avatar
+        may carry between frames; None (one-shot requests) renders exactly."""
+        extra = {"stream": stream} if self._streams and stream is not None else {}
+        out = self._renderer.render(camera, smpl, time=time, background=background, **extra)
         return RenderOutput(
             image=np.ascontiguousarray(out.image, dtype=np.uint8),
             alpha=None if out.alpha is None else np.ascontiguousarray(out.alpha, dtype=np.uint8),
@@ -165,3 +216,18 @@ class RendererAdapter:
             return None
         points = np.asarray(posed(smpl, time), np.float64).reshape(-1, 3)
         return points if len(points) and np.all(np.isfinite(points)) else None
+
+    def points(
+        self, smpl: SmplParams, time: float | None = None, camera_center=None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The posed avatar as coloured points: positions (N, 3) float32 world, colours (N, 3)
+        uint8, opacities (N,) uint8; None when the implementation has no ``points``."""
+        points = getattr(self._renderer, "points", None)
+        if points is None:
+            return None
+        out = points(smpl, time=time, camera_center=camera_center)
+        return (
+            np.ascontiguousarray(out.positions, np.float32).reshape(-1, 3),
+            np.ascontiguousarray(out.colors, np.uint8).reshape(-1, 3),
+            np.ascontiguousarray(out.alpha, np.uint8).reshape(-1),
+        )

@@ -6,7 +6,9 @@
   counted and the previous one stays. When the trainer dies the last snapshot keeps serving.
 - ViewRequests (avatar/view): ``follow_live`` ones are standing views (one per requesting
   source, the latest request replacing the previous), rendered with every new body/pose;
-  the others are one-shot renders of the pose they carry, served first.
+  the others are one-shot renders of the pose they carry, served first. Each standing view
+  and default view is a stream whose colours are recomputed in turns (``color_refresh``;
+  stg_node/avatar/color_cache.py); one-shot renders are exact.
 - With no standing view, the default views (``default_view``): the training camera (from
   camera/frame) and/or an orbit around the body, alternating when both.
 - Renders at most ``max_rate_hz`` (on a new pose), at least ``idle_rate_hz`` (last pose again).
@@ -33,7 +35,7 @@ import numpy as np
 
 from stg_node.bus import BodyPose, Frame, GaussianSnapshot, RenderedImage, ViewRequest
 from stg_node.data.types import Camera, SmplParams
-from stg_node.nodes.avatar_adapter import DEFAULT_MODULE, RendererAdapter
+from stg_node.nodes.avatar_adapter import DEFAULT_MODULE, RendererAdapter, avatar_module
 from stg_node.nodes.convert import frame_camera, request_camera, request_smpl, resized_camera
 from stg_node.nodes.params import param
 from stg_node.nodes.runtime import Node
@@ -45,6 +47,11 @@ class RendererParams:
     avatar: str = param(DEFAULT_MODULE, doc="package implementing the avatar API (tests: a fake)")
     device: str = param("cpu", doc="torch device")
     backend: str = param("auto", doc="rasterizer backend: auto (the best available), cpu, cuda, torch")
+    light: str = param(
+        "learned",
+        doc="light of an avatar with shading: learned (fixed in the world), baked (turns with the body), "
+        "albedo, 27 comma-separated SH numbers, or a JSON file (docs/AVATAR.md)",
+    )
     size: int = param(256, min=8, max=4096, unit="px", doc="default views: longer side")
     default_view: Literal["train", "orbit", "both", "none"] = param(
         "both", doc="what to render when nobody asks"
@@ -58,6 +65,13 @@ class RendererParams:
         0.0, min=0.0, unit="s", doc="forget a standing view not renewed for this long (0: never)"
     )
     max_oneshot: int = param(64, min=1, doc="one-shot requests queued at most (the oldest are dropped)")
+    color_refresh: int = param(
+        2,
+        min=1,
+        max=16,
+        doc="live views: recompute each Gaussian's colour every Nth frame, in turns (1: every frame; "
+        "one-shot requests are always exact)",
+    )
     record_dir: str = param("", doc="write default-view images here, and an MP4 + contact sheet at the end")
     record_every: int = param(1, min=1, doc="record every Nth default-view image")
     video_fps: float = param(15.0, min=1.0, unit="Hz", doc="frame rate of the recorded MP4")
@@ -134,11 +148,26 @@ class RendererNode(Node):
     kind = "renderer"
     Params = RendererParams
 
+    @classmethod
+    def prepare(cls, params: RendererParams) -> None:
+        from stg_node.threads import configure_threads
+
+        configure_threads()
+        avatar_module(params.avatar)  # torch and the avatar package
+        if params.device == "cpu" and params.backend in ("auto", "cpu"):
+            from stg_node.splat.build import load_kernels
+
+            load_kernels()  # the rasterizer's compiled kernels (built once, cached)
+
     def setup(self) -> None:
         from stg_node.threads import configure_threads
 
         configure_threads()
         p = self.params
+        if p.light != "learned":
+            from stg_node.avatar.shading import parse_light
+
+            parse_light(p.light)  # a bad light stops the node at start, with the reason
         self.current: RendererAdapter | None = None
         self.loader = SnapshotLoader(self._build, self._load_failed)
         self.pose: BodyPose | None = None
@@ -168,7 +197,14 @@ class RendererNode(Node):
 
     def _build(self, msg: GaussianSnapshot) -> RendererAdapter:
         p = self.params
-        return RendererAdapter.from_snapshot(msg, module=p.avatar, device=p.device, backend=p.backend)
+        return RendererAdapter.from_snapshot(
+            msg,
+            module=p.avatar,
+            device=p.device,
+            backend=p.backend,
+            color_refresh_every=p.color_refresh,
+            light=p.light,
+        )
 
     def _load_failed(self, msg: GaussianSnapshot, exc: Exception) -> None:
         self.drop("bad_snapshot")
@@ -236,8 +272,9 @@ class RendererNode(Node):
         pose_seq: int,
         request: ViewRequest | None,
         record_label: str = "",
+        stream: str | None = None,
     ) -> None:
-        out = self.current.render(camera, smpl, time=time_s)
+        out = self.current.render(camera, smpl, time=time_s, stream=stream)
         image = RenderedImage(
             request_id=request.request_id if request is not None else -1,
             request_src=request.header.src if request is not None else "",
@@ -324,12 +361,13 @@ class RendererNode(Node):
         smpl = pose.to_smpl()
         common = {"time_s": pose.time, "source_stamp_ns": pose.header.stamp_ns, "pose_seq": pose.header.seq}
         if self.standing:
-            for view in list(self.standing.values()):
+            for src, view in list(self.standing.items()):
                 req = view.request
-                self._publish(request_camera(req), smpl, request=req, **common)
+                self._publish(request_camera(req), smpl, request=req, stream=f"view:{src}", **common)
         else:
             for camera, label in self._default_cameras():
-                self._publish(camera, smpl, request=None, record_label=label, **common)
+                stream = "default:" + label.split()[0]  # "train", or "orbit" (its angle moves on)
+                self._publish(camera, smpl, request=None, record_label=label, stream=stream, **common)
 
     def _due(self, now: float) -> bool:
         p = self.params

@@ -52,6 +52,9 @@ ENV_PARENT_PID = "STG_LAUNCH_PID"
 ENV_RESPAWN = "STG_RESPAWN"
 #: Set by stg-launch: the launch file that started this node (the recorder stores it).
 ENV_LAUNCH_FILE = "STG_LAUNCH_FILE"
+#: Set by stg-launch on a standby copy (a node's ``standby: true``): prepare, then wait on stdin
+#: for ``go RESPAWNS`` (take over) or end of file (not needed); see stg_node.cli.node.
+ENV_STANDBY = "STG_STANDBY"
 #: How long the event loop waits at most before looking at the stop flag again.
 POLL_S = 0.1
 #: In ``ack``: acknowledge messages of every topic the node subscribes.
@@ -264,6 +267,11 @@ class Node:
                 self.stop_signals.event.wait(wait)
 
     # -- hooks --------------------------------------------------------------------------------------
+
+    @classmethod
+    def prepare(cls, params) -> None:
+        """Do ahead what does not need the bus (import torch, the avatar package, load kernels):
+        a standby copy runs this while it waits, so when it takes over its setup is short."""
 
     def setup(self) -> None:
         """Subscribe, open files and models. The node counts as ready when this returns."""

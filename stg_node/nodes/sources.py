@@ -57,8 +57,11 @@ class Calibration:
             K = np.asarray(data["K"], np.float64).reshape(3, 3)
             R = np.asarray(data.get("R", np.eye(3)), np.float64).reshape(3, 3)
             t = np.asarray(data.get("t", np.zeros(3)), np.float64).reshape(3)
-        except (OSError, ValueError, KeyError, TypeError) as exc:
+        except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
             raise SourceError(f"{path}: not a calibration file (JSON with K, optional R, t): {exc}") from exc
+        problem = calibration_problem(K, R, t)
+        if problem:
+            raise SourceError(f"{path}: {problem}")
         return cls(K, R, t)
 
     @classmethod
@@ -70,6 +73,18 @@ class Calibration:
 
     def camera(self, width: int, height: int, name: str = "") -> Camera:
         return Camera(K=self.K, R=self.R, t=self.t, width=width, height=height, name=name)
+
+
+def calibration_problem(K: np.ndarray, R: np.ndarray, t: np.ndarray) -> str:
+    """What is wrong with a pinhole calibration (empty: nothing): every frame carries it, and a
+    NaN or a mirrored camera would only show up later as a broken avatar."""
+    if not (np.all(np.isfinite(K)) and np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+        return "K, R and t must be finite numbers"
+    if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0, 0, 1]) or K[1, 0] != 0:
+        return "K must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0"
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:
+        return "R must be a rotation (orthonormal, determinant +1)"
+    return ""
 
 
 def parse_frame_range(text: str):

@@ -15,8 +15,11 @@
   the trainer and, with ``steps_per_frame``, once its N steps are done (and their metrics out).
 - avatar/snapshot every ``snapshot_every`` iterations and/or ``snapshot_every_s`` seconds, and at
   the end (latched by the broker: a renderer started later gets it at once).
-- Checkpoints to ``checkpoint_dir`` every ``checkpoint_every_s`` s and at the end, atomically
-  (write, then rename); when respawned with ``resume`` it continues from the last checkpoint.
+- Checkpoints to ``checkpoint_dir``/trainer.ckpt every ``checkpoint_every_s`` s and at the end,
+  atomically (write, then rename): one file holds the model, the optimiser, the frame store's
+  bound (``max_frames``, in the avatar's config) and the node's own numbers (its wall time), so
+  no two files can disagree after a kill. When respawned with ``resume`` it continues from the
+  last checkpoint, iteration and bound included.
 - Ends on its own after ``iters`` iterations (0: never), writing ``out``/summary.json: the
   training-view PSNR as a running mean over the last ``PSNR_WINDOW`` steps (one step's crop swings
   by several dB from frame to frame), and, with ``eval_data``, the final model's quality on that
@@ -37,13 +40,12 @@ from pathlib import Path
 from typing import Literal
 
 from stg_node.bus import TrainerMetrics
-from stg_node.nodes.avatar_adapter import DEFAULT_MODULE, StepInfo, TrainerAdapter
+from stg_node.nodes.avatar_adapter import DEFAULT_MODULE, StepInfo, TrainerAdapter, avatar_module
 from stg_node.nodes.convert import frame_camera
 from stg_node.nodes.params import param
 from stg_node.nodes.runtime import Node
 
 CHECKPOINT_NAME = "trainer.ckpt"
-STATE_NAME = "trainer.json"
 PSNR_WINDOW = 100  # steps the summary's training-view PSNR is averaged over
 
 
@@ -136,6 +138,18 @@ class TrainerNode(Node):
     kind = "trainer"
     Params = TrainerParams
 
+    @classmethod
+    def prepare(cls, params: TrainerParams) -> None:
+        from stg_node.threads import configure_threads
+
+        configure_threads()
+        avatar_module(params.avatar)  # torch and the avatar package
+        import torch
+
+        # torch.optim imports torch._dynamo on the first optimiser it builds: seconds on a busy
+        # machine, which a resumed trainer would otherwise spend before its first step
+        torch.optim.Adam([torch.zeros(1, requires_grad=True)])
+
     def setup(self) -> None:
         from stg_node.threads import configure_threads
 
@@ -149,9 +163,8 @@ class TrainerNode(Node):
             self.trainer = TrainerAdapter.load(
                 self.checkpoint, module=p.avatar, device=p.device, backend=p.backend
             )
-            state = self._read_state()
-            self.elapsed_before = float(state.get("elapsed_s", 0.0))
-            self.iteration = int(state.get("iteration", 0))
+            self.elapsed_before = float(self.trainer.notes.get("elapsed_s", 0.0))
+            self.iteration = self.trainer.iteration
             self.resumed_from = str(self.checkpoint)
             self.log.info("resumed from %s at iteration %d", self.checkpoint, self.iteration)
         else:
@@ -174,6 +187,7 @@ class TrainerNode(Node):
         self.last: StepInfo | None = None
         self.recent_psnr: deque[float] = deque(maxlen=PSNR_WINDOW)  # training view, per step
         self.published_version = -1
+        self.model_figures: dict[str, float] = {}  # active_motion_fraction, model_mb: at each snapshot
         self.finished = False
         self.frames = self.subscribe("camera/frame")  # keep-last: the newest frame when we have time
         self.poses = self.subscribe("body/pose")
@@ -218,7 +232,8 @@ class TrainerNode(Node):
             smpl=pose.to_smpl(),
         )
         self.frames_added += 1
-        self.frames_in_buffer = min(self.frames_in_buffer + 1, self.params.max_frames)
+        bound = self.trainer.max_frames
+        self.frames_in_buffer = min(self.frames_in_buffer + 1, bound) if bound else self.frames_in_buffer + 1
 
     # -- output ---------------------------------------------------------------------------------------
 
@@ -241,6 +256,7 @@ class TrainerNode(Node):
                     "frames_added": float(self.frames_added),
                     "frames_buffered": float(self.frames_in_buffer),
                     "frames_low_confidence": float(self.frames_unsure),
+                    **self.model_figures,
                 },
             )
         )
@@ -250,27 +266,19 @@ class TrainerNode(Node):
             return
         msg = self.trainer.snapshot(version=self.iteration)
         self.publish(msg)
+        self.model_figures = self.trainer.model_stats()  # with the snapshot: it walks the model too
+        self.model_figures.pop("gaussians", None)  # num_gaussians has its own field
         self.published_version = self.iteration
         self.last_snapshot_time = time.monotonic()
         self.log.info("snapshot v%d (%d Gaussians)", self.iteration, msg.num_gaussians)
-
-    def _read_state(self) -> dict:
-        try:
-            return json.loads((self.checkpoint.parent / STATE_NAME).read_text())
-        except (OSError, ValueError):
-            return {}
 
     def _save_checkpoint(self) -> None:
         if self.checkpoint is None:
             return
         self.checkpoint.parent.mkdir(parents=True, exist_ok=True)
         tmp = self.checkpoint.with_name(self.checkpoint.name + ".tmp")
-        self.trainer.save(tmp)
+        self.trainer.save(tmp, notes={"elapsed_s": self.elapsed})
         os.replace(tmp, self.checkpoint)  # a kill mid-write leaves the previous checkpoint intact
-        state = {"iteration": self.iteration, "elapsed_s": self.elapsed}
-        state_tmp = self.checkpoint.with_name(STATE_NAME + ".tmp")
-        state_tmp.write_text(json.dumps(state))
-        os.replace(state_tmp, self.checkpoint.with_name(STATE_NAME))
         self.last_checkpoint_time = time.monotonic()
         self.log.info("checkpoint at iteration %d: %s", self.iteration, self.checkpoint)
 

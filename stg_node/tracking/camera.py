@@ -78,7 +78,7 @@ def load_intrinsics(path: str | Path, width: int, height: int) -> Intrinsics:
         data = json.loads(path.read_text())
     except FileNotFoundError:
         raise IntrinsicsError(f"{path}: intrinsics file does not exist") from None
-    except (OSError, json.JSONDecodeError) as exc:
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise IntrinsicsError(f"{path}: cannot be read as JSON ({exc})") from exc
     if not isinstance(data, dict) or "K" not in data:
         raise IntrinsicsError(f'{path}: expected a JSON object with "K" (3x3) and optionally "dist"')

@@ -180,7 +180,14 @@ def test_temporal_split_spreads_copies_of_an_always_on_gaussian_over_the_trainin
     scale = new["t_log_scale"][:k].exp()
     assert torch.allclose(scale, torch.full((k,), max(0.6 * spacing, d.config.min_time_scale)), rtol=1e-5)
     assert torch.equal(new["means"][:k], model.table["means"][3].expand(k, 3))
-    # Not dynamic, no split; no room, no split.
+    # No room, no split; room for one Gaussian's copies only, only the first (by gradient) is split.
+    grads = torch.ones(model.table.num)
+    assert d._temporal_split_rows(ctx, hot, grads, room=0) is None
+    assert d._temporal_split_rows(ctx, hot, grads, room=k - 1) is None  # not even one whole set
+    grads[7] = 2.0
+    sources, new = d._temporal_split_rows(ctx, hot, grads, room=k)
+    assert sources.tolist() == [7] and new["means"].shape[0] == k
+    # Not dynamic, no split.
     model.table["motion_gate"].data[rows] = 0.0
     assert d._temporal_split_rows(ctx, hot, torch.ones(model.table.num), room=1000) is None
 
@@ -210,3 +217,38 @@ def test_rigidity_pulls_a_dynamic_gaussian_towards_its_neighbours_motion():
     table["motion_gate"].data[3] = 1.0
     graph.loss(table, offsets, None)
     assert graph.rows.tolist() == [0, 3] and 4 in graph.neighbours[1].tolist()
+
+
+def test_the_rigidity_graph_is_rebuilt_after_a_prune_and_an_append_of_as_many_rows():
+    """A prune followed by an append leaves the row count and the number of dynamic rows as they
+    were (and a new tensor may even sit where the old one was freed): the graph must still see
+    that the rows changed, and its neighbours must be those of the new rows (brute force here)."""
+    from stg_node.avatar.rigidity import NeighbourGraph
+
+    means = torch.tensor([[0.0, 0, 0], [0.01, 0, 0], [0.5, 0, 0], [1.0, 0, 0], [1.02, 0, 0]])
+    gate = torch.tensor([1.0, 0, 0, 1.0, 0])
+    table = GaussianTable({"means": means, "motion_gate": gate, "t_center": torch.zeros(5)})
+    opt = TableOptimizer(table, {"means": 0.1, "t_center": 0.0}, {})
+    graph = NeighbourGraph(k=1)
+    offsets = torch.zeros(5, 3)
+    graph.loss(table, offsets, None)
+    graph.loss(table, offsets, None)
+    assert graph.builds == 1  # nothing changed: built once
+    assert graph.neighbours[:, 0].tolist() == [1, 4]
+    # Prune row 1 (row 0's neighbour), then append a row beside row 0: still 5 rows, 2 dynamic.
+    opt.keep(torch.tensor([True, False, True, True, True]))
+    opt.append(
+        {"means": torch.tensor([[0.02, 0, 0]]), "motion_gate": torch.zeros(1), "t_center": torch.zeros(1)}
+    )
+    assert table.num == 5 and int(table.motion_gate().sum()) == 2
+    graph.loss(table, offsets, None)
+    assert graph.builds == 2
+    points = table["means"].detach()
+    dist = torch.cdist(points[graph.rows], points)
+    dist[torch.arange(len(graph.rows)), graph.rows] = float("inf")
+    assert graph.rows.tolist() == [0, 2]
+    assert graph.neighbours[:, 0].tolist() == dist.argmin(dim=1).tolist() == [4, 3]  # 0 -> 0.02, 1.0 -> 1.02
+    # A gate edited in place (as densification does) with the same count also rebuilds it.
+    table["motion_gate"].data[:] = torch.tensor([0.0, 1.0, 1.0, 0.0, 0.0])
+    graph.loss(table, offsets, None)
+    assert graph.builds == 3 and graph.rows.tolist() == [1, 2]

@@ -43,7 +43,7 @@ def mcap_messages(path) -> list[tuple[str, object, object]]:
         return [(channel.topic, channel, message) for _s, channel, message in make_reader(f).iter_messages()]
 
 
-def wait_written(recorder, count: int, timeout: float = 10.0) -> None:
+def wait_written(recorder, count: int, timeout: float = 60.0) -> None:
     deadline = time.monotonic() + timeout
     while recorder.stats().written < count and time.monotonic() < deadline:
         recorder.poll(0.05)

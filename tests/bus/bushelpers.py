@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 
+import msgpack
 import numpy as np
 import zmq
 
@@ -23,7 +24,39 @@ def wait_until(predicate, timeout: float = 5.0, step: float = 0.01) -> bool:
     return predicate()
 
 
-def recv_raw(sock: zmq.Socket, timeout_ms: int = 5000) -> list:
+def recv_until(sub, predicate, timeout: float = 30.0, seen: list | None = None):
+    """Read ``sub`` as a subscriber would until a message satisfies ``predicate``: that message,
+    or None after ``timeout`` s. Every message read goes to ``seen`` when given (what came before).
+
+    A test that waits on another process waits for the message it asserts on, never for the
+    first message or for whatever arrives in a fixed time: a backlog or a loaded machine makes
+    those an older message."""
+    deadline = time.monotonic() + timeout
+    while (left := deadline - time.monotonic()) > 0:
+        msg = sub.recv(timeout=min(left, 0.5))
+        if msg is None:
+            continue
+        if seen is not None:
+            seen.append(msg)
+        if predicate(msg):
+            return msg
+    return None
+
+
+def keep_last_holds(sub, topic: str, seq: int) -> bool:
+    """Whether a subscriber's keep-last reader thread has taken message ``seq`` (or a later one) of
+    ``topic`` off its socket; every message sent before it on that lane has then reached it too."""
+    for channel in sub._channel_list:
+        if not channel.keep_last:
+            continue
+        with channel._lock:
+            frames = channel._mailbox.get(topic.encode())
+        if frames is not None and msgpack.unpackb(frames[1].bytes)["seq"] >= seq:
+            return True
+    return False
+
+
+def recv_raw(sock: zmq.Socket, timeout_ms: int = 30_000) -> list:
     assert sock.poll(timeout_ms), "nothing received in time"
     return sock.recv_multipart(copy=False)
 

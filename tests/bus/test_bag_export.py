@@ -15,9 +15,10 @@ from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 from scipy.spatial.transform import Rotation
 
+from stg_node.body.smpl_io import SMPL_PARENTS
 from stg_node.bus import BodyPose, Frame, encode
+from stg_node.bus.foxglove_views import quaternion_xyzw
 from stg_node.bus.recording import BagReader, BagWriter, bag_info
-from stg_node.bus.recording.foxglove import quaternion_xyzw
 from stg_node.cli import bag as bag_cli
 
 RNG = np.random.default_rng(3)
@@ -195,6 +196,7 @@ def test_foxglove_view_channels_decode_with_the_schemas_in_the_file(tmp_path, im
     assert names["view/camera/frame/tf"] == {"foxglove.FrameTransform"}
     assert names["view/body/pose/root"] == {"foxglove.PoseInFrame"}
     assert names["view/body/pose/joints"] == {"foxglove.PosesInFrame"}
+    assert names["view/body/pose/skeleton"] == {"foxglove.SceneUpdate"}
     for i, (_n, image) in enumerate(decoded["view/camera/frame/image"]):
         if image_format == "raw":
             assert (image.width, image.height, image.encoding, image.step) == (64, 48, "rgb8", 192)
@@ -225,6 +227,16 @@ def test_foxglove_view_channels_decode_with_the_schemas_in_the_file(tmp_path, im
     np.testing.assert_allclose(
         [[p.position.x, p.position.y, p.position.z] for p in joints.poses], pose_with_joints.joints, atol=1e-6
     )
+    _n, scene = decoded["view/body/pose/skeleton"][0]
+    (entity,) = scene.entities
+    joints = pose_with_joints.joints
+    spheres = [[s.pose.position.x, s.pose.position.y, s.pose.position.z] for s in entity.spheres]
+    np.testing.assert_allclose(spheres, joints, atol=1e-6)
+    bones = np.array([[p.x, p.y, p.z] for p in entity.lines[0].points]).reshape(-1, 2, 3)
+    np.testing.assert_allclose(
+        bones, [[joints[p], joints[c]] for c, p in enumerate(SMPL_PARENTS) if p >= 0], atol=1e-6
+    )
+    assert entity.frame_id == "world" and entity.id == "body"
     _n, fields = decoded["view/trainer/metrics/fields"][0]
     assert (
         fields["loss"] is None and fields["losses"] == {"l1": 0.1, "ssim": 0.2} and fields["iteration"] == 100
@@ -238,3 +250,28 @@ def test_quaternion_matches_scipy_on_random_and_edge_rotations():
         q = np.array(quaternion_xyzw(matrix))
         want = Rotation.from_matrix(matrix).as_quat()
         assert min(np.abs(q - want).max(), np.abs(q + want).max()) < 1e-9
+
+
+def test_a_point_cloud_decodes_with_the_schema_it_carries():
+    """foxglove_views.point_cloud read back through protobuf (from the message's own schema) and
+    numpy (from the fields it declares)."""
+    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+
+    from stg_node.bus.foxglove_views import point_cloud
+
+    positions = RNG.normal(size=(50, 3)).astype(np.float32)
+    colors = RNG.integers(0, 256, size=(50, 3), dtype=np.uint8)
+    alpha = RNG.random(50)
+    msg = point_cloud(positions, colors, 1_700_000_000 * 10**9 + 7, alpha=alpha)
+    schema = msg.get_schema()
+    pool = descriptor_pool.DescriptorPool()
+    for file in descriptor_pb2.FileDescriptorSet.FromString(schema.data).file:
+        pool.Add(file)
+    cloud = message_factory.GetMessageClass(pool.FindMessageTypeByName(schema.name)).FromString(msg.encode())
+    assert (cloud.timestamp.seconds, cloud.timestamp.nanos, cloud.frame_id) == (1_700_000_000, 7, "world")
+    offsets = {f.name: f.offset for f in cloud.fields}
+    data = np.frombuffer(cloud.data, np.uint8).reshape(50, cloud.point_stride)
+    xyz = np.stack([data[:, offsets[a] : offsets[a] + 4].copy().view("<f4")[:, 0] for a in "xyz"], axis=1)
+    np.testing.assert_array_equal(xyz, positions)
+    np.testing.assert_array_equal(data[:, [offsets["red"], offsets["green"], offsets["blue"]]], colors)
+    np.testing.assert_array_equal(data[:, offsets["alpha"]], np.rint(alpha * 255).astype(np.uint8))

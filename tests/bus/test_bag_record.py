@@ -16,19 +16,23 @@ import numpy as np
 import pytest
 import zmq
 from baghelpers import ROOT, encoded_stream, mcap_messages, wait_written
-from bushelpers import sample_messages
+from bushelpers import sample_messages, wait_until
 from mcap.reader import make_reader
 from mcap.stream_reader import StreamReader
 
-from stg_node.bus import Broker, BusConfig, Publisher, lane_endpoint
+from stg_node.bus import Broker, BusConfig, Publisher, Subscriber, lane_endpoint
 from stg_node.bus.recording import BagReader, Recorder, bag_info
 from stg_node.cli import bag as bag_cli
 
 
 def _raw_publisher(ctx, url, lane):
-    sock = ctx.socket(zmq.PUB)
+    """A raw pyzmq publisher on ``lane``, returned once a subscription has reached it (an XPUB
+    sees it arrive; a PUB would drop what it sends before that)."""
+    sock = ctx.socket(zmq.XPUB)
     sock.linger = 0
     sock.connect(lane_endpoint(url, lane, "in"))
+    assert sock.poll(30_000), f"no subscription reached a raw publisher on {lane}"
+    sock.recv()
     return sock
 
 
@@ -41,7 +45,6 @@ def test_recorder_keeps_exactly_what_raw_pyzmq_and_our_publisher_sent(ipc_url, t
                 assert pub.wait_for_subscribers("body/pose") and pub.wait_for_subscribers("camera/frame")
                 raw_reliable = _raw_publisher(ctx, ipc_url, "reliable")
                 raw_latest = _raw_publisher(ctx, ipc_url, "latest")
-                time.sleep(0.3)  # raw PUB sockets: let the subscriptions reach them
                 sent = []
                 # a raw header packed differently from ours (floats as float32, keys in another order)
                 for seq in range(20):
@@ -98,7 +101,8 @@ def test_recorder_keeps_exactly_what_raw_pyzmq_and_our_publisher_sent(ipc_url, t
                     sent.append(frames)
                     msg = sample_messages(seq)["BodyPose"]
                     pub.publish(msg)
-                    time.sleep(0.005)  # a paced stream: the keep-last lane does not drop it
+                    # a stream the recorder keeps up with: the keep-last lane (4 deep) drops nothing
+                    assert wait_until(lambda n=3 * (seq + 1): recorder.stats().received >= n, 30)
                 raw_reliable.close()
                 raw_latest.close()
             wait_written(recorder, 60)
@@ -143,9 +147,9 @@ def test_topic_regexes_limit_what_is_recorded(ipc_url, tmp_path, ctx):
                 pub.wait_for_subscribers("body/pose")
                 for msg in sample_messages().values():
                     pub.publish(msg)
+                # everything reached the recorder (counted, recorded or filtered out)
+                assert wait_until(lambda: recorder.stats().filtered == len(sample_messages()) - 1, 30)
                 wait_written(recorder, 1)
-                time.sleep(0.2)
-                recorder.poll(0.1)
             stats = recorder.stats()
     assert [t for t, _c, _m in mcap_messages(path)] == ["body/pose"]
     assert stats.filtered == len(sample_messages()) - 1
@@ -157,7 +161,6 @@ def test_sequence_gaps_are_reported_as_drops_in_stats_file_and_info(ipc_url, tmp
     with Broker(ipc_url, status_period_s=0):
         recorder = Recorder(path, config=ipc_url).start()
         raw = _raw_publisher(ctx, ipc_url, "reliable")
-        time.sleep(0.3)
         for index in (0, 1, 5, 6, 7):  # seqs 2, 3 and 4 never sent: 3 lost
             raw.send_multipart(stream[index])
         wait_written(recorder, 5)
@@ -180,9 +183,7 @@ def test_a_full_queue_drops_and_counts_instead_of_growing(ipc_url, tmp_path, ctx
             pose = sample_messages()["BodyPose"]
             for _ in range(30):  # ~600 B each; nobody calls poll(): the queue fills
                 pub.publish(pose)
-            deadline = time.monotonic() + 5
-            while recorder.stats().received < 30 and time.monotonic() < deadline:
-                time.sleep(0.02)
+            assert wait_until(lambda: recorder.stats().received == 30, 30)
         stats = recorder.stop()
     assert stats.drops.get("recorder_overflow", 0) > 0
     assert stats.written + stats.drops["recorder_overflow"] == 30
@@ -210,14 +211,38 @@ def _start_recorder(url, path, *extra, ignore_sigint=False):
 
 
 def _publish_poses(url, ctx, count, first_seq=0, pause=0.0):
-    with Publisher(url, node="talker", context=ctx) as pub:
-        assert pub.wait_for_subscribers("body/pose")
+    """``count`` poses, sent once the recorder subscribes; returns once an observer beside the
+    recorder got all of them: they have left the publisher (closed with LINGER 0, it would drop
+    what is still queued) and crossed the broker to every subscriber."""
+    with (
+        Subscriber(url, ["body/pose"], context=ctx) as observer,
+        Publisher(url, node="talker", context=ctx) as pub,
+    ):
+        assert pub.wait_for_subscribers("body/pose", 30)
+        assert wait_until(lambda: _subscribed_twice(pub), 30)  # the recorder's and the observer's
         pose = sample_messages()["BodyPose"]
         for _ in range(count):
             pub.publish(pose)
             if pause:
                 time.sleep(pause)
-        time.sleep(0.2)
+        assert len(list(observer.messages(timeout=30, count=count))) == count
+
+
+def _subscribed_twice(pub) -> bool:
+    """The talker sees a body/pose subscription besides the recorder's whole-bus one."""
+    pub.has_subscribers()
+    return any(b"body/pose" in seen and b"" in seen for seen in pub._subscriptions.values())
+
+
+def _messages_on_disk(path) -> int:
+    """Messages the mcap package can read from ``path`` as it is now (a file still being written)."""
+    count = 0
+    try:
+        for record in StreamReader(str(path)).records:
+            count += type(record).__name__ == "Message"
+    except Exception:  # the end of what is written so far
+        pass
+    return count
 
 
 @pytest.mark.parametrize("sig, ignore_sigint", [(signal.SIGTERM, False), (signal.SIGINT, True)])
@@ -225,10 +250,11 @@ def test_sigterm_or_sigint_finishes_the_file(ipc_url, tmp_path, ctx, sig, ignore
     """SIGINT works even when the recorder inherited it ignored (started in the background)."""
     path = tmp_path / "clean.mcap"
     with Broker(ipc_url, status_period_s=0):
-        proc = _start_recorder(ipc_url, path, ignore_sigint=ignore_sigint)
+        proc = _start_recorder(ipc_url, path, "--flush-interval", "0.2", ignore_sigint=ignore_sigint)
         _publish_poses(ipc_url, ctx, 25)
+        assert wait_until(lambda: _messages_on_disk(path) >= 25, 60)  # recorded: now stop it
         proc.send_signal(sig)
-        out, err = proc.communicate(timeout=20)
+        out, err = proc.communicate(timeout=60)
     assert proc.returncode == 0, err
     assert "recorded 25 messages" in out and "no drops" in out
     with open(path, "rb") as f:
@@ -242,13 +268,13 @@ def test_kill_9_leaves_a_file_that_reads_back_to_its_last_complete_chunk(ipc_url
     with Broker(ipc_url, status_period_s=0):
         proc = _start_recorder(ipc_url, path, "--flush-interval", "0.2")
         _publish_poses(ipc_url, ctx, 40, pause=0.005)
-        time.sleep(0.6)  # a flush: these 40 are on disk
+        assert wait_until(lambda: _messages_on_disk(path) >= 40, 60)  # flushed: these 40 are on disk
         with Publisher(ipc_url, node="late", context=ctx) as pub:  # more, killed mid-stream
             pub.wait_for_subscribers("body/pose")
             for _ in range(200):
                 pub.publish(sample_messages()["BodyPose"])
             proc.send_signal(signal.SIGKILL)
-        proc.communicate(timeout=10)
+        proc.communicate(timeout=60)
     assert proc.returncode == -signal.SIGKILL
 
     # the mcap package alone: read records until the file ends

@@ -9,7 +9,7 @@ import time
 
 import numpy as np
 import pytest
-from bushelpers import sample_messages
+from bushelpers import sample_messages, wait_until
 
 from stg_node.bus import Broker, BusConfig, Frame, NodeStatus, Publisher, Subscriber
 from stg_node.bus.codec import encode_counted
@@ -86,11 +86,15 @@ def test_echo_prints_header_fields_and_array_summaries(running):
 
 
 def test_hz_matches_the_rate_actually_published(running):
+    """The rate stg-topic hz reports over its whole run against the talker's own send times over
+    the same run (a window larger than the run: the same messages on both sides)."""
     url, talker = running
-    time.sleep(0.3)
-    text = _run("--bus", url, "hz", "body/pose", "--duration", "2.0", "--window", "50")
+    assert wait_until(lambda: len(talker.stamps) > 10, 30)  # the talker is under way
+    start = time.monotonic()
+    text = _run("--bus", url, "hz", "body/pose", "--duration", "2.0", "--window", "10000")
+    end = time.monotonic()
     reported = float(re.findall(r"average rate: ([\d.]+) Hz", text)[-1])
-    stamps = talker.stamps[-50:]
+    stamps = [t for t in list(talker.stamps) if start <= t <= end]
     truth = (len(stamps) - 1) / (stamps[-1] - stamps[0])
     assert reported == pytest.approx(truth, rel=0.25)
     assert "window: " in text
@@ -112,13 +116,14 @@ def test_hz_and_the_brokers_node_status_report_the_same_rate(running):
     watcher = threading.Thread(target=watch, daemon=True)
     watcher.start()
     try:
-        time.sleep(0.3)
-        text = _run("--bus", url, "hz", "body/pose", "--duration", "2.0", "--window", "50")
+        assert wait_until(lambda: len(talker.stamps) > 10, 30)  # the talker is under way
+        text = _run("--bus", url, "hz", "body/pose", "--duration", "2.0", "--window", "10000")
     finally:
         stop.set()
         watcher.join(5)
     reported = float(re.findall(r"average rate: ([\d.]+) Hz", text)[-1])
-    assert len(rates) >= 5  # the broker reports every 0.2 s
+    # body/pose crosses the broker only while someone subscribes (hz, for 2 s): its reports then
+    assert len(rates) >= 3, rates
     assert reported == pytest.approx(np.median(rates[1:]), rel=0.25)
 
 

@@ -6,13 +6,13 @@ import time
 
 import msgpack
 import zmq
-from bushelpers import sample_messages
+from bushelpers import sample_messages, wait_until
 
 from stg_node.bus import Bus, BusConfig, NodeMonitor, NodeStatus, Subscriber
 from stg_node.bus.codec import encode
 
 
-def _statuses(sub, node, until, timeout=5.0):
+def _statuses(sub, node, until, timeout=30.0):
     """NodeStatus messages of ``node`` until ``until(status)`` holds (or timeout)."""
     deadline = time.monotonic() + timeout
     seen = []
@@ -34,16 +34,18 @@ def test_bus_heartbeat_reports_traffic_drops_and_a_final_stopping(url, broker, c
             assert bus.publisher.wait_for_subscribers("body/pose")
             for _ in range(5):
                 bus.publish(sample_messages()["BodyPose"])
-            assert len(list(poses.messages(timeout=0.5))) == 5
+            assert len(list(poses.messages(timeout=30, count=5))) == 5
             # A peer sends a message of a version we do not speak: a counted drop.
             bad = encode(sample_messages()["BodyPose"], topic="body/pose", seq=0, src="old-node", stamp_ns=1)
             header = msgpack.unpackb(bad[1])
             header["v"] = 0
-            raw = ctx.socket(zmq.PUB)
+            raw = ctx.socket(zmq.XPUB)  # sees the subscriptions arrive: no guessing
             raw.connect(config.endpoint("reliable", "in"))
-            time.sleep(0.3)
+            assert raw.poll(30_000) and raw.recv()
             raw.send_multipart([bad[0], msgpack.packb(header), *bad[2:]], copy=False)
-            assert poses.recv(timeout=0.5) is None
+            assert wait_until(
+                lambda: poses.recv(timeout=0.1) is None and poses.traffic.drops.get("version") == 1, 30
+            )
             seen = _statuses(watcher, "tracker", lambda s: s.drops.get("version") == 1)
         finally:
             bus.close()

@@ -52,7 +52,7 @@ def test_examples_import_only_zmq_msgpack_numpy(name):
     assert _imports(_example(name)) <= ALLOWED_IMPORTS
 
 
-def _run(tmp_path: Path, name: str, *args: str, timeout: float = 30.0) -> subprocess.CompletedProcess:
+def _run(tmp_path: Path, name: str, *args: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
     script = tmp_path / f"{name}.py"
     script.write_text(_example(name))
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
@@ -109,9 +109,9 @@ def test_our_subscriber_reads_the_publish_example(tmp_path, ipc_url):
                 text=True,
             )
             try:
-                got = list(sub.messages(timeout=10.0, count=5))
+                got = list(sub.messages(timeout=60.0, count=5))
             finally:
-                out, err = proc.communicate(timeout=30)
+                out, err = proc.communicate(timeout=60)
     assert proc.returncode == 0, err
     assert len(got) == 5
     assert all(isinstance(m, ViewRequest) for m in got)

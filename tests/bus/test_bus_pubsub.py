@@ -9,7 +9,7 @@ import msgpack
 import numpy as np
 import pytest
 import zmq
-from bushelpers import assert_same_message, recv_raw, sample_messages
+from bushelpers import assert_same_message, keep_last_holds, recv_raw, sample_messages, wait_until
 
 from stg_node.bus import BodyPose, Broker, BusConfig, Frame, Publisher, Subscriber
 from stg_node.bus.codec import encode
@@ -132,7 +132,7 @@ def test_reliable_lane_delivers_every_message_in_order(url, broker, ctx):
         for i in range(1500):
             msg.frame_index = i
             pub.publish(msg)
-        got = list(sub.messages(timeout=3.0, count=1500))
+        got = list(sub.messages(timeout=30.0, count=1500))
     assert [m.frame_index for m in got] == list(range(1500))
     assert [m.header.seq for m in got] == list(range(1500))
     assert sub.traffic.drops == {} and sub.traffic.messages == {"body/pose": 1500}
@@ -151,7 +151,7 @@ def test_gaps_duplicates_and_restarts_are_counted(ipc_url, ctx):
         assert xpub.poll(5000) and xpub.recv()
         for seq in [0, 1, 2, 5, 6, 6, 0, 1]:
             xpub.send_multipart(_raw_pose(seq), copy=False)
-        got = [m.header.seq for m in sub.messages(timeout=0.5)]
+        got = [m.header.seq for m in sub.messages(timeout=30.0, count=7)]
     assert got == [0, 1, 2, 5, 6, 0, 1]
     assert sub.traffic.drops == {"lost": 2}
     assert (sub.traffic.duplicates, sub.traffic.restarts) == (1, 1)
@@ -165,7 +165,7 @@ def test_sequences_are_per_topic_and_source(ipc_url, ctx):
         assert xpub.poll(5000) and xpub.recv()
         for seq, src in [(0, "a"), (0, "b"), (1, "a"), (1, "b"), (2, "a")]:
             xpub.send_multipart(_raw_pose(seq, src), copy=False)
-        got = [(m.header.src, m.header.seq) for m in sub.messages(timeout=0.5)]
+        got = [(m.header.src, m.header.seq) for m in sub.messages(timeout=30.0, count=5)]
     assert len(got) == 5 and sub.traffic.drops == {}
 
 
@@ -185,18 +185,16 @@ def test_keep_last_lane_hands_out_only_the_newest_frame(url, ctx):
         Subscriber(config, ["camera/frame"], context=ctx) as sub,
     ):
         assert pub.wait_for_subscribers("camera/frame")
-        # A paced stream, like a camera, while the application is busy and does not read:
-        # the reader thread keeps the queues empty, so the newest frame is always there.
+        # A stream the reader thread keeps up with (each frame sent once the one before reached
+        # it), while the application is busy and does not read: the newest frame is always there.
         for i in range(20):
             pub.publish(_frame(i))
-            time.sleep(0.005)
-        time.sleep(0.2)
+            assert wait_until(lambda i=i: keep_last_holds(sub, "camera/frame", i), 30)
         assert sub.recv(timeout=2).index == 19
         assert sub.recv(timeout=0.2) is None
         for i in range(20, 40):
             pub.publish(_frame(i))
-            time.sleep(0.005)
-        time.sleep(0.2)
+            assert wait_until(lambda i=i: keep_last_holds(sub, "camera/frame", i), 30)
         newest = sub.recv(timeout=2)
     assert newest.index == 39
     assert sub.traffic.drops == {"superseded": 19}  # seq 20..38 skipped by policy, counted
@@ -212,9 +210,9 @@ def test_keep_last_is_per_topic(ipc_url, ctx):
         for i in range(5):
             pub.publish(_frame(i))
             pub.publish(_frame(100 + i), "/rig2/camera/frame")
-            time.sleep(0.005)
-        time.sleep(0.2)
-        got = {m.header.topic: m.index for m in sub.messages(timeout=0.5)}
+            assert wait_until(lambda i=i: keep_last_holds(sub, "rig1/camera/frame", i), 30)
+            assert wait_until(lambda i=i: keep_last_holds(sub, "rig2/camera/frame", i), 30)
+        got = {m.header.topic: m.index for m in sub.messages(timeout=5.0, count=2)}
     assert got == {"rig1/camera/frame": 4, "rig2/camera/frame": 104}
 
 
@@ -227,7 +225,7 @@ def test_keep_last_can_be_turned_off(ipc_url, ctx):
         assert pub.wait_for_subscribers("camera/frame")
         for i in range(50):
             pub.publish(_frame(i))
-        assert [m.index for m in sub.messages(timeout=0.5)] == list(range(50))
+        assert [m.index for m in sub.messages(timeout=30.0, count=50)] == list(range(50))
 
 
 # --- topics and API -----------------------------------------------------------------------------------
@@ -259,7 +257,7 @@ def test_exact_topics_only_although_zeromq_matches_prefixes(ipc_url, ctx):
         assert pub.wait_for_subscribers("body/pose")
         pub.publish(sample_messages()["BodyPose"], "body/pose_debug")  # same prefix, other topic
         pub.publish(sample_messages()["BodyPose"])
-        got = list(sub.messages(timeout=0.5))
+        got = list(sub.messages(timeout=30.0, count=1))  # the other topic's would come first
     assert [m.header.topic for m in got] == ["body/pose"]
     assert sub.traffic.drops == {}
 
@@ -269,7 +267,7 @@ def test_recv_timeout_poll_and_iteration(ipc_url, ctx):
     with Publisher(config, context=ctx, bind=True) as pub, Subscriber(config, [BodyPose], context=ctx) as sub:
         start = time.monotonic()
         assert sub.recv(timeout=0.2) is None
-        assert 0.15 <= time.monotonic() - start < 2.0
+        assert time.monotonic() - start >= 0.15  # it waited its timeout out
         assert not sub.poll(timeout=0.05)
         assert pub.wait_for_subscribers("body/pose")
         for _ in range(3):
@@ -284,7 +282,7 @@ def test_wait_for_subscribers_times_out_without_any(ipc_url, ctx):
     with Publisher(BusConfig(url=ipc_url), context=ctx, bind=True) as pub:
         start = time.monotonic()
         assert not pub.wait_for_subscribers("body/pose", timeout=0.2)
-        assert time.monotonic() - start < 2.0
+        assert time.monotonic() - start >= 0.15  # it waited its timeout out, then said no
         assert not pub.has_subscribers()
 
 
@@ -297,7 +295,7 @@ def test_publishing_a_broken_message_raises_and_sends_nothing(ipc_url, ctx):
         with pytest.raises(ValueError, match="BodyPose.poses"):
             pub.publish(bad)
         assert pub.publish(sample_messages()["BodyPose"]) == 0  # the failed one consumed no seq
-        assert sub.recv(timeout=2).header.seq == 0
+        assert sub.recv(timeout=30).header.seq == 0
 
 
 # --- a flood of bad messages ---------------------------------------------------------------------------
@@ -305,7 +303,7 @@ def test_publishing_a_broken_message_raises_and_sends_nothing(ipc_url, ctx):
 
 def test_flood_from_one_publisher_is_counted_logged_once_and_loses_nothing_else(ipc_url, ctx, caplog):
     config = BusConfig(url=ipc_url)
-    flood = ctx.socket(zmq.PUB)
+    flood = ctx.socket(zmq.XPUB)  # sees the subscription arrive: no guessing how long it takes
     flood.sndhwm = 0  # unlimited: every flood message reaches the subscriber
     flood.connect(config.endpoint("reliable", "in"))
     good_pose = sample_messages()["BodyPose"]
@@ -320,14 +318,21 @@ def test_flood_from_one_publisher_is_counted_logged_once_and_loses_nothing_else(
         Publisher(config, node="tracker", context=ctx) as pub,
         Subscriber(config, [BodyPose], context=ctx) as sub,
     ):
-        assert pub.wait_for_subscribers("body/pose")
-        time.sleep(0.2)  # the flood publisher's connection and subscription, too
+        assert pub.wait_for_subscribers("body/pose", 30)
+        assert flood.poll(30_000) and flood.recv() == b"\x01body/pose"  # the flood's subscription
         for i in range(3000):
             flood.send_multipart(bad_version if i % 3 else garbage, copy=False)
             if i % 30 == 0:
                 good_pose.frame_index = i // 30
                 pub.publish(good_pose)
-        got = list(sub.messages(timeout=1.0))
+        got = []
+
+        def everything_read():  # the 100 good ones and the 3000 bad ones, counted as they are read
+            if (msg := sub.recv(timeout=0.1)) is not None:
+                got.append(msg)
+            return len(got) >= 100 and sum(sub.traffic.drops.values()) >= 3000
+
+        assert wait_until(everything_read, 60, step=0), (len(got), sub.traffic.drops)
     assert [m.frame_index for m in got] == list(range(100))
     assert [m.header.src for m in got] == ["tracker"] * 100
     assert sub.traffic.drops == {"version": 2000, "malformed": 1000}

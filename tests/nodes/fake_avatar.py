@@ -4,17 +4,21 @@ Node processes load it with the param ``avatar: tests.nodes.fake_avatar``. Its b
 simple enough to check from outside:
 
 - Trainer: ``step()`` is skipped until a frame arrives, then counts iterations; the loss is
-  1 / (1 + iteration); the buffer keeps at most ``max_frames`` frames; ``snapshot()`` carries
+  1 / (1 + iteration); the buffer keeps at most ``config.max_frames`` frames; ``snapshot()`` carries
   the iteration and the mean colour of the buffered images' masked pixels; ``save``/``load``
-  round-trip the iteration exactly (np.savez).
+  round-trip the iteration, the config and the notes exactly (np.savez).
 - evaluate_trainer: held-out figures that name the trainer's iteration (PSNR 20 + 0.001 k).
 - AvatarRenderer: draws a disc of the snapshot's colour at the projection of the body root
   (``Th``) through the camera, radius = focal * 0.25 m / depth; alpha 255 inside. Its posed
   points (what a framing camera keeps in view) are a sphere of that radius around ``Th``.
+  ``points``: a ring of ``POINTS`` points of radius 0.25 m around ``Th`` (in the world's x-y
+  plane), in that colour, fully opaque.
 """
 
 from __future__ import annotations
 
+import json
+import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -24,6 +28,11 @@ import numpy as np
 from stg_node.bus import GaussianSnapshot
 
 BODY_RADIUS_M = 0.25
+#: A snapshot with meta ``gate`` 1 loads only once this is set (a test holds a load open as long as
+#: it needs, instead of guessing how long is long enough). Set it through the module the node
+#: imported: ``tests.nodes.fake_avatar``.
+LOAD_GATE = threading.Event()
+POINTS = 32
 
 
 @dataclass
@@ -31,6 +40,7 @@ class TrainConfig:
     step_s: float = 0.0  # time one step takes
     load_s: float = 0.0  # time AvatarRenderer.from_snapshot takes (hot-swap tests)
     num_gaussians: int = 100
+    max_frames: int = 0  # frames kept (0: all), as the real config
 
 
 def preset(name: str) -> TrainConfig:
@@ -62,14 +72,12 @@ class StepResult:
 
 
 class Trainer:
-    def __init__(
-        self, config: TrainConfig, body_model=None, device="cpu", backend="auto", seed=0, max_frames=64
-    ):
+    def __init__(self, config: TrainConfig, body_model=None, device="cpu", backend="auto", seed=0):
         self.config = config
-        self.max_frames = max_frames
-        self.frames: deque = deque(maxlen=max_frames)
+        self.frames: deque = deque(maxlen=config.max_frames or None)
         self.iteration = 0
         self.frames_seen = 0
+        self.notes: dict[str, float] = {}
 
     def add_frame(self, frame: TrainFrame) -> None:
         self.frames.append(frame)
@@ -116,22 +124,33 @@ class Trainer:
                 iteration=self.iteration,
                 step_s=self.config.step_s,
                 load_s=self.config.load_s,
-                max_frames=self.max_frames,
+                max_frames=self.config.max_frames,
                 color=self._color(),
+                notes=json.dumps(self.notes),
             )
 
     @classmethod
     def load(cls, path: str, body_model=None, device="cpu", backend="auto") -> Trainer:
         data = np.load(path)
-        config = TrainConfig(step_s=float(data["step_s"]), load_s=float(data["load_s"]))
-        trainer = cls(config, max_frames=int(data["max_frames"]))
+        config = TrainConfig(
+            step_s=float(data["step_s"]), load_s=float(data["load_s"]), max_frames=int(data["max_frames"])
+        )
+        trainer = cls(config)
         trainer.iteration = int(data["iteration"])
+        trainer.notes = json.loads(str(data["notes"]))
         return trainer
 
 
 def evaluate_trainer(trainer: Trainer, data: str) -> dict:
     return {"split": "novel_view", "views": 4, "psnr": 20.0 + 0.001 * trainer.iteration, "ssim": 0.5,
             "lpips": 0.1}  # fmt: skip
+
+
+@dataclass
+class PointsOut:
+    positions: np.ndarray
+    colors: np.ndarray
+    alpha: np.ndarray
 
 
 @dataclass
@@ -159,6 +178,8 @@ class AvatarRenderer:
         if msg.format != "fake/1":
             raise ValueError(f"fake avatar cannot read snapshot format {msg.format!r}")
         time.sleep(float(msg.meta.get("load_s", 0.0)))
+        if msg.meta.get("gate"):
+            LOAD_GATE.wait(60)
         return cls(np.array(msg.arrays["color"]).reshape(3), msg.iteration)
 
     def posed_points(self, smpl, time=None) -> np.ndarray:
@@ -185,6 +206,16 @@ class AvatarRenderer:
             image[inside] = np.clip(np.rint(self.color * 255), 0, 255).astype(np.uint8)
             alpha[inside] = 255
         return RenderOut(image=image, alpha=alpha, depth=None, render_ms=(_now() - start) * 1000)
+
+    def points(self, smpl, time=None, *, camera_center=None) -> PointsOut:
+        angles = np.linspace(0.0, 2 * np.pi, POINTS, endpoint=False)
+        ring = np.stack([np.cos(angles), np.sin(angles), np.zeros_like(angles)], axis=1) * BODY_RADIUS_M
+        color = np.clip(np.rint(self.color * 255), 0, 255).astype(np.uint8)
+        return PointsOut(
+            positions=(ring + np.asarray(smpl.Th, np.float64)).astype(np.float32),
+            colors=np.tile(color, (POINTS, 1)),
+            alpha=np.full(POINTS, 255, np.uint8),
+        )
 
 
 def _now() -> float:

@@ -10,7 +10,7 @@ import threading
 from dataclasses import dataclass
 from pathlib import Path
 
-from tests.bus.bushelpers import wait_until  # one helper for every suite
+from tests.bus.bushelpers import recv_until, wait_until  # one helper for every suite
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -22,8 +22,10 @@ __all__ = [
     "ignore_sigint",
     "launch_file",
     "pid_alive",
+    "recv_until",
     "run_launch",
     "spawn",
+    "taken",
     "wait_until",
 ]
 
@@ -52,6 +54,14 @@ class NodeThread:
     def __exit__(self, *exc) -> None:
         if self.thread.is_alive():
             self.stop()
+
+
+def taken(node, topic: str) -> int:
+    """How many messages on ``topic`` (as the node subscribed it) a node running in a thread has
+    taken so far. Sending on a keep-last lane one message at a time means waiting for this to
+    grow: a second message sent before the node took the first replaces it."""
+    full = node.bus.config.topic(node.topic(topic))
+    return sum(sub.traffic.messages.get(full, 0) for sub, _names in list(node._subscribers))
 
 
 def child_env(**extra) -> dict[str, str]:

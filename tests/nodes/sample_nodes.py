@@ -56,6 +56,8 @@ class Echo(Node):
             self.stop("done")
 
     def teardown(self):
+        if self.params.teardown_s:
+            print("teardown started", flush=True)  # what a test sends a second signal after
         time.sleep(self.params.teardown_s)
         if self.params.flush_file:
             Path(self.params.flush_file).write_text("flushed")

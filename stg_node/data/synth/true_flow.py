@@ -97,12 +97,18 @@ def fast_region(flow: TrueFlow, threshold_px: float) -> np.ndarray:
     return flow.covered & (flow.magnitude > threshold_px)
 
 
-def benchmark_true_flow(folder: str | Path, frame: int, camera: Camera, faces, num_frames: int) -> TrueFlow:
+def benchmark_true_flow(
+    folder: str | Path, frame: int, camera: Camera, faces, num_frames: int, cuts=()
+) -> TrueFlow:
     """True flow of a generated benchmark's view of ``frame``: to the next frame, or from the previous
-    one for the last frame of the sequence (``num_frames``), whose successor does not exist."""
+    one for the last frame of the sequence (``num_frames``) or of a clip (the frame before one of
+    ``cuts``, synth.json's ``held_out.cuts``), whose successor is not its continuation."""
     if not 0 <= frame < num_frames:
         raise ValueError(f"frame {frame} is outside the sequence 0..{num_frames - 1}")
     if num_frames < 2:
         raise ValueError("true flow needs a sequence of at least two frames")
-    other = frame + 1 if frame + 1 < num_frames else frame - 1
+    last_of_clip = frame + 1 >= num_frames or frame + 1 in set(cuts)
+    other = frame - 1 if last_of_clip else frame + 1
+    if other < 0:
+        raise ValueError(f"frame {frame} is a clip of one frame: it has no true flow")
     return true_flow(read_frame_vertices(folder, frame), read_frame_vertices(folder, other), faces, camera)

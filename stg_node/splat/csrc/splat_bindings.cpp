@@ -1,5 +1,6 @@
-// torch operator wrappers for the CPU splat kernels (splat_kernels.h) and the image-space
-// kernels of splatting losses (image_filter.h). Registered with
+// torch operator wrappers for the CPU splat kernels (splat_kernels.h), the image-space
+// kernels of splatting losses (image_filter.h), and the per-Gaussian kernels of splatting models
+// (skinning.h, small_mlp.h). Registered with
 // TORCH_LIBRARY (no pybind11), so the extension compiles quickly and is called through
 // torch.ops.<namespace>.*; the namespace is passed in as STG_SPLAT_NS by the build so that a
 // rebuilt extension (new sources or flags) never clashes with an older one in one process.
@@ -11,6 +12,8 @@
 #include <vector>
 
 #include "image_filter.h"
+#include "skinning.h"
+#include "small_mlp.h"
 #include "splat_kernels.h"
 
 #ifndef STG_SPLAT_NS
@@ -108,6 +111,20 @@ project_fwd(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& 
                                bbox.data_ptr<int32_t>(),
                                reinterpret_cast<uint8_t*>(visible.data_ptr<bool>()));
     return {means2d, conics, depths, opac_eff, comp, radii, bbox, visible};
+}
+
+at::Tensor visible_fwd(const at::Tensor& means, const at::Tensor& scales, const at::Tensor& viewmat,
+                       const at::Tensor& K, int64_t width, int64_t height, c10::ArrayRef<double> settings,
+                       double margin_px, int64_t threads) {
+    const int64_t n = means.size(0);
+    check_cpu_float(means, "means", n, 3);
+    check_cpu_float(scales, "scales", n, 3);
+    const Settings s = make_settings(settings, threads);
+    const Camera cam = make_camera(viewmat, K, width, height);
+    at::Tensor out = at::empty({n}, means.options().dtype(at::kBool));
+    stg_splat::may_be_visible(n, means.data_ptr<float>(), scales.data_ptr<float>(), cam, s, margin_px,
+                              reinterpret_cast<uint8_t*>(out.data_ptr<bool>()));
+    return out;
 }
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> project_bwd(
@@ -327,6 +344,162 @@ at::Tensor ssim_bwd(const at::Tensor& a, const at::Tensor& b, c10::ArrayRef<doub
     return grad_a;
 }
 
+// ---- skinning (skinning.h); an absent optional tensor is passed as an empty one ----
+bool given(const at::Tensor& t) { return t.defined() && t.numel() > 0; }
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> skin_fwd(
+    const at::Tensor& means, const at::Tensor& skin_weights, const at::Tensor& skin_delta,
+    const at::Tensor& bones, const at::Tensor& local_quats, const at::Tensor& camera, bool rotations,
+    double weight_eps, double quat_eps, bool save_weights, int64_t threads) {
+    const int64_t n = means.size(0);
+    check_cpu_float(means, "means", n, 3);
+    TORCH_CHECK(bones.dim() == 2 && bones.size(1) == stg_skin::kBoneStride, "bones must be [B, ",
+                stg_skin::kBoneStride, "], got ", bones.sizes());
+    const int64_t B = bones.size(0);
+    TORCH_CHECK(B >= 1, "skinning needs at least one bone");
+    check_cpu_float(bones, "bones", B, stg_skin::kBoneStride);
+    check_cpu_float(skin_weights, "skin_weights", n, B);
+    const bool has_delta = given(skin_delta), has_local = given(local_quats), has_camera = given(camera);
+    if (has_delta) check_cpu_float(skin_delta, "skin_delta", n, B);
+    if (has_local) check_cpu_float(local_quats, "local_quats", n, 4);
+    if (has_camera) {
+        TORCH_CHECK(camera.numel() == 3, "camera must hold 3 values, got ", camera.numel());
+        check_cpu_float(camera, "camera", camera.size(0), 0);
+    }
+    TORCH_CHECK(rotations || (!has_local && !has_camera), "local rotations and the view need rotations");
+    TORCH_CHECK(threads >= 1, "threads must be >= 1");
+    const auto f32 = means.options();
+    at::Tensor world = at::empty({n, 3}, f32);
+    at::Tensor quats = at::empty({rotations ? n : 0, 4}, f32);
+    at::Tensor view = at::empty({has_camera ? n : 0, 3}, f32);
+    at::Tensor weights = at::empty({save_weights ? n : 0, B}, f32);
+    const stg_skin::SkinShape shape{n,         static_cast<int>(B),
+                                    has_delta, rotations,
+                                    has_local, static_cast<float>(weight_eps),
+                                    static_cast<float>(quat_eps), static_cast<int>(threads)};
+    stg_skin::skin_forward(shape, means.data_ptr<float>(), skin_weights.data_ptr<float>(),
+                           has_delta ? skin_delta.data_ptr<float>() : nullptr, bones.data_ptr<float>(),
+                           has_local ? local_quats.data_ptr<float>() : nullptr,
+                           has_camera ? camera.data_ptr<float>() : nullptr, world.data_ptr<float>(),
+                           rotations ? quats.data_ptr<float>() : nullptr,
+                           has_camera ? view.data_ptr<float>() : nullptr,
+                           save_weights ? weights.data_ptr<float>() : nullptr);
+    return {world, quats, view, weights};
+}
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> skin_bwd(
+    const at::Tensor& means, const at::Tensor& weights, bool has_delta, const at::Tensor& bones,
+    const at::Tensor& local_quats, bool rotations, double quat_eps, const at::Tensor& g_world,
+    const at::Tensor& g_quats, int64_t threads) {
+    const int64_t n = means.size(0);
+    check_cpu_float(means, "means", n, 3);
+    const int64_t B = bones.size(0);
+    check_cpu_float(bones, "bones", B, stg_skin::kBoneStride);
+    check_cpu_float(weights, "weights", n, B);
+    check_cpu_float(g_world, "grad world", n, 3);
+    const bool has_local = given(local_quats);
+    if (has_local) check_cpu_float(local_quats, "local_quats", n, 4);
+    if (rotations) check_cpu_float(g_quats, "grad quats", n, 4);
+    TORCH_CHECK(rotations || !has_local, "local rotations need rotations");
+    TORCH_CHECK(threads >= 1, "threads must be >= 1");
+    const auto f32 = means.options();
+    at::Tensor g_means = at::empty({n, 3}, f32);
+    at::Tensor g_delta = at::empty({has_delta ? n : 0, B}, f32);
+    at::Tensor g_bones = at::empty({B, stg_skin::kBoneStride}, f32);
+    at::Tensor g_local = at::empty({has_local ? n : 0, 4}, f32);
+    const stg_skin::SkinShape shape{n, static_cast<int>(B), has_delta, rotations, has_local, 0.0f,
+                                    static_cast<float>(quat_eps), static_cast<int>(threads)};
+    stg_skin::skin_backward(shape, means.data_ptr<float>(), weights.data_ptr<float>(), bones.data_ptr<float>(),
+                            has_local ? local_quats.data_ptr<float>() : nullptr, g_world.data_ptr<float>(),
+                            rotations ? g_quats.data_ptr<float>() : nullptr, g_means.data_ptr<float>(),
+                            has_delta ? g_delta.data_ptr<float>() : nullptr, g_bones.data_ptr<float>(),
+                            has_local ? g_local.data_ptr<float>() : nullptr);
+    return {g_means, g_delta, g_bones, g_local};
+}
+
+// ---- small MLP (small_mlp.h) ----
+struct MlpArgs {
+    std::vector<int> dims, acts;
+    std::vector<const float*> weights, biases;
+};
+
+MlpArgs mlp_args(const at::Tensor& x, at::TensorList weights, at::TensorList biases, c10::ArrayRef<int64_t> acts) {
+    const int64_t n = x.size(0);
+    TORCH_CHECK(x.dim() == 2, "x must be [rows, width], got ", x.sizes());
+    check_cpu_float(x, "x", n, x.size(1));
+    const size_t L = weights.size();
+    TORCH_CHECK(L >= 1 && biases.size() == L && acts.size() == L, "need as many weights, biases and "
+                "activations (>= 1), got ", L, ", ", biases.size(), ", ", acts.size());
+    MlpArgs a;
+    a.dims.push_back(static_cast<int>(x.size(1)));
+    for (size_t l = 0; l < L; ++l) {
+        const at::Tensor& w = weights[l];
+        TORCH_CHECK(w.dim() == 2 && w.size(1) == a.dims.back(), "layer ", l, ": weight must be [out, ",
+                    a.dims.back(), "], got ", w.sizes());
+        check_cpu_float(w, "weight", w.size(0), w.size(1));
+        if (given(biases[l])) check_cpu_float(biases[l], "bias", w.size(0), 0);
+        TORCH_CHECK(acts[l] >= stg_mlp::kIdentity && acts[l] <= stg_mlp::kTanh, "unknown activation ", acts[l]);
+        a.dims.push_back(static_cast<int>(w.size(0)));
+        a.acts.push_back(static_cast<int>(acts[l]));
+        a.weights.push_back(w.data_ptr<float>());
+        a.biases.push_back(given(biases[l]) ? biases[l].data_ptr<float>() : nullptr);
+    }
+    return a;
+}
+
+std::tuple<at::Tensor, std::vector<at::Tensor>> mlp_fwd(const at::Tensor& x, at::TensorList weights,
+                                                        at::TensorList biases, c10::ArrayRef<int64_t> acts,
+                                                        bool keep_hidden, int64_t threads) {
+    const MlpArgs a = mlp_args(x, weights, biases, acts);
+    TORCH_CHECK(threads >= 1, "threads must be >= 1");
+    const int64_t n = x.size(0);
+    const int L = static_cast<int>(a.acts.size());
+    at::Tensor out = at::empty({n, a.dims.back()}, x.options());
+    std::vector<at::Tensor> hidden;
+    std::vector<float*> hidden_ptr;
+    if (keep_hidden) {
+        for (int l = 0; l + 1 < L; ++l) {
+            hidden.push_back(at::empty({n, stg_mlp::padded(a.dims[l + 1])}, x.options()));
+            hidden_ptr.push_back(hidden.back().data_ptr<float>());
+        }
+    }
+    const stg_mlp::MlpShape shape{n, L, a.dims.data(), a.acts.data(), static_cast<int>(threads)};
+    stg_mlp::mlp_forward(shape, x.data_ptr<float>(), a.weights.data(), a.biases.data(), out.data_ptr<float>(),
+                         keep_hidden ? hidden_ptr.data() : nullptr);
+    return {out, hidden};
+}
+
+std::tuple<at::Tensor, std::vector<at::Tensor>, std::vector<at::Tensor>> mlp_bwd(
+    const at::Tensor& x, at::TensorList weights, at::TensorList biases, c10::ArrayRef<int64_t> acts,
+    at::TensorList hidden, const at::Tensor& out, const at::Tensor& g_out, bool want_gx, int64_t threads) {
+    const MlpArgs a = mlp_args(x, weights, biases, acts);
+    TORCH_CHECK(threads >= 1, "threads must be >= 1");
+    const int64_t n = x.size(0);
+    const int L = static_cast<int>(a.acts.size());
+    TORCH_CHECK(static_cast<int>(hidden.size()) == L - 1, "need ", L - 1, " hidden outputs, got ", hidden.size());
+    std::vector<const float*> hidden_ptr;
+    for (int l = 0; l + 1 < L; ++l) {
+        check_cpu_float(hidden[l], "hidden", n, stg_mlp::padded(a.dims[l + 1]));
+        hidden_ptr.push_back(hidden[l].data_ptr<float>());
+    }
+    check_cpu_float(out, "out", n, a.dims.back());
+    check_cpu_float(g_out, "grad out", n, a.dims.back());
+    at::Tensor g_x = at::empty({want_gx ? n : 0, a.dims[0]}, x.options());
+    std::vector<at::Tensor> g_w, g_b;
+    std::vector<float*> g_w_ptr, g_b_ptr;
+    for (int l = 0; l < L; ++l) {
+        g_w.push_back(at::empty({a.dims[l + 1], a.dims[l]}, x.options()));
+        g_b.push_back(at::empty({a.dims[l + 1]}, x.options()));
+        g_w_ptr.push_back(g_w.back().data_ptr<float>());
+        g_b_ptr.push_back(g_b.back().data_ptr<float>());
+    }
+    const stg_mlp::MlpShape shape{n, L, a.dims.data(), a.acts.data(), static_cast<int>(threads)};
+    stg_mlp::mlp_backward(shape, x.data_ptr<float>(), a.weights.data(), hidden_ptr.data(), out.data_ptr<float>(),
+                          g_out.data_ptr<float>(), want_gx ? g_x.data_ptr<float>() : nullptr, g_w_ptr.data(),
+                          g_b_ptr.data());
+    return {g_x, g_w, g_b};
+}
+
 int64_t image_window() { return stg_image::kWindow; }
 
 int64_t tile_size() { return stg_splat::kTileSize; }
@@ -353,6 +526,10 @@ TORCH_LIBRARY(STG_SPLAT_NS, m) {
         "Tensor, Tensor, Tensor, Tensor, Tensor)",
         &project_fwd);
     m.def(
+        "may_be_visible(Tensor means, Tensor scales, Tensor viewmat, Tensor K, int width, int height, "
+        "float[] settings, float margin_px, int threads) -> Tensor",
+        &visible_fwd);
+    m.def(
         "project_bwd(Tensor means, Tensor quats, Tensor scales, Tensor opacities, Tensor viewmat, "
         "Tensor K, int width, int height, float[] settings, int threads, Tensor visible, "
         "Tensor g_means2d, Tensor g_conics, Tensor g_depths, Tensor g_opacities) -> (Tensor, Tensor, "
@@ -369,4 +546,22 @@ TORCH_LIBRARY(STG_SPLAT_NS, m) {
         "Tensor T_final, Tensor last, Tensor g_color, Tensor g_alpha) -> (Tensor, Tensor, Tensor, "
         "Tensor, Tensor, Tensor)",
         &raster_bwd);
+    m.def(
+        "skin_fwd(Tensor means, Tensor skin_weights, Tensor skin_delta, Tensor bones, Tensor local_quats, "
+        "Tensor camera, bool rotations, float weight_eps, float quat_eps, bool save_weights, int threads) -> "
+        "(Tensor, Tensor, Tensor, Tensor)",
+        &skin_fwd);
+    m.def(
+        "skin_bwd(Tensor means, Tensor weights, bool has_delta, Tensor bones, Tensor local_quats, "
+        "bool rotations, float quat_eps, Tensor g_world, Tensor g_quats, int threads) -> "
+        "(Tensor, Tensor, Tensor, Tensor)",
+        &skin_bwd);
+    m.def(
+        "mlp_fwd(Tensor x, Tensor[] weights, Tensor[] biases, int[] acts, bool keep_hidden, int threads) -> "
+        "(Tensor, Tensor[])",
+        &mlp_fwd);
+    m.def(
+        "mlp_bwd(Tensor x, Tensor[] weights, Tensor[] biases, int[] acts, Tensor[] hidden, Tensor out, "
+        "Tensor g_out, bool want_gx, int threads) -> (Tensor, Tensor[], Tensor[])",
+        &mlp_bwd);
 }

@@ -5,20 +5,25 @@
 //             near-plane depths neither overflow nor lose the covariance), parallel.
 //   sort      the visible Gaussians by camera depth with an LSD radix sort on the float bits
 //             (depths are >= the near plane, hence positive, so bit order == value order),
-//             then gathered into depth-ordered SoA arrays (cache-friendly for the tiles).
+//             then gathered into depth-ordered records of one cache line each (what a tile
+//             needs of a Gaussian: centre, conic, opacity, box, up to 6 colours).
 //   bin       per-tile intersection counts by row difference arrays (O(rows), not O(tiles),
 //             per Gaussian), int64 prefix sums, and a fill in depth order, so every tile list
 //             comes out sorted without a key sort. Tiles are processed in chunks of at most
 //             `max_intersections_per_chunk` intersections: memory stays bounded.
 //   raster    parallel over tiles (dynamic schedule); empty tiles are written directly. Within
 //             a tile each Gaussian visits only the rows of its clipped box and, per row, only
-//             the 8-lane halves (one AVX2 vector each) the box touches, skipping rows whose
-//             pixels are all finished. The lane loops are branch-free so the compiler
-//             vectorises them (the exp is a polynomial, not libm).
+//             the 8-lane halves (one vector each) the box touches, skipping rows whose pixels
+//             are all finished. The lanes are explicit 8-float vectors, branch-free (the exp is
+//             a polynomial, not libm), with the channel count compiled in for 3-6 channels.
+//             A tile's list jumps through the records in depth order; the records a few places
+//             ahead are prefetched (the hardware cannot follow the indirection: without it
+//             a third of the forward time was spent waiting on these loads at 50k Gaussians).
 //   backward  the same tiles back to front (transmittance recovered by division, as in 3DGS),
-//             skipping halves where no pixel blended the Gaussian; per-lane accumulators are
-//             reduced once per Gaussian into per-thread gradient buffers indexed by depth rank
-//             (no atomics), summed at the end.
+//             skipping halves where no pixel blended the Gaussian; per half one pass on 8-lane
+//             vectors (for 3-6 channels; three scalar-lane loops otherwise) whose per-lane
+//             accumulators are reduced once per Gaussian into per-thread gradient buffers
+//             indexed by depth rank (no atomics), summed at the end.
 //
 // Floating-point contraction is disabled at build time (-ffp-contract=off); multiply-adds are
 // fused explicitly (STG_MADD) in inline helpers that both passes share, so the forward and
@@ -34,6 +39,8 @@
 #include <cstring>
 #include <vector>
 
+#include "fast_math.h"
+
 namespace stg_splat {
 namespace {
 
@@ -43,41 +50,24 @@ inline double ms_since(Clock::time_point t0) {
     return std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
 }
 
-// a * b + c, fused when the target has FMA. Contraction is otherwise off (-ffp-contract=off):
-// every expression that both passes evaluate goes through the same inline code, so the
-// forward and backward passes get bit-identical alphas either way.
-#ifdef __FMA__
-#define STG_MADD(a, b, c) __builtin_fmaf((a), (b), (c))
-#else
-#define STG_MADD(a, b, c) ((a) * (b) + (c))
-#endif
-
-// exp(x) for x in [-87, 88] to ~1 ulp, written so that it vectorises (no libm call, no
-// branches). Used for exp(-sigma) in both passes.
-inline float fast_exp(float x) {
-    x = x < -60.0f ? -60.0f : x;
-    x = x > 88.0f ? 88.0f : x;
-    float k = x * 1.44269504088896341f;
-    k = (k + 12582912.0f) - 12582912.0f;  // round to nearest integer
-    float r = STG_MADD(k, -0.693145751953125f, x);  // Cody-Waite: ln2 = hi + lo
-    r = STG_MADD(k, -1.42860682030941723212e-6f, r);
-    float p = 1.0f / 720.0f;
-    p = STG_MADD(p, r, 1.0f / 120.0f);
-    p = STG_MADD(p, r, 1.0f / 24.0f);
-    p = STG_MADD(p, r, 1.0f / 6.0f);
-    p = STG_MADD(p, r, 0.5f);
-    p = STG_MADD(p, r, 1.0f);
-    p = STG_MADD(p, r, 1.0f);
-    int32_t bits = (static_cast<int32_t>(k) + 127) << 23;
-    float scale;
-    std::memcpy(&scale, &bits, sizeof(float));
-    return p * scale;
-}
+using stg_math::fast_exp;
+using stg_math::fast_exp8;
+using stg_math::v8_load;
+using stg_math::v8_madd;
+using stg_math::v8_splat;
+using stg_math::v8_store;
+using stg_math::v8f;
+using stg_math::v8i;
 
 // The Gaussian's exponent at a pixel, sigma = a/2 dx^2 + b dx dy + c/2 dy^2, as
 // (ha dx + b dy) dx + c/2 dy^2 with the row terms hoisted (dx = mean_x - pixel_x).
 inline float sigma_at(float ha, float bdy, float rowc, float dx) {
     return STG_MADD(STG_MADD(ha, dx, bdy), dx, rowc);
+}
+
+// sigma_at on eight lanes (bit-identical per lane).
+inline v8f sigma_at8(float ha, float bdy, float rowc, v8f dx) {
+    return v8_madd(v8_madd(v8_splat(ha), dx, v8_splat(bdy)), dx, v8_splat(rowc));
 }
 
 // ---------------------------------------------------------------------------------------
@@ -253,6 +243,38 @@ void project_forward(int64_t n, const float* means, const float* quats, const fl
     }
 }
 
+void may_be_visible(int64_t n, const float* means, const float* scales, const Camera& cam,
+                    const Settings& s, double margin_px, uint8_t* out) {
+    const double W = cam.width, H = cam.height;
+    const double tan_x = 0.5 * W / cam.fx, tan_y = 0.5 * H / cam.fy;
+    const double lim_xp = (W - cam.cx) / cam.fx + s.frustum_margin * tan_x;
+    const double lim_xn = cam.cx / cam.fx + s.frustum_margin * tan_x;
+    const double lim_yp = (H - cam.cy) / cam.fy + s.frustum_margin * tan_y;
+    const double lim_yn = cam.cy / cam.fy + s.frustum_margin * tan_y;
+    const double e = s.sigma_extent_max;
+#pragma omp parallel for num_threads(s.threads) schedule(static)
+    for (int64_t i = 0; i < n; ++i) {
+        const double m[3] = {means[i * 3], means[i * 3 + 1], means[i * 3 + 2]};
+        double p[3];
+        for (int r = 0; r < 3; ++r)
+            p[r] = cam.R[r * 3] * m[0] + cam.R[r * 3 + 1] * m[1] + cam.R[r * 3 + 2] * m[2] + cam.t[r];
+        const double z = p[2];
+        const bool out_of_depth = (z < s.near_plane) | (z > s.far_plane);
+        const double zs = std::max(z, s.near_plane);
+        const double ux = p[0] / zs, uy = p[1] / zs;
+        const double tx = std::min(std::max(ux, -lim_xn), lim_xp), ty = std::min(std::max(uy, -lim_yn), lim_yp);
+        const double smax = std::max({static_cast<double>(scales[i * 3]), static_cast<double>(scales[i * 3 + 1]),
+                                      static_cast<double>(scales[i * 3 + 2])});
+        const double jx2 = (cam.fx / zs) * (cam.fx / zs) * (1.0 + tx * tx);
+        const double jy2 = (cam.fy / zs) * (cam.fy / zs) * (1.0 + ty * ty);
+        const double rx = e * std::sqrt(jx2 * smax * smax + s.eps2d) + margin_px;
+        const double ry = e * std::sqrt(jy2 * smax * smax + s.eps2d) + margin_px;
+        const double mx = cam.fx * ux + cam.cx, my = cam.fy * uy + cam.cy;
+        const bool off_image = (mx + rx <= 0.0) | (mx - rx >= W) | (my + ry <= 0.0) | (my - ry >= H);
+        out[i] = (out_of_depth | off_image) ? 0 : 1;
+    }
+}
+
 void project_backward(int64_t n, const float* means, const float* quats, const float* scales,
                       const float* opacities, const Camera& cam, const Settings& s,
                       const uint8_t* visible, const float* g_means2d, const float* g_conics,
@@ -383,12 +405,28 @@ void project_backward(int64_t n, const float* means, const float* quats, const f
 // Sorting and binning
 namespace {
 
+// Everything a tile needs of one Gaussian in one cache line (the tile loops visit Gaussians in
+// depth order but sparsely: one line per visit instead of one per attribute).
+constexpr int kPackedColors = 6;  // colours held in the record (more go to `col`)
+struct alignas(64) PackedGaussian {
+    float mx, my, a, b, c, op;
+    int32_t x0, x1, y0, y1;
+    float col[kPackedColors];
+};
+static_assert(sizeof(PackedGaussian) == 64, "one cache line per Gaussian");
+constexpr int kPrefetch = 8;  // records fetched ahead in a tile's list
+
 struct SortedGaussians {
     int64_t count = 0;
     int channels = 0;
     std::vector<int32_t> gid;  // original index, in depth order
-    std::vector<float> mx, my, ca, cb, cc, op, col;
+    std::vector<float> col;    // [count * channels], only when channels > kPackedColors
     std::vector<int32_t> x0, x1, y0, y1;
+    std::vector<PackedGaussian> packed;
+
+    const float* colors(int32_t v) const {
+        return channels <= kPackedColors ? packed[v].col : &col[static_cast<size_t>(v) * channels];
+    }
 };
 
 // Stable LSD radix sort of (key, value) pairs by 32-bit key, 11 bits per pass.
@@ -433,24 +471,27 @@ void sort_visible(int64_t n, const float* means2d, const float* conics, const fl
     out.count = V;
     out.channels = channels;
     out.gid = std::move(ids);
-    out.mx.resize(V); out.my.resize(V);
-    out.ca.resize(V); out.cb.resize(V); out.cc.resize(V); out.op.resize(V);
     out.x0.resize(V); out.x1.resize(V); out.y0.resize(V); out.y1.resize(V);
-    out.col.resize(static_cast<size_t>(V) * channels);
+    out.packed.resize(V);
+    const bool separate = channels > kPackedColors;
+    out.col.resize(separate ? static_cast<size_t>(V) * channels : 0);
 #pragma omp parallel for num_threads(threads) schedule(static)
     for (int64_t v = 0; v < V; ++v) {
         const int64_t i = out.gid[v];
-        out.mx[v] = means2d[i * 2];
-        out.my[v] = means2d[i * 2 + 1];
-        out.ca[v] = conics[i * 3];
-        out.cb[v] = conics[i * 3 + 1];
-        out.cc[v] = conics[i * 3 + 2];
-        out.op[v] = opac_eff[i];
-        out.x0[v] = bbox[i * 4];
-        out.x1[v] = bbox[i * 4 + 1];
-        out.y0[v] = bbox[i * 4 + 2];
-        out.y1[v] = bbox[i * 4 + 3];
-        for (int c = 0; c < channels; ++c) out.col[v * channels + c] = colors[i * channels + c];
+        PackedGaussian& g = out.packed[v];
+        g.mx = means2d[i * 2];
+        g.my = means2d[i * 2 + 1];
+        g.a = conics[i * 3];
+        g.b = conics[i * 3 + 1];
+        g.c = conics[i * 3 + 2];
+        g.op = opac_eff[i];
+        out.x0[v] = g.x0 = bbox[i * 4];
+        out.x1[v] = g.x1 = bbox[i * 4 + 1];
+        out.y0[v] = g.y0 = bbox[i * 4 + 2];
+        out.y1[v] = g.y1 = bbox[i * 4 + 3];
+        float* dst = separate ? &out.col[static_cast<size_t>(v) * channels] : g.col;
+        for (int c = 0; c < channels; ++c) dst[c] = colors[i * channels + c];
+        for (int c = separate ? 0 : channels; c < kPackedColors; ++c) g.col[c] = 0.0f;
     }
 }
 
@@ -552,11 +593,40 @@ struct ForwardScratch {
     alignas(64) float T[kTilePixels];
     alignas(64) float thr[kTilePixels];  // alpha_min, or 2 once the pixel is finished
     alignas(64) int32_t last[kTilePixels];
-    alignas(64) float w[kTileSize];
     uint32_t done_bits[kTileSize];  // per row, bit l set once pixel l is finished (or outside)
     std::vector<float> acc;         // [C][256]
 };
 
+// One Gaussian on the 8 pixels of one half-row (lanes off .. off + 7): alpha, the blend test,
+// transmittance, last index, finished pixels, and the colour accumulation, on one vector.
+// Returns the lanes that finished here (bit l = pixel off + l). NC > 0: the channel count,
+// known at compile time; NC == 0: `channels` at run time.
+template <int NC>
+inline uint32_t forward_half(float* T, float* thr, int32_t* last, float* acc, int channels, const float* col,
+                             v8f dx, v8i inside, float ha, float bdy, float rowc, float op, float amax,
+                             float tmin, int32_t k) {
+    const v8f sigma = sigma_at8(ha, bdy, rowc, dx);
+    v8f alpha = v8_splat(op) * fast_exp8(-sigma);
+    alpha = alpha > v8_splat(amax) ? v8_splat(amax) : alpha;
+    const v8f Tl = v8_load(T), th = v8_load(thr);
+    const v8i valid = inside & (sigma >= v8_splat(0.0f)) & (alpha >= th);
+    const v8f Tn = Tl * (v8_splat(1.0f) - alpha);
+    const v8i below = Tn <= v8_splat(tmin);  // gsplat: next_T <= 1e-4f, exclusive
+    const v8i stop = valid & below;
+    const v8i blend = valid & ~below;
+    const v8f w = blend ? alpha * Tl : v8_splat(0.0f);
+    v8_store(T, blend ? Tn : Tl);
+    stg_math::v8i_store(last, blend ? stg_math::v8i_splat(k) : stg_math::v8i_load(last));
+    v8_store(thr, stop ? v8_splat(2.0f) : th);
+    const int C = NC > 0 ? NC : channels;
+    for (int ch = 0; ch < C; ++ch) {
+        float* a = acc + static_cast<size_t>(ch) * kTilePixels;
+        v8_store(a, v8_madd(w, v8_splat(col[ch]), v8_load(a)));
+    }
+    return stg_math::v8_movemask(stop);
+}
+
+template <int NC>
 void forward_tile(const SortedGaussians& S, const TileRect& r, const int32_t* list, int64_t len,
                   const Settings& s, ForwardScratch& sc, float* out_color, float* out_T,
                   int32_t* out_last, int width) {
@@ -583,57 +653,46 @@ void forward_tile(const SortedGaussians& S, const TileRect& r, const int32_t* li
         sc.done_bits[ly] = ly < r.h ? ~span_bits(0, r.w - 1) & 0xFFFFu : 0xFFFFu;
     alignas(64) float px[kTileSize];
     for (int l = 0; l < kTileSize; ++l) px[l] = static_cast<float>(r.X0 + l) + 0.5f;
+    const v8f px0 = v8_load(px), px1 = v8_load(px + kHalf);
+    const v8i lane = {0, 1, 2, 3, 4, 5, 6, 7};
     const int active = r.w * r.h;
     int finished = 0;
     for (int64_t k = 0; k < len && finished < active; ++k) {
+        // The tile's list jumps through the depth-sorted records: fetch a few ahead (the hardware
+        // prefetcher cannot follow the indirection), or every visit waits on memory.
+        if (k + kPrefetch < len) __builtin_prefetch(&S.packed[list[k + kPrefetch]]);
         const int32_t v = list[k];
-        const float mx = S.mx[v], my = S.my[v], op = S.op[v];
-        const float ha = 0.5f * S.ca[v], b = S.cb[v], hc = 0.5f * S.cc[v];
-        const int lx0 = std::max(S.x0[v] - r.X0, 0), lx1 = std::min(S.x1[v] - r.X0, kTileSize - 1);
-        const int ly0 = std::max(S.y0[v] - r.Y0, 0), ly1 = std::min(S.y1[v] - r.Y0, r.h - 1);
-        const float* col = &S.col[static_cast<size_t>(v) * C];
+        const PackedGaussian& g = S.packed[v];
+        const float mx = g.mx, my = g.my, op = g.op;
+        const float ha = 0.5f * g.a, b = g.b, hc = 0.5f * g.c;
+        const int lx0 = std::max(g.x0 - r.X0, 0), lx1 = std::min(g.x1 - r.X0, kTileSize - 1);
+        const int ly0 = std::max(g.y0 - r.Y0, 0), ly1 = std::min(g.y1 - r.Y0, r.h - 1);
+        const float* col = S.colors(v);
         const int32_t kk = static_cast<int32_t>(k);
         const uint32_t span = span_bits(lx0, lx1);
-        // The 8-lane halves the box touches, processed in one loop (one or two vectors).
-        const int h0 = lx0 < kHalf ? 0 : kHalf;
-        const int h1 = lx1 < kHalf ? kHalf : kTileSize;
+        // The 8-lane halves the box touches, with the lanes inside the box, and dx per lane.
+        const bool use0 = lx0 < kHalf, use1 = lx1 >= kHalf;
+        const v8i in0 = (lane >= stg_math::v8i_splat(lx0)) & (lane <= stg_math::v8i_splat(lx1));
+        const v8i in1 = (lane >= stg_math::v8i_splat(lx0 - kHalf)) & (lane <= stg_math::v8i_splat(lx1 - kHalf));
+        const uint32_t span0 = span & 0xFFu, span1 = span >> kHalf;
+        const v8f dx0 = v8_splat(mx) - px0, dx1 = v8_splat(mx) - px1;
         for (int ly = ly0; ly <= ly1; ++ly) {
-            if ((sc.done_bits[ly] & span) == span) continue;  // every pixel it could touch is done
+            const uint32_t done = sc.done_bits[ly];
+            if ((done & span) == span) continue;  // every pixel it could touch is done
             const float dy = my - (static_cast<float>(r.Y0 + ly) + 0.5f);
             const float bdy = b * dy, rowc = hc * dy * dy;
             const int row = ly * kTileSize;
-            float* T = sc.T + row;
-            float* thr = sc.thr + row;
-            int32_t* last = sc.last + row;
-            int stops = 0;
-            // Branch-free on purpose (bitwise &, selects): this loop must vectorise. A finished
-            // pixel has thr = 2, which no alpha reaches.
-#pragma omp simd reduction(+ : stops)
-            for (int l = h0; l < h1; ++l) {
-                const float sigma = sigma_at(ha, bdy, rowc, mx - px[l]);
-                float alpha = op * fast_exp(-sigma);
-                alpha = alpha > amax ? amax : alpha;
-                const bool valid = (l >= lx0) & (l <= lx1) & (sigma >= 0.0f) & (alpha >= thr[l]);
-                const float Tl = T[l];
-                const float Tn = Tl * (1.0f - alpha);
-                const bool stop = valid & (Tn <= tmin);  // gsplat: next_T <= 1e-4f, exclusive
-                const bool blend = valid & (Tn > tmin);
-                sc.w[l] = blend ? alpha * Tl : 0.0f;
-                T[l] = blend ? Tn : Tl;
-                last[l] = blend ? kk : last[l];
-                thr[l] = stop ? 2.0f : thr[l];
-                stops += stop ? 1 : 0;
-            }
-            for (int ch = 0; ch < C; ++ch) {
-                const float cv = col[ch];
-                float* acc_row = acc + static_cast<size_t>(ch) * kTilePixels + row;
-#pragma omp simd
-                for (int l = h0; l < h1; ++l) acc_row[l] += sc.w[l] * cv;
-            }
+            uint32_t stops = 0;
+            if (use0 && (done & span0) != span0)
+                stops |= forward_half<NC>(sc.T + row, sc.thr + row, sc.last + row, acc + row, C, col, dx0, in0,
+                                          ha, bdy, rowc, op, amax, tmin, kk);
+            if (use1 && ((done >> kHalf) & span1) != span1)
+                stops |= forward_half<NC>(sc.T + row + kHalf, sc.thr + row + kHalf, sc.last + row + kHalf,
+                                          acc + row + kHalf, C, col, dx1, in1, ha, bdy, rowc, op, amax, tmin, kk)
+                         << kHalf;
             if (stops) {
-                finished += stops;
-                for (int l = h0; l < h1; ++l)
-                    if (thr[l] > 1.0f) sc.done_bits[ly] |= 1u << l;
+                finished += __builtin_popcount(stops);
+                sc.done_bits[ly] |= stops;
             }
         }
     }
@@ -647,6 +706,26 @@ void forward_tile(const SortedGaussians& S, const TileRect& r, const int32_t* li
             const float* a = acc + static_cast<size_t>(ch) * kTilePixels + row;
             for (int lx = 0; lx < r.w; ++lx) out[lx * C + ch] = a[lx];
         }
+    }
+}
+
+using ForwardTileFn = void (*)(const SortedGaussians&, const TileRect&, const int32_t*, int64_t,
+                               const Settings&, ForwardScratch&, float*, float*, int32_t*, int);
+
+// The forward tile for a channel count: unrolled for the counts renders use (RGB, + depth,
+// + flow, + flow and depth), a run-time loop otherwise.
+ForwardTileFn forward_tile_for(int channels) {
+    switch (channels) {
+        case 3:
+            return forward_tile<3>;
+        case 4:
+            return forward_tile<4>;
+        case 5:
+            return forward_tile<5>;
+        case 6:
+            return forward_tile<6>;
+        default:
+            return forward_tile<0>;
     }
 }
 
@@ -704,13 +783,15 @@ void backward_tile(const SortedGaussians& S, const TileRect& r, const int32_t* l
     for (int l = 0; l < kTileSize; ++l) px[l] = static_cast<float>(r.X0 + l) + 0.5f;
 
     for (int32_t k = kmax; k >= 0; --k) {
+        if (k >= kPrefetch) __builtin_prefetch(&S.packed[list[k - kPrefetch]]);
         const int32_t v = list[k];
-        const float mx = S.mx[v], my = S.my[v], op = S.op[v];
-        const float a = S.ca[v], b = S.cb[v], c = S.cc[v];
+        const PackedGaussian& pg = S.packed[v];
+        const float mx = pg.mx, my = pg.my, op = pg.op;
+        const float a = pg.a, b = pg.b, c = pg.c;
         const float ha = 0.5f * a, hc = 0.5f * c;
-        const int lx0 = std::max(S.x0[v] - r.X0, 0), lx1 = std::min(S.x1[v] - r.X0, kTileSize - 1);
-        const int ly0 = std::max(S.y0[v] - r.Y0, 0), ly1 = std::min(S.y1[v] - r.Y0, r.h - 1);
-        const float* col = &S.col[static_cast<size_t>(v) * C];
+        const int lx0 = std::max(pg.x0 - r.X0, 0), lx1 = std::min(pg.x1 - r.X0, kTileSize - 1);
+        const int ly0 = std::max(pg.y0 - r.Y0, 0), ly1 = std::min(pg.y1 - r.Y0, r.h - 1);
+        const float* col = S.colors(v);
         bool any = false;
         for (int ly = ly0; ly <= ly1; ++ly) {
             const float dy = my - (static_cast<float>(r.Y0 + ly) + 0.5f);
@@ -804,6 +885,147 @@ void backward_tile(const SortedGaussians& S, const TileRect& r, const int32_t* l
     }
 }
 
+// The backward tile for a channel count known at compile time: the three passes of
+// backward_tile over a half-row fused into one on 8-lane vectors (exp evaluated once, nothing
+// stored between passes), the per-lane accumulators held across the Gaussian's rows. Same
+// arithmetic in the same order per lane as backward_tile, so the same gradients.
+template <int NC>
+void backward_tile_fused(const SortedGaussians& S, const TileRect& r, const int32_t* list,
+                         const Settings& s, BackwardScratch& sc, const float* T_final,
+                         const int32_t* last_in, const float* g_color, const float* g_alpha, int width,
+                         float* grads) {
+    constexpr int C = NC;
+    const float amin = s.alpha_min, amax = s.alpha_max;
+    std::fill(sc.g.begin(), sc.g.end(), 0.0f);
+    std::fill(sc.buf.begin(), sc.buf.end(), 0.0f);
+    int32_t kmax = -1;
+    for (int p = 0; p < kTilePixels; ++p) {
+        sc.T[p] = 1.0f;
+        sc.q[p] = 0.0f;
+        sc.last[p] = -1;
+    }
+    for (int ly = 0; ly < kTileSize; ++ly) sc.half_last[ly][0] = sc.half_last[ly][1] = -1;
+    for (int ly = 0; ly < r.h; ++ly) {
+        const int row = ly * kTileSize;
+        const int64_t pix0 = static_cast<int64_t>(r.Y0 + ly) * width + r.X0;
+        for (int lx = 0; lx < r.w; ++lx) {
+            const int64_t pix = pix0 + lx;
+            sc.T[row + lx] = T_final[pix];
+            sc.last[row + lx] = last_in[pix];
+            sc.q[row + lx] = g_alpha[pix] * T_final[pix];
+            int32_t& hl = sc.half_last[ly][lx / kHalf];
+            hl = std::max(hl, last_in[pix]);
+        }
+        kmax = std::max({kmax, sc.half_last[ly][0], sc.half_last[ly][1]});
+        const float* g_in = g_color + pix0 * C;
+        for (int ch = 0; ch < C; ++ch) {
+            float* g = sc.g.data() + static_cast<size_t>(ch) * kTilePixels + row;
+            for (int lx = 0; lx < r.w; ++lx) g[lx] = g_in[lx * C + ch];
+        }
+    }
+    if (kmax < 0) return;  // nothing was blended in this tile
+    alignas(64) float px[kTileSize];
+    for (int l = 0; l < kTileSize; ++l) px[l] = static_cast<float>(r.X0 + l) + 0.5f;
+    const v8i lane = {0, 1, 2, 3, 4, 5, 6, 7};
+    const v8f zero = v8_splat(0.0f), one = v8_splat(1.0f);
+
+    for (int32_t k = kmax; k >= 0; --k) {
+        if (k >= kPrefetch) __builtin_prefetch(&S.packed[list[k - kPrefetch]]);
+        const int32_t v = list[k];
+        const PackedGaussian& pg = S.packed[v];
+        const float mx = pg.mx, my = pg.my, op = pg.op;
+        const float a = pg.a, b = pg.b, c = pg.c;
+        const float ha = 0.5f * a, hc = 0.5f * c;
+        const int lx0 = std::max(pg.x0 - r.X0, 0), lx1 = std::min(pg.x1 - r.X0, kTileSize - 1);
+        const int ly0 = std::max(pg.y0 - r.Y0, 0), ly1 = std::min(pg.y1 - r.Y0, r.h - 1);
+        const float* col = S.colors(v);
+        v8f L[kGradStride], gcol[C];
+        for (v8f& x : L) x = zero;
+        for (v8f& x : gcol) x = zero;
+        bool any = false;
+        for (int ly = ly0; ly <= ly1; ++ly) {
+            const float dy = my - (static_cast<float>(r.Y0 + ly) + 0.5f);
+            const float bdy = b * dy, rowc = hc * dy * dy;
+            const v8f vdy = v8_splat(dy);
+            const int row = ly * kTileSize;
+            for (int h = lx0 < kHalf ? 0 : kHalf; h <= lx1; h += kHalf) {
+                if (k > sc.half_last[ly][h / kHalf]) continue;  // no pixel here blended it
+                float* T = sc.T + row + h;
+                const v8i inside = (lane >= stg_math::v8i_splat(lx0 - h)) & (lane <= stg_math::v8i_splat(lx1 - h));
+                const v8f dx = v8_splat(mx) - v8_load(px + h);
+                const v8f sigma = sigma_at8(ha, bdy, rowc, dx);
+                const v8f G = fast_exp8(-sigma);
+                const v8f raw = v8_splat(op) * G;
+                const v8f alpha = raw > v8_splat(amax) ? v8_splat(amax) : raw;
+                const v8i valid = inside & (stg_math::v8i_splat(k) <= stg_math::v8i_load(sc.last + row + h)) &
+                                  (sigma >= zero) & (alpha >= v8_splat(amin));
+                if (stg_math::v8_movemask(valid) == 0) continue;
+                any = true;
+                const v8f Tl = v8_load(T);
+                const v8f ra = one / (one - alpha);
+                const v8f Ti = Tl * ra;
+                const v8f validf = valid ? one : zero;
+                const v8f w = valid ? alpha * Ti : zero;
+                v8f dA = valid ? v8_load(sc.q + row + h) * ra : zero;
+                for (int ch = 0; ch < C; ++ch) {
+                    const v8f cv = v8_splat(col[ch]);
+                    const v8f g = v8_load(sc.g.data() + static_cast<size_t>(ch) * kTilePixels + row + h);
+                    float* bp = sc.buf.data() + static_cast<size_t>(ch) * kTilePixels + row + h;
+                    const v8f bufv = v8_load(bp);
+                    gcol[ch] = gcol[ch] + w * g;
+                    dA = dA + (validf * g) * (cv * Ti - bufv * ra);
+                    v8_store(bp, bufv + cv * w);
+                }
+                // Where the clamp was active alpha does not depend on opacity or sigma.
+                const v8i live = valid & (raw <= v8_splat(amax));
+                const v8f dsig = live ? -raw * dA : zero;
+                L[5] = L[5] + (live ? G * dA : zero);
+                const v8f gx = dsig * (v8_splat(a) * dx + v8_splat(b) * vdy);
+                const v8f gy = dsig * (v8_splat(b) * dx + v8_splat(c) * vdy);
+                L[0] = L[0] + gx;
+                L[1] = L[1] + gy;
+                L[6] = L[6] + (gx < zero ? -gx : gx);
+                L[7] = L[7] + (gy < zero ? -gy : gy);
+                L[2] = L[2] + v8_splat(0.5f) * dsig * dx * dx;
+                L[3] = L[3] + dsig * dx * vdy;
+                L[4] = L[4] + v8_splat(0.5f) * dsig * vdy * vdy;
+                v8_store(T, valid ? Ti : Tl);
+            }
+        }
+        if (!any) continue;
+        float* gv = grads + static_cast<size_t>(v) * (kGradStride + C);
+        for (int q = 0; q < kGradStride; ++q) {
+            float sum = 0.0f;
+            for (int j = 0; j < kHalf; ++j) sum += L[q][j];
+            gv[q] += sum;
+        }
+        for (int ch = 0; ch < C; ++ch) {
+            float sum = 0.0f;
+            for (int j = 0; j < kHalf; ++j) sum += gcol[ch][j];
+            gv[kGradStride + ch] += sum;
+        }
+    }
+}
+
+using BackwardTileFn = void (*)(const SortedGaussians&, const TileRect&, const int32_t*, const Settings&,
+                                BackwardScratch&, const float*, const int32_t*, const float*, const float*, int,
+                                float*);
+
+BackwardTileFn backward_tile_for(int channels) {
+    switch (channels) {
+        case 3:
+            return backward_tile_fused<3>;
+        case 4:
+            return backward_tile_fused<4>;
+        case 5:
+            return backward_tile_fused<5>;
+        case 6:
+            return backward_tile_fused<6>;
+        default:
+            return backward_tile;
+    }
+}
+
 }  // namespace
 
 void count_intersections(int64_t n, const int32_t* bbox, const uint8_t* visible, int width,
@@ -852,11 +1074,12 @@ void rasterize_forward(int64_t n, const float* means2d, const float* conics, con
         {
             ForwardScratch sc;
             sc.acc.resize(static_cast<size_t>(channels) * kTilePixels);
+            const ForwardTileFn tile_fn = forward_tile_for(channels);
 #pragma omp for schedule(dynamic, 1)
             for (int64_t t = 0; t < nt; ++t) {
                 const TileRect r = tile_rect(grid, tb + t);
-                forward_tile(S, r, list.data() + offsets[t], offsets[t + 1] - offsets[t], s, sc,
-                             out_color, out_T, out_last, width);
+                tile_fn(S, r, list.data() + offsets[t], offsets[t + 1] - offsets[t], s, sc, out_color, out_T,
+                        out_last, width);
             }
         }
         ms_raster += ms_since(t0);
@@ -911,12 +1134,12 @@ void rasterize_backward(int64_t n, const float* means2d, const float* conics, co
             sc.g.resize(static_cast<size_t>(C) * kTilePixels);
             sc.buf.resize(static_cast<size_t>(C) * kTilePixels);
             sc.gcol.resize(static_cast<size_t>(C) * kHalf);
+            const BackwardTileFn tile_fn = backward_tile_for(C);
 #pragma omp for schedule(dynamic, 1)
             for (int64_t t = 0; t < nt; ++t) {
                 if (offsets[t + 1] == offsets[t]) continue;
                 const TileRect r = tile_rect(grid, tb + t);
-                backward_tile(S, r, list.data() + offsets[t], s, sc, T_final, last, g_color, g_alpha,
-                              width, grads.data());
+                tile_fn(S, r, list.data() + offsets[t], s, sc, T_final, last, g_color, g_alpha, width, grads.data());
             }
         }
         ms_raster += ms_since(t0);

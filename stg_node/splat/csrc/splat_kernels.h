@@ -73,6 +73,13 @@ void project_backward(int64_t n, const float* means, const float* quats, const f
                       const float* g_depths, const float* g_opac_eff, float* g_means,
                       float* g_quats, float* g_scales, float* g_opacities);
 
+// Conservative frustum test before projection (stg_node/splat/culling.py is the reference):
+// out[i] = 0 only for Gaussians project_forward culls by depth or whose screen box misses the
+// image, bounding the box by `sigma_extent_max` x sqrt(|J_x|^2 max(scale)^2 + eps2d) + margin.
+// NaN inputs are kept (the caller's checks see them).
+void may_be_visible(int64_t n, const float* means, const float* scales, const Camera& cam,
+                    const Settings& s, double margin_px, uint8_t* out);
+
 // ---- rasterization ------------------------------------------------------------------------
 // Stage timings (milliseconds) and counters reported back to Python.
 struct RasterStats {

@@ -1,0 +1,80 @@
+"""Per-Gaussian colours carried from frame to frame of a live stream, recomputed in turns.
+
+The colour MLP's output moves slowly with the pose and the view: between two frames of a 30 fps
+stream a Gaussian's colour changes by a fraction of a grey level, yet evaluating the network for
+every Gaussian costs about as much as the rest of the pose. A :class:`ColorCache` (one per stream:
+one camera following one body) recomputes the colour of every ``refresh_every``-th Gaussian per
+frame, in turn (row r when ``r % refresh_every`` equals the frame's turn), and keeps the others'
+colours from their last evaluation, so no colour is more than ``refresh_every - 1`` frames old.
+Rows never evaluated yet (a new snapshot, rows that were culled until now) are always
+evaluated. ``refresh_every=1`` evaluates every row every frame (the exact render).
+
+The renderer keeps one cache per stream (AvatarRenderer.render(..., stream=...)); a one-shot
+render has none and is always exact. The cache belongs to one model: a different model, a
+different table size or SH degree starts it afresh.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+
+
+class ColorCache:
+    def __init__(self, refresh_every: int = 2):
+        if int(refresh_every) < 1:
+            raise ValueError(f"refresh_every must be >= 1, got {refresh_every}")
+        self.refresh_every = int(refresh_every)
+        self.frame = 0
+        self._key: tuple | None = None
+        self._colors: torch.Tensor | None = None  # (table rows, C)
+        self._known: torch.Tensor | None = None  # (table rows,) bool: evaluated at least once
+        self.evaluated = 0  # rows evaluated in the last call (for tests and benchmarks)
+
+    def reset(self) -> None:
+        self._key = self._colors = self._known = None
+
+    def colors(
+        self,
+        evaluate: Callable[[torch.Tensor | None], torch.Tensor],
+        rows: torch.Tensor | None,
+        num_rows: int,
+        key: tuple,
+    ) -> torch.Tensor:
+        """Colours of the rendered rows: ``rows`` (M,) are their table rows (None: every row, in
+        order); ``evaluate(sel)`` returns the colours of the rendered rows at positions ``sel``
+        (None: all of them). ``key`` names what the colours belong to (the model, the SH degree):
+        a new key starts afresh."""
+        key = (*key, int(num_rows))
+        if key != self._key or self._colors is None:
+            self.reset()
+            self._key = key
+        turn = self.frame % self.refresh_every
+        self.frame += 1
+        if self.refresh_every == 1 or self._colors is None:
+            fresh = evaluate(None)
+            self.evaluated = fresh.shape[0]
+            if self.refresh_every > 1:
+                self._colors = fresh.new_zeros((num_rows, fresh.shape[1]))
+                self._known = torch.zeros(num_rows, dtype=torch.bool, device=fresh.device)
+                ids = torch.arange(num_rows, device=fresh.device) if rows is None else rows
+                self._colors[ids] = fresh
+                self._known[ids] = True
+            return fresh
+        if rows is None and bool(self._known.all()):  # every row, all seen: this turn's slice
+            sel = torch.arange(turn, num_rows, self.refresh_every, device=self._colors.device)
+            self.evaluated = int(sel.numel())
+            if self.evaluated:
+                self._colors[turn :: self.refresh_every] = evaluate(sel).to(self._colors.dtype)
+            return self._colors
+        ids = torch.arange(num_rows, device=self._colors.device) if rows is None else rows
+        due = (ids % self.refresh_every == turn) | ~self._known[ids]
+        sel = due.nonzero().squeeze(1)
+        self.evaluated = int(sel.numel())
+        if self.evaluated:
+            fresh = evaluate(sel)
+            target = ids[sel]
+            self._colors[target] = fresh.to(self._colors.dtype)
+            self._known[target] = True
+        return self._colors[ids]

@@ -1,0 +1,71 @@
+"""Which implementation the avatar's per-Gaussian stages run: the fused C++ kernels or torch.
+
+Skinning (:mod:`rigid`) and the colour MLP (:mod:`color`) each have a fused CPU kernel with a
+hand-written backward (``stg_node.splat.skin_ops``, ``stg_node.splat.mlp_ops``) and a torch
+implementation, which is the reference the kernels are tested against and what runs on other
+devices, in float64, or without a C++ compiler. The kernels are used wherever they apply (float32
+CPU tensors, kernels built) unless switched off:
+
+- ``STG_AVATAR_KERNELS=torch`` in the environment, for a whole process;
+- ``with kernels.reference():`` for a block of code (benchmarks time both in one run this way).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import threading
+
+import torch
+
+log = logging.getLogger(__name__)
+
+ENV = "STG_AVATAR_KERNELS"
+MODES = ("auto", "torch")
+
+_local = threading.local()
+_logged = False
+
+
+def mode() -> str:
+    """``auto`` (kernels where they apply) or ``torch`` (the reference everywhere)."""
+    forced = getattr(_local, "forced", None)
+    if forced is not None:
+        return forced
+    value = os.environ.get(ENV, "auto").strip().lower() or "auto"
+    if value not in MODES:
+        raise ValueError(f"{ENV} must be one of {', '.join(MODES)}, got {value!r}")
+    return value
+
+
+@contextlib.contextmanager
+def reference():
+    """Run the torch reference inside this block (in this thread)."""
+    previous = getattr(_local, "forced", None)
+    _local.forced = "torch"
+    try:
+        yield
+    finally:
+        _local.forced = previous
+
+
+def use_kernels(*tensors: torch.Tensor | None) -> bool:
+    """Whether a stage over these tensors should run its C++ kernel (``None`` entries ignored)."""
+    global _logged
+    if mode() == "torch":
+        return False
+    for t in tensors:
+        if t is not None and (t.device.type != "cpu" or t.dtype != torch.float32):
+            return False
+    from stg_node.splat.build import load_kernels
+    from stg_node.splat.types import BackendUnavailable
+
+    try:
+        load_kernels()
+    except BackendUnavailable as exc:
+        if not _logged:
+            _logged = True
+            log.warning("avatar kernels unavailable, using torch (%s)", exc)
+        return False
+    return True

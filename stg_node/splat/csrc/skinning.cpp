@@ -1,0 +1,265 @@
+// Fused linear blend skinning (see skinning.h for the maths and the contract).
+//
+// One pass per point: its B effective weights (the log-space correction included), the blended
+// 3x4 transform and quaternion as one 16-float blend of the bones' rows, the world centre, the
+// product with the point's local rotation and the canonical view direction. The backward pass
+// recomputes the blend from the saved weights, runs the chain rule per point, and accumulates
+// the bones' gradients in per-thread buffers (float over blocks of points, then double), summed
+// in thread order at the end.
+#include "skinning.h"
+
+#include <omp.h>
+
+#include <algorithm>
+#include <cmath>
+#include <vector>
+
+#include "fast_math.h"
+
+namespace stg_skin {
+namespace {
+
+constexpr int kFlushEvery = 256;  // points between float -> double flushes of the bone gradients
+
+// Effective weights of one point into w (B floats); returns nothing, never divides by zero
+// (the body's weights plus eps are positive).
+inline void point_weights(const SkinShape& s, const float* sw, const float* delta, float* w) {
+    const int B = s.bones;
+    if (!s.has_delta) {
+        for (int b = 0; b < B; ++b) w[b] = sw[b];
+        return;
+    }
+    // (s + eps) exp(d - max d) / sum: the same ratio as without the shift, never overflowing.
+    float dmax = delta[0];
+#pragma omp simd reduction(max : dmax)
+    for (int b = 1; b < B; ++b) dmax = std::max(dmax, delta[b]);
+    float total = 0.0f;
+#pragma omp simd reduction(+ : total)
+    for (int b = 0; b < B; ++b) {
+        const float e = (sw[b] + s.weight_eps) * stg_math::fast_exp(delta[b] - dmax);
+        w[b] = e;
+        total += e;
+    }
+    const float inv = 1.0f / total;
+    for (int b = 0; b < B; ++b) w[b] *= inv;
+}
+
+// blend[16] = sum_b w_b bones[b, :], in four interleaved partial sums (a chain of B dependent
+// multiply-adds would wait on each one's latency).
+inline void blend_bones(int B, const float* w, const float* bones, float* blend) {
+    using stg_math::v8_load;
+    using stg_math::v8_madd;
+    using stg_math::v8_splat;
+    using stg_math::v8f;
+    static_assert(kBoneStride == 16, "two vectors per bone");
+    v8f acc[4][2] = {};
+    int b = 0;
+    for (; b + 4 <= B; b += 4) {
+        for (int j = 0; j < 4; ++j) {
+            const float* row = bones + static_cast<int64_t>(b + j) * kBoneStride;
+            const v8f wb = v8_splat(w[b + j]);
+            acc[j][0] = v8_madd(wb, v8_load(row), acc[j][0]);
+            acc[j][1] = v8_madd(wb, v8_load(row + 8), acc[j][1]);
+        }
+    }
+    for (; b < B; ++b) {
+        const float* row = bones + static_cast<int64_t>(b) * kBoneStride;
+        const v8f wb = v8_splat(w[b]);
+        acc[0][0] = v8_madd(wb, v8_load(row), acc[0][0]);
+        acc[0][1] = v8_madd(wb, v8_load(row + 8), acc[0][1]);
+    }
+    stg_math::v8_store(blend, (acc[0][0] + acc[1][0]) + (acc[2][0] + acc[3][0]));
+    stg_math::v8_store(blend + 8, (acc[0][1] + acc[1][1]) + (acc[2][1] + acc[3][1]));
+}
+
+inline float norm4(const float* q) {
+    return std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+}
+
+// Hamilton product a * b of wxyz quaternions.
+inline void quat_mul(const float* a, const float* b, float* o) {
+    o[0] = a[0] * b[0] - a[1] * b[1] - a[2] * b[2] - a[3] * b[3];
+    o[1] = a[0] * b[1] + a[1] * b[0] + a[2] * b[3] - a[3] * b[2];
+    o[2] = a[0] * b[2] - a[1] * b[3] + a[2] * b[0] + a[3] * b[1];
+    o[3] = a[0] * b[3] + a[1] * b[2] - a[2] * b[1] + a[3] * b[0];
+}
+
+// The normalised local rotation (identity when its norm is at most eps); returns the norm.
+inline float local_rotation(const SkinShape& s, const float* l, float* ln) {
+    const float norm = norm4(l);
+    if (norm > s.quat_eps) {
+        const float inv = 1.0f / norm;
+        for (int k = 0; k < 4; ++k) ln[k] = l[k] * inv;
+    } else {
+        ln[0] = 1.0f;
+        ln[1] = ln[2] = ln[3] = 0.0f;
+    }
+    return norm;
+}
+
+}  // namespace
+
+void skin_forward(const SkinShape& s, const float* means, const float* skin_weights,
+                  const float* skin_delta, const float* bones, const float* local_quats,
+                  const float* camera, float* world, float* quats, float* view, float* weights) {
+    const int B = s.bones;
+#pragma omp parallel num_threads(s.threads)
+    {
+        std::vector<float> wbuf(B);
+#pragma omp for schedule(static)
+        for (int64_t i = 0; i < s.n; ++i) {
+            float* w = weights ? weights + i * B : wbuf.data();
+            point_weights(s, skin_weights + i * B, s.has_delta ? skin_delta + i * B : nullptr, w);
+            float bl[kBoneStride];
+            blend_bones(B, w, bones, bl);
+            const float* x = means + i * 3;
+            float p[3];
+            for (int r = 0; r < 3; ++r)
+                p[r] = bl[r * 4] * x[0] + bl[r * 4 + 1] * x[1] + bl[r * 4 + 2] * x[2] + bl[r * 4 + 3];
+            for (int r = 0; r < 3; ++r) world[i * 3 + r] = p[r];
+            if (!s.rotations) continue;
+            const float* qr = bl + 12;
+            const float inv = 1.0f / std::max(norm4(qr), s.quat_eps);
+            const float qn[4] = {qr[0] * inv, qr[1] * inv, qr[2] * inv, qr[3] * inv};
+            if (s.has_local) {
+                float ln[4];
+                local_rotation(s, local_quats + i * 4, ln);
+                quat_mul(qn, ln, quats + i * 4);
+            } else {
+                for (int k = 0; k < 4; ++k) quats[i * 4 + k] = qn[k];
+            }
+            if (camera == nullptr) continue;
+            float v[3] = {p[0] - camera[0], p[1] - camera[1], p[2] - camera[2]};
+            const float vinv = 1.0f / std::max(std::sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]), 1e-9f);
+            for (float& c : v) c *= vinv;
+            // rotate by conj(qn): v + 2 (w (u x v) + u x (u x v)) with w = qn_w, u = -qn_xyz
+            const float qw = qn[0], u[3] = {-qn[1], -qn[2], -qn[3]};
+            const float uv[3] = {u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2],
+                                 u[0] * v[1] - u[1] * v[0]};
+            const float uuv[3] = {u[1] * uv[2] - u[2] * uv[1], u[2] * uv[0] - u[0] * uv[2],
+                                  u[0] * uv[1] - u[1] * uv[0]};
+            for (int r = 0; r < 3; ++r) view[i * 3 + r] = v[r] + 2.0f * (qw * uv[r] + uuv[r]);
+        }
+    }
+}
+
+void skin_backward(const SkinShape& s, const float* means, const float* weights,
+                   const float* bones, const float* local_quats, const float* g_world,
+                   const float* g_quats, float* g_means, float* g_delta, float* g_bones,
+                   float* g_local_quats) {
+    const int B = s.bones;
+    const int threads = std::max(1, s.threads);
+    // bones transposed (16 x B): dL/dw_b = <bones[b], g16> for all b as 16 axpys over b.
+    std::vector<float> bones_t(static_cast<size_t>(kBoneStride) * B);
+    for (int b = 0; b < B; ++b)
+        for (int k = 0; k < kBoneStride; ++k) bones_t[k * B + b] = bones[b * kBoneStride + k];
+    std::vector<std::vector<double>> totals(threads);
+#pragma omp parallel num_threads(threads)
+    {
+        const int tid = omp_get_thread_num();
+        std::vector<double>& total = totals[tid];
+        total.assign(static_cast<size_t>(B) * kBoneStride, 0.0);
+        std::vector<float> acc(static_cast<size_t>(B) * kBoneStride, 0.0f);
+        std::vector<float> gw(B);
+        int since_flush = 0;
+        auto flush = [&]() {
+            for (size_t k = 0; k < acc.size(); ++k) {
+                total[k] += acc[k];
+                acc[k] = 0.0f;
+            }
+            since_flush = 0;
+        };
+#pragma omp for schedule(static)
+        for (int64_t i = 0; i < s.n; ++i) {
+            const float* w = weights + i * B;
+            float bl[kBoneStride];
+            blend_bones(B, w, bones, bl);
+            const float* x = means + i * 3;
+            const float* gp = g_world + i * 3;
+            // world = M x + t: dL/dx = M^T g, dL/dM = g x^T, dL/dt = g
+            for (int k = 0; k < 3; ++k)
+                g_means[i * 3 + k] = bl[k] * gp[0] + bl[4 + k] * gp[1] + bl[8 + k] * gp[2];
+            float g16[kBoneStride];
+            for (int r = 0; r < 3; ++r) {
+                g16[r * 4] = gp[r] * x[0];
+                g16[r * 4 + 1] = gp[r] * x[1];
+                g16[r * 4 + 2] = gp[r] * x[2];
+                g16[r * 4 + 3] = gp[r];
+            }
+            g16[12] = g16[13] = g16[14] = g16[15] = 0.0f;
+            if (s.rotations) {
+                const float* qr = bl + 12;
+                const float qnorm = norm4(qr);
+                const float den = std::max(qnorm, s.quat_eps);
+                const float inv = 1.0f / den;
+                const float qn[4] = {qr[0] * inv, qr[1] * inv, qr[2] * inv, qr[3] * inv};
+                const float* g = g_quats + i * 4;
+                float gq[4];  // dL/dqn
+                if (s.has_local) {
+                    const float* l = local_quats + i * 4;
+                    float ln[4];
+                    const float lnorm = local_rotation(s, l, ln);
+                    // o = qn * ln
+                    gq[0] = g[0] * ln[0] + g[1] * ln[1] + g[2] * ln[2] + g[3] * ln[3];
+                    gq[1] = -g[0] * ln[1] + g[1] * ln[0] - g[2] * ln[3] + g[3] * ln[2];
+                    gq[2] = -g[0] * ln[2] + g[1] * ln[3] + g[2] * ln[0] - g[3] * ln[1];
+                    gq[3] = -g[0] * ln[3] - g[1] * ln[2] + g[2] * ln[1] + g[3] * ln[0];
+                    float gl[4];  // dL/dln
+                    gl[0] = g[0] * qn[0] + g[1] * qn[1] + g[2] * qn[2] + g[3] * qn[3];
+                    gl[1] = -g[0] * qn[1] + g[1] * qn[0] + g[2] * qn[3] - g[3] * qn[2];
+                    gl[2] = -g[0] * qn[2] - g[1] * qn[3] + g[2] * qn[0] + g[3] * qn[1];
+                    gl[3] = -g[0] * qn[3] + g[1] * qn[2] - g[2] * qn[1] + g[3] * qn[0];
+                    float* out = g_local_quats + i * 4;
+                    if (lnorm > s.quat_eps) {
+                        const float dot = ln[0] * gl[0] + ln[1] * gl[1] + ln[2] * gl[2] + ln[3] * gl[3];
+                        const float linv = 1.0f / lnorm;
+                        for (int k = 0; k < 4; ++k) out[k] = (gl[k] - ln[k] * dot) * linv;
+                    } else {
+                        out[0] = out[1] = out[2] = out[3] = 0.0f;  // the identity does not depend on l
+                    }
+                } else {
+                    for (int k = 0; k < 4; ++k) gq[k] = g[k];
+                }
+                // qn = qr / max(|qr|, eps)
+                if (qnorm > s.quat_eps) {
+                    const float dot = qn[0] * gq[0] + qn[1] * gq[1] + qn[2] * gq[2] + qn[3] * gq[3];
+                    for (int k = 0; k < 4; ++k) g16[12 + k] = (gq[k] - qn[k] * dot) * inv;
+                } else {
+                    for (int k = 0; k < 4; ++k) g16[12 + k] = gq[k] * inv;
+                }
+            }
+            // dL/dw_b = <bones[b], g16>; dL/dbones[b] += w_b g16
+            std::fill(gw.begin(), gw.end(), 0.0f);
+            for (int k = 0; k < kBoneStride; ++k) {
+                const float gk = g16[k];
+                const float* col = bones_t.data() + static_cast<size_t>(k) * B;
+#pragma omp simd
+                for (int b = 0; b < B; ++b) gw[b] = STG_MADD(gk, col[b], gw[b]);
+            }
+            for (int b = 0; b < B; ++b) {
+                const float wb = w[b];
+                float* a = acc.data() + static_cast<size_t>(b) * kBoneStride;
+#pragma omp simd
+                for (int k = 0; k < kBoneStride; ++k) a[k] = STG_MADD(wb, g16[k], a[k]);
+            }
+            if (++since_flush == kFlushEvery) flush();
+            if (s.has_delta) {
+                // w = e / sum e with de_b/dd_b = e_b: dL/dd_b = w_b (dL/dw_b - sum_k w_k dL/dw_k)
+                float mean = 0.0f;
+                for (int b = 0; b < B; ++b) mean += w[b] * gw[b];
+                float* gd = g_delta + i * B;
+#pragma omp simd
+                for (int b = 0; b < B; ++b) gd[b] = w[b] * (gw[b] - mean);
+            }
+        }
+        flush();
+    }
+    for (int k = 0; k < B * kBoneStride; ++k) {
+        double sum = 0.0;
+        for (int t = 0; t < threads; ++t)
+            if (!totals[t].empty()) sum += totals[t][k];
+        g_bones[k] = static_cast<float>(sum);
+    }
+}
+
+}  // namespace stg_skin

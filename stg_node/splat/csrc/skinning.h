@@ -1,0 +1,50 @@
+// Linear blend skinning of points (Gaussian centres and orientations) by B bones, fused into one
+// pass per point, with its hand-written backward. Plain C++17 + OpenMP on raw float32 arrays,
+// like splat_kernels.h; splat_bindings.cpp wraps it for torch and stg_node/splat/skin_ops.py is
+// the Python side. The torch reference it must agree with is stg_node/avatar/rigid.py
+// (blend_weights, skin) and model.py (the local rotation, the canonical view direction).
+//
+// Per point i with canonical centre x_i, body weights s_ib and learned log-space correction d_ib:
+//   w_ib   = (s_ib + eps) exp(d_ib) / sum_k (s_ik + eps) exp(d_ik)      (w_ib = s_ib without d)
+//   B_i    = sum_b w_ib [R_b | t_b]      world_i = B_i[:, :3] x_i + B_i[:, 3]
+//   q_i    = normalise(sum_b w_ib q_b)   (the blended bone rotation, unit wxyz)
+//   quat_i = q_i * normalise(l_i)        (Hamilton product with the point's local rotation l_i;
+//                                         a local rotation of norm <= quat_eps is the identity)
+//   view_i = conj(q_i) normalise(world_i - camera)   (the viewing direction in the canonical frame)
+// where normalise(q) = q / max(|q|, quat_eps).
+#pragma once
+
+#include <cstdint>
+
+namespace stg_skin {
+
+// Per bone: 16 floats, the top three rows of its 4x4 transform row-major (R00 R01 R02 t0 R10 ...
+// t2) then its rotation quaternion (w, x, y, z).
+constexpr int kBoneStride = 16;
+
+struct SkinShape {
+    int64_t n;          // points
+    int bones;          // B
+    bool has_delta;     // skin_delta given (else the body's weights are used as they are)
+    bool rotations;     // compute quat_i (else only world_i)
+    bool has_local;     // local rotations given (else quat_i = q_i)
+    float weight_eps;   // eps of the weight correction
+    float quat_eps;     // normalisation floor of quaternions
+    int threads;
+};
+
+// Outputs: world [n*3]; quats [n*4] (if rotations); view [n*3] (if camera != nullptr, needs
+// rotations); weights [n*B] the effective weights (if not nullptr: the backward pass takes them).
+void skin_forward(const SkinShape& shape, const float* means, const float* skin_weights,
+                  const float* skin_delta, const float* bones, const float* local_quats,
+                  const float* camera, float* world, float* quats, float* view, float* weights);
+
+// Given dL/dworld [n*3] and dL/dquats [n*4] (if rotations), writes dL/dmeans [n*3], dL/ddelta
+// [n*B] (if has_delta), dL/dbones [B*16] and dL/dlocal_quats [n*4] (if has_local). `weights` are
+// the effective weights skin_forward wrote.
+void skin_backward(const SkinShape& shape, const float* means, const float* weights,
+                   const float* bones, const float* local_quats, const float* g_world,
+                   const float* g_quats, float* g_means, float* g_delta, float* g_bones,
+                   float* g_local_quats);
+
+}  // namespace stg_skin

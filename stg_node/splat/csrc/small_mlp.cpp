@@ -1,0 +1,328 @@
+// The small MLP kernels (see small_mlp.h for the contract).
+//
+// Rows are processed in blocks of kBlock: a block's activations stay in the first-level caches
+// from one layer to the next, and every product is one register-tiled loop (4 rows x 16 columns
+// of accumulators, the weights' row broadcast against 8-lane vectors). Bias and activation are
+// applied in the same pass over the block. Widths are padded to 8 floats inside (padding columns
+// hold zeros). The backward pass gathers the rows whose output gradient is not all zero, and
+// per block: the activation derivative from the saved outputs, dW += gz^T h and db += sum gz
+// into per-thread buffers, and gz W for the layer below. The per-thread buffers are summed in
+// thread order at the end.
+#include "small_mlp.h"
+
+#include <omp.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstring>
+#include <vector>
+
+#include "fast_math.h"
+
+namespace stg_mlp {
+namespace {
+
+using stg_math::v8_load;
+using stg_math::v8_madd;
+using stg_math::v8_splat;
+using stg_math::v8_store;
+using stg_math::v8f;
+
+constexpr int kBlock = 64;  // rows per block
+
+// C[RT x 8CT] (+)= A[RT x K] B[K x 8CT], strides in floats.
+template <int RT, int CT>
+inline void gemm_tile(int K, const float* A, int64_t lda, const float* B, int64_t ldb, float* C,
+                      int64_t ldc, bool accumulate) {
+    v8f c[RT][CT];
+    for (int r = 0; r < RT; ++r)
+        for (int t = 0; t < CT; ++t) c[r][t] = accumulate ? v8_load(C + r * ldc + t * 8) : v8_splat(0.0f);
+    for (int k = 0; k < K; ++k) {
+        v8f b[CT];
+        for (int t = 0; t < CT; ++t) b[t] = v8_load(B + k * ldb + t * 8);
+        for (int r = 0; r < RT; ++r) {
+            const v8f a = v8_splat(A[r * lda + k]);
+            for (int t = 0; t < CT; ++t) c[r][t] = v8_madd(a, b[t], c[r][t]);
+        }
+    }
+    for (int r = 0; r < RT; ++r)
+        for (int t = 0; t < CT; ++t) v8_store(C + r * ldc + t * 8, c[r][t]);
+}
+
+// C[m x nc] (+)= A[m x K] B[K x nc] with nc a multiple of 8.
+void gemm(int m, int nc, int K, const float* A, int64_t lda, const float* B, int64_t ldb, float* C,
+          int64_t ldc, bool accumulate) {
+    int i = 0;
+    for (; i + 4 <= m; i += 4) {
+        int j = 0;
+        for (; j + 16 <= nc; j += 16)
+            gemm_tile<4, 2>(K, A + i * lda, lda, B + j, ldb, C + i * ldc + j, ldc, accumulate);
+        for (; j < nc; j += 8) gemm_tile<4, 1>(K, A + i * lda, lda, B + j, ldb, C + i * ldc + j, ldc, accumulate);
+    }
+    for (; i < m; ++i) {
+        int j = 0;
+        for (; j + 16 <= nc; j += 16)
+            gemm_tile<1, 2>(K, A + i * lda, lda, B + j, ldb, C + i * ldc + j, ldc, accumulate);
+        for (; j < nc; j += 8) gemm_tile<1, 1>(K, A + i * lda, lda, B + j, ldb, C + i * ldc + j, ldc, accumulate);
+    }
+}
+
+inline float activate(int act, float z) {
+    switch (act) {
+        case kRelu:
+            return z > 0.0f ? z : 0.0f;
+        case kSigmoid:
+            return 1.0f / (1.0f + stg_math::fast_exp(-z));
+        case kTanh: {
+            const float e = stg_math::fast_exp(-2.0f * std::fabs(z));
+            const float t = (1.0f - e) / (1.0f + e);
+            return z < 0.0f ? -t : t;
+        }
+        default:
+            return z;
+    }
+}
+
+// d act / d z from the activation's output y.
+inline float derivative(int act, float y) {
+    switch (act) {
+        case kRelu:
+            return y > 0.0f ? 1.0f : 0.0f;
+        case kSigmoid:
+            return y * (1.0f - y);
+        case kTanh:
+            return 1.0f - y * y;
+        default:
+            return 1.0f;
+    }
+}
+
+// rows x width (stride `ld`) <- act(rows + bias), padding columns [width, ld) set to zero.
+void bias_activation(int rows, int width, int ld, const float* bias, int act, float* y) {
+    for (int r = 0; r < rows; ++r) {
+        float* row = y + static_cast<int64_t>(r) * ld;
+        switch (act) {
+            case kRelu:
+#pragma omp simd
+                for (int j = 0; j < width; ++j) {
+                    const float z = row[j] + bias[j];
+                    row[j] = z > 0.0f ? z : 0.0f;
+                }
+                break;
+            case kIdentity:
+#pragma omp simd
+                for (int j = 0; j < width; ++j) row[j] += bias[j];
+                break;
+            default:
+#pragma omp simd
+                for (int j = 0; j < width; ++j) row[j] = activate(act, row[j] + bias[j]);
+        }
+        for (int j = width; j < ld; ++j) row[j] = 0.0f;
+    }
+}
+
+// The weights in the two layouts the products need, padded with zeros:
+//   wt[l]: W_l^T, dims[l] x padded(dims[l+1])      (forward: x W^T)
+//   wp[l]: W_l,   dims[l+1] x padded(dims[l])      (backward: gz W)
+struct PaddedWeights {
+    std::vector<std::vector<float>> wt, wp, bias;
+};
+
+PaddedWeights pad_weights(const MlpShape& s, const float* const* weights, const float* const* biases,
+                          bool transposed, bool plain) {
+    PaddedWeights p;
+    p.wt.resize(s.layers);
+    p.wp.resize(s.layers);
+    p.bias.resize(s.layers);
+    for (int l = 0; l < s.layers; ++l) {
+        const int din = s.dims[l], dout = s.dims[l + 1];
+        const float* W = weights[l];
+        p.bias[l].assign(padded(dout), 0.0f);
+        if (biases != nullptr && biases[l] != nullptr) std::copy(biases[l], biases[l] + dout, p.bias[l].begin());
+        if (transposed) {
+            const int ld = padded(dout);
+            p.wt[l].assign(static_cast<size_t>(din) * ld, 0.0f);
+            for (int j = 0; j < dout; ++j)
+                for (int k = 0; k < din; ++k) p.wt[l][static_cast<size_t>(k) * ld + j] = W[j * din + k];
+        }
+        if (plain) {
+            const int ld = padded(din);
+            p.wp[l].assign(static_cast<size_t>(dout) * ld, 0.0f);
+            for (int j = 0; j < dout; ++j)
+                std::copy(W + static_cast<size_t>(j) * din, W + static_cast<size_t>(j + 1) * din,
+                          p.wp[l].begin() + static_cast<size_t>(j) * ld);
+        }
+    }
+    return p;
+}
+
+}  // namespace
+
+void mlp_forward(const MlpShape& s, const float* x, const float* const* weights,
+                 const float* const* biases, float* out, float* const* hidden) {
+    const int L = s.layers;
+    const PaddedWeights p = pad_weights(s, weights, biases, true, false);
+    const int64_t blocks = (s.rows + kBlock - 1) / kBlock;
+    int widest = 0;
+    for (int l = 1; l <= L; ++l) widest = std::max(widest, padded(s.dims[l]));
+#pragma omp parallel num_threads(s.threads)
+    {
+        // two ping-pong buffers for the layers whose outputs are not kept
+        std::vector<float> buf0(static_cast<size_t>(kBlock) * widest), buf1(buf0.size());
+#pragma omp for schedule(static)
+        for (int64_t blk = 0; blk < blocks; ++blk) {
+            const int64_t r0 = blk * kBlock;
+            const int rows = static_cast<int>(std::min<int64_t>(kBlock, s.rows - r0));
+            const float* in = x + r0 * s.dims[0];
+            int64_t ld_in = s.dims[0];
+            for (int l = 0; l < L; ++l) {
+                const int dout = s.dims[l + 1], ld = padded(dout);
+                float* y;
+                if (l < L - 1 && hidden != nullptr) {
+                    y = hidden[l] + r0 * ld;
+                } else {
+                    y = (l % 2 == 0) ? buf0.data() : buf1.data();
+                }
+                gemm(rows, ld, s.dims[l], in, ld_in, p.wt[l].data(), ld, y, ld, false);
+                bias_activation(rows, dout, ld, p.bias[l].data(), s.acts[l], y);
+                in = y;
+                ld_in = ld;
+            }
+            const int dl = s.dims[L];
+            for (int r = 0; r < rows; ++r)
+                std::copy(in + r * ld_in, in + r * ld_in + dl, out + (r0 + r) * dl);
+        }
+    }
+}
+
+void mlp_backward(const MlpShape& s, const float* x, const float* const* weights,
+                  const float* const* hidden, const float* out, const float* g_out, float* g_x,
+                  float* const* g_weights, float* const* g_biases) {
+    const int L = s.layers;
+    const int threads = std::max(1, s.threads);
+    const int d0 = s.dims[0], dl = s.dims[L];
+    const PaddedWeights p = pad_weights(s, weights, nullptr, false, true);
+    // Rows with a non-zero output gradient; the others contribute nothing.
+    std::vector<int64_t> active;
+    active.reserve(s.rows);
+    for (int64_t r = 0; r < s.rows; ++r) {
+        const float* g = g_out + r * dl;
+        bool any = false;
+        for (int j = 0; j < dl; ++j) any |= g[j] != 0.0f;
+        if (any) active.push_back(r);
+        else if (g_x != nullptr) std::fill(g_x + r * d0, g_x + (r + 1) * d0, 0.0f);
+    }
+    const int64_t n_active = static_cast<int64_t>(active.size());
+    const int64_t blocks = (n_active + kBlock - 1) / kBlock;
+    int widest = 0;
+    for (int l = 0; l <= L; ++l) widest = std::max(widest, padded(s.dims[l]));
+    // per-thread gradient buffers: dW_l (dims[l+1] x padded(dims[l])) and db_l
+    std::vector<std::vector<std::vector<float>>> tw(threads), tb(threads);
+#pragma omp parallel num_threads(threads)
+    {
+        const int tid = omp_get_thread_num();
+        auto& dW = tw[tid];
+        auto& db = tb[tid];
+        dW.resize(L);
+        db.resize(L);
+        for (int l = 0; l < L; ++l) {
+            dW[l].assign(static_cast<size_t>(s.dims[l + 1]) * padded(s.dims[l]), 0.0f);
+            db[l].assign(padded(s.dims[l + 1]), 0.0f);
+        }
+        // the block's inputs (layer 0's and each hidden layer's), its gradient and a transpose
+        std::vector<std::vector<float>> h(L);
+        for (int l = 0; l < L; ++l) h[l].assign(static_cast<size_t>(kBlock) * padded(s.dims[l]), 0.0f);
+        std::vector<float> gz(static_cast<size_t>(kBlock) * widest), gh(gz.size()),
+            gzt(static_cast<size_t>(widest) * kBlock);
+#pragma omp for schedule(dynamic, 4)
+        for (int64_t blk = 0; blk < blocks; ++blk) {
+            const int64_t a0 = blk * kBlock;
+            const int rows = static_cast<int>(std::min<int64_t>(kBlock, n_active - a0));
+            const int64_t* idx = active.data() + a0;
+            // gather: h[0] = x rows (padded), h[l] = hidden[l-1] rows
+            {
+                const int ld = padded(d0);
+                for (int r = 0; r < rows; ++r) {
+                    float* dst = h[0].data() + static_cast<size_t>(r) * ld;
+                    std::copy(x + idx[r] * d0, x + (idx[r] + 1) * d0, dst);
+                    std::fill(dst + d0, dst + ld, 0.0f);
+                }
+            }
+            for (int l = 1; l < L; ++l) {
+                const int ld = padded(s.dims[l]);
+                for (int r = 0; r < rows; ++r)
+                    std::copy(hidden[l - 1] + idx[r] * ld, hidden[l - 1] + (idx[r] + 1) * ld,
+                              h[l].data() + static_cast<size_t>(r) * ld);
+            }
+            // gz = dL/dout * act'(out)
+            {
+                const int ld = padded(dl);
+                for (int r = 0; r < rows; ++r) {
+                    const float* y = out + idx[r] * dl;
+                    const float* g = g_out + idx[r] * dl;
+                    float* dst = gz.data() + static_cast<size_t>(r) * ld;
+                    for (int j = 0; j < dl; ++j) dst[j] = g[j] * derivative(s.acts[L - 1], y[j]);
+                    for (int j = dl; j < ld; ++j) dst[j] = 0.0f;
+                }
+            }
+            for (int l = L - 1; l >= 0; --l) {
+                const int din = s.dims[l], dout = s.dims[l + 1];
+                const int ldi = padded(din), ldo = padded(dout);
+                // db += column sums of gz; dW += gz^T h[l]
+                for (int r = 0; r < rows; ++r) {
+                    const float* g = gz.data() + static_cast<size_t>(r) * ldo;
+#pragma omp simd
+                    for (int j = 0; j < dout; ++j) db[l][j] += g[j];
+                }
+                for (int r = 0; r < rows; ++r)
+                    for (int j = 0; j < dout; ++j) gzt[static_cast<size_t>(j) * kBlock + r] = gz[static_cast<size_t>(r) * ldo + j];
+                gemm(dout, ldi, rows, gzt.data(), kBlock, h[l].data(), ldi, dW[l].data(), ldi, true);
+                if (l == 0 && g_x == nullptr) break;
+                // gh = gz W_l (rows x padded(din))
+                gemm(rows, ldi, dout, gz.data(), ldo, p.wp[l].data(), ldi, gh.data(), ldi, false);
+                if (l == 0) {
+                    for (int r = 0; r < rows; ++r)
+                        std::copy(gh.data() + static_cast<size_t>(r) * ldi,
+                                  gh.data() + static_cast<size_t>(r) * ldi + din, g_x + idx[r] * d0);
+                    break;
+                }
+                // gz for the layer below: gh * act'_{l-1}(its output, = h[l])
+                const int act = s.acts[l - 1];
+                for (int r = 0; r < rows; ++r) {
+                    const float* y = h[l].data() + static_cast<size_t>(r) * ldi;
+                    const float* g = gh.data() + static_cast<size_t>(r) * ldi;
+                    float* dst = gz.data() + static_cast<size_t>(r) * ldi;
+                    if (act == kRelu) {
+#pragma omp simd
+                        for (int j = 0; j < ldi; ++j) dst[j] = y[j] > 0.0f ? g[j] : 0.0f;
+                    } else {
+                        for (int j = 0; j < din; ++j) dst[j] = g[j] * derivative(act, y[j]);
+                        for (int j = din; j < ldi; ++j) dst[j] = 0.0f;
+                    }
+                }
+            }
+        }
+    }
+    for (int l = 0; l < L; ++l) {
+        const int din = s.dims[l], dout = s.dims[l + 1], ldi = padded(din);
+        if (g_weights != nullptr && g_weights[l] != nullptr) {
+            for (int j = 0; j < dout; ++j)
+                for (int k = 0; k < din; ++k) {
+                    float sum = 0.0f;
+                    for (int t = 0; t < threads; ++t)
+                        if (!tw[t].empty()) sum += tw[t][l][static_cast<size_t>(j) * ldi + k];
+                    g_weights[l][j * din + k] = sum;
+                }
+        }
+        if (g_biases != nullptr && g_biases[l] != nullptr) {
+            for (int j = 0; j < dout; ++j) {
+                float sum = 0.0f;
+                for (int t = 0; t < threads; ++t)
+                    if (!tb[t].empty()) sum += tb[t][l][j];
+                g_biases[l][j] = sum;
+            }
+        }
+    }
+}
+
+}  // namespace stg_mlp

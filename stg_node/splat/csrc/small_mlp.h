@@ -1,0 +1,43 @@
+// A small multi-layer perceptron (Linear + activation layers, any widths) evaluated row block by
+// row block, with its hand-written backward. For the per-Gaussian networks of splatting models
+// (tens of thousands of rows, widths of tens), where torch spends its time on the memory of the
+// (rows x width) intermediates between ops rather than on the products. Plain C++17 + OpenMP on
+// raw float32 arrays; splat_bindings.cpp wraps it for torch, stg_node/splat/mlp_ops.py is the
+// Python side, and torch.nn (Linear, ReLU, Sigmoid, Tanh) is the reference it must agree with.
+//
+// Layer l maps width dims[l] to dims[l + 1]: y = act_l(x W_l^T + b_l), W_l (dims[l+1], dims[l])
+// row-major as torch.nn.Linear stores it.
+#pragma once
+
+#include <cstdint>
+
+namespace stg_mlp {
+
+enum Activation : int { kIdentity = 0, kRelu = 1, kSigmoid = 2, kTanh = 3 };
+
+// Widths inside the kernel are padded to this many floats (one vector of 8 lanes).
+constexpr int kLanes = 8;
+
+inline int padded(int width) { return (width + kLanes - 1) / kLanes * kLanes; }
+
+struct MlpShape {
+    int64_t rows;
+    int layers;        // L >= 1
+    const int* dims;   // L + 1 widths
+    const int* acts;   // L activations (Activation)
+    int threads;
+};
+
+// out [rows x dims[L]]. If `hidden` is not null, hidden[l] (l < L - 1) receives layer l's output
+// [rows x padded(dims[l+1])] for the backward pass.
+void mlp_forward(const MlpShape& s, const float* x, const float* const* weights,
+                 const float* const* biases, float* out, float* const* hidden);
+
+// Given dL/dout [rows x dims[L]], writes dL/dx [rows x dims[0]] (if g_x is not null) and
+// dL/dW_l, dL/db_l (each may be null). `hidden` and `out` are what mlp_forward wrote. Rows whose
+// dL/dout is all zero are skipped (their dL/dx is zero).
+void mlp_backward(const MlpShape& s, const float* x, const float* const* weights,
+                  const float* const* hidden, const float* out, const float* g_out, float* g_x,
+                  float* const* g_weights, float* const* g_biases);
+
+}  // namespace stg_mlp

@@ -1,0 +1,164 @@
+"""A small MLP over many rows on the CPU, differentiable (C++ kernel, csrc/small_mlp.cpp).
+
+Splatting models run small networks (widths of tens, a few layers) once per Gaussian: tens of
+thousands of rows. torch evaluates such a network op by op, and writes and reads every
+(rows x width) intermediate of every op, forward and backward; the kernel takes the rows in
+blocks of 64 and carries each block through all layers (bias and activation fused) while it
+sits in the first-level caches, and its backward skips the rows whose output gradient is zero
+(Gaussians that drew nothing).
+
+Any stack of ``torch.nn.Linear`` layers, each followed by one of ReLU, Sigmoid, Tanh or nothing:
+:func:`layers_of` reads them from an ``nn.Sequential`` (None when it holds anything else), and
+:func:`mlp` evaluates them; :func:`mlp_torch` is the reference (plain torch.nn.functional) that
+the tests compare against, in values and in gradients (inputs, weights and biases).
+:func:`mlp_kernel_applies` says whether the kernel takes a call (float32 CPU tensors, kernels
+built); callers keep the module itself for everything else.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from .build import load_kernels
+from .types import BackendUnavailable
+
+# Activation codes of csrc/small_mlp.h (enum Activation).
+ACTIVATIONS = {"identity": 0, "relu": 1, "sigmoid": 2, "tanh": 3}
+_MODULE_ACTIVATIONS = {nn.ReLU: "relu", nn.Sigmoid: "sigmoid", nn.Tanh: "tanh", nn.Identity: "identity"}
+
+
+@dataclass
+class Layer:
+    """``y = activation(x @ weight.T + bias)``: weight (out, in) as nn.Linear stores it."""
+
+    weight: torch.Tensor
+    bias: torch.Tensor | None
+    activation: str = "identity"
+
+
+def layers_of(net: nn.Module, output_activation: str = "identity") -> list[Layer] | None:
+    """The layers of an ``nn.Sequential`` of Linear modules, each optionally followed by one
+    activation module; ``output_activation`` is applied after the last (e.g. a sigmoid the caller
+    applies outside the Sequential). None when the module holds anything else."""
+    if output_activation not in ACTIVATIONS:
+        raise ValueError(f"output_activation must be one of {sorted(ACTIVATIONS)}, got {output_activation!r}")
+    if not isinstance(net, nn.Sequential):
+        return None
+    layers: list[Layer] = []
+    for module in net:
+        if isinstance(module, nn.Linear):
+            layers.append(Layer(module.weight, module.bias))
+            continue
+        name = _MODULE_ACTIVATIONS.get(type(module))
+        if name is None or not layers or layers[-1].activation != "identity":
+            return None
+        layers[-1].activation = name
+    if not layers:
+        return None
+    if output_activation != "identity":
+        if layers[-1].activation != "identity":
+            return None
+        layers[-1].activation = output_activation
+    return layers
+
+
+def fold_constant_inputs(layers: list[Layer], columns: slice, values: torch.Tensor) -> list[Layer]:
+    """``layers`` for inputs without ``columns``, whose value is the same ``values`` in every row:
+    their product with the first weight is added to its bias once, instead of once per row (a pose
+    code or a time code fed to a per-Gaussian network). Differentiable in the weights and values."""
+    first = layers[0]
+    weight = first.weight
+    start, stop, step = columns.indices(weight.shape[1])
+    if step != 1 or stop - start != values.numel():
+        raise ValueError(
+            f"columns {columns} of a {weight.shape[1]}-wide input do not match {values.numel()} values"
+        )
+    shift = weight[:, start:stop] @ values.reshape(-1).to(weight.dtype)
+    bias = shift if first.bias is None else first.bias + shift
+    kept = torch.cat([weight[:, :start], weight[:, stop:]], dim=1)
+    return [Layer(kept, bias, first.activation), *layers[1:]]
+
+
+def mlp_torch(x: torch.Tensor, layers: list[Layer]) -> torch.Tensor:
+    """The reference: the same layers with torch.nn.functional (any device and dtype)."""
+    functions = {"identity": lambda t: t, "relu": torch.relu, "sigmoid": torch.sigmoid, "tanh": torch.tanh}
+    for layer in layers:
+        x = functions[layer.activation](nn.functional.linear(x, layer.weight, layer.bias))
+    return x
+
+
+def mlp_kernel_applies(x: torch.Tensor, layers: list[Layer]) -> bool:
+    """Whether :func:`mlp` can take this call: float32 CPU tensors and the kernels build here."""
+    tensors = [x] + [t for layer in layers for t in (layer.weight, layer.bias) if t is not None]
+    if any(t.device.type != "cpu" or t.dtype != torch.float32 for t in tensors):
+        return False
+    try:
+        load_kernels()
+    except BackendUnavailable:
+        return False
+    return True
+
+
+def _f32(t: torch.Tensor) -> torch.Tensor:
+    return t.detach().to(torch.float32).contiguous()
+
+
+class _Mlp(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x, acts, grad, *params):
+        ops = load_kernels().ops
+        count = len(acts)
+        xs = _f32(x)
+        weights = [_f32(w) for w in params[:count]]
+        biases = [torch.empty(0) if b is None else _f32(b) for b in params[count:]]
+        out, hidden = ops.mlp_fwd(xs, weights, biases, list(acts), grad, torch.get_num_threads())
+        if grad:
+            ctx.save_for_backward(xs, out, *weights, *biases, *hidden)
+        ctx.args = (acts, [b is not None for b in params[count:]])
+        return out
+
+    @staticmethod
+    def backward(ctx, g_out):
+        acts, has_bias = ctx.args
+        count = len(acts)
+        saved = ctx.saved_tensors
+        xs, out = saved[0], saved[1]
+        weights = list(saved[2 : 2 + count])
+        biases = list(saved[2 + count : 2 + 2 * count])
+        hidden = list(saved[2 + 2 * count :])
+        ops = load_kernels().ops
+        want_gx = ctx.needs_input_grad[0]
+        g_x, g_w, g_b = ops.mlp_bwd(
+            xs, weights, biases, list(acts), hidden, out, _f32(g_out), want_gx, torch.get_num_threads()
+        )
+        grads_w = [g if ctx.needs_input_grad[3 + i] else None for i, g in enumerate(g_w)]
+        grads_b = [
+            g if has_bias[i] and ctx.needs_input_grad[3 + count + i] else None for i, g in enumerate(g_b)
+        ]
+        return (g_x if want_gx else None, None, None, *grads_w, *grads_b)
+
+
+def mlp(x: torch.Tensor, layers: list[Layer]) -> torch.Tensor:
+    """``layers`` applied to the rows of ``x (N, in)`` with the C++ kernel -> ``(N, out)``.
+
+    Differentiable with respect to ``x`` and every weight and bias. Float32 CPU tensors (see
+    :func:`mlp_kernel_applies`); computed in float32 like torch's own CPU path.
+    """
+    if x.dim() != 2:
+        raise ValueError(f"mlp takes (rows, features), got shape {tuple(x.shape)}")
+    width = x.shape[1]
+    for i, layer in enumerate(layers):
+        if layer.weight.dim() != 2 or layer.weight.shape[1] != width:
+            raise ValueError(f"layer {i}: weight must be (out, {width}), got {tuple(layer.weight.shape)}")
+        width = layer.weight.shape[0]
+        if layer.bias is not None and layer.bias.shape != (width,):
+            raise ValueError(f"layer {i}: bias must be ({width},), got {tuple(layer.bias.shape)}")
+        if layer.activation not in ACTIVATIONS:
+            raise ValueError(f"layer {i}: unknown activation {layer.activation!r}")
+    acts = tuple(ACTIVATIONS[layer.activation] for layer in layers)
+    params = [layer.weight for layer in layers] + [layer.bias for layer in layers]
+    grad = torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in [x, *params])
+    return _Mlp.apply(x, acts, grad, *params)

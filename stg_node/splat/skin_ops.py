@@ -1,0 +1,182 @@
+"""Fused linear blend skinning of Gaussians on the CPU, differentiable (C++ kernel, csrc/skinning.cpp).
+
+``skin(means, skin_weights, bone_transforms, bone_quats, ...)`` carries N canonical points by B
+bones in one pass per point: the effective weights (the body's, corrected in log space by a
+learned ``skin_delta``: ``w = (s + eps) exp(d) / sum``), the blended transform and the blended
+rotation quaternion, the world centre, the product with each point's own rotation and, given a
+camera centre, the viewing direction expressed in each point's canonical frame. Autograd's graph
+over the same maths is a chain of a dozen ops over (N, B) and (N, 4, 4) tensors; the kernel's
+backward is the chain rule written out per point, with the bones' gradients summed in per-thread
+buffers. The torch reference it is tested against is ``stg_node.avatar.rigid`` (``blend_weights``,
+``skin``) with the quaternion helpers of ``stg_node.avatar.model``.
+
+Differentiable with respect to ``means``, ``skin_delta``, ``bone_transforms``, ``bone_quats`` and
+``local_quats``; not ``skin_weights`` (fixed columns; ``skin_kernel_applies`` says False when they
+require a gradient) and not the view directions. Float32 CPU tensors only.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from .build import load_kernels
+from .types import BackendUnavailable
+
+BONE_STRIDE = 16  # floats per bone handed to the kernel: [R | t] rows (12), then the quaternion (4)
+
+
+@dataclass
+class SkinnedPoints:
+    """What :func:`skin` returns."""
+
+    means: torch.Tensor  # (N, 3) world centres
+    quats: torch.Tensor | None  # (N, 4) unit wxyz: blended bone rotation x local rotation
+    view_dirs: torch.Tensor | None  # (N, 3) unit viewing directions in each point's canonical frame
+
+
+def _empty() -> torch.Tensor:
+    return torch.empty(0)
+
+
+def _f32(t: torch.Tensor) -> torch.Tensor:
+    return t.detach().to(torch.float32).contiguous()
+
+
+def skin_kernel_applies(*tensors: torch.Tensor | None) -> bool:
+    """Whether :func:`skin` takes these inputs: float32 CPU tensors (None entries are ignored) and
+    the kernels build here. Raises nothing; the build's failure is remembered by build.py."""
+    for t in tensors:
+        if t is None:
+            continue
+        if t.device.type != "cpu" or t.dtype != torch.float32:
+            return False
+    try:
+        load_kernels()
+    except BackendUnavailable:
+        return False
+    return True
+
+
+class _Skin(torch.autograd.Function):
+    @staticmethod
+    def forward(
+        ctx,
+        means,
+        skin_weights,
+        skin_delta,
+        bones,
+        local_quats,
+        camera,
+        rotations,
+        weight_eps,
+        quat_eps,
+        grad,
+    ):
+        ops = load_kernels().ops
+        m, sw, bo = _f32(means), _f32(skin_weights), _f32(bones)
+        delta = _f32(skin_delta) if skin_delta is not None else _empty()
+        local = _f32(local_quats) if local_quats is not None else _empty()
+        cam = _f32(camera) if camera is not None else _empty()
+        world, quats, view, weights = ops.skin_fwd(
+            m, sw, delta, bo, local, cam, rotations, weight_eps, quat_eps, grad, torch.get_num_threads()
+        )
+        ctx.mark_non_differentiable(view)
+        if grad:
+            ctx.save_for_backward(m, weights, bo, local)
+        ctx.args = (skin_delta is not None, rotations, quat_eps)
+        return world, quats, view
+
+    @staticmethod
+    def backward(ctx, g_world, g_quats, _g_view):
+        m, weights, bo, local = ctx.saved_tensors
+        has_delta, rotations, quat_eps = ctx.args
+        ops = load_kernels().ops
+        g_world = torch.zeros_like(m) if g_world is None else _f32(g_world)
+        if rotations:
+            g_quats = torch.zeros(m.shape[0], 4) if g_quats is None else _f32(g_quats)
+        else:
+            g_quats = _empty()
+        g_means, g_delta, g_bones, g_local = ops.skin_bwd(
+            m, weights, has_delta, bo, local, rotations, quat_eps, g_world, g_quats, torch.get_num_threads()
+        )
+        return (
+            g_means,
+            None,
+            g_delta if has_delta else None,
+            g_bones,
+            g_local if local.numel() else None,
+            None,
+            None,
+            None,
+            None,
+            None,
+        )
+
+
+def skin(
+    means: torch.Tensor,
+    skin_weights: torch.Tensor,
+    bone_transforms: torch.Tensor,
+    bone_quats: torch.Tensor,
+    *,
+    weight_eps: float,
+    quat_eps: float,
+    skin_delta: torch.Tensor | None = None,
+    local_quats: torch.Tensor | None = None,
+    camera_center: torch.Tensor | None = None,
+    rotations: bool = True,
+) -> SkinnedPoints:
+    """Skin ``means (N, 3)`` with ``skin_weights (N, B)`` by ``bone_transforms (B, 4, 4)`` (or
+    (B, 3, 4)) whose rotations are ``bone_quats (B, 4)`` (wxyz, one hemisphere along the chain).
+
+    ``skin_delta (N, B)``: learned log-space correction of the weights (``weight_eps`` is the floor
+    added to the body's weights first); ``local_quats (N, 4)``: each point's own rotation
+    (normalised here; a norm <= ``quat_eps`` is the identity), applied after the bones';
+    ``camera_center (3,)``: also return the viewing directions in the canonical frame.
+    ``rotations=False`` returns the centres only (cheaper).
+    """
+    n = means.shape[0]
+    b = skin_weights.shape[1] if skin_weights.dim() == 2 else -1
+    if means.dim() != 2 or means.shape[1] != 3 or skin_weights.shape != (n, b) or b < 1:
+        raise ValueError(
+            f"skin needs means (N, 3) and skin_weights (N, B), got {tuple(means.shape)} and "
+            f"{tuple(skin_weights.shape)}"
+        )
+    if (
+        bone_transforms.shape[-2:] not in ((4, 4), (3, 4))
+        or bone_transforms.reshape(-1, *bone_transforms.shape[-2:]).shape[0] != b
+    ):
+        raise ValueError(
+            f"bone_transforms must be ({b}, 4, 4) or ({b}, 3, 4), got {tuple(bone_transforms.shape)}"
+        )
+    if bone_quats.reshape(-1, 4).shape[0] != b:
+        raise ValueError(f"bone_quats must be ({b}, 4), got {tuple(bone_quats.shape)}")
+    if skin_delta is not None and skin_delta.shape != (n, b):
+        raise ValueError(f"skin_delta must be ({n}, {b}), got {tuple(skin_delta.shape)}")
+    if local_quats is not None and local_quats.shape != (n, 4):
+        raise ValueError(f"local_quats must be ({n}, 4), got {tuple(local_quats.shape)}")
+    if not rotations and (local_quats is not None or camera_center is not None):
+        raise ValueError("local_quats and camera_center need rotations=True")
+    if skin_weights.requires_grad:
+        raise ValueError("skin() does not differentiate skin_weights (learn skin_delta instead)")
+    rows = bone_transforms.reshape(b, -1, 4)[:, :3, :].reshape(b, 12)
+    bones = torch.cat([rows, bone_quats.reshape(b, 4)], dim=1)
+    camera = None if camera_center is None else camera_center.reshape(3)
+    grad = torch.is_grad_enabled() and any(
+        t is not None and t.requires_grad for t in (means, skin_delta, bones, local_quats)
+    )
+    world, quats, view = _Skin.apply(
+        means,
+        skin_weights,
+        skin_delta,
+        bones,
+        local_quats,
+        camera,
+        bool(rotations),
+        float(weight_eps),
+        float(quat_eps),
+        grad,
+    )
+    return SkinnedPoints(world, quats if rotations else None, view if camera is not None else None)

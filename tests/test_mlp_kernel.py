@@ -1,0 +1,150 @@
+"""The small-MLP C++ kernel (stg_node.splat.mlp_ops) against torch.nn in float64: values and the
+gradients of inputs, weights and biases, for every activation, odd widths, skipped rows."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from torch import nn
+
+from stg_node.splat import build, mlp_ops
+
+
+@pytest.fixture(autouse=True)
+def _kernels():
+    try:
+        build.load_kernels()
+    except build.ExtensionUnavailable as exc:  # pragma: no cover - machines without a compiler
+        pytest.skip(f"CPU kernels unavailable: {exc}")
+
+
+def network(widths, activations, bias=True, seed=0):
+    torch.manual_seed(seed)
+    modules = {"relu": nn.ReLU, "sigmoid": nn.Sigmoid, "tanh": nn.Tanh}
+    layers: list[nn.Module] = []
+    for (a, b), act in zip(zip(widths[:-1], widths[1:], strict=False), activations, strict=False):
+        layers.append(nn.Linear(a, b, bias=bias))
+        if act != "identity":
+            layers.append(modules[act]())
+    return nn.Sequential(*layers).double()
+
+
+def compare(net, rows=517, output_activation="identity", zero_rows=False, seed=1):
+    """Kernel (float32) against torch.nn (float64): outputs and every gradient."""
+    gen = torch.Generator().manual_seed(seed)
+    x = torch.randn(rows, net[0].in_features, generator=gen, dtype=torch.float64)
+    layers64 = mlp_ops.layers_of(net, output_activation)
+    out_dim = layers64[-1].weight.shape[0]
+    g = torch.randn(rows, out_dim, generator=gen, dtype=torch.float64)
+    if zero_rows:
+        g[::3] = 0.0  # rows that drew nothing: skipped by the backward pass
+    x64 = x.clone().requires_grad_(True)
+    ref = mlp_ops.mlp_torch(x64, layers64)
+    params64 = [x64] + list(net.parameters())
+    ref_grads = torch.autograd.grad((ref * g).sum(), params64)
+
+    net32 = [p.detach().float().requires_grad_(True) for p in net.parameters()]
+    layers32, i = [], 0
+    for layer in layers64:
+        w = net32[i]
+        b = net32[i + 1] if layer.bias is not None else None
+        i += 2 if layer.bias is not None else 1
+        layers32.append(mlp_ops.Layer(w, b, layer.activation))
+    x32 = x.float().requires_grad_(True)
+    out = mlp_ops.mlp(x32, layers32)
+    grads = torch.autograd.grad((out * g.float()).sum(), [x32] + net32)
+    torch.testing.assert_close(out.double(), ref, atol=2e-5, rtol=1e-4)
+    for got, want in zip(grads, ref_grads, strict=False):
+        scale = max(float(want.abs().max()), 1.0)
+        torch.testing.assert_close(got.double(), want, atol=3e-5 * scale, rtol=1e-4)
+    return x32, grads
+
+
+@pytest.mark.parametrize(
+    "widths, activations, output",
+    [
+        ((55, 64, 64, 3), ("relu", "relu", "identity"), "sigmoid"),  # the avatar's colour MLP
+        ((47, 96, 96, 3), ("relu", "relu", "identity"), "sigmoid"),
+        ((5, 13, 7), ("tanh", "identity"), "identity"),  # widths that are no multiple of 8
+        ((9, 17), ("identity",), "relu"),  # one layer
+        ((3, 40, 40, 40, 2), ("sigmoid", "relu", "tanh", "identity"), "tanh"),
+    ],
+)
+def test_values_and_gradients_match_torch_in_float64(widths, activations, output):
+    compare(network(widths, activations), output_activation=output)
+
+
+def test_layers_without_bias():
+    compare(network((20, 24, 3), ("relu", "identity"), bias=False), output_activation="sigmoid")
+
+
+def test_rows_without_an_output_gradient_are_skipped_exactly():
+    x, grads = compare(
+        network((30, 32, 3), ("relu", "identity")), zero_rows=True, output_activation="sigmoid"
+    )
+    assert torch.equal(grads[0][::3], torch.zeros_like(grads[0][::3]))
+
+
+def test_a_block_remainder_and_a_single_row():
+    net = network((12, 16, 4), ("relu", "identity"))
+    for rows in (1, 63, 64, 65, 130):
+        compare(net, rows=rows, seed=rows)
+
+
+def test_two_threads_give_the_one_thread_result():
+    net = network((47, 64, 64, 3), ("relu", "relu", "identity")).float()
+    layers = mlp_ops.layers_of(net, "sigmoid")
+    x = torch.randn(3000, 47, requires_grad=True)
+    results = []
+    for threads in (1, 2):
+        previous = torch.get_num_threads()
+        torch.set_num_threads(threads)
+        try:
+            out = mlp_ops.mlp(x, layers)
+            grads = torch.autograd.grad(out.square().sum(), [x, *net.parameters()])
+            results.append([out.detach(), *grads])
+        finally:
+            torch.set_num_threads(previous)
+    for a, b in zip(*results, strict=False):
+        torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-5)
+
+
+def test_folding_row_constant_inputs_into_the_bias_changes_nothing():
+    """A pose code repeated in every row: folded into the first layer's bias, same outputs and
+    the same gradients for the weights and the code."""
+    net = network((10, 16, 3), ("relu", "identity"))
+    gen = torch.Generator().manual_seed(2)
+    rows = torch.randn(40, 7, generator=gen, dtype=torch.float64)
+    code = torch.randn(3, generator=gen, dtype=torch.float64, requires_grad=True)
+    layers = mlp_ops.layers_of(net, "sigmoid")
+    full = mlp_ops.mlp_torch(torch.cat([rows[:, :4], code.expand(40, 3), rows[:, 4:]], 1), layers)
+    g_full = torch.autograd.grad(full.sum(), [code, *net.parameters()])
+    folded = mlp_ops.mlp_torch(rows, mlp_ops.fold_constant_inputs(layers, slice(4, 7), code))
+    g_folded = torch.autograd.grad(folded.sum(), [code, *net.parameters()])
+    torch.testing.assert_close(folded, full)
+    for a, b in zip(g_folded, g_full, strict=False):
+        torch.testing.assert_close(a, b)
+    with pytest.raises(ValueError, match="columns"):
+        mlp_ops.fold_constant_inputs(layers, slice(4, 6), code)
+
+
+def test_layers_of_reads_linear_stacks_only():
+    assert mlp_ops.layers_of(nn.Sequential(nn.Linear(3, 4), nn.ReLU(), nn.Linear(4, 1))) is not None
+    assert mlp_ops.layers_of(nn.Sequential(nn.Linear(3, 4), nn.GELU())) is None  # no kernel for it
+    assert mlp_ops.layers_of(nn.Sequential(nn.ReLU(), nn.Linear(3, 4))) is None  # activation first
+    assert mlp_ops.layers_of(nn.Sequential(nn.Linear(3, 4), nn.ReLU(), nn.ReLU())) is None
+    assert mlp_ops.layers_of(nn.Sequential(nn.Linear(3, 4), nn.Tanh()), "sigmoid") is None
+    assert mlp_ops.layers_of(nn.Linear(3, 4)) is None
+    with pytest.raises(ValueError, match="output_activation"):
+        mlp_ops.layers_of(nn.Sequential(nn.Linear(3, 4)), "gelu")
+
+
+def test_bad_shapes_are_refused():
+    layer = mlp_ops.Layer(torch.randn(4, 3), torch.randn(4), "relu")
+    with pytest.raises(ValueError, match="weight"):
+        mlp_ops.mlp(torch.randn(5, 2), [layer])
+    with pytest.raises(ValueError, match="bias"):
+        mlp_ops.mlp(torch.randn(5, 3), [mlp_ops.Layer(torch.randn(4, 3), torch.randn(3), "relu")])
+    with pytest.raises(ValueError, match="rows, features"):
+        mlp_ops.mlp(torch.randn(5), [layer])
+    assert not mlp_ops.mlp_kernel_applies(torch.randn(5, 3, dtype=torch.float64), [layer])

@@ -1,0 +1,171 @@
+"""The fused C++ skinning kernel (stg_node.splat.skin_ops) against its torch reference: the avatar's
+own blend_weights / skin / quaternion helpers, run by autograd in float64."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from stg_node.avatar.model import _normalise, conjugate, quat_multiply, rotate
+from stg_node.avatar.rigid import QUAT_EPS, SKIN_WEIGHT_EPS, PosedBones, blend_weights, skin
+from stg_node.body import lbs
+from stg_node.splat import build, skin_ops
+
+
+@pytest.fixture(autouse=True)
+def _kernels():
+    try:
+        build.load_kernels()
+    except build.ExtensionUnavailable as exc:  # pragma: no cover - machines without a compiler
+        pytest.skip(f"CPU kernels unavailable: {exc}")
+
+
+def scene(n=300, bones=24, seed=0, dtype=torch.float64):
+    """Random points, sparse body weights (most mass on a few bones, as on a body surface), a
+    learned correction, rigid bone transforms with their quaternions, local rotations."""
+    gen = torch.Generator().manual_seed(seed)
+    means = torch.randn(n, 3, generator=gen, dtype=dtype)
+    weights = torch.rand(n, bones, generator=gen, dtype=dtype) ** 6
+    weights = weights / weights.sum(1, keepdim=True)
+    delta = 0.5 * torch.randn(n, bones, generator=gen, dtype=dtype)
+    rot = lbs.axis_angle_to_matrix(torch.randn(bones, 3, generator=gen, dtype=dtype))
+    transforms = torch.eye(4, dtype=dtype).repeat(bones, 1, 1)
+    transforms[:, :3, :3] = rot
+    transforms[:, :3, 3] = torch.randn(bones, 3, generator=gen, dtype=dtype)
+    quats = lbs.matrix_to_quaternion(rot)
+    local = torch.randn(n, 4, generator=gen, dtype=dtype)
+    camera = torch.tensor([0.3, -0.2, 5.0], dtype=dtype)
+    return means, weights, delta, transforms, quats, local, camera
+
+
+def reference(means, weights, delta, transforms, quats, local, camera):
+    """Today's torch path of AvatarModel.pose: blend_weights, skin, the local rotation, the view."""
+    bones = PosedBones(transforms[None], quats[None])
+    skinned = skin(means, blend_weights(weights, delta), bones)
+    out = quat_multiply(skinned.quats, _normalise(local)) if local is not None else skinned.quats
+    view = skinned.means - camera
+    view = view / view.norm(dim=1, keepdim=True).clamp_min(1e-9)
+    return skinned.means, out, rotate(conjugate(skinned.quats), view)
+
+
+def kernel(means, weights, delta, transforms, quats, local, camera, **kw):
+    return skin_ops.skin(
+        means,
+        weights,
+        transforms,
+        quats,
+        weight_eps=SKIN_WEIGHT_EPS,
+        quat_eps=QUAT_EPS,
+        skin_delta=delta,
+        local_quats=local,
+        camera_center=camera,
+        **kw,
+    )
+
+
+def leaves(tensors, dtype):
+    return [None if t is None else t.detach().to(dtype).requires_grad_(True) for t in tensors]
+
+
+@pytest.mark.parametrize("with_delta", [True, False])
+@pytest.mark.parametrize("with_local", [True, False])
+@pytest.mark.parametrize("bones", [24, 5])
+def test_values_and_gradients_match_float64_autograd(with_delta, with_local, bones):
+    means, weights, delta, transforms, quats, local, camera = scene(bones=bones, seed=bones)
+    delta = delta if with_delta else None
+    local = local if with_local else None
+    gen = torch.Generator().manual_seed(1)
+    g_means = torch.randn(means.shape, generator=gen, dtype=torch.float64)
+    g_quats = torch.randn(means.shape[0], 4, generator=gen, dtype=torch.float64)
+
+    ref_in = leaves([means, delta, transforms, quats, local], torch.float64)
+    m, d, t, q, loc = ref_in
+    ref = reference(m, weights, d, t, q, loc, camera)
+    ref_loss = (ref[0] * g_means).sum() + (ref[1] * g_quats).sum()
+    wanted = [x for x in ref_in if x is not None]
+    ref_grads = torch.autograd.grad(ref_loss, wanted)
+
+    ker_in = leaves([means, delta, transforms, quats, local], torch.float32)
+    m, d, t, q, loc = ker_in
+    out = kernel(m, weights.float(), d, t, q, loc, camera.float())
+    loss = (out.means * g_means.float()).sum() + (out.quats * g_quats.float()).sum()
+    grads = torch.autograd.grad(loss, [x for x in ker_in if x is not None])
+
+    assert out.means.dtype == torch.float32
+    torch.testing.assert_close(out.means.double(), ref[0], atol=2e-6, rtol=1e-5)
+    torch.testing.assert_close(out.quats.double(), ref[1], atol=2e-6, rtol=1e-5)
+    torch.testing.assert_close(out.view_dirs.double(), ref[2], atol=2e-6, rtol=1e-5)
+    for got, want in zip(grads, ref_grads, strict=False):
+        scale = float(want.abs().max())
+        torch.testing.assert_close(got.double(), want, atol=1e-5 * max(scale, 1.0), rtol=1e-4)
+
+
+def test_centres_only_and_no_grad_agree_with_the_full_pass():
+    means, weights, delta, transforms, quats, local, camera = scene(seed=3)
+    f = [t.float() for t in (means, weights, delta, transforms, quats, local, camera)]
+    full = kernel(*f)
+    centres = kernel(f[0], f[1], f[2], f[3], f[4], None, None, rotations=False)
+    assert centres.quats is None and centres.view_dirs is None
+    assert torch.equal(centres.means, full.means)
+    with torch.no_grad():
+        again = kernel(*f)
+    assert torch.equal(again.quats, full.quats)
+
+
+def test_a_zero_local_rotation_is_the_identity_with_zero_gradient():
+    means, weights, delta, transforms, quats, local, camera = scene(n=8, seed=4)
+    local[3] = 0.0
+    loc = local.float().requires_grad_(True)
+    out = kernel(means.float(), weights.float(), delta.float(), transforms.float(), quats.float(), loc, None)
+    bare = kernel(
+        means.float(), weights.float(), delta.float(), transforms.float(), quats.float(), None, None
+    )
+    torch.testing.assert_close(out.quats[3], bare.quats[3])
+    out.quats.sum().backward()
+    assert torch.equal(loc.grad[3], torch.zeros(4))
+    assert bool(torch.isfinite(loc.grad).all())
+
+
+def test_two_threads_give_the_one_thread_result():
+    means, weights, delta, transforms, quats, local, camera = scene(n=2000, seed=5)
+    results = []
+    for threads in (1, 2):
+        previous = torch.get_num_threads()
+        torch.set_num_threads(threads)
+        try:
+            ins = leaves([means, delta, transforms, quats, local], torch.float32)
+            out = kernel(ins[0], weights.float(), ins[1], ins[2], ins[3], ins[4], camera.float())
+            (out.means.sum() + out.quats.sum()).backward()
+            results.append([out.means.detach(), out.quats.detach()] + [x.grad for x in ins])
+        finally:
+            torch.set_num_threads(previous)
+    for a, b in zip(*results, strict=False):
+        torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-5)  # bone sums differ in order only
+
+
+def test_extreme_corrections_stay_finite():
+    """The kernel normalises the corrected weights with the largest log-weight taken out first,
+    so a correction of 1e3 (exp overflows float32) still gives weights that sum to 1."""
+    means, weights, delta, transforms, quats, local, camera = scene(n=50, seed=6)
+    delta[:, 0] = 1e3
+    out = kernel(*[t.float() for t in (means, weights, delta, transforms, quats, local, camera)])
+    assert bool(torch.isfinite(out.means).all())
+    single = transforms[0, :3, :3].float() @ means.float().T + transforms[0, :3, 3:].float()
+    torch.testing.assert_close(out.means, single.T, atol=1e-4, rtol=1e-4)  # all weight on bone 0
+
+
+def test_bad_shapes_are_refused_with_the_argument_named():
+    means, weights, delta, transforms, quats, local, camera = scene(n=10)
+    f = [t.float() for t in (means, weights, delta, transforms, quats, local, camera)]
+    with pytest.raises(ValueError, match="skin_delta"):
+        kernel(f[0], f[1], f[2][:5], f[3], f[4], f[5], f[6])
+    with pytest.raises(ValueError, match="bone_transforms"):
+        kernel(f[0], f[1], f[2], f[3][:3], f[4], f[5], f[6])
+    with pytest.raises(ValueError, match="local_quats"):
+        kernel(f[0], f[1], f[2], f[3], f[4], f[5][:, :3], f[6])
+    with pytest.raises(ValueError, match="rotations"):
+        kernel(*f, rotations=False)
+    with pytest.raises(ValueError, match="skin_weights"):
+        kernel(f[0], f[1].requires_grad_(True), f[2], f[3], f[4], f[5], f[6])
+    assert not skin_ops.skin_kernel_applies(means)  # float64: the caller runs torch
+    assert skin_ops.skin_kernel_applies(f[0], None, f[1])
