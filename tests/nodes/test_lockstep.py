@@ -17,7 +17,7 @@ from fake_avatar import TrainConfig, Trainer
 from nodehelpers import NodeThread, wait_until
 from sample_nodes import Echo, EchoParams, pose
 
-from stg_node.bus import BusConfig, Frame, Subscriber, ViewRequest
+from stg_node.bus import Bus, BusConfig, Frame, Subscriber, ViewRequest
 from stg_node.bus.recording import BagReader, BagWriter, Lockstep, PlaybackError, Player
 from stg_node.launch.spec import read_launch
 from stg_node.launch.yamlfile import LaunchFileError
@@ -71,13 +71,19 @@ def lockstep_run(node, path, bus_url, watch: list[str], expect: int):
             if msg is not None:
                 seen.append(msg)
 
-    with Subscriber(BusConfig(url=bus_url), watch, keep_last=False) as sub, NodeThread(node):
+    with Subscriber(BusConfig(url=bus_url), watch, keep_last=False) as sub:
+        # The watcher's subscriptions must be through the broker before anything is played: the
+        # node answers within milliseconds, and PUB/SUB drops what nobody had subscribed to yet.
+        with Bus(bus_url, node="probe", heartbeat_s=0) as probe:
+            for topic in watch:
+                assert probe.publisher.wait_for_subscribers(topic, 60), topic
         receiver = threading.Thread(target=receive, args=(sub,), daemon=True)
         receiver.start()
         try:
-            stats = play(path, bus_url, Lockstep(timeout_s=60))
-            assert wait_until(lambda: len(seen) >= expect, 60), seen
-            time.sleep(0.5)  # anything beyond what was expected (a step too many) would show now
+            with NodeThread(node):
+                stats = play(path, bus_url, Lockstep(timeout_s=60))
+                assert wait_until(lambda: len(seen) >= expect, 60), seen
+                time.sleep(0.5)  # anything beyond what was expected (a step too many) would show now
         finally:
             done.set()
             receiver.join()
