@@ -44,6 +44,18 @@ def test_before_the_start_the_gains_are_not_learnt():
     assert np.allclose(correction.gains_of()[0], 1.0)
 
 
+def test_a_configuration_written_before_the_correction_existed_loads_without_it():
+    from stg_node.avatar.config import TrainConfig
+    from stg_node.avatar.presets import preset
+
+    today = preset("fast")
+    assert today.lr_exposure > 0
+    older = today.to_dict()
+    del older["lr_exposure"]
+    assert TrainConfig.from_dict(older).lr_exposure == 0.0  # as it trained: no colour correction
+    assert TrainConfig.from_dict(today.to_dict()) == today
+
+
 def test_state_round_trips():
     correction = ExposureCorrection(lr=0.1, weight=0.0, start_iter=0)
     for frame in (7, 2):

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import importlib
 import time
 
 import numpy as np
 import pytest
 from fake_avatar import BODY_RADIUS_M, TrainConfig, Trainer, project
-from nodehelpers import NodeThread, wait_until
+from nodehelpers import NodeThread, recv_until, wait_until
 from sample_nodes import pose
 
 from stg_node.bus import Bus, BusConfig, Frame, Subscriber, ViewRequest
@@ -66,12 +67,11 @@ def test_default_view_renders_the_live_pose_from_the_training_camera(broker, bus
             wait_subscribed(bus, "avatar/snapshot", "body/pose", "camera/frame")
             bus.publish(snapshot(3))
             bus.publish(train_frame())
-            time.sleep(0.3)
-            seq = bus.publish(body_at([0.1, -0.05, 0.0]), stamp_ns=time.time_ns())
-            got = None
-            deadline = time.monotonic() + 10
-            while time.monotonic() < deadline and (got is None or got.pose_seq != seq):
-                got = images.recv(timeout=1)
+            assert wait_until(lambda: node.train_camera is not None, 30)  # the view it renders from
+            stamp = time.time_ns()
+            seq = bus.publish(body_at([0.1, -0.05, 0.0]), stamp_ns=stamp)
+            got = recv_until(images, lambda m: m.pose_seq == seq, 30)
+            received = time.time_ns()
     assert got is not None and got.pose_seq == seq
     assert got.snapshot_version == 3 and got.request_id == -1
     u, v, depth = project(
@@ -81,7 +81,9 @@ def test_default_view_renders_the_live_pose_from_the_training_camera(broker, bus
     assert (cu, cv) == pytest.approx((u, v), abs=0.6)  # independent: the pinhole projection of the body root
     assert (got.alpha > 0).sum() == pytest.approx(np.pi * (100 * BODY_RADIUS_M / depth) ** 2, rel=0.15)
     np.testing.assert_allclose(got.image[int(cv), int(cu)], [51, 102, 153], atol=1)
-    assert got.render_ms > 0 and 0 <= got.latency_ms < 5000 and got.source_stamp_ns > 0
+    # latency: from the pose's stamp to the image's publication, so within what the test saw
+    assert got.source_stamp_ns == stamp and 0 <= got.latency_ms <= (received - stamp) / 1e6
+    assert got.render_ms > 0
 
 
 def test_one_shot_and_standing_view_requests(broker, bus_url):
@@ -111,32 +113,33 @@ def test_one_shot_and_standing_view_requests(broker, bus_url):
             robot.publish(body_at([0, 0, 0]))
             stamp = time.time_ns()
             robot.publish(oneshot, stamp_ns=stamp)
-            got = {}
-
-            def seen():
-                msg = images.recv(timeout=0.2)
-                if msg is not None:
-                    got.setdefault(msg.request_id, msg)
-                return 42 in got
-
-            assert wait_until(seen, 10, step=0)
+            shot = recv_until(images, lambda m: m.request_id == 42, 30)
+            received = time.time_ns()
             robot.publish(standing)
-            assert wait_until(lambda: seen() and 7 in got, 10, step=0)
-            got.pop(-1, None)
-            time.sleep(0.3)  # with a standing view, no default views any more
-            while (msg := images.recv(timeout=0.1)) is not None:
-                assert msg.request_id == 7
-    shot = got[42]
+            first = recv_until(images, lambda m: m.request_id == 7, 30)
+            # with a standing view, no default views any more: what follows its first image (in
+            # order, on one socket) is for it alone
+            later, deadline = [], time.monotonic() + 1.0
+            while time.monotonic() < deadline:
+                if (msg := images.recv(timeout=0.1)) is not None:
+                    later.append(msg.request_id)
+    assert shot is not None and first is not None
+    assert later and set(later) == {7}, later
     assert shot.image.shape == (40, 48, 3) and shot.request_src == "robot" and shot.pose_seq == -1
-    assert shot.source_stamp_ns == stamp and shot.latency_ms >= 0
+    assert shot.source_stamp_ns == stamp and 0 <= shot.latency_ms <= (received - stamp) / 1e6
     u, v, _ = project(Camera(K=K2, R=R, t=np.array([0, 0, 2.0]), width=48, height=40), [0.05, 0, 0.2])
     assert 12 < u < 36 and 8 < v < 32  # the disc lies inside the image
     assert disc_center(shot) == pytest.approx((u, v), abs=0.6)
     np.testing.assert_allclose(shot.R, R)
-    assert got[7].image.shape == (32, 32, 3)
+    assert first.image.shape == (32, 32, 3)
 
 
 def test_snapshots_are_swapped_without_a_pause_and_bad_ones_are_refused(broker, bus_url):
+    """A snapshot that takes long to load (held open by the fake avatar's gate for as long as the
+    test needs) does not stop the renderer: the old one keeps rendering until the new one is in.
+    How long the pause is at the swap is a timing, measured by tools/bench_pipeline.py (swap)."""
+    gate = importlib.import_module(FAKE).LOAD_GATE  # the module instance the node loaded
+    gate.clear()
     node = renderer(bus_url, idle_rate_hz=50, max_rate_hz=50)
     with (
         Subscriber(BusConfig(url=bus_url), ["avatar/image", "node/status"], keep_last=False) as sub,
@@ -146,35 +149,42 @@ def test_snapshots_are_swapped_without_a_pause_and_bad_ones_are_refused(broker, 
             wait_subscribed(trainer, "avatar/snapshot", "body/pose")
             trainer.publish(snapshot(1, color=(1.0, 0.0, 0.0)))
             trainer.publish(body_at([0, 0, 0]))
-            arrivals = []  # (time, snapshot version)
+            versions = []  # snapshot version of each image, in order
             drops = {}
 
-            def until(predicate, timeout=10.0):
+            def until(predicate, timeout=30.0):
                 deadline = time.monotonic() + timeout
                 while time.monotonic() < deadline:
                     msg = sub.recv(timeout=0.1)
                     if isinstance(msg, RenderedImage):
-                        arrivals.append((time.monotonic(), msg.snapshot_version))
+                        versions.append(msg.snapshot_version)
                     elif isinstance(msg, NodeStatus) and msg.node == "renderer":
                         drops.update(msg.drops)
                     if predicate():
                         return True
                 return False
 
-            assert until(lambda: len(arrivals) > 10)
-            t_publish = time.monotonic()
-            trainer.publish(snapshot(2, color=(0.0, 1.0, 0.0), load_s=0.4))  # a slow load
-            assert until(lambda: arrivals[-1][1] == 2)
+            try:
+                assert until(lambda: len(versions) > 3)
+                slow = snapshot(2, color=(0.0, 1.0, 0.0))
+                slow.meta["gate"] = 1.0
+                trainer.publish(slow)
+                assert wait_until(lambda: node.loader.loading, 30)  # the load is under way ...
+                loading_from = len(versions)
+                assert until(lambda: len(versions) >= loading_from + 10)  # ... and images keep coming
+                assert node.loader.loading  # (still loading: the gate holds it)
+            finally:
+                gate.set()
+            assert until(lambda: versions[-1] == 2)
             bad = snapshot(3)
             bad.format = "other/9"
             trainer.publish(bad)
             assert until(lambda: drops.get("bad_snapshot") == 1)
-            assert until(lambda: len(arrivals) > 0 and arrivals[-1][0] > time.monotonic() - 0.05)
-    during = [t for t, v in arrivals if t_publish < t and v == 1]
-    assert len(during) >= 8  # the old snapshot kept rendering through the 0.4 s load
-    times = np.array([t for t, _ in arrivals if t > t_publish - 0.2])
-    assert np.diff(times).max() < 0.25  # no hitch at the swap (50 Hz nominal, a loaded CI machine)
-    assert arrivals[-1][1] == 2  # the bad snapshot was not swapped in
+            swapped = len(versions)
+            assert until(lambda: len(versions) > swapped + 3)
+    during = versions[loading_from : loading_from + 10]
+    assert during == [1] * 10  # the old snapshot kept rendering through the load
+    assert versions[swapped:] and set(versions[swapped:]) == {2}  # the bad one was not swapped in
 
 
 def test_the_renderer_keeps_serving_when_the_trainer_is_gone_and_on_a_late_start(broker, bus_url):
@@ -187,13 +197,13 @@ def test_the_renderer_keeps_serving_when_the_trainer_is_gone_and_on_a_late_start
     ):
         wait_subscribed(trainer, "avatar/snapshot")
         trainer.publish(snapshot(9))
-        time.sleep(0.3)
+        assert wait_until(lambda: b"avatar/snapshot" in broker.cache, 30)  # before the trainer goes
     node = renderer(bus_url)  # the trainer is gone now
     with Subscriber(BusConfig(url=bus_url), ["avatar/image"]) as images, NodeThread(node):
         with Bus(bus_url, node="tracker", heartbeat_s=0) as tracker:
             wait_subscribed(tracker, "body/pose")
             tracker.publish(body_at([0, 0, 0]))
-            got = [images.recv(timeout=5) for _ in range(3)]
+            got = [images.recv(timeout=30) for _ in range(3)]
     assert all(g is not None and g.snapshot_version == 9 for g in got), got
 
 
@@ -209,7 +219,8 @@ def test_the_default_orbit_view_frames_the_body_whatever_the_training_distance(b
                 wait_subscribed(bus, "avatar/snapshot", "body/pose", "camera/frame")
                 bus.publish(snapshot(3))
                 bus.publish(frame)
-                time.sleep(0.3)
+                # the training camera (the distance the orbit starts from) has arrived
+                assert wait_until(lambda n=node: n.train_camera is not None, 30)
                 got = []
                 deadline = time.monotonic() + 20
                 while time.monotonic() < deadline and len(got) < 6:
