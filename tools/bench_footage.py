@@ -2,7 +2,7 @@
 """Real footage, measured on the synthetic benchmark: what tracked poses, exposure drift, the person's
 size in the frame and an unknown camera cost, and what each remedy buys back.
 
-    python tools/bench_footage.py gap       [--size 512] [--frames 125]   # tracked vs ground-truth poses
+    python tools/bench_footage.py gap       [--size 512] [--frames 125] [--runs truth,...]  # tracked vs truth
     python tools/bench_footage.py exposure  [...]                         # steady vs exposure/WB jitter
     python tools/bench_footage.py size      [...]                         # filmed close vs from afar
     python tools/bench_footage.py focal     [...]                         # focal estimate vs truth, 30-90 deg
@@ -133,29 +133,32 @@ def gap(args) -> dict:
     video += ["--train-frames", f"0:{round(0.8 * args.frames)}", "--size", str(args.size)]
     before = ["--set", "lr_pose=0.0001", "--set", "loss.pose_refine=0.001", "--set", "loss.pose_smooth=0.0",
               "--set", "lr_exposure=0.0"]  # fmt: skip
-    runs = {
-        "truth": train(
-            out,
-            f"gap_truth_{args.size}",
-            args,
-            "--data",
-            str(data),
-            "--format",
-            "synthetic",
-            "--size",
-            str(args.size),
-        ),  # fmt: skip
-        "tracked-before": train(out, f"gap_tracked_before_{args.size}", args, *video, *before),
-        "tracked": train(out, f"gap_tracked_{args.size}", args, *video),
+    flags = {
+        "truth": ("--data", str(data), "--format", "synthetic", "--size", str(args.size)),
+        "tracked-before": (*video, *before),
+        "tracked": video,
     }
+    wanted = args.runs.split(",") if args.runs else list(flags)
+    unknown = sorted(set(wanted) - set(flags))
+    if unknown:
+        raise ValueError(f"--runs: unknown {unknown}; choose from {', '.join(flags)}")
     rows = {}
-    for name, run in runs.items():
+    for name in wanted:
+        run = train(out, f"gap_{name.replace('-', '_')}_{args.size}", args, *flags[name])
         rows[name] = {split: score(run, data, split) for split in ("novel_view", "novel_pose")}
+        cached = out / "results" / f"gap_{name}_{args.size}.json"  # for runs scored by another process
+        cached.parent.mkdir(parents=True, exist_ok=True)
+        cached.write_text(json.dumps(rows[name], default=float) + "\n")
+    for name in flags:  # rows another process scored (--runs split across processes)
+        cached = out / "results" / f"gap_{name}_{args.size}.json"
+        if name not in rows and cached.is_file():
+            rows[name] = json.loads(cached.read_text())
     for name in ("tracked-before", "tracked"):
-        rows[name]["gap_db"] = {
-            split: rows["truth"][split]["psnr"] - rows[name][split]["psnr"]
-            for split in ("novel_view", "novel_pose")
-        }
+        if name in rows and "truth" in rows:
+            rows[name]["gap_db"] = {
+                split: rows["truth"][split]["psnr"] - rows[name][split]["psnr"]
+                for split in ("novel_view", "novel_pose")
+            }
     return rows
 
 
@@ -282,6 +285,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=int, default=125, help="frames per subject (default %(default)s)")
     p.add_argument("--preset", default="fast")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--runs",
+        default=None,
+        help="gap: which of truth,tracked-before,tracked to train and score here (default: all; "
+        "processes running different ones share --out, the last one reports all)",
+    )
     p.add_argument("--json", action="store_true", help="print the results as one JSON object")
     p.add_argument("--iters", type=int, default=None, help="override the iterations (smoke tests)")
     p.add_argument(
