@@ -22,7 +22,9 @@ to ``--out/results/EXPERIMENT.json``; a run folder that is already finished is n
   that were the default before (``lr_pose=1e-4``, no smoothness, no colour correction).
   ``tracked``: the same with today's defaults for tracked poses (avatar/pose_refine.py). Novel
   views and novel poses, overall and per body part; the novel poses of a tracked run use the
-  tracker's poses as tracked.
+  tracker's poses as tracked. Beside it (``true_root``, a diagnostic, never the score): the tracked
+  bodies moved so their pelvis sits on the true one, which separates where the body stands (a
+  single camera's depth) from how it is posed and what the avatar learned.
 - ``exposure``: the mixed subject steady, and with ``--exposure-jitter 0.15`` trained with and
   without the per-frame colour correction (``lr_exposure=0``).
 - ``size``: the turning subject filmed by a 55 degree camera from 1.9 m (the person fills the
@@ -146,6 +148,11 @@ def gap(args) -> dict:
     for name in wanted:
         run = train(out, f"gap_{name.replace('-', '_')}_{args.size}", args, *flags[name])
         rows[name] = {split: score(run, data, split) for split in ("novel_view", "novel_pose")}
+        if name != "truth":  # the diagnostic: the tracked bodies placed at the true pelvis
+            rows[name]["true_root"] = {
+                split: score(run, data, split, root="true", parts=False)
+                for split in ("novel_view", "novel_pose")
+            }
         cached = out / "results" / f"gap_{name}_{args.size}.json"  # for runs scored by another process
         cached.parent.mkdir(parents=True, exist_ok=True)
         cached.write_text(json.dumps(rows[name], default=float) + "\n")
