@@ -5,7 +5,7 @@ Generates synthetic sequences with four cameras around the subject (stg-synth, o
 motions than the tracking benchmark: tools/eval_track.py uses seed 0), runs the detector on
 every view, triangulates the keypoints and takes, per fit target, the median offset from the
 true SMPL point in the rest axes of the bone it moves with
-(:func:`stg_node.tracking.keypoint_offsets.measure_offsets`). Prints the table to paste into
+(:func:`measure_offsets`). Prints the table to paste into
 ``OFFSETS`` in stg_node/tracking/keypoint_offsets.py, with each offset's spread.
 
     python tools/fit_keypoint_offsets.py [--frames 90 --size 512 --seeds 11,12,13 --motions dance,walk,turn]
@@ -20,6 +20,68 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's stg_node first
+
+
+def measure_offsets(body, layout, projections, keypoints, truths, min_score: float = 0.3):
+    """Median offsets of triangulated keypoints from the layout's SMPL points, in carrier axes.
+
+    ``projections`` (V, 3, 4) of the cameras; ``keypoints[frame][view]`` detections (or None);
+    ``truths[frame]``: (poses (24, 3), Rh, Th, betas) of the true body. Returns target name ->
+    (carrier joint name, (3,) median offset, frames used, median distance after the correction).
+    """
+    import numpy as np
+    import torch
+
+    from stg_node.body import lbs
+    from stg_node.body.smpl_io import SMPL_JOINT_NAMES
+    from stg_node.tracking.body_points import BodyKeypoints
+    from stg_node.tracking.keypoint_offsets import carrier
+    from stg_node.tracking.multiview_fit import triangulate
+
+    model = BodyKeypoints(body, [t.point for t in layout.targets]).double()
+    parents = body.parents.tolist()
+    carriers = [carrier(layout, t, parents) for t in range(len(layout.targets))]
+    local = [[] for _ in layout.targets]
+    for row, (poses, Rh, Th, betas) in zip(keypoints, truths, strict=True):
+        views = len(row)
+        xy = np.zeros((views, len(layout.targets), 2))
+        weight = np.zeros((views, len(layout.targets)))
+        for v, found in enumerate(row):
+            if found is None:
+                continue
+            for t, target in enumerate(layout.targets):
+                xy[v, t] = np.asarray(found.xy)[list(target.sources)].mean(axis=0)
+                weight[v, t] = min(float(found.score[s]) for s in target.sources)
+        weight[weight < min_score] = 0.0
+        points = triangulate(projections, xy, weight).points
+        with torch.no_grad():
+            pose = torch.as_tensor(np.asarray(poses, np.float64).reshape(1, 24, 3))
+            rotations = lbs.axis_angle_to_matrix(pose.clone())
+            rotations[:, 0] = torch.eye(3, dtype=torch.float64)
+            shaped = torch.as_tensor(np.asarray(betas, np.float64).reshape(1, -1))
+            _, bones = lbs.rigid_chain(rotations, model.rest_joints(shaped), model.parents)
+            true = model(
+                shaped, pose[:, 1:], torch.as_tensor(Rh).reshape(1, 3), torch.as_tensor(Th).reshape(1, 3)
+            )
+        root = lbs.axis_angle_to_matrix(torch.as_tensor(np.asarray(Rh, np.float64))).numpy()
+        true = true[0].numpy()
+        for t in range(len(layout.targets)):
+            if np.all(np.isfinite(points[t])):
+                rotation = root @ bones[0, carriers[t], :3, :3].numpy()
+                local[t].append(rotation.T @ (points[t] - true[t]))
+    out = {}
+    for t, target in enumerate(layout.targets):
+        if not local[t]:
+            continue
+        values = np.asarray(local[t])
+        median = np.median(values, axis=0)
+        out[target.point.name] = (
+            SMPL_JOINT_NAMES[carriers[t]],
+            median,
+            len(values),
+            float(np.median(np.linalg.norm(values - median, axis=1))),
+        )
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -46,7 +108,6 @@ def main(argv: list[str] | None = None) -> int:
     from stg_node.data.synth.writer import read_metadata
     from stg_node.safe_load import load_npy
     from stg_node.tracking.detectors import make_detector
-    from stg_node.tracking.keypoint_offsets import measure_offsets
     from stg_node.tracking.layouts import get_layout
     from stg_node.tracking.rig_evaluation import synth_rig
 

@@ -1,7 +1,13 @@
 """``stg-track``: SMPL pose and person mask per frame of a video or an image folder -> POSES.npz.
 
     stg-track INPUT --out POSES.npz [--intrinsics FILE.json | --fov DEG] [--smpl-model FILE] [--masks DIR]
+              [--preview fit.mp4]
     stg-track CAM1 CAM2 ... --calibration rig.json --out POSES.npz [--cameras NAME,...]  (docs/RIGS.md)
+
+Without --intrinsics or --fov the focal length is estimated from the footage and the command
+says how sure it is (an unsure estimate keeps the default 65 degrees). --preview writes the input
+with the fitted SMPL mesh, the person mask and each frame's confidence drawn over it. The last
+lines say how many frames were skipped (confidence below 0.5) and why.
 
 Exit codes as every command (docs/CLI.md): 0 done, 1 the tracking failed (unreadable input,
 missing network files, ...), 2 bad usage, 130 interrupted (POSES.npz is then not written).
@@ -44,13 +50,21 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         default=None,
         metavar="DEG",
-        help=f"horizontal field of view without a calibration (default {DEFAULT_FOV_DEG:g})",
+        help="horizontal field of view without a calibration (default: estimated from the footage, "
+        f"{DEFAULT_FOV_DEG:g} when it cannot be)",
     )
     parser.add_argument(
         "--smpl-model", default=None, help="SMPL .pkl/.npz file or folder (default: the open body that ships)"
     )
     parser.add_argument(
         "--masks", type=Path, default=None, metavar="DIR", help="also write masks DIR/000000.png ..."
+    )
+    parser.add_argument(
+        "--preview",
+        type=Path,
+        default=None,
+        metavar="FILE.mp4",
+        help="also write the input with the fitted mesh, the mask and the confidence drawn over it",
     )
     parser.add_argument(
         "--detector", choices=DETECTORS, default="blazepose", help="keypoint network (default %(default)s)"
@@ -107,6 +121,8 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError("--detector onnx needs --pose-model FILE.onnx")
     if args.fps is not None and not args.fps > 0:
         raise UsageError(f"--fps must be positive, got {args.fps}")
+    if args.preview is not None and args.preview.suffix.lower() != ".mp4":
+        raise UsageError(f"--preview must name an .mp4 file, got {args.preview}")
     if args.max_side != 0 and args.max_side < 64:
         raise UsageError(f"--max-side must be 0 (native) or at least 64, got {args.max_side}")
 
@@ -125,12 +141,23 @@ def run(args: argparse.Namespace) -> int:
         **({} if args.fov is None else {"fov_deg": args.fov}),
     )
     summary = track_to_file(
-        args.input, args.out, options, masks_dir=args.masks, progress=not args.no_progress, threads=threads
+        args.input,
+        args.out,
+        options,
+        masks_dir=args.masks,
+        preview=args.preview,
+        progress=not args.no_progress,
+        threads=threads,
     )
     print(
         f"wrote {summary.out}: {summary.frames} frames, {summary.confident_frames} confident "
         f"(mean confidence {summary.mean_confidence:.2f}) in {summary.seconds:.1f} s"
     )
+    print(summary.describe_skipped())
+    if summary.camera:
+        print(summary.camera)
+    if args.preview is not None:
+        print(f"fit preview: {args.preview}")
     return 0
 
 

@@ -160,8 +160,13 @@ def run(args: argparse.Namespace) -> int:
     from stg_node.avatar.presets import preset
     from stg_node.avatar.run import RunDir
 
+    base = preset(args.preset)
+    if args.format == "video":  # a tracker's poses: refined harder, kept smooth (avatar/pose_refine.py)
+        from stg_node.avatar.pose_refine import refinement_for
+
+        base = refinement_for(base, "tracked")
     try:
-        args.config = apply_settings(preset(args.preset), args.set)
+        args.config = apply_settings(base, args.set)
     except ValueError as exc:
         raise UsageError(f"--set: {exc}") from exc
     if args.set and args.resume and RunDir(Path(args.out)).checkpoint.is_file():
@@ -233,6 +238,7 @@ def _train(args, frames, stop: StopSignals) -> int:
                 intrinsics=args.intrinsics,
                 fov_deg=args.fov,
                 progress=not args.no_progress,
+                preview=run.path / "fit_preview.mp4",
             )
         )
     spec = DataSpec(
@@ -264,6 +270,7 @@ def _train(args, frames, stop: StopSignals) -> int:
         config = args.config
         if args.iters is not None:
             config = config.replace(iterations=args.iters)
+        config = _scaled_budget(args, config, spec)
         trainer = Trainer(
             config,
             args.smpl_model,
@@ -328,6 +335,8 @@ def _train(args, frames, stop: StopSignals) -> int:
         "skipped_steps": trainer.skipped_steps,
         "frames": len(trainer.store),
         "preset": config.preset,
+        "budget": getattr(args, "budget", None),
+        "tracking": _tracking_report(run),
         **stats,
         "densify": trainer.densify_counts,
         "nonrigid": trainer.nonrigid_report(),
@@ -342,6 +351,28 @@ def _train(args, frames, stop: StopSignals) -> int:
         )
         return 130
     return 0
+
+
+def _tracking_report(run):
+    """What ``--format video``'s tracking kept, skipped (and why) and its camera; None otherwise."""
+    from stg_node.tracking.pipeline import TRACKING_REPORT
+
+    path = run.path / "video_data" / TRACKING_REPORT
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def _scaled_budget(args, config, spec):
+    """The preset's budget scaled with the person's size in pixels (stg_node/avatar/budget.py); what
+    the user set (``--set``, ``--iters``) stays as given."""
+    from stg_node.avatar.budget import SCALED, sample_masks, scale_budget
+
+    fixed = tuple(key for key in SCALED if any(item.split("=", 1)[0].strip() == key for item in args.set))
+    if args.iters is not None:
+        fixed += ("iterations",)
+    config, budget = scale_budget(config, sample_masks(spec.open("train")), fixed=fixed)
+    log.info("%s", budget.describe())
+    args.budget = budget.as_dict()
+    return config
 
 
 def _versions() -> dict:

@@ -37,13 +37,13 @@ from __future__ import annotations
 
 import importlib
 from dataclasses import dataclass
-from typing import Any, Literal, Protocol, runtime_checkable
+from typing import Any, Literal
 
 import numpy as np
 
 from stg_node.bus import Frame
-from stg_node.data.types import SmplParams
 from stg_node.nodes.convert import pose_message
+from stg_node.nodes.estimate import PoseEstimate, PoseEstimator, as_estimate
 from stg_node.nodes.params import param
 from stg_node.nodes.runtime import Node
 
@@ -53,35 +53,8 @@ BUILTIN_ESTIMATOR = "stg_node.nodes.live_tracking:TrackingEstimator"
 BUILTIN_RIG_ESTIMATOR = "stg_node.nodes.rig:RigTrackingEstimator"
 
 
-@dataclass(frozen=True)
-class PoseEstimate:
-    """What an estimator returns for one frame."""
-
-    smpl: SmplParams  # in the frame's world (the Frame's R, t map it into the camera)
-    confidence: float  # 0..1
-    mask: np.ndarray | None = None  # (H, W) uint8 0/255 person mask of the frame, if the estimator makes one
-
-
-@runtime_checkable
-class PoseEstimator(Protocol):
-    def estimate(self, frame: Frame) -> PoseEstimate | tuple[SmplParams, float] | None:
-        """The body in ``frame`` (a camera/frame message: image, K, R, t, index, time), or None
-        when there is no person to fit. A plain ``(smpl, confidence)`` pair is accepted too."""
-
-
 class EstimateMismatch(ValueError):
     """The frame does not belong to the replayed dataset (index unknown or time stamp off)."""
-
-
-def as_estimate(result) -> PoseEstimate | None:
-    """An estimator's answer as a PoseEstimate (None stays None); TypeError for anything else."""
-    if result is None or isinstance(result, PoseEstimate):
-        return result
-    if isinstance(result, tuple) and len(result) == 2 and isinstance(result[0], SmplParams):
-        return PoseEstimate(result[0], float(result[1]))
-    raise TypeError(
-        f"an estimator returns PoseEstimate, (SmplParams, confidence) or None, got {type(result).__name__}"
-    )
 
 
 class ReplayEstimator:

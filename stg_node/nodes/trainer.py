@@ -20,7 +20,10 @@
   bound (``max_frames``, in the avatar's config) and the node's own numbers (its wall time), so
   no two files can disagree after a kill. When respawned with ``resume`` it continues from the
   last checkpoint, iteration and bound included.
-- Ends on its own after ``iters`` iterations (0: never), writing ``out``/summary.json.
+- Ends on its own after ``iters`` iterations (0: never), writing ``out``/summary.json: the
+  training-view PSNR as a running mean over the last ``PSNR_WINDOW`` steps (one step's crop swings
+  by several dB from frame to frame), and, with ``eval_data``, the final model's quality on that
+  dataset's held-out cameras (novel-view PSNR / SSIM / LPIPS), which is what a user should judge.
 
 All calls into the avatar package go through :mod:`.avatar_adapter`.
 """
@@ -28,9 +31,10 @@ All calls into the avatar package go through :mod:`.avatar_adapter`.
 from __future__ import annotations
 
 import json
+import math
 import os
 import time
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -42,6 +46,7 @@ from stg_node.nodes.params import param
 from stg_node.nodes.runtime import Node
 
 CHECKPOINT_NAME = "trainer.ckpt"
+PSNR_WINDOW = 100  # steps the summary's training-view PSNR is averaged over
 
 
 @dataclass
@@ -76,6 +81,11 @@ class TrainerParams:
     )
     out: str = param("", doc="folder for summary.json at the end (empty: none)")
     rig: str = param("", doc="a rig.json: train from each of its cameras' NAME/camera/frame (docs/RIGS.md)")
+    eval_data: str = param(
+        "",
+        doc="when the iterations are done, score the model on this dataset's held-out cameras "
+        "(a stg-synth or ZJU-MoCap folder; empty: no)",
+    )
 
 
 class FramePairs:
@@ -181,6 +191,7 @@ class TrainerNode(Node):
         self.frames_added = 0
         self.frames_unsure = 0  # skipped: pose confidence below min_confidence
         self.last: StepInfo | None = None
+        self.recent_psnr: deque[float] = deque(maxlen=PSNR_WINDOW)  # training view, per step
         self.published_version = -1
         self.model_figures: dict[str, float] = {}  # active_motion_fraction, model_mb: at each snapshot
         self.finished = False
@@ -306,6 +317,8 @@ class TrainerNode(Node):
                 continue
             self.iteration = info.iteration
             self.last = info
+            if math.isfinite(info.psnr):
+                self.recent_psnr.append(info.psnr)
             if self.iteration % p.metrics_every == 0:
                 self._metrics(info)
             now = time.monotonic()
@@ -328,10 +341,15 @@ class TrainerNode(Node):
             return
         self._snapshot()
         self._save_checkpoint()
+        psnr = float(sum(self.recent_psnr) / len(self.recent_psnr)) if self.recent_psnr else None
+        heldout = self._evaluate() if self.finished and self.params.eval_data else None
         summary = {
             "iterations": self.iteration,
             "elapsed_s": round(self.elapsed, 2),
-            "psnr": None if self.last is None else self.last.psnr,
+            "psnr": psnr,
+            "psnr_note": f"training view: mean over the last {len(self.recent_psnr)} steps' crops",
+            "psnr_last_step": None if self.last is None else self.last.psnr,
+            "heldout": heldout,
             "num_gaussians": None if self.last is None else self.last.num_gaussians,
             "frames_added": self.frames_added,
             "frames_low_confidence": self.frames_unsure,
@@ -339,13 +357,32 @@ class TrainerNode(Node):
             "resumed_from": self.resumed_from,
         }
         self.log.info(
-            "summary: %d iterations in %.1f s, PSNR %s dB (training view), %s Gaussians",
+            "summary: %d iterations in %.1f s, PSNR %s dB (training view, mean of the last %d steps), "
+            "%s Gaussians",
             self.iteration,
             self.elapsed,
-            "n/a" if summary["psnr"] is None else f"{summary['psnr']:.2f}",
+            "n/a" if psnr is None else f"{psnr:.2f}",
+            len(self.recent_psnr),
             summary["num_gaussians"],
         )
+        if heldout is not None:
+            self.log.info(
+                "summary: held-out cameras (%s, %d views): PSNR %.2f dB, SSIM %.4f, LPIPS %s",
+                heldout["split"],
+                heldout["views"],
+                heldout["psnr"],
+                heldout["ssim"],
+                "n/a" if heldout["lpips"] is None else f"{heldout['lpips']:.4f}",
+            )
         if self.params.out:
             out = Path(self.params.out)
             out.mkdir(parents=True, exist_ok=True)
             (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+
+    def _evaluate(self) -> dict | None:
+        """The final model on ``eval_data``'s held-out cameras; None (and a warning) if that fails."""
+        try:
+            return self.trainer.evaluate(self.params.eval_data)
+        except Exception as exc:  # a summary without held-out figures beats no summary
+            self.log.warning("held-out evaluation on %s failed: %s", self.params.eval_data, exc)
+            return None

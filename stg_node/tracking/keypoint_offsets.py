@@ -15,13 +15,10 @@ evaluation does not use (other seeds and motions; ``python tools/fit_keypoint_of
 .BodyKeypoints` moves its points by them; the multi-view fit uses them (a single view's fit does
 not: there the depth of a point is a guess anyway).
 
-:func:`measure_offsets` is the measurement; the tool prints a new table from it.
+``tools/fit_keypoint_offsets.py`` measures them and prints a new table.
 """
 
 from __future__ import annotations
-
-import numpy as np
-import torch
 
 from stg_node.body.smpl_io import SMPL_JOINT_NAMES
 from stg_node.tracking.layouts import KeypointLayout
@@ -87,60 +84,3 @@ def offsets_for(layout: KeypointLayout) -> dict[str, tuple[int, tuple[float, flo
     """The :class:`BodyKeypoints` ``offsets`` argument for ``layout`` (empty when none were measured)."""
     table = OFFSETS.get(layout.name, {})
     return {name: (JOINT[joint], tuple(vector)) for name, (joint, vector) in table.items()}
-
-
-def measure_offsets(body, layout: KeypointLayout, projections, keypoints, truths, min_score: float = 0.3):
-    """Median offsets of triangulated keypoints from the layout's SMPL points, in carrier axes.
-
-    ``projections`` (V, 3, 4) of the cameras; ``keypoints[frame][view]`` detections (or None);
-    ``truths[frame]``: (poses (24, 3), Rh, Th, betas) of the true body. Returns target name ->
-    (carrier joint name, (3,) median offset, frames used, median distance after the correction).
-    """
-    from stg_node.body import lbs
-    from stg_node.tracking.body_points import BodyKeypoints
-    from stg_node.tracking.multiview_fit import triangulate
-
-    model = BodyKeypoints(body, [t.point for t in layout.targets]).double()
-    parents = body.parents.tolist()
-    carriers = [carrier(layout, t, parents) for t in range(len(layout.targets))]
-    local = [[] for _ in layout.targets]
-    for row, (poses, Rh, Th, betas) in zip(keypoints, truths, strict=True):
-        views = len(row)
-        xy = np.zeros((views, len(layout.targets), 2))
-        weight = np.zeros((views, len(layout.targets)))
-        for v, found in enumerate(row):
-            if found is None:
-                continue
-            for t, target in enumerate(layout.targets):
-                xy[v, t] = np.asarray(found.xy)[list(target.sources)].mean(axis=0)
-                weight[v, t] = min(float(found.score[s]) for s in target.sources)
-        weight[weight < min_score] = 0.0
-        points = triangulate(projections, xy, weight).points
-        with torch.no_grad():
-            pose = torch.as_tensor(np.asarray(poses, np.float64).reshape(1, 24, 3))
-            rotations = lbs.axis_angle_to_matrix(pose.clone())
-            rotations[:, 0] = torch.eye(3, dtype=torch.float64)
-            shaped = torch.as_tensor(np.asarray(betas, np.float64).reshape(1, -1))
-            _, bones = lbs.rigid_chain(rotations, model.rest_joints(shaped), model.parents)
-            true = model(
-                shaped, pose[:, 1:], torch.as_tensor(Rh).reshape(1, 3), torch.as_tensor(Th).reshape(1, 3)
-            )
-        root = lbs.axis_angle_to_matrix(torch.as_tensor(np.asarray(Rh, np.float64))).numpy()
-        true = true[0].numpy()
-        for t in range(len(layout.targets)):
-            if np.all(np.isfinite(points[t])):
-                rotation = root @ bones[0, carriers[t], :3, :3].numpy()
-                local[t].append(rotation.T @ (points[t] - true[t]))
-    out = {}
-    for t, target in enumerate(layout.targets):
-        if not local[t]:
-            continue
-        values = np.asarray(local[t])
-        median = np.median(values, axis=0)
-        out[target.point.name] = (
-            SMPL_JOINT_NAMES[carriers[t]],
-            median,
-            len(values),
-            float(np.median(np.linalg.norm(values - median, axis=1))),
-        )
-    return out

@@ -22,7 +22,8 @@ import stg_node
 from stg_node.body.motion import drive_body
 from stg_node.body.params import SmplSequence
 from stg_node.data.synth import writer
-from stg_node.data.synth.cameras import make_rig
+from stg_node.data.synth.cameras import DEFAULT_DISTANCE_M, make_rig
+from stg_node.data.synth.exposure import apply_gain, jitter_gains
 from stg_node.data.synth.garment import GarmentParams, garment_regions, simulate_garment
 from stg_node.data.synth.lighting import AMBIENT, DIFFUSE, LIGHT_DIRECTION_BODY, SHADING_MODES, lighting
 from stg_node.data.synth.mesh_raster import TexturedMesh, render_mesh
@@ -66,6 +67,11 @@ class SynthConfig:
     # Multi-view training (docs/RIGS.md): 0-based cameras that render every frame, as camera 0
     # does; the others render every view_every-th frame.
     train_cameras: tuple[int, ...] = (0,)
+    # Filming conditions (real footage): the rig's distance and field of view, and the training
+    # camera's per-frame exposure / white-balance drift (exposure.py).
+    camera_distance: float = DEFAULT_DISTANCE_M
+    fov_deg: float | None = None  # None: each camera frames VIEW_HEIGHT_M at the subject
+    exposure_jitter: float = 0.0  # std of the per-frame log exposure gain (0: steady)
 
     def validate(self) -> None:
         if self.motion not in MOTIONS:
@@ -99,6 +105,12 @@ class SynthConfig:
             raise ValueError(
                 f"--train-cameras {outside}: the rig has cameras 1-{count} (--views {count - 1})"
             )
+        if not 1.0 <= self.camera_distance <= 50.0:
+            raise ValueError(f"--distance must be 1 to 50 metres, got {self.camera_distance}")
+        if self.fov_deg is not None and not 10.0 <= self.fov_deg <= 120.0:
+            raise ValueError(f"--fov must be 10 to 120 degrees, got {self.fov_deg}")
+        if not 0.0 <= self.exposure_jitter <= 1.0:
+            raise ValueError(f"--exposure-jitter must be 0 to 1 (a log-gain std), got {self.exposure_jitter}")
 
     @property
     def num_train_frames(self) -> int:
@@ -229,7 +241,8 @@ def generate(config: SynthConfig, body=None, progress: bool = True) -> SynthResu
         )
     out = writer.prepare_output(Path(config.out), config.overwrite)
 
-    motion_seq, shape_seq, camera_seq = np.random.SeedSequence(config.seed).spawn(3)
+    # A fourth child for the exposure drift: the first three are those of spawn(3), unchanged.
+    motion_seq, shape_seq, camera_seq, exposure_seq = np.random.SeedSequence(config.seed).spawn(4)
     n_train = config.num_train_frames
     betas = np.clip(
         np.random.default_rng(shape_seq).normal(0.0, config.betas_std, size=int(body.num_betas)),
@@ -248,7 +261,16 @@ def generate(config: SynthConfig, body=None, progress: bool = True) -> SynthResu
         test_yaw_deg=config.test_yaw_deg,
     )
     light = lighting(config.shading)
-    cameras = make_rig(config.size, config.num_novel_views, np.random.default_rng(camera_seq))
+    cameras = make_rig(
+        config.size,
+        config.num_novel_views,
+        np.random.default_rng(camera_seq),
+        distance=config.camera_distance,
+        fov_deg=config.fov_deg,
+    )
+    gains = jitter_gains(
+        config.num_frames, n_train, config.exposure_jitter, config.fps, np.random.default_rng(exposure_seq)
+    )
 
     # Skinned body; then lift every frame so its lowest vertex touches the floor (z = 0).
     t0 = time.perf_counter()
@@ -317,9 +339,10 @@ def generate(config: SynthConfig, body=None, progress: bool = True) -> SynthResu
                         cull_backfaces=config.cull_backfaces,
                     )
                     depth = result.depth if config.write_depth else None
-                    pending.append(
-                        pool.submit(writer.write_view, out, k, frame, result.image, result.mask, depth)
-                    )
+                    image = result.image
+                    if k == 0 and config.exposure_jitter > 0:
+                        image = apply_gain(image, gains[frame])
+                    pending.append(pool.submit(writer.write_view, out, k, frame, image, result.mask, depth))
                     bar.update(1)
                 render_time += time.perf_counter() - t0
                 while len(pending) > MAX_PENDING_WRITES:
@@ -374,6 +397,14 @@ def generate(config: SynthConfig, body=None, progress: bool = True) -> SynthResu
         },
         "depth": {"written": bool(config.write_depth), "unit": "millimetre", "zero": "background"},
     }
+    filmed = (config.camera_distance, config.fov_deg, config.exposure_jitter)
+    if filmed != (DEFAULT_DISTANCE_M, None, 0.0):  # recorded when set (a default subject's file is as before)
+        metadata["filming"] = {
+            "camera_distance_m": float(config.camera_distance),
+            "fov_deg": None if config.fov_deg is None else float(config.fov_deg),
+            "exposure_jitter": float(config.exposure_jitter),
+            "exposure_gains": gains.round(5).tolist() if config.exposure_jitter > 0 else None,
+        }
     writer.write_metadata(out, metadata)
     timings["total"] = time.perf_counter() - t_start
     log.info(
