@@ -21,6 +21,7 @@ import argparse
 import json
 import os
 import shlex
+import signal
 import subprocess
 import sys
 import tempfile
@@ -70,6 +71,10 @@ def busy_loop() -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-c", "while True: pass"], stdin=subprocess.DEVNULL)
 
 
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def run_suite(
     index: int, pytest_args: list[str], *, busy: bool, background: bool, work: Path, python: str
 ) -> Run:
@@ -87,8 +92,10 @@ def run_suite(
                 # not ignore SIGINT)
                 shell = f"{shlex.join(command)} & wait $!"
                 code = subprocess.call(["bash", "-c", shell], cwd=ROOT, stdout=out, stderr=subprocess.STDOUT)
-            else:
-                code = subprocess.call(command, cwd=ROOT, stdout=out, stderr=subprocess.STDOUT)
+            else:  # as from a terminal: SIGINT at its default, however this tool itself was started
+                code = subprocess.call(
+                    command, cwd=ROOT, stdout=out, stderr=subprocess.STDOUT, preexec_fn=_default_sigint
+                )
     finally:
         if spinner is not None:
             spinner.kill()
