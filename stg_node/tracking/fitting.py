@@ -362,28 +362,25 @@ class SmplFitter:
         return theta, cost
 
     # ---- fitting ----------------------------------------------------------------------------------
-    def fit(
-        self, keypoints: Keypoints, timestamp: float, xy_undistorted: np.ndarray | None = None
-    ) -> FitResult | None:
-        """Fit this frame; None when the keypoints are too few to say anything (state untouched)."""
-        obs = self.observe(keypoints, xy_undistorted)
-        if obs is None:
-            return None
+    def _fit_frame(self, obs, ctx: dict, timestamp: float, initialise):
+        """The per-frame fit every fitter shares: a fresh start after a gap (or before the first
+        frame), else a warm start from the last frame with the temporal terms, and a rescue (start
+        over, keep the better) when the tracked answer explains the keypoints badly.
+
+        ``initialise(obs, ctx, active)`` returns (theta, ctx) or None when it cannot start. Returns
+        (theta, ctx, active, reinitialised), or None when a fresh start was needed and failed.
+        """
         cfg = self.config
-        calibrating = not self.calibrated
-        ctx = {
-            "K": torch.as_tensor(self.K, dtype=DTYPE),
-            "betas": torch.as_tensor(self.betas, dtype=DTYPE)[None],
-            "calibrating": calibrating,
-            "previous": None,
-            "robust": torch.ones(obs.xy.shape[0], dtype=DTYPE),
-        }
+        calibrating = ctx["calibrating"]
         gap = None if self._last_time is None else timestamp - self._last_time
         reinit = not self._tracking or gap is None or gap < 0 or gap > cfg.max_temporal_gap_s
         active = torch.arange(GLOBAL_PARAMS + POSE_PARAMS + (self.num_betas if calibrating else 0))
         rescued = False
         if reinit:
-            theta, ctx = self._initialise(obs, ctx, active)
+            started = initialise(obs, ctx, active)
+            if started is None:
+                return None
+            theta, ctx = started
         else:
             dt = max(gap, 1e-3)
             ctx["previous"] = (
@@ -403,30 +400,53 @@ class SmplFitter:
                 self._last_rescue = timestamp
                 # Lost the thread (a fast move, a limb stuck in a mirror pose): start over from
                 # several hypotheses, keep the best, the tracked answer included.
-                tracked = (self._cost(theta, obs, ctx), theta, ctx)
-                fresh, fresh_ctx = self._initialise(obs, dict(ctx, previous=None), active)
-                if self._cost(fresh, obs, fresh_ctx) < tracked[0]:
-                    theta, ctx, rescued = fresh, fresh_ctx, True
+                tracked_cost = self._cost(theta, obs, ctx)
+                fresh = initialise(obs, dict(ctx, previous=None), active)
+                if fresh is not None and self._cost(fresh[0], obs, fresh[1]) < tracked_cost:
+                    (theta, ctx), rescued = fresh, True
+        return theta, ctx, active, reinit or rescued
+
+    def _keep_state(self, theta: torch.Tensor, ctx: dict, timestamp: float) -> np.ndarray:
+        """Hold a frame's solution as the next frame's warm start; returns the frame's betas."""
         # Fold the rotation update into the base rotation.
-        rotation = ctx["base_rotation"].numpy() @ _rotation_from_vector(theta[:3].numpy())
-        self._rotation = rotation
+        self._rotation = ctx["base_rotation"].numpy() @ _rotation_from_vector(theta[:3].numpy())
         self._translation = theta[3:6].numpy().copy()
         self._pose = theta[GLOBAL_PARAMS : GLOBAL_PARAMS + POSE_PARAMS].numpy().copy()
-        betas = theta[GLOBAL_PARAMS + POSE_PARAMS :].numpy().copy() if calibrating else self.betas
         self._last_time = timestamp
         self._tracking = True
+        if ctx["calibrating"]:
+            return theta[GLOBAL_PARAMS + POSE_PARAMS :].numpy().copy()
+        return self.betas
+
+    def fit(
+        self, keypoints: Keypoints, timestamp: float, xy_undistorted: np.ndarray | None = None
+    ) -> FitResult | None:
+        """Fit this frame; None when the keypoints are too few to say anything (state untouched)."""
+        obs = self.observe(keypoints, xy_undistorted)
+        if obs is None:
+            return None
+        calibrating = not self.calibrated
+        ctx = {
+            "K": torch.as_tensor(self.K, dtype=DTYPE),
+            "betas": torch.as_tensor(self.betas, dtype=DTYPE)[None],
+            "calibrating": calibrating,
+            "previous": None,
+            "robust": torch.ones(obs.xy.shape[0], dtype=DTYPE),
+        }
+        theta, ctx, _active, reinitialised = self._fit_frame(obs, ctx, timestamp, self._initialise)
+        betas = self._keep_state(theta, ctx, timestamp)
         rms_units, rms_px, used = self._reprojection_error(theta, obs, ctx)
         cost = self._cost(theta, obs, dict(ctx, previous=None, calibrating=False, betas=torch.as_tensor(
             np.asarray(betas, dtype=np.float64))[None]))  # fmt: skip
         return FitResult(
             body_pose=self._pose.reshape(NUM_BODY_JOINTS, 3).copy(),
-            Rh=_vector_from_rotation(rotation),
+            Rh=_vector_from_rotation(self._rotation),
             Th=self._translation.copy(),
             betas=np.asarray(betas, dtype=np.float64).copy(),
             rms_px=rms_px,
             rms_units=rms_units,
             used_targets=used,
-            reinitialised=reinit or rescued,
+            reinitialised=reinitialised,
             cost=cost,
         )
 

@@ -279,7 +279,6 @@ class MultiViewFitter(SmplFitter):
         obs = self.observe_views(keypoints, xy_undistorted)
         if obs is None:
             return None
-        cfg = self.config
         calibrating = not self.calibrated
         ctx = {
             "betas": torch.as_tensor(self.betas, dtype=DTYPE)[None],
@@ -287,53 +286,22 @@ class MultiViewFitter(SmplFitter):
             "previous": None,
             "robust": torch.ones(obs.xy.shape[0], dtype=DTYPE),
         }
-        gap = None if self._last_time is None else timestamp - self._last_time
-        reinit = not self._tracking or gap is None or gap < 0 or gap > cfg.max_temporal_gap_s
-        active = torch.arange(GLOBAL_PARAMS + POSE_PARAMS + (self.num_betas if calibrating else 0))
-        rescued = False
-        if reinit:
-            started = self._initialise_views(obs, ctx, active)
-            if started is None:
-                return None
-            theta, ctx = started
-        else:
-            dt = max(gap, 1e-3)
-            ctx["previous"] = (
-                torch.as_tensor(self._pose, dtype=DTYPE),
-                max(cfg.temporal_rad_per_s * dt, 1e-3),
-                max(cfg.temporal_m_per_s * dt, 1e-3),
-            )
-            ctx["prev_translation"] = torch.as_tensor(self._translation, dtype=DTYPE)
-            ctx["base_rotation"] = torch.as_tensor(self._rotation, dtype=DTYPE)
-            theta_np = np.concatenate([np.zeros(3), self._translation, self._pose])
-            if calibrating:
-                theta_np = np.concatenate([theta_np, self.betas])
-            theta, _ = self._solve(torch.as_tensor(theta_np, dtype=DTYPE), active, obs, ctx, cfg.iterations)
-            since = None if self._last_rescue is None else timestamp - self._last_rescue
-            cooled = since is None or not 0 <= since < cfg.rescue_cooldown_s
-            if cooled and self._reprojection_error(theta, obs, ctx)[0] > cfg.rescue_units:
-                self._last_rescue = timestamp
-                fresh = self._initialise_views(obs, dict(ctx, previous=None), active)
-                if fresh is not None and self._cost(fresh[0], obs, fresh[1]) < self._cost(theta, obs, ctx):
-                    (theta, ctx), rescued = fresh, True
+        fitted = self._fit_frame(obs, ctx, timestamp, self._initialise_views)
+        if fitted is None:
+            return None
+        theta, ctx, active, reinitialised = fitted
         theta, self.dropped_views = self._drop_disagreeing_view(theta, obs, ctx, active)
-        rotation = ctx["base_rotation"].numpy() @ lbs.axis_angle_to_matrix(theta[:3]).numpy()
-        self._rotation = rotation
-        self._translation = theta[3:6].numpy().copy()
-        self._pose = theta[GLOBAL_PARAMS : GLOBAL_PARAMS + POSE_PARAMS].numpy().copy()
-        betas = theta[GLOBAL_PARAMS + POSE_PARAMS :].numpy().copy() if calibrating else self.betas
-        self._last_time = timestamp
-        self._tracking = True
+        betas = self._keep_state(theta, ctx, timestamp)
         rms_units, rms_px, used = self._reprojection_error(theta, obs, ctx)
         return FitResult(
             body_pose=self._pose.reshape(NUM_BODY_JOINTS, 3).copy(),
-            Rh=lbs.matrix_to_axis_angle(torch.as_tensor(rotation)).numpy(),
+            Rh=lbs.matrix_to_axis_angle(torch.as_tensor(self._rotation)).numpy(),
             Th=self._translation.copy(),
             betas=np.asarray(betas, dtype=np.float64).copy(),
             rms_px=rms_px,
             rms_units=rms_units,
             used_targets=used,
-            reinitialised=reinit or rescued,
+            reinitialised=reinitialised,
         )
 
     def _initialise_views(self, obs: _MultiObservation, ctx: dict, active: torch.Tensor):
