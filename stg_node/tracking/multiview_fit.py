@@ -264,6 +264,9 @@ class MultiViewFitter(SmplFitter):
         obs.weight[rows] = 0.0
         theta, _ = self._solve(theta, active, obs, ctx, self.config.init_iterations)
         return theta, (worst,)
+
+    def _reprojection_error(self, theta, obs: _MultiObservation, ctx) -> tuple[float, float, int]:
+        """Weighted RMS over every view, in noise units and in pixels (each view's own unit)."""
         with torch.no_grad():
             ctx = dict(ctx, robust=torch.ones_like(obs.weight))
             _, norms = self._residuals(theta[None], obs, ctx)
