@@ -28,17 +28,17 @@ from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
-import torch
 
-from stg_node.body import BodyModel, lbs
+from stg_node.body import BodyModel
 from stg_node.calibration.rig import Rig
 from stg_node.tracking.camera import Intrinsics
 from stg_node.tracking.detectors import KeypointDetector
-from stg_node.tracking.fitting import FitConfig, FitResult
+from stg_node.tracking.fitting import FitResult
 from stg_node.tracking.layouts import get_layout
 from stg_node.tracking.masks import Masker, SegmentationMasker, clean_mask
 from stg_node.tracking.multiview_fit import MultiViewFitter
 from stg_node.tracking.smoothing import OneEuroConfig, PoseSmoother
+from stg_node.tracking.tracker import TrackerConfig, rotation_angle_deg
 from stg_node.tracking.types import Keypoints, SmplParams
 
 log = logging.getLogger(__name__)
@@ -47,9 +47,9 @@ TORSO = ("left_shoulder", "right_shoulder", "left_hip", "right_hip")
 
 
 @dataclass(frozen=True)
-class MultiViewConfig:
-    max_side: int = 512  # detect and mask on frames scaled to at most this long side (0 = native)
-    smoothing: bool = True
+class MultiViewConfig(TrackerConfig):
+    """The single-view tracker's settings (and their validation) with a rig's own defaults."""
+
     # Lighter than one camera's (2 Hz / 1 Hz): several views leave little noise to remove, and
     # the filter's lag costs more than it saves (docs/TRACKING.md#several-cameras).
     rotation_filter: OneEuroConfig = field(
@@ -58,20 +58,7 @@ class MultiViewConfig:
     translation_filter: OneEuroConfig = field(
         default_factory=lambda: OneEuroConfig(min_cutoff_hz=8.0, beta=4.0)
     )
-    bad_fit_units: float = 4.0
     single_view_factor: float = 0.5
-    multi_person_factor: float = 0.1
-    max_jump_deg: float = 60.0
-    jump_factor: float = 0.2
-    clean_masks: bool = True
-    fit: FitConfig = field(default_factory=FitConfig)
-
-    def validate(self) -> None:
-        if self.max_side < 0 or 0 < self.max_side < 64:
-            raise ValueError(f"max_side must be 0 (native) or at least 64 pixels, got {self.max_side}")
-        if not self.bad_fit_units > 0:
-            raise ValueError(f"bad_fit_units must be positive, got {self.bad_fit_units}")
-        self.fit.validate()
 
 
 @dataclass(frozen=True)
@@ -86,13 +73,6 @@ class MultiViewEstimate:
     views_used: int = 0  # views whose keypoints entered the fit
     reprojection_px: float = float("nan")  # weighted RMS keypoint residual over the views
     flags: tuple[str, ...] = ()
-
-
-def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
-    ra = lbs.axis_angle_to_matrix(torch.as_tensor(a, dtype=torch.float64))
-    rb = lbs.axis_angle_to_matrix(torch.as_tensor(b, dtype=torch.float64))
-    cosine = float(((torch.trace(ra.T @ rb) - 1.0) / 2.0).clamp(-1.0, 1.0))
-    return math.degrees(math.acos(cosine))
 
 
 class MultiViewTracker:
@@ -192,7 +172,7 @@ class MultiViewTracker:
             confidence *= cfg.multi_person_factor
             flags.append("multiple_people")
         if self._last_raw_rh is not None and not fit.reinitialised:
-            if _angle_deg(self._last_raw_rh, fit.Rh) > cfg.max_jump_deg:
+            if rotation_angle_deg(self._last_raw_rh, fit.Rh) > cfg.max_jump_deg:
                 confidence *= cfg.jump_factor
                 flags.append("jump")
         return float(np.clip(confidence, 0.0, 1.0)), flags

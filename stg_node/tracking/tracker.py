@@ -80,7 +80,8 @@ class StageTimes:
     total: float = 0.0
 
 
-def _rotation_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+def rotation_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    """The angle between two axis-angle rotations, degrees."""
     ra = lbs.axis_angle_to_matrix(torch.as_tensor(a, dtype=torch.float64))
     rb = lbs.axis_angle_to_matrix(torch.as_tensor(b, dtype=torch.float64))
     cosine = float(((torch.trace(ra.T @ rb) - 1.0) / 2.0).clamp(-1.0, 1.0))
@@ -170,7 +171,7 @@ class Tracker:
             confidence *= cfg.multi_person_factor
             flags.append("multiple_people")
         if self._last_raw_rh is not None and not fit.reinitialised:
-            if _rotation_angle_deg(self._last_raw_rh, fit.Rh) > cfg.max_jump_deg:
+            if rotation_angle_deg(self._last_raw_rh, fit.Rh) > cfg.max_jump_deg:
                 confidence *= cfg.jump_factor
                 flags.append("jump")
         return float(np.clip(confidence, 0.0, 1.0)), flags
