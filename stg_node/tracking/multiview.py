@@ -26,7 +26,6 @@ import math
 import time
 from dataclasses import dataclass, field, replace
 
-import cv2
 import numpy as np
 
 from stg_node.body import BodyModel
@@ -35,10 +34,10 @@ from stg_node.tracking.camera import Intrinsics
 from stg_node.tracking.detectors import KeypointDetector
 from stg_node.tracking.fitting import FitResult
 from stg_node.tracking.layouts import get_layout
-from stg_node.tracking.masks import Masker, SegmentationMasker, clean_mask
+from stg_node.tracking.masks import Masker, SegmentationMasker
 from stg_node.tracking.multiview_fit import MultiViewFitter
 from stg_node.tracking.smoothing import OneEuroConfig, PoseSmoother
-from stg_node.tracking.tracker import TrackerConfig, rotation_angle_deg
+from stg_node.tracking.tracker import TrackerConfig, person_mask, rotation_angle_deg, scaled_frame
 from stg_node.tracking.types import Keypoints, SmplParams
 
 log = logging.getLogger(__name__)
@@ -126,15 +125,6 @@ class MultiViewTracker:
         self._last_raw_rh = None
 
     # ---- helpers --------------------------------------------------------------------------------
-    def _scaled(self, frame: np.ndarray) -> tuple[np.ndarray, float]:
-        side = self.config.max_side
-        height, width = frame.shape[:2]
-        if side == 0 or max(height, width) <= side:
-            return frame, 1.0
-        scale = side / max(height, width)
-        size = (max(1, round(width * scale)), max(1, round(height * scale)))
-        return cv2.resize(frame, size, interpolation=cv2.INTER_AREA), scale
-
     def _check(self, frames: list[np.ndarray]) -> None:
         if len(frames) != len(self.rig):
             raise ValueError(f"expected {len(self.rig)} frames (one per camera), got {len(frames)}")
@@ -199,7 +189,7 @@ class MultiViewTracker:
         t0 = time.perf_counter()
         smalls, keypoints, undistorted = [], [], []
         for frame, detector, intrinsics in zip(frames, self.detectors, self.intrinsics, strict=True):
-            small, scale = self._scaled(np.asarray(frame))
+            small, scale = scaled_frame(np.asarray(frame), self.config.max_side)
             found = detector(small)
             if found is not None and scale != 1.0:
                 found = replace(found, xy=((found.xy + 0.5) / scale - 0.5).astype(np.float32))
@@ -261,17 +251,5 @@ class MultiViewTracker:
     def _mask(self, frame, small, scale, keypoints, camera, Th, masker) -> np.ndarray:
         if keypoints is None:
             return np.zeros(frame.shape[:2], np.uint8)
-        small_keypoints = keypoints
-        if scale != 1.0:
-            small_keypoints = replace(keypoints, xy=((keypoints.xy + 0.5) * scale - 0.5).astype(np.float32))
         distance = float((camera.R @ np.asarray(Th, np.float64) + camera.t)[2])
-        mask = masker(small, small_keypoints, distance)
-        if self.config.clean_masks:
-            confident = small_keypoints.xy[
-                np.asarray(small_keypoints.score) >= self.config.fit.min_keypoint_score
-            ]
-            mask = clean_mask(mask, confident)
-        if scale != 1.0:
-            mask = cv2.resize(mask, (frame.shape[1], frame.shape[0]), interpolation=cv2.INTER_LINEAR)
-            mask = np.where(mask >= 128, np.uint8(255), np.uint8(0))
-        return mask
+        return person_mask(masker, frame, small, scale, keypoints, distance, self.config)
