@@ -289,8 +289,16 @@ class SmplFitter:
             directions = bones / bones.norm(dim=-1, keepdim=True).clamp(min=1e-6)
             rel = (directions - obs.world) / cfg.world_sigma
             parts.append((rel * (cfg.world_weight * obs.world_weight).sqrt()[:, None]).reshape(batch, -1))
+        parts += self._prior_terms(thetas, pose, body_rotations, betas, ctx)
+        return torch.cat(parts, dim=1), norms
+
+    def _prior_terms(self, thetas, pose, body_rotations, betas, ctx: dict) -> list[torch.Tensor]:
+        """The residual rows after the reprojection (every fitter's): pose prior, joint limits, the
+        temporal terms when there is a previous frame, the shape prior while calibrating."""
+        cfg = self.config
+        batch = thetas.shape[0]
         flat_pose = pose.reshape(batch, -1)
-        parts.append(flat_pose * self._prior_scale)
+        parts = [flat_pose * self._prior_scale]
         parts.append(limit_excess(body_rotations).reshape(batch, -1) * cfg.limit_weight)
         if ctx["previous"] is not None:
             prev_pose, rad_sigma, m_sigma = ctx["previous"]
@@ -299,7 +307,7 @@ class SmplFitter:
             parts.append((thetas[:, 3:6] - ctx["prev_translation"]) / m_sigma)
         if ctx["calibrating"]:
             parts.append(betas / cfg.shape_sigma)
-        return torch.cat(parts, dim=1), norms
+        return parts
 
     def _solve(self, theta, active: torch.Tensor, obs, ctx, iterations: int) -> tuple[torch.Tensor, float]:
         """Levenberg-Marquardt over the ``active`` parameter indices; returns (theta, final cost).

@@ -40,7 +40,6 @@ from stg_node.tracking.fitting import (
     kabsch,
 )
 from stg_node.tracking.layouts import KeypointLayout
-from stg_node.tracking.priors import limit_excess
 
 MIN_VIEW_TARGETS = 4  # a view with fewer usable targets adds nothing
 TORSO = ("left_shoulder", "right_shoulder", "left_hip", "right_hip")
@@ -212,7 +211,6 @@ class MultiViewFitter(SmplFitter):
 
     # ---- residuals --------------------------------------------------------------------------------
     def _residuals(self, thetas, obs: _MultiObservation, ctx: dict) -> tuple[torch.Tensor, torch.Tensor]:
-        cfg = self.config
         batch = thetas.shape[0]
         betas = thetas[:, GLOBAL_PARAMS + POSE_PARAMS :] if ctx["calibrating"] else ctx["betas"]
         world, _, pose, body_rotations = self._points(thetas, ctx["base_rotation"], betas)  # (B, T, 3)
@@ -225,16 +223,7 @@ class MultiViewFitter(SmplFitter):
         diff = (predicted - obs.xy) / obs.unit_px[:, None]
         norms = diff.norm(dim=-1)
         parts = [(diff * (obs.weight * ctx["robust"]).sqrt()[:, None]).reshape(batch, -1)]
-        flat_pose = pose.reshape(batch, -1)
-        parts.append(flat_pose * self._prior_scale)
-        parts.append(limit_excess(body_rotations).reshape(batch, -1) * cfg.limit_weight)
-        if ctx["previous"] is not None:
-            prev_pose, rad_sigma, m_sigma = ctx["previous"]
-            parts.append((flat_pose - prev_pose) / rad_sigma)
-            parts.append(thetas[:, :3] / rad_sigma)
-            parts.append((thetas[:, 3:6] - ctx["prev_translation"]) / m_sigma)
-        if ctx["calibrating"]:
-            parts.append(betas / cfg.shape_sigma)
+        parts += self._prior_terms(thetas, pose, body_rotations, betas, ctx)
         return torch.cat(parts, dim=1), norms
 
     def view_errors(self, theta, obs: _MultiObservation, ctx) -> np.ndarray:
