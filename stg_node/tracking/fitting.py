@@ -517,18 +517,22 @@ class SmplFitter:
             cauchy = (c * c * torch.log1p((norms[0] / c) ** 2) * obs.weight).sum()
             return float(cauchy + (res[0, num_2d:] ** 2).sum())
 
+    def _local_points(self, betas: torch.Tensor, pose: np.ndarray) -> np.ndarray:
+        """The targets' body points at ``pose`` with no global rotation or translation, (T, 3)."""
+        with torch.no_grad():
+            return self.model(
+                betas,
+                torch.as_tensor(pose, dtype=DTYPE).reshape(1, NUM_BODY_JOINTS, 3),
+                torch.zeros(1, 3, dtype=DTYPE),
+                torch.zeros(1, 3, dtype=DTYPE),
+            )[0].numpy()
+
     def _best_placement(
         self, obs: _Observation, ctx: dict, pose: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
         """Global rotation and translation hypotheses at ``pose``; the best after a short refinement."""
         cfg = self.config
-        with torch.no_grad():
-            local = self.model(
-                ctx["betas"],
-                torch.as_tensor(pose, dtype=DTYPE).reshape(1, NUM_BODY_JOINTS, 3),
-                torch.zeros(1, 3, dtype=DTYPE),
-                torch.zeros(1, 3, dtype=DTYPE),
-            )[0].numpy()
+        local = self._local_points(ctx["betas"], pose)
         candidates = [FACING_CAMERA @ _yaw(deg) for deg in YAW_HYPOTHESES_DEG]
         if obs.world is not None:
             candidate = self._rotation_from_bones(local, obs)

@@ -312,13 +312,7 @@ class MultiViewFitter(SmplFitter):
             if any(np.allclose(start, other) for other in seen):
                 continue
             seen.append(start)
-            with torch.no_grad():
-                local = self.model(
-                    ctx["betas"],
-                    torch.as_tensor(start, dtype=DTYPE).reshape(1, NUM_BODY_JOINTS, 3),
-                    torch.zeros(1, 3, dtype=DTYPE),
-                    torch.zeros(1, 3, dtype=DTYPE),
-                )[0].numpy()
+            local = self._local_points(ctx["betas"], start)
             source, target = local[anchors], obs.points[anchors]
             rotation = kabsch(source, target)
             translation = target.mean(axis=0) - rotation @ source.mean(axis=0)
