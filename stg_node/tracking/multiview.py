@@ -37,7 +37,13 @@ from stg_node.tracking.layouts import get_layout
 from stg_node.tracking.masks import Masker, SegmentationMasker
 from stg_node.tracking.multiview_fit import MultiViewFitter
 from stg_node.tracking.smoothing import OneEuroConfig, PoseSmoother
-from stg_node.tracking.tracker import TrackerConfig, person_mask, rotation_angle_deg, scaled_frame
+from stg_node.tracking.tracker import (
+    TrackerConfig,
+    person_mask,
+    rotation_angle_deg,
+    scaled_frame,
+    smoothed_params,
+)
 from stg_node.tracking.types import Keypoints, SmplParams
 
 log = logging.getLogger(__name__)
@@ -224,17 +230,7 @@ class MultiViewTracker:
             flags.append("view_disagrees")
         self.fitter.add_calibration(fit, confidence)
         self._last_raw_rh = fit.Rh
-        body_pose, Rh, Th = fit.body_pose, fit.Rh, fit.Th
-        if fit.reinitialised:
-            self.smoother.reset()
-        if self.config.smoothing:
-            body_pose, Rh, Th = self.smoother(body_pose, Rh, Th, timestamp)
-        smpl = SmplParams(
-            poses=np.concatenate([np.zeros((1, 3)), body_pose]).astype(np.float32),
-            Rh=np.asarray(Rh, np.float32),
-            Th=np.asarray(Th, np.float32),
-            betas=self.fitter.betas.astype(np.float32),
-        )
+        smpl, Th = smoothed_params(fit, self.smoother, timestamp, self.config.smoothing, self.fitter.betas)
         masks = tuple(
             self._mask(frame, small, scale, kp, camera, Th, masker)
             for frame, (small, scale), kp, camera, masker in zip(

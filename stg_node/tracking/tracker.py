@@ -108,6 +108,25 @@ def person_mask(
     return mask
 
 
+def smoothed_params(
+    fit: FitResult, smoother: PoseSmoother, timestamp: float, smoothing: bool, betas: np.ndarray
+) -> tuple[SmplParams, np.ndarray]:
+    """A fit as SMPL parameters with the fitter's shape ``betas``: smoothed when ``smoothing`` (the
+    filter restarted when the fit started over); also the smoothed translation at full precision."""
+    body_pose, Rh, Th = fit.body_pose, fit.Rh, fit.Th
+    if fit.reinitialised:
+        smoother.reset()
+    if smoothing:
+        body_pose, Rh, Th = smoother(body_pose, Rh, Th, timestamp)
+    smpl = SmplParams(
+        poses=np.concatenate([np.zeros((1, 3)), body_pose]).astype(np.float32),
+        Rh=np.asarray(Rh, np.float32),
+        Th=np.asarray(Th, np.float32),
+        betas=betas.astype(np.float32),
+    )
+    return smpl, Th
+
+
 def rotation_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     """The angle between two axis-angle rotations, degrees."""
     ra = lbs.axis_angle_to_matrix(torch.as_tensor(a, dtype=torch.float64))
@@ -259,17 +278,7 @@ class Tracker:
         confidence, flags = self._confidence(keypoints, fit)
         self.fitter.add_calibration(fit, confidence)
         self._last_raw_rh = fit.Rh
-        body_pose, Rh, Th = fit.body_pose, fit.Rh, fit.Th
-        if fit.reinitialised:
-            self.smoother.reset()
-        if self.config.smoothing:
-            body_pose, Rh, Th = self.smoother(body_pose, Rh, Th, timestamp)
-        smpl = SmplParams(
-            poses=np.concatenate([np.zeros((1, 3)), body_pose]).astype(np.float32),
-            Rh=np.asarray(Rh, np.float32),
-            Th=np.asarray(Th, np.float32),
-            betas=self.fitter.betas.astype(np.float32),
-        )
+        smpl, _ = smoothed_params(fit, self.smoother, timestamp, self.config.smoothing, self.fitter.betas)
         estimate = TrackEstimate(
             smpl=smpl,
             mask=np.zeros(tuple(frame_shape[:2]), np.uint8),
