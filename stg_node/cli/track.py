@@ -126,18 +126,11 @@ def run(args: argparse.Namespace) -> int:
     if args.max_side != 0 and args.max_side < 64:
         raise UsageError(f"--max-side must be 0 (native) or at least 64, got {args.max_side}")
 
-    from stg_node.tracking.pipeline import TrackOptions, track_to_file
+    from stg_node.tracking.pipeline import track_to_file
 
-    options = TrackOptions(
+    options = track_options(
+        args,
         intrinsics=None if args.intrinsics is None else str(args.intrinsics),
-        smpl_model=args.smpl_model,
-        detector=args.detector,
-        pose_model=args.pose_model,
-        mask=args.mask_method,
-        plate=None if args.plate is None else str(args.plate),
-        fps=args.fps,
-        max_side=args.max_side,
-        smoothing=not args.no_smoothing,
         **({} if args.fov is None else {"fov_deg": args.fov}),
     )
     summary = track_to_file(
@@ -159,6 +152,24 @@ def run(args: argparse.Namespace) -> int:
     if args.preview is not None:
         print(f"fit preview: {args.preview}")
     return 0
+
+
+def track_options(args: argparse.Namespace, **camera):
+    """The TrackOptions of the options one camera and a rig share; ``camera``: the single
+    camera's own (intrinsics, fov_deg)."""
+    from stg_node.tracking.pipeline import TrackOptions
+
+    return TrackOptions(
+        smpl_model=args.smpl_model,
+        detector=args.detector,
+        pose_model=args.pose_model,
+        mask=args.mask_method,
+        plate=None if args.plate is None else str(args.plate),
+        fps=args.fps,
+        max_side=args.max_side,
+        smoothing=not args.no_smoothing,
+        **camera,
+    )
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -60,19 +60,10 @@ def run_rig(args: argparse.Namespace, threads: int | None) -> int:
         raise UsageError("--detector onnx needs --pose-model FILE.onnx")
     cameras = [n.strip() for n in args.cameras.split(",")] if args.cameras else None
 
-    from stg_node.tracking.pipeline import TrackOptions
+    from stg_node.cli.track import track_options
     from stg_node.tracking.rig_pipeline import track_rig_to_file
 
-    options = TrackOptions(
-        smpl_model=args.smpl_model,
-        detector=args.detector,
-        pose_model=args.pose_model,
-        mask=args.mask_method,
-        plate=None if args.plate is None else str(args.plate),
-        fps=args.fps,
-        max_side=args.max_side,
-        smoothing=not args.no_smoothing,
-    )
+    options = track_options(args)
     summary = track_rig_to_file(
         args.input,
         args.calibration,

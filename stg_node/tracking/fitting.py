@@ -289,8 +289,16 @@ class SmplFitter:
             directions = bones / bones.norm(dim=-1, keepdim=True).clamp(min=1e-6)
             rel = (directions - obs.world) / cfg.world_sigma
             parts.append((rel * (cfg.world_weight * obs.world_weight).sqrt()[:, None]).reshape(batch, -1))
+        parts += self._prior_terms(thetas, pose, body_rotations, betas, ctx)
+        return torch.cat(parts, dim=1), norms
+
+    def _prior_terms(self, thetas, pose, body_rotations, betas, ctx: dict) -> list[torch.Tensor]:
+        """The residual rows after the reprojection (every fitter's): pose prior, joint limits, the
+        temporal terms when there is a previous frame, the shape prior while calibrating."""
+        cfg = self.config
+        batch = thetas.shape[0]
         flat_pose = pose.reshape(batch, -1)
-        parts.append(flat_pose * self._prior_scale)
+        parts = [flat_pose * self._prior_scale]
         parts.append(limit_excess(body_rotations).reshape(batch, -1) * cfg.limit_weight)
         if ctx["previous"] is not None:
             prev_pose, rad_sigma, m_sigma = ctx["previous"]
@@ -299,7 +307,7 @@ class SmplFitter:
             parts.append((thetas[:, 3:6] - ctx["prev_translation"]) / m_sigma)
         if ctx["calibrating"]:
             parts.append(betas / cfg.shape_sigma)
-        return torch.cat(parts, dim=1), norms
+        return parts
 
     def _solve(self, theta, active: torch.Tensor, obs, ctx, iterations: int) -> tuple[torch.Tensor, float]:
         """Levenberg-Marquardt over the ``active`` parameter indices; returns (theta, final cost).
@@ -362,28 +370,25 @@ class SmplFitter:
         return theta, cost
 
     # ---- fitting ----------------------------------------------------------------------------------
-    def fit(
-        self, keypoints: Keypoints, timestamp: float, xy_undistorted: np.ndarray | None = None
-    ) -> FitResult | None:
-        """Fit this frame; None when the keypoints are too few to say anything (state untouched)."""
-        obs = self.observe(keypoints, xy_undistorted)
-        if obs is None:
-            return None
+    def _fit_frame(self, obs, ctx: dict, timestamp: float, initialise):
+        """The per-frame fit every fitter shares: a fresh start after a gap (or before the first
+        frame), else a warm start from the last frame with the temporal terms, and a rescue (start
+        over, keep the better) when the tracked answer explains the keypoints badly.
+
+        ``initialise(obs, ctx, active)`` returns (theta, ctx) or None when it cannot start. Returns
+        (theta, ctx, active, reinitialised), or None when a fresh start was needed and failed.
+        """
         cfg = self.config
-        calibrating = not self.calibrated
-        ctx = {
-            "K": torch.as_tensor(self.K, dtype=DTYPE),
-            "betas": torch.as_tensor(self.betas, dtype=DTYPE)[None],
-            "calibrating": calibrating,
-            "previous": None,
-            "robust": torch.ones(obs.xy.shape[0], dtype=DTYPE),
-        }
+        calibrating = ctx["calibrating"]
         gap = None if self._last_time is None else timestamp - self._last_time
         reinit = not self._tracking or gap is None or gap < 0 or gap > cfg.max_temporal_gap_s
         active = torch.arange(GLOBAL_PARAMS + POSE_PARAMS + (self.num_betas if calibrating else 0))
         rescued = False
         if reinit:
-            theta, ctx = self._initialise(obs, ctx, active)
+            started = initialise(obs, ctx, active)
+            if started is None:
+                return None
+            theta, ctx = started
         else:
             dt = max(gap, 1e-3)
             ctx["previous"] = (
@@ -403,30 +408,53 @@ class SmplFitter:
                 self._last_rescue = timestamp
                 # Lost the thread (a fast move, a limb stuck in a mirror pose): start over from
                 # several hypotheses, keep the best, the tracked answer included.
-                tracked = (self._cost(theta, obs, ctx), theta, ctx)
-                fresh, fresh_ctx = self._initialise(obs, dict(ctx, previous=None), active)
-                if self._cost(fresh, obs, fresh_ctx) < tracked[0]:
-                    theta, ctx, rescued = fresh, fresh_ctx, True
+                tracked_cost = self._cost(theta, obs, ctx)
+                fresh = initialise(obs, dict(ctx, previous=None), active)
+                if fresh is not None and self._cost(fresh[0], obs, fresh[1]) < tracked_cost:
+                    (theta, ctx), rescued = fresh, True
+        return theta, ctx, active, reinit or rescued
+
+    def _keep_state(self, theta: torch.Tensor, ctx: dict, timestamp: float) -> np.ndarray:
+        """Hold a frame's solution as the next frame's warm start; returns the frame's betas."""
         # Fold the rotation update into the base rotation.
-        rotation = ctx["base_rotation"].numpy() @ _rotation_from_vector(theta[:3].numpy())
-        self._rotation = rotation
+        self._rotation = ctx["base_rotation"].numpy() @ _rotation_from_vector(theta[:3].numpy())
         self._translation = theta[3:6].numpy().copy()
         self._pose = theta[GLOBAL_PARAMS : GLOBAL_PARAMS + POSE_PARAMS].numpy().copy()
-        betas = theta[GLOBAL_PARAMS + POSE_PARAMS :].numpy().copy() if calibrating else self.betas
         self._last_time = timestamp
         self._tracking = True
+        if ctx["calibrating"]:
+            return theta[GLOBAL_PARAMS + POSE_PARAMS :].numpy().copy()
+        return self.betas
+
+    def fit(
+        self, keypoints: Keypoints, timestamp: float, xy_undistorted: np.ndarray | None = None
+    ) -> FitResult | None:
+        """Fit this frame; None when the keypoints are too few to say anything (state untouched)."""
+        obs = self.observe(keypoints, xy_undistorted)
+        if obs is None:
+            return None
+        calibrating = not self.calibrated
+        ctx = {
+            "K": torch.as_tensor(self.K, dtype=DTYPE),
+            "betas": torch.as_tensor(self.betas, dtype=DTYPE)[None],
+            "calibrating": calibrating,
+            "previous": None,
+            "robust": torch.ones(obs.xy.shape[0], dtype=DTYPE),
+        }
+        theta, ctx, _active, reinitialised = self._fit_frame(obs, ctx, timestamp, self._initialise)
+        betas = self._keep_state(theta, ctx, timestamp)
         rms_units, rms_px, used = self._reprojection_error(theta, obs, ctx)
         cost = self._cost(theta, obs, dict(ctx, previous=None, calibrating=False, betas=torch.as_tensor(
             np.asarray(betas, dtype=np.float64))[None]))  # fmt: skip
         return FitResult(
             body_pose=self._pose.reshape(NUM_BODY_JOINTS, 3).copy(),
-            Rh=_vector_from_rotation(rotation),
+            Rh=_vector_from_rotation(self._rotation),
             Th=self._translation.copy(),
             betas=np.asarray(betas, dtype=np.float64).copy(),
             rms_px=rms_px,
             rms_units=rms_units,
             used_targets=used,
-            reinitialised=reinit or rescued,
+            reinitialised=reinitialised,
             cost=cost,
         )
 
@@ -489,18 +517,22 @@ class SmplFitter:
             cauchy = (c * c * torch.log1p((norms[0] / c) ** 2) * obs.weight).sum()
             return float(cauchy + (res[0, num_2d:] ** 2).sum())
 
+    def _local_points(self, betas: torch.Tensor, pose: np.ndarray) -> np.ndarray:
+        """The targets' body points at ``pose`` with no global rotation or translation, (T, 3)."""
+        with torch.no_grad():
+            return self.model(
+                betas,
+                torch.as_tensor(pose, dtype=DTYPE).reshape(1, NUM_BODY_JOINTS, 3),
+                torch.zeros(1, 3, dtype=DTYPE),
+                torch.zeros(1, 3, dtype=DTYPE),
+            )[0].numpy()
+
     def _best_placement(
         self, obs: _Observation, ctx: dict, pose: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
         """Global rotation and translation hypotheses at ``pose``; the best after a short refinement."""
         cfg = self.config
-        with torch.no_grad():
-            local = self.model(
-                ctx["betas"],
-                torch.as_tensor(pose, dtype=DTYPE).reshape(1, NUM_BODY_JOINTS, 3),
-                torch.zeros(1, 3, dtype=DTYPE),
-                torch.zeros(1, 3, dtype=DTYPE),
-            )[0].numpy()
+        local = self._local_points(ctx["betas"], pose)
         candidates = [FACING_CAMERA @ _yaw(deg) for deg in YAW_HYPOTHESES_DEG]
         if obs.world is not None:
             candidate = self._rotation_from_bones(local, obs)

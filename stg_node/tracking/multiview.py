@@ -26,19 +26,24 @@ import math
 import time
 from dataclasses import dataclass, field, replace
 
-import cv2
 import numpy as np
-import torch
 
-from stg_node.body import BodyModel, lbs
+from stg_node.body import BodyModel
 from stg_node.calibration.rig import Rig
 from stg_node.tracking.camera import Intrinsics
 from stg_node.tracking.detectors import KeypointDetector
-from stg_node.tracking.fitting import FitConfig, FitResult
+from stg_node.tracking.fitting import FitResult
 from stg_node.tracking.layouts import get_layout
-from stg_node.tracking.masks import Masker, SegmentationMasker, clean_mask
+from stg_node.tracking.masks import Masker, SegmentationMasker
 from stg_node.tracking.multiview_fit import MultiViewFitter
 from stg_node.tracking.smoothing import OneEuroConfig, PoseSmoother
+from stg_node.tracking.tracker import (
+    TrackerConfig,
+    person_mask,
+    rotation_angle_deg,
+    scaled_frame,
+    smoothed_params,
+)
 from stg_node.tracking.types import Keypoints, SmplParams
 
 log = logging.getLogger(__name__)
@@ -47,9 +52,9 @@ TORSO = ("left_shoulder", "right_shoulder", "left_hip", "right_hip")
 
 
 @dataclass(frozen=True)
-class MultiViewConfig:
-    max_side: int = 512  # detect and mask on frames scaled to at most this long side (0 = native)
-    smoothing: bool = True
+class MultiViewConfig(TrackerConfig):
+    """The single-view tracker's settings (and their validation) with a rig's own defaults."""
+
     # Lighter than one camera's (2 Hz / 1 Hz): several views leave little noise to remove, and
     # the filter's lag costs more than it saves (docs/TRACKING.md#several-cameras).
     rotation_filter: OneEuroConfig = field(
@@ -58,20 +63,7 @@ class MultiViewConfig:
     translation_filter: OneEuroConfig = field(
         default_factory=lambda: OneEuroConfig(min_cutoff_hz=8.0, beta=4.0)
     )
-    bad_fit_units: float = 4.0
     single_view_factor: float = 0.5
-    multi_person_factor: float = 0.1
-    max_jump_deg: float = 60.0
-    jump_factor: float = 0.2
-    clean_masks: bool = True
-    fit: FitConfig = field(default_factory=FitConfig)
-
-    def validate(self) -> None:
-        if self.max_side < 0 or 0 < self.max_side < 64:
-            raise ValueError(f"max_side must be 0 (native) or at least 64 pixels, got {self.max_side}")
-        if not self.bad_fit_units > 0:
-            raise ValueError(f"bad_fit_units must be positive, got {self.bad_fit_units}")
-        self.fit.validate()
 
 
 @dataclass(frozen=True)
@@ -86,13 +78,6 @@ class MultiViewEstimate:
     views_used: int = 0  # views whose keypoints entered the fit
     reprojection_px: float = float("nan")  # weighted RMS keypoint residual over the views
     flags: tuple[str, ...] = ()
-
-
-def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
-    ra = lbs.axis_angle_to_matrix(torch.as_tensor(a, dtype=torch.float64))
-    rb = lbs.axis_angle_to_matrix(torch.as_tensor(b, dtype=torch.float64))
-    cosine = float(((torch.trace(ra.T @ rb) - 1.0) / 2.0).clamp(-1.0, 1.0))
-    return math.degrees(math.acos(cosine))
 
 
 class MultiViewTracker:
@@ -146,15 +131,6 @@ class MultiViewTracker:
         self._last_raw_rh = None
 
     # ---- helpers --------------------------------------------------------------------------------
-    def _scaled(self, frame: np.ndarray) -> tuple[np.ndarray, float]:
-        side = self.config.max_side
-        height, width = frame.shape[:2]
-        if side == 0 or max(height, width) <= side:
-            return frame, 1.0
-        scale = side / max(height, width)
-        size = (max(1, round(width * scale)), max(1, round(height * scale)))
-        return cv2.resize(frame, size, interpolation=cv2.INTER_AREA), scale
-
     def _check(self, frames: list[np.ndarray]) -> None:
         if len(frames) != len(self.rig):
             raise ValueError(f"expected {len(self.rig)} frames (one per camera), got {len(frames)}")
@@ -192,7 +168,7 @@ class MultiViewTracker:
             confidence *= cfg.multi_person_factor
             flags.append("multiple_people")
         if self._last_raw_rh is not None and not fit.reinitialised:
-            if _angle_deg(self._last_raw_rh, fit.Rh) > cfg.max_jump_deg:
+            if rotation_angle_deg(self._last_raw_rh, fit.Rh) > cfg.max_jump_deg:
                 confidence *= cfg.jump_factor
                 flags.append("jump")
         return float(np.clip(confidence, 0.0, 1.0)), flags
@@ -219,7 +195,7 @@ class MultiViewTracker:
         t0 = time.perf_counter()
         smalls, keypoints, undistorted = [], [], []
         for frame, detector, intrinsics in zip(frames, self.detectors, self.intrinsics, strict=True):
-            small, scale = self._scaled(np.asarray(frame))
+            small, scale = scaled_frame(np.asarray(frame), self.config.max_side)
             found = detector(small)
             if found is not None and scale != 1.0:
                 found = replace(found, xy=((found.xy + 0.5) / scale - 0.5).astype(np.float32))
@@ -254,17 +230,7 @@ class MultiViewTracker:
             flags.append("view_disagrees")
         self.fitter.add_calibration(fit, confidence)
         self._last_raw_rh = fit.Rh
-        body_pose, Rh, Th = fit.body_pose, fit.Rh, fit.Th
-        if fit.reinitialised:
-            self.smoother.reset()
-        if self.config.smoothing:
-            body_pose, Rh, Th = self.smoother(body_pose, Rh, Th, timestamp)
-        smpl = SmplParams(
-            poses=np.concatenate([np.zeros((1, 3)), body_pose]).astype(np.float32),
-            Rh=np.asarray(Rh, np.float32),
-            Th=np.asarray(Th, np.float32),
-            betas=self.fitter.betas.astype(np.float32),
-        )
+        smpl, Th = smoothed_params(fit, self.smoother, timestamp, self.config.smoothing, self.fitter.betas)
         masks = tuple(
             self._mask(frame, small, scale, kp, camera, Th, masker)
             for frame, (small, scale), kp, camera, masker in zip(
@@ -281,17 +247,5 @@ class MultiViewTracker:
     def _mask(self, frame, small, scale, keypoints, camera, Th, masker) -> np.ndarray:
         if keypoints is None:
             return np.zeros(frame.shape[:2], np.uint8)
-        small_keypoints = keypoints
-        if scale != 1.0:
-            small_keypoints = replace(keypoints, xy=((keypoints.xy + 0.5) * scale - 0.5).astype(np.float32))
         distance = float((camera.R @ np.asarray(Th, np.float64) + camera.t)[2])
-        mask = masker(small, small_keypoints, distance)
-        if self.config.clean_masks:
-            confident = small_keypoints.xy[
-                np.asarray(small_keypoints.score) >= self.config.fit.min_keypoint_score
-            ]
-            mask = clean_mask(mask, confident)
-        if scale != 1.0:
-            mask = cv2.resize(mask, (frame.shape[1], frame.shape[0]), interpolation=cv2.INTER_LINEAR)
-            mask = np.where(mask >= 128, np.uint8(255), np.uint8(0))
-        return mask
+        return person_mask(masker, frame, small, scale, keypoints, distance, self.config)

@@ -40,7 +40,6 @@ from stg_node.tracking.fitting import (
     kabsch,
 )
 from stg_node.tracking.layouts import KeypointLayout
-from stg_node.tracking.priors import limit_excess
 
 MIN_VIEW_TARGETS = 4  # a view with fewer usable targets adds nothing
 TORSO = ("left_shoulder", "right_shoulder", "left_hip", "right_hip")
@@ -212,7 +211,6 @@ class MultiViewFitter(SmplFitter):
 
     # ---- residuals --------------------------------------------------------------------------------
     def _residuals(self, thetas, obs: _MultiObservation, ctx: dict) -> tuple[torch.Tensor, torch.Tensor]:
-        cfg = self.config
         batch = thetas.shape[0]
         betas = thetas[:, GLOBAL_PARAMS + POSE_PARAMS :] if ctx["calibrating"] else ctx["betas"]
         world, _, pose, body_rotations = self._points(thetas, ctx["base_rotation"], betas)  # (B, T, 3)
@@ -225,16 +223,7 @@ class MultiViewFitter(SmplFitter):
         diff = (predicted - obs.xy) / obs.unit_px[:, None]
         norms = diff.norm(dim=-1)
         parts = [(diff * (obs.weight * ctx["robust"]).sqrt()[:, None]).reshape(batch, -1)]
-        flat_pose = pose.reshape(batch, -1)
-        parts.append(flat_pose * self._prior_scale)
-        parts.append(limit_excess(body_rotations).reshape(batch, -1) * cfg.limit_weight)
-        if ctx["previous"] is not None:
-            prev_pose, rad_sigma, m_sigma = ctx["previous"]
-            parts.append((flat_pose - prev_pose) / rad_sigma)
-            parts.append(thetas[:, :3] / rad_sigma)
-            parts.append((thetas[:, 3:6] - ctx["prev_translation"]) / m_sigma)
-        if ctx["calibrating"]:
-            parts.append(betas / cfg.shape_sigma)
+        parts += self._prior_terms(thetas, pose, body_rotations, betas, ctx)
         return torch.cat(parts, dim=1), norms
 
     def view_errors(self, theta, obs: _MultiObservation, ctx) -> np.ndarray:
@@ -264,6 +253,9 @@ class MultiViewFitter(SmplFitter):
         obs.weight[rows] = 0.0
         theta, _ = self._solve(theta, active, obs, ctx, self.config.init_iterations)
         return theta, (worst,)
+
+    def _reprojection_error(self, theta, obs: _MultiObservation, ctx) -> tuple[float, float, int]:
+        """Weighted RMS over every view, in noise units and in pixels (each view's own unit)."""
         with torch.no_grad():
             ctx = dict(ctx, robust=torch.ones_like(obs.weight))
             _, norms = self._residuals(theta[None], obs, ctx)
@@ -279,7 +271,6 @@ class MultiViewFitter(SmplFitter):
         obs = self.observe_views(keypoints, xy_undistorted)
         if obs is None:
             return None
-        cfg = self.config
         calibrating = not self.calibrated
         ctx = {
             "betas": torch.as_tensor(self.betas, dtype=DTYPE)[None],
@@ -287,53 +278,22 @@ class MultiViewFitter(SmplFitter):
             "previous": None,
             "robust": torch.ones(obs.xy.shape[0], dtype=DTYPE),
         }
-        gap = None if self._last_time is None else timestamp - self._last_time
-        reinit = not self._tracking or gap is None or gap < 0 or gap > cfg.max_temporal_gap_s
-        active = torch.arange(GLOBAL_PARAMS + POSE_PARAMS + (self.num_betas if calibrating else 0))
-        rescued = False
-        if reinit:
-            started = self._initialise_views(obs, ctx, active)
-            if started is None:
-                return None
-            theta, ctx = started
-        else:
-            dt = max(gap, 1e-3)
-            ctx["previous"] = (
-                torch.as_tensor(self._pose, dtype=DTYPE),
-                max(cfg.temporal_rad_per_s * dt, 1e-3),
-                max(cfg.temporal_m_per_s * dt, 1e-3),
-            )
-            ctx["prev_translation"] = torch.as_tensor(self._translation, dtype=DTYPE)
-            ctx["base_rotation"] = torch.as_tensor(self._rotation, dtype=DTYPE)
-            theta_np = np.concatenate([np.zeros(3), self._translation, self._pose])
-            if calibrating:
-                theta_np = np.concatenate([theta_np, self.betas])
-            theta, _ = self._solve(torch.as_tensor(theta_np, dtype=DTYPE), active, obs, ctx, cfg.iterations)
-            since = None if self._last_rescue is None else timestamp - self._last_rescue
-            cooled = since is None or not 0 <= since < cfg.rescue_cooldown_s
-            if cooled and self._reprojection_error(theta, obs, ctx)[0] > cfg.rescue_units:
-                self._last_rescue = timestamp
-                fresh = self._initialise_views(obs, dict(ctx, previous=None), active)
-                if fresh is not None and self._cost(fresh[0], obs, fresh[1]) < self._cost(theta, obs, ctx):
-                    (theta, ctx), rescued = fresh, True
+        fitted = self._fit_frame(obs, ctx, timestamp, self._initialise_views)
+        if fitted is None:
+            return None
+        theta, ctx, active, reinitialised = fitted
         theta, self.dropped_views = self._drop_disagreeing_view(theta, obs, ctx, active)
-        rotation = ctx["base_rotation"].numpy() @ lbs.axis_angle_to_matrix(theta[:3]).numpy()
-        self._rotation = rotation
-        self._translation = theta[3:6].numpy().copy()
-        self._pose = theta[GLOBAL_PARAMS : GLOBAL_PARAMS + POSE_PARAMS].numpy().copy()
-        betas = theta[GLOBAL_PARAMS + POSE_PARAMS :].numpy().copy() if calibrating else self.betas
-        self._last_time = timestamp
-        self._tracking = True
+        betas = self._keep_state(theta, ctx, timestamp)
         rms_units, rms_px, used = self._reprojection_error(theta, obs, ctx)
         return FitResult(
             body_pose=self._pose.reshape(NUM_BODY_JOINTS, 3).copy(),
-            Rh=lbs.matrix_to_axis_angle(torch.as_tensor(rotation)).numpy(),
+            Rh=lbs.matrix_to_axis_angle(torch.as_tensor(self._rotation)).numpy(),
             Th=self._translation.copy(),
             betas=np.asarray(betas, dtype=np.float64).copy(),
             rms_px=rms_px,
             rms_units=rms_units,
             used_targets=used,
-            reinitialised=reinit or rescued,
+            reinitialised=reinitialised,
         )
 
     def _initialise_views(self, obs: _MultiObservation, ctx: dict, active: torch.Tensor):
@@ -352,13 +312,7 @@ class MultiViewFitter(SmplFitter):
             if any(np.allclose(start, other) for other in seen):
                 continue
             seen.append(start)
-            with torch.no_grad():
-                local = self.model(
-                    ctx["betas"],
-                    torch.as_tensor(start, dtype=DTYPE).reshape(1, NUM_BODY_JOINTS, 3),
-                    torch.zeros(1, 3, dtype=DTYPE),
-                    torch.zeros(1, 3, dtype=DTYPE),
-                )[0].numpy()
+            local = self._local_points(ctx["betas"], start)
             source, target = local[anchors], obs.points[anchors]
             rotation = kabsch(source, target)
             translation = target.mean(axis=0) - rotation @ source.mean(axis=0)

@@ -360,26 +360,36 @@ def track_video(
     path = Path(path)
     root = Path(cache_dir) if cache_dir is not None else cache_root()
     key = hashlib.sha256(f"{input_digest(path)}:{_options_digest(options)}:{masks}".encode()).hexdigest()[:24]
-    entry = root / key
-    poses = entry / "POSES.npz"
-    if poses.is_file():
-        log.info("tracking of %s found in the cache: %s", path, poses)
-        return poses
-    root.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{key}.", dir=root))
-    try:
-        track_to_file(
+    return cached_poses(
+        root,
+        key,
+        lambda staging: track_to_file(
             path,
             staging / "POSES.npz",
             options,
             masks_dir=staging / "masks" if masks else None,
             progress=progress,
             threads=threads,
-        )
-        (staging / "source.json").write_text(
-            json.dumps({"input": str(path.resolve()), "options": asdict(options)}, indent=2, default=str)
-            + "\n"
-        )
+        ),
+        {"input": str(path.resolve()), "options": asdict(options)},
+        what=str(path),
+    )
+
+
+def cached_poses(root: Path, key: str, track, source: dict, *, what: str) -> Path:
+    """``root/<key>/POSES.npz``: returned when there; else ``track(staging)`` writes POSES.npz (and
+    masks) into a temporary folder beside it, ``source`` goes into its source.json, and the folder
+    is renamed into place, so an entry appears whole or not at all."""
+    entry = root / key
+    poses = entry / "POSES.npz"
+    if poses.is_file():
+        log.info("tracking of %s found in the cache: %s", what, poses)
+        return poses
+    root.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{key}.", dir=root))
+    try:
+        track(staging)
+        (staging / "source.json").write_text(json.dumps(source, indent=2, default=str) + "\n")
         try:
             os.replace(staging, entry)
         except OSError:
@@ -395,6 +405,26 @@ CAMERA_NAME = "camera"
 DEFAULT_MIN_CONFIDENCE = 0.5
 TRACKING_REPORT = "tracking.json"  # what video_to_folder kept and skipped, and the camera
 JPEG_QUALITY = 95
+
+
+def write_jpeg(path: Path, rgb: np.ndarray) -> None:
+    """A training image of the folder format (JPEG_QUALITY)."""
+    bgr = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)
+    if not cv2.imwrite(str(path), bgr, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY]):
+        raise OSError(f"could not write {path}")
+
+
+def write_training_poses(path: Path, tracked, keep: np.ndarray) -> None:
+    """The folder format's poses.npz: the ``keep`` rows of a tracking (docs/DATASETS.md)."""
+    np.savez(
+        path,
+        poses=tracked.poses[keep],
+        Rh=tracked.Rh[keep],
+        Th=tracked.Th[keep],
+        shapes=tracked.shapes[keep],
+        frames=tracked.frames[keep],
+        times=tracked.times[keep],
+    )
 
 
 def video_to_folder(
@@ -442,9 +472,7 @@ def video_to_folder(
         if frame.index not in wanted:
             continue
         name = f"{frame.index:06d}"
-        bgr = cv2.cvtColor(frame.image, cv2.COLOR_RGB2BGR)
-        if not cv2.imwrite(str(images / f"{name}.jpg"), bgr, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY]):
-            raise OSError(f"could not write {images / name}.jpg")
+        write_jpeg(images / f"{name}.jpg", frame.image)
         shutil.copyfile(poses_path.parent / "masks" / f"{name}.png", masks / f"{name}.png")
     width, height = tracked.image_size
     camera = {
@@ -459,15 +487,7 @@ def video_to_folder(
     (out / "cameras.json").write_text(
         json.dumps({"fps": tracked.fps, "cameras": {CAMERA_NAME: camera}}, indent=2)
     )
-    np.savez(
-        out / "poses.npz",
-        poses=tracked.poses[keep],
-        Rh=tracked.Rh[keep],
-        Th=tracked.Th[keep],
-        shapes=tracked.shapes[keep],
-        frames=tracked.frames[keep],
-        times=tracked.times[keep],
-    )
+    write_training_poses(out / "poses.npz", tracked, keep)
     flags = tracked.flags if tracked.flags is not None else np.array([""] * len(tracked))
     skipped = skip_reasons(tracked.confidence, flags, min_confidence)
     camera = json.loads(tracked.camera) if tracked.camera else None

@@ -17,9 +17,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import os
 import shutil
-import tempfile
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -31,12 +29,14 @@ from stg_node.calibration.rig import Rig, read_rig
 from stg_node.progress import progress as progress_bar
 from stg_node.tracking.pipeline import (
     DEFAULT_MIN_CONFIDENCE,
-    JPEG_QUALITY,
     TrackOptions,
     TrackSummary,
     _options_digest,
     cache_root,
+    cached_poses,
     input_digest,
+    write_jpeg,
+    write_training_poses,
 )
 from stg_node.tracking.poses_file import TrackedPoses, read_poses, write_poses
 
@@ -193,15 +193,10 @@ def track_rig(
     digest.update(f"{_options_digest(options)}:{list(cameras or [])}:{max_skew_s}:rig".encode())
     key = digest.hexdigest()[:24]
     root = Path(cache_dir) if cache_dir is not None else cache_root()
-    entry = root / key
-    poses = entry / "POSES.npz"
-    if poses.is_file():
-        log.info("tracking of the rig found in the cache: %s", poses)
-        return poses
-    root.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{key}.", dir=root))
-    try:
-        track_rig_to_file(
+    return cached_poses(
+        root,
+        key,
+        lambda staging: track_rig_to_file(
             inputs,
             rig_path,
             staging / "POSES.npz",
@@ -211,20 +206,10 @@ def track_rig(
             max_skew_s=max_skew_s,
             progress=progress,
             threads=threads,
-        )
-        (staging / "source.json").write_text(
-            json.dumps({"inputs": [str(Path(p).resolve()) for p in inputs], "rig": str(rig_path)}, indent=2)
-            + "\n"
-        )
-        try:
-            os.replace(staging, entry)
-        except OSError:
-            if not poses.is_file():
-                raise
-    finally:
-        if staging.exists():
-            shutil.rmtree(staging, ignore_errors=True)
-    return poses
+        ),
+        {"inputs": [str(Path(p).resolve()) for p in inputs], "rig": str(rig_path)},
+        what="the rig",
+    )
 
 
 def rig_to_folder(
@@ -270,10 +255,7 @@ def rig_to_folder(
             continue
         name_png = f"{frame_set.index:06d}.png"
         for camera, frame in zip(rig.cameras, frame_set.frames, strict=True):
-            target = out / "images" / camera.name / f"{frame_set.index:06d}.jpg"
-            bgr = cv2.cvtColor(frame.image, cv2.COLOR_RGB2BGR)
-            if not cv2.imwrite(str(target), bgr, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY]):
-                raise OSError(f"could not write {target}")
+            write_jpeg(out / "images" / camera.name / f"{frame_set.index:06d}.jpg", frame.image)
             shutil.copyfile(
                 poses_path.parent / "masks" / camera.name / name_png, out / "masks" / camera.name / name_png
             )
@@ -289,14 +271,6 @@ def rig_to_folder(
         for c in rig.cameras
     }
     (out / "cameras.json").write_text(json.dumps({"fps": tracked.fps, "cameras": calibration}, indent=2))
-    np.savez(
-        out / "poses.npz",
-        poses=tracked.poses[keep],
-        Rh=tracked.Rh[keep],
-        Th=tracked.Th[keep],
-        shapes=tracked.shapes[keep],
-        frames=tracked.frames[keep],
-        times=tracked.times[keep],
-    )
+    write_training_poses(out / "poses.npz", tracked, keep)
     log.info("rig: %d of %d instants confident enough for training -> %s", keep.sum(), len(keep), out)
     return out

@@ -80,7 +80,55 @@ class StageTimes:
     total: float = 0.0
 
 
-def _rotation_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+def scaled_frame(frame: np.ndarray, max_side: int) -> tuple[np.ndarray, float]:
+    """The frame shrunk to at most ``max_side`` on its long side (0: as it is) and the scale used."""
+    height, width = frame.shape[:2]
+    if max_side == 0 or max(height, width) <= max_side:
+        return frame, 1.0
+    scale = max_side / max(height, width)
+    size = (max(1, round(width * scale)), max(1, round(height * scale)))
+    return cv2.resize(frame, size, interpolation=cv2.INTER_AREA), scale
+
+
+def person_mask(
+    masker: Masker, frame, small, scale: float, keypoints: Keypoints, distance_m: float, config: TrackerConfig
+) -> np.ndarray:
+    """The person's mask at ``frame``'s size, made on the ``scale``-d ``small`` copy (keypoints in
+    full-resolution pixels), cleaned around the confident keypoints when the config asks."""
+    small_keypoints = keypoints
+    if scale != 1.0:
+        small_keypoints = replace(keypoints, xy=((keypoints.xy + 0.5) * scale - 0.5).astype(np.float32))
+    mask = masker(small, small_keypoints, distance_m)
+    if config.clean_masks:
+        confident = small_keypoints.xy[np.asarray(small_keypoints.score) >= config.fit.min_keypoint_score]
+        mask = clean_mask(mask, confident)
+    if scale != 1.0:
+        mask = cv2.resize(mask, (frame.shape[1], frame.shape[0]), interpolation=cv2.INTER_LINEAR)
+        mask = np.where(mask >= 128, np.uint8(255), np.uint8(0))
+    return mask
+
+
+def smoothed_params(
+    fit: FitResult, smoother: PoseSmoother, timestamp: float, smoothing: bool, betas: np.ndarray
+) -> tuple[SmplParams, np.ndarray]:
+    """A fit as SMPL parameters with the fitter's shape ``betas``: smoothed when ``smoothing`` (the
+    filter restarted when the fit started over); also the smoothed translation at full precision."""
+    body_pose, Rh, Th = fit.body_pose, fit.Rh, fit.Th
+    if fit.reinitialised:
+        smoother.reset()
+    if smoothing:
+        body_pose, Rh, Th = smoother(body_pose, Rh, Th, timestamp)
+    smpl = SmplParams(
+        poses=np.concatenate([np.zeros((1, 3)), body_pose]).astype(np.float32),
+        Rh=np.asarray(Rh, np.float32),
+        Th=np.asarray(Th, np.float32),
+        betas=betas.astype(np.float32),
+    )
+    return smpl, Th
+
+
+def rotation_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    """The angle between two axis-angle rotations, degrees."""
     ra = lbs.axis_angle_to_matrix(torch.as_tensor(a, dtype=torch.float64))
     rb = lbs.axis_angle_to_matrix(torch.as_tensor(b, dtype=torch.float64))
     cosine = float(((torch.trace(ra.T @ rb) - 1.0) / 2.0).clamp(-1.0, 1.0))
@@ -125,15 +173,6 @@ class Tracker:
         self._last_raw_rh = None
 
     # ---- helpers ----------------------------------------------------------------------------
-    def _scaled(self, frame: np.ndarray) -> tuple[np.ndarray, float]:
-        side = self.config.max_side
-        height, width = frame.shape[:2]
-        if side == 0 or max(height, width) <= side:
-            return frame, 1.0
-        scale = side / max(height, width)
-        size = (max(1, round(width * scale)), max(1, round(height * scale)))
-        return cv2.resize(frame, size, interpolation=cv2.INTER_AREA), scale
-
     def _hold(self, frame_shape, timestamp: float, flags: tuple[str, ...], keypoints=None) -> TrackEstimate:
         """Nobody usable this frame: the last good parameters, an empty mask, confidence 0."""
         height, width = frame_shape[:2]
@@ -170,7 +209,7 @@ class Tracker:
             confidence *= cfg.multi_person_factor
             flags.append("multiple_people")
         if self._last_raw_rh is not None and not fit.reinitialised:
-            if _rotation_angle_deg(self._last_raw_rh, fit.Rh) > cfg.max_jump_deg:
+            if rotation_angle_deg(self._last_raw_rh, fit.Rh) > cfg.max_jump_deg:
                 confidence *= cfg.jump_factor
                 flags.append("jump")
         return float(np.clip(confidence, 0.0, 1.0)), flags
@@ -188,7 +227,7 @@ class Tracker:
         if not math.isfinite(timestamp):
             raise ValueError(f"timestamp must be finite, got {timestamp}")
         t_start = time.perf_counter()
-        small, scale = self._scaled(frame)
+        small, scale = scaled_frame(frame, self.config.max_side)
         keypoints = self.detector(small)
         t_detect = time.perf_counter()
         self.times = StageTimes(detect=t_detect - t_start)
@@ -239,17 +278,7 @@ class Tracker:
         confidence, flags = self._confidence(keypoints, fit)
         self.fitter.add_calibration(fit, confidence)
         self._last_raw_rh = fit.Rh
-        body_pose, Rh, Th = fit.body_pose, fit.Rh, fit.Th
-        if fit.reinitialised:
-            self.smoother.reset()
-        if self.config.smoothing:
-            body_pose, Rh, Th = self.smoother(body_pose, Rh, Th, timestamp)
-        smpl = SmplParams(
-            poses=np.concatenate([np.zeros((1, 3)), body_pose]).astype(np.float32),
-            Rh=np.asarray(Rh, np.float32),
-            Th=np.asarray(Th, np.float32),
-            betas=self.fitter.betas.astype(np.float32),
-        )
+        smpl, _ = smoothed_params(fit, self.smoother, timestamp, self.config.smoothing, self.fitter.betas)
         estimate = TrackEstimate(
             smpl=smpl,
             mask=np.zeros(tuple(frame_shape[:2]), np.uint8),
@@ -263,16 +292,4 @@ class Tracker:
         return estimate
 
     def _mask(self, frame, small, scale, keypoints: Keypoints, distance_m: float) -> np.ndarray:
-        small_keypoints = keypoints
-        if scale != 1.0:
-            small_keypoints = replace(keypoints, xy=((keypoints.xy + 0.5) * scale - 0.5).astype(np.float32))
-        mask = self.masker(small, small_keypoints, distance_m)
-        if self.config.clean_masks:
-            confident = small_keypoints.xy[
-                np.asarray(small_keypoints.score) >= self.config.fit.min_keypoint_score
-            ]
-            mask = clean_mask(mask, confident)
-        if scale != 1.0:
-            mask = cv2.resize(mask, (frame.shape[1], frame.shape[0]), interpolation=cv2.INTER_LINEAR)
-            mask = np.where(mask >= 128, np.uint8(255), np.uint8(0))
-        return mask
+        return person_mask(self.masker, frame, small, scale, keypoints, distance_m, self.config)
