@@ -109,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
     if args.calibration is not None or len(args.input) > 1:
         from stg_node.cli.track_rig import run_rig
 
-        return run_rig(args, threads)
+        return run_rig(args, track_options(args), threads)
     args.input = args.input[0]
     if not args.input.exists():
         raise UsageError(f"INPUT {args.input} does not exist (a video file or a folder of images)")

@@ -38,7 +38,8 @@ def add_rig_options(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def run_rig(args: argparse.Namespace, threads: int | None) -> int:
+def run_rig(args: argparse.Namespace, options, threads: int | None) -> int:
+    """``options``: the TrackOptions one camera and a rig share (cli.track.track_options)."""
     from pathlib import Path
 
     if args.calibration is None:
@@ -60,10 +61,8 @@ def run_rig(args: argparse.Namespace, threads: int | None) -> int:
         raise UsageError("--detector onnx needs --pose-model FILE.onnx")
     cameras = [n.strip() for n in args.cameras.split(",")] if args.cameras else None
 
-    from stg_node.cli.track import track_options
     from stg_node.tracking.rig_pipeline import track_rig_to_file
 
-    options = track_options(args)
     summary = track_rig_to_file(
         args.input,
         args.calibration,
