@@ -36,6 +36,7 @@ from stg_node.avatar.optim import TableOptimizer
 from stg_node.avatar.rigid import Skeleton, skin
 from stg_node.avatar.rigidity import NeighbourGraph
 from stg_node.avatar.spacetime import TimeAxis
+from stg_node.avatar.stream_window import window_to_frames
 from stg_node.body.canonical import big_pose_output
 
 log = logging.getLogger(__name__)
@@ -167,6 +168,8 @@ class Trainer:
                 self.model.shading.add_orientation(_root_rotation(frame.smpl))
         if self.config.lr_pose > 0:
             self._pose_slot(frame.index)
+        if self.store.capacity > 0:  # a stream: keep only what the held frames need (stream_window.py)
+            window_to_frames(self.model, self.optimizer, self.store, self.config.time_noise_frames)
 
     def add_frames(self, frames) -> None:
         for frame in frames:
@@ -245,8 +248,7 @@ class Trainer:
         grown = None if bases is None else bases.grown(u)
         if grown is None:
             return
-        old = bases.values
-        bases.values = torch.nn.Parameter(grown.to(old.device))
+        old = bases.install(grown, bases.grown_ids(grown.shape[1]))
         if self.optimizer is not None:
             self.optimizer.replace_dense(old, bases.values)
 
