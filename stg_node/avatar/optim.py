@@ -195,8 +195,9 @@ class TableOptimizer:
 
     @torch.no_grad()
     def select_dense(self, old: torch.Tensor, new: nn.Parameter, dim: int, index: torch.Tensor) -> None:
-        """Put ``new`` = ``old.index_select(dim, index)`` in ``old``'s place; its Adam moments are
-        sliced the same way (the kept entries keep theirs: a window moving over a stream)."""
+        """Put ``new`` (``old.index_select(dim, index)``, zero-padded along ``dim`` where ``new`` is
+        longer) in ``old``'s place; its Adam moments are sliced and padded the same way (the kept
+        entries keep theirs: a window moving over a stream)."""
         if self.dense is None:
             return
         for group in self.dense.param_groups:
@@ -209,7 +210,9 @@ class TableOptimizer:
                     kept = {}
                     for key, value in state.items():
                         if torch.is_tensor(value) and value.shape == old.shape:
-                            value = value.index_select(dim, index.to(value.device))
+                            chosen = value.index_select(dim, index.to(value.device))
+                            value = chosen.new_zeros(new.shape)
+                            value.narrow(dim, 0, chosen.shape[dim]).copy_(chosen)
                         kept[key] = value
                     self.dense.state[new] = kept
                 return

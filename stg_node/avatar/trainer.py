@@ -255,6 +255,12 @@ class Trainer:
     def _pose_slot(self, frame_index: int) -> int:
         if frame_index in self.pose_slots:
             return self.pose_slots[frame_index]
+        if (
+            self.store.capacity > 0
+            and self.pose_deltas is not None
+            and len(self.pose_slots) >= len(self.pose_deltas)
+        ):
+            self._compact_pose_slots()  # a stream: reuse the slots of frames no longer held
         slot = len(self.pose_slots)
         self.pose_slots[frame_index] = slot
         grow = self.pose_deltas is None or slot >= self.pose_deltas.shape[0]
@@ -268,6 +274,20 @@ class Trainer:
             if self.optimizer is not None:
                 self._rebuild_dense()
         return slot
+
+    def _compact_pose_slots(self) -> None:
+        """Keep the pose corrections (and their Adam moments) of the frames the store still holds,
+        in the first slots: a bounded trainer's corrections stay as many as its frames."""
+        held = {stored.frame.index for stored in self.store.frames}
+        kept = sorted((slot, f) for f, slot in self.pose_slots.items() if f in held)
+        index = torch.tensor([slot for slot, _ in kept], dtype=torch.long, device=self.device)
+        old = self.pose_deltas
+        new = torch.zeros_like(old.detach())
+        new[: len(kept)] = old.detach()[index]
+        self.pose_deltas = torch.nn.Parameter(new)
+        self.pose_slots = {f: i for i, (_, f) in enumerate(kept)}
+        if self.optimizer is not None:
+            self.optimizer.select_dense(old, self.pose_deltas, 0, index)
 
     def _rebuild_dense(self) -> None:
         table_state = self.optimizer.table_state()

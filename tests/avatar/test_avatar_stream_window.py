@@ -188,3 +188,38 @@ def test_a_snapshot_from_before_windowed_knots_loads_with_its_knots_from_zero(ti
     bad = dataclasses.replace(msg, meta={**msg.meta, "motion.first_knot": -2.0})
     with pytest.raises(ValueError, match="first_knot"):
         model_from_snapshot(bad)
+
+
+def test_pose_corrections_of_held_frames_survive_and_stay_as_many_as_the_store(tiny_frames):
+    trainer = Trainer(small_config(max_frames=4), seed=0)
+    trainer.add_frames(_stream(tiny_frames, 40))
+    assert trainer.pose_deltas.shape[0] == 64  # the first block of slots
+    deltas = trainer.pose_deltas
+    deltas.grad = torch.randn(deltas.shape, generator=torch.Generator().manual_seed(2))
+    deltas.grad[len(trainer.pose_slots) :] = 0  # slots not given out yet get no gradient in training either
+    trainer.optimizer.dense.step()  # moments and values for every slot
+    compactions = checked = 0
+    for frame in _stream(tiny_frames, 160, start=40):  # 200 frames: without compaction 256 slots
+        deltas = trainer.pose_deltas
+        moments = trainer.optimizer.dense.state[deltas]["exp_avg"]
+        before = {
+            f: (deltas.detach()[slot].clone(), moments[slot].clone())
+            for f, slot in trainer.pose_slots.items()
+        }
+        trainer.add_frame(frame)
+        deltas = trainer.pose_deltas
+        assert deltas.shape[0] == 64
+        compactions += len(trainer.pose_slots) <= len(before)  # slots of frames no longer held freed
+        state = trainer.optimizer.dense.state[deltas]["exp_avg"]
+        for f, slot in trainer.pose_slots.items():
+            if f in before:  # kept: its correction and its moments, wherever its slot went
+                assert torch.equal(deltas.detach()[slot], before[f][0]) and torch.equal(
+                    state[slot], before[f][1]
+                )
+                checked += float(before[f][1].abs().sum()) > 0
+            else:  # the frame just added: a fresh correction
+                assert f == frame.index and float(deltas.detach()[slot].abs().sum()) == 0.0
+        held = {s.frame.index for s in trainer.store.frames}
+        assert held <= set(trainer.pose_slots)
+    assert compactions > 0 and checked > 0
+    trainer.step()
