@@ -5,13 +5,15 @@ The pipeline's memory run (bench_pipeline.py ``--only memory``) replays a datase
 every pass restarts the frames' times (the tracker matches frames to the dataset by index and
 time), so the trainer never sees more stream time than the dataset lasts: it cannot see what
 grows with stream time. Here the avatar Trainer (the class the trainer node drives, configured
-as TrainerAdapter.create does: the ``--preset`` with ``max_frames``) is fed the dataset's training
-frames over and over with times and indices that keep going, as a live camera's do: one frame
-every ``--gap-s`` seconds of stream time (a trainer node takes the newest frame when it has
-time, so the frames it stores are seconds apart on a sped-up stream) and ``--steps`` training
-steps after each. Every ``--every-min`` minutes of stream it records the shared motion bases'
-knots, the bytes of the published snapshot and of the dense modules' Adam moments, the
-process's resident memory and the median step time; the growth is fitted over the second half.
+as TrainerAdapter.create does: the ``--preset`` with ``max_frames``; ``--nonrigid on`` by
+default, so the trial cannot switch the shared bases off on a subject where they do not pay) is
+fed the dataset's training frames over and over with times and indices that keep going, as a
+live camera's do: one frame every ``--gap-s`` seconds of stream time (a trainer node takes the
+newest frame when it has time, so the frames it stores are seconds apart on a sped-up stream)
+and ``--steps`` training steps after each. Every ``--every-min`` minutes of stream it records
+the shared motion bases' knots, the bytes of the published snapshot and of the dense modules'
+Adam moments, the process's resident memory and the median step time; the growth is fitted over
+the second half.
 
 With ``--baseline REV`` the same run is made on that git revision (tools/baseline.py exports it),
 alternating with today's tree, each in a child process of its own.
@@ -57,7 +59,9 @@ def child(args) -> dict:
     frames = [
         TrainFrame.from_sample(s) for s in DataSpec(args.data, args.format, size=args.size).open("train")
     ]
-    config = dataclasses.replace(avatar.preset(args.preset), max_frames=args.max_frames)
+    config = dataclasses.replace(
+        avatar.preset(args.preset), max_frames=args.max_frames, nonrigid=args.nonrigid
+    )
     trainer = avatar.Trainer(config, seed=0)
     total = int(args.minutes * 60 / args.gap_s)
     per_sample = max(int(args.every_min * 60 / args.gap_s), 1)
@@ -113,7 +117,17 @@ def slopes(rows: list[dict]) -> dict:
 
 def run_child(args, root: str | None) -> dict:
     cmd = [sys.executable, __file__, "--child", "--data", str(Path(args.data).resolve())]
-    for name in ("format", "size", "preset", "max_frames", "minutes", "gap_s", "steps", "every_min"):
+    for name in (
+        "format",
+        "size",
+        "preset",
+        "max_frames",
+        "nonrigid",
+        "minutes",
+        "gap_s",
+        "steps",
+        "every_min",
+    ):
         cmd += [f"--{name.replace('_', '-')}", str(getattr(args, name))]
     if root:
         cmd += ["--root", root]
@@ -130,6 +144,9 @@ def main() -> int:
     parser.add_argument("--size", type=int, default=128, help="image size (longer side)")
     parser.add_argument("--preset", default="fast")
     parser.add_argument("--max-frames", type=int, default=64, help="the trainer node's default bound")
+    parser.add_argument(
+        "--nonrigid", default="on", help="the trainer's nonrigid setting (on: the shared bases stay all run)"
+    )
     parser.add_argument("--minutes", type=float, default=60.0, help="minutes of stream time")
     parser.add_argument("--gap-s", type=float, default=1.0, help="stream seconds between stored frames")
     parser.add_argument("--steps", type=int, default=1, help="training steps after each frame")
