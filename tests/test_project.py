@@ -96,3 +96,36 @@ def test_the_package_has_no_import_cycles():
     assert _cycle(_import_graph()) is None, " -> ".join(_cycle(_import_graph()))
     assert _cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]  # the search finds one
     assert "stg_node.avatar.checkpoint" in _import_graph()["stg_node.avatar.trainer"]
+
+
+def _project_text_files():
+    """Tracked source, docs, launch and config files (what a user's clone holds)."""
+    import subprocess
+
+    listed = subprocess.run(
+        ["git", "ls-files"], cwd=ROOT, capture_output=True, text=True, check=True
+    ).stdout.split()
+    suffixes = {".py", ".md", ".yaml", ".yml", ".toml", ".sh", ".cfg", ".txt", ".json"}
+    for name in listed:
+        path = ROOT / name
+        if path.suffix in suffixes and path.is_file() and path.stat().st_size < 2_000_000:
+            yield path
+
+
+def test_the_project_stands_alone():
+    """Nothing refers to files outside the clone (a sibling shared/ folder, a machine's /work)."""
+    # Spelt in pieces so that this line does not match itself.
+    outside = re.compile(r"\.\./" + "shared" + r"\b|(?<![\w.])/" + "work/")
+    offenders = [
+        f"{path.relative_to(ROOT)}:{number}"
+        for path in _project_text_files()
+        for number, line in enumerate(path.read_text(errors="replace").splitlines(), 1)
+        if outside.search(line)
+    ]
+    assert not offenders, f"references outside the project: {offenders}"
+
+
+def test_readme_links_the_architecture_page():
+    readme = (ROOT / "README.md").read_text()
+    assert "(docs/ARCHITECTURE.md)" in readme
+    assert (ROOT / "docs" / "ARCHITECTURE.md").is_file()

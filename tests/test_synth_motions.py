@@ -56,7 +56,7 @@ def test_knees_and_elbows_never_hyperextend(sequence):
 
 
 def test_zju_conventions_and_dtypes(sequence):
-    _, seq = sequence
+    name, seq = sequence
     assert seq.poses.shape == (FRAMES, 24, 3) and seq.poses.dtype == np.float32
     assert seq.Rh.shape == (FRAMES, 3) and seq.Th.shape == (FRAMES, 3)
     assert np.isfinite(seq.poses).all() and np.isfinite(seq.Rh).all() and np.isfinite(seq.Th).all()
@@ -64,7 +64,8 @@ def test_zju_conventions_and_dtypes(sequence):
     # The body stays upright (SMPL +y maps near world +z) and close to the origin.
     up = axis_angle_to_matrix(seq.Rh.astype(np.float64)) @ np.array([0.0, 1.0, 0.0])
     assert up[:, 2].min() > 0.9
-    assert np.linalg.norm(seq.Th[:, :2], axis=1).max() < 0.8
+    reach = 1.1 if name == "approach" else 0.8  # approach walks 1 m towards the camera and back
+    assert np.linalg.norm(seq.Th[:, :2], axis=1).max() < reach
     assert seq.segments[0].start == 0 and seq.segments[-1].stop == FRAMES
 
 
@@ -83,9 +84,15 @@ def test_motion_is_continuous_across_segments(sequence):
 
 
 def test_training_range_shows_every_side_of_the_subject(sequence):
-    _, seq = sequence
+    name, seq = sequence
     facing = axis_angle_to_matrix(seq.Rh.astype(np.float64)) @ np.array([0.0, 0.0, 1.0])
     yaw = np.unwrap(np.arctan2(facing[:, 0], -facing[:, 1]))
+    if name == "approach":  # walks its line, half a turn at each end: a revolution per cycle (~8 s)
+        long = make_motion(name, 300, FPS, np.random.default_rng(7), 300)
+        facing = axis_angle_to_matrix(long.Rh.astype(np.float64)) @ np.array([0.0, 0.0, 1.0])
+        yaw = np.unwrap(np.arctan2(facing[:, 0], -facing[:, 1]))
+        assert abs(yaw[-1] - yaw[0]) > np.radians(340)
+        return
     assert abs(yaw[NOVEL_START - 1] - yaw[0]) > np.radians(340)
 
 

@@ -79,6 +79,20 @@ def test_quick_scaling_shrinks_schedules_budgets_and_pixel_sizes_alike():
     assert math.isclose(tradeoff.QUICK.fast_threshold_px, 5.0 * 96 / 512)
 
 
+def test_mid_scale_halves_the_images_and_budgets_and_thirds_the_schedule():
+    from stg_node.avatar import preset
+
+    full = preset("fast")
+    mid = tradeoff.scaled(full, tradeoff.SCALES["mid"])
+    assert (mid.iterations, mid.densify.start_iter) == (
+        round(full.iterations / 3),
+        round(full.densify.start_iter / 3),
+    )
+    assert mid.model.max_gaussians == round(full.model.max_gaussians / 2)
+    assert math.isclose(mid.densify.motion_floor_px, full.densify.motion_floor_px / 2)
+    assert tradeoff.SCALES["mid"].size == 256 and tradeoff.SCALES["quick"] is tradeoff.QUICK
+
+
 def test_pareto_front_is_the_set_of_undominated_points():
     rng = np.random.default_rng(3)
     for trial in range(30):
@@ -196,6 +210,8 @@ def test_quick_run_of_one_configuration_writes_table_and_plot(tmp_path):
 def test_bad_usage_is_refused(tmp_path):
     result = _run_tool(tmp_path, "--only", "warp_drive")
     assert result.returncode == 2 and "warp_drive" in result.stderr
+    result = _run_tool(tmp_path, "--scale", "mid", "--list")  # _run_tool passes --quick
+    assert result.returncode == 2 and "contradict" in result.stderr
 
 
 @pytest.mark.slow

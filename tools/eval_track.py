@@ -12,6 +12,8 @@ joints with the ground truth in that camera's frame:
 
     python tools/eval_track.py [--data DIR | --frames 300 --size 512 --seed 0 --motion mixed]
                                [--no-smoothing] [--image-folder] [--json OUT.json]
+    python tools/eval_track.py --rig 4 [...]     several cameras (docs/RIGS.md): N of a 23-camera ring
+                                                 (ZJU-MoCap's layout), tracked together in the world frame
 
 Exit codes: 0 done, 1 failed (missing network files, ...), 2 bad usage.
 """
@@ -26,6 +28,7 @@ import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's stg_node first
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -44,6 +47,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--pose-model", default=None, help="network file or folder for the detector")
     parser.add_argument("--mask-method", default=None, help="mask method (default: the detector's)")
     parser.add_argument("--json", type=Path, default=None, help="also write the figures as JSON")
+    parser.add_argument(
+        "--rig",
+        type=int,
+        default=0,
+        metavar="N",
+        help="track N cameras spread around a 23-camera ring together",
+    )
     parser.add_argument("--no-progress", action="store_true")
     parser.add_argument("--threads", default=None, help="CPU threads (default: STG_THREADS or 1)")
     args = parser.parse_args(argv)
@@ -62,6 +72,10 @@ def main(argv: list[str] | None = None) -> int:
         mask=args.mask_method,
         smoothing=not args.no_smoothing,
     )
+    if args.rig:
+        from eval_track_rig import run_rig
+
+        return run_rig(args, options, threads)
     with tempfile.TemporaryDirectory(prefix="eval_track_") as tmp:
         data = args.data
         if data is None:

@@ -16,7 +16,7 @@ Formats, each fed to the command a user would run on it (in a worker process tha
 | smpl | SMPL-format model files (.npz and .pkl) | ``stg-synth --body FILE`` (one small frame) |
 | mcap | a recording of every message type | ``stg-bag info FILE`` and ``stg-bag export FILE`` |
 | intrinsics | an intrinsics JSON for a video | ``stg-track VIDEO --intrinsics FILE`` |
-| rig | a rig JSON (when the package has one) | (skipped when absent) |
+| rig | a rig.json of two cameras (stg-calibrate's output) | ``stg-track VIDEO VIDEO --calibration FILE`` |
 
 Each case copies a valid seed and damages one file of it: truncated (at several places, to 0
 bytes), bytes flipped or replaced, arrays and keys removed, NaN and infinity, wrong dtypes and
@@ -225,7 +225,7 @@ def build_seeds(seeds: Path, formats: set[str], env: dict[str, str]) -> dict[str
                     topic = msg.SPEC.topic if name != "Ack" else "node/ack"
                     bag.write_frames(encode(msg, topic=topic, seq=k, src="fuzz", stamp_ns=t), t)
                     t += 10**7
-    if "intrinsics" in formats:
+    if "intrinsics" in formats or "rig" in formats:
         import cv2
 
         out["video"] = seeds / "clip.avi"
@@ -237,6 +237,20 @@ def build_seeds(seeds: Path, formats: set[str], env: dict[str, str]) -> dict[str
         out["intrinsics"] = seeds / "K.json"
         out["intrinsics"].write_text(
             json.dumps({"K": [[60, 0, 32], [0, 60, 32], [0, 0, 1]], "dist": [0, 0, 0, 0]})
+        )
+    if "rig" in formats:  # two cameras facing each other across the origin, 2 m apart (docs/RIGS.md)
+        eye, turn = [[1, 0, 0], [0, 1, 0], [0, 0, 1]], [[-1, 0, 0], [0, 1, 0], [0, 0, -1]]
+        camera = {"K": [[60, 0, 32], [0, 60, 32], [0, 0, 1]], "dist": [0, 0, 0, 0, 0], "image_size": [64, 64]}
+        out["rig"] = seeds / "rig.json"
+        out["rig"].write_text(
+            json.dumps(
+                {
+                    "cameras": {
+                        "a": {**camera, "R": eye, "t": [0, 0, 1]},
+                        "b": {**camera, "R": turn, "t": [0, 0, 1]},
+                    }
+                }
+            )
         )
     return out
 
@@ -697,6 +711,41 @@ class Maker:
                 json.dumps(params),
             ]
             cases.append(Case("intrinsics", what + " (ingest)", "stg-node", ingest, [path.name]))
+        return cases
+
+    def rig(self, fixed: bool) -> list[Case]:
+        """A rig.json (stg-calibrate's output) read by multi-view stg-track, two views of the seed video."""
+        good = json.loads(self.seeds["rig"].read_text())
+        a = good["cameras"]["a"]
+        special = {
+            "no_cameras": {"cameras": {}},
+            "cameras_list": {"cameras": [a, a]},
+            "r_not_rotation": {"cameras": {"a": a, "b": {**a, "R": [[2, 0, 0], [0, 1, 0], [0, 0, 1]]}}},
+            "t_short": {"cameras": {"a": a, "b": {**a, "t": [0, 1]}}},
+            "k_singular": {"cameras": {"a": a, "b": {**a, "K": [[0, 0, 0], [0, 0, 0], [0, 0, 1]]}}},
+            "image_size_zero": {"cameras": {"a": a, "b": {**a, "image_size": [0, 64]}}},
+            "dist_long": {"cameras": {"a": a, "b": {**a, "dist": [0.1] * 100}}},
+            "nan_t": {"cameras": {"a": a, "b": {**a, "t": [float("nan"), 0, 1]}}},
+        }
+        cases = []
+        for how in self.pick(fixed, [*JSON_DAMAGE, *BYTE_DAMAGE, *special]):
+            path = self.fresh(self.seeds["rig"])
+            if how in special:
+                path.write_text(json.dumps(special[how]))
+                what = f"{path.name}: {how}"
+            else:
+                what = damage_file(path, None, how, self.rng)
+            video = str(self.seeds["video"])
+            argv = [
+                video,
+                video,
+                "--calibration",
+                str(path),
+                "--out",
+                self.out() + "/POSES.npz",
+                "--no-progress",
+            ]
+            cases.append(Case("rig", what, "stg-track", argv, [path.name]))
         return cases
 
     def build(self, fmt: str, fixed: bool) -> list[Case]:

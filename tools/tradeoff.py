@@ -41,7 +41,10 @@ section) with the command line and the machine, beside the Pareto plot ``--plot`
 ``--quick`` shrinks everything (96 x 96 images, 30 frames, 2 held-out cameras, iterations / 25,
 Gaussian budgets / 10, every iteration-valued schedule scaled alike, pixel-valued thresholds with
 the image) so the grid runs in minutes;
-its numbers show the pipeline works, not how the method performs.
+its numbers show the pipeline works, not how the method performs. ``--scale mid`` sits between
+(256 x 256 images, the full 125 frames, 4 held-out cameras, iterations / 3, Gaussian budgets / 2):
+a few benchmark conditions in well under an hour on a shared 2-core machine, for comparing
+configurations with each other (not with the full grid's numbers).
 """
 
 from __future__ import annotations
@@ -167,6 +170,8 @@ class Scale:
 
 FULL = Scale("full", 512, 125, 8, 10, 2, 1.0, 1.0, 5, 4)
 QUICK = Scale("quick", 96, 30, 2, 6, 1, 1 / 25, 1 / 10, 2, 2)
+MID = Scale("mid", 256, 125, 4, 10, 1, 1 / 3, 1 / 2, 2, 2)
+SCALES = {s.name: s for s in (FULL, MID, QUICK)}
 
 # Settings counted in iterations (scaled by Scale.iteration_factor) and in Gaussians
 # (Scale.gaussian_factor). TrainConfig.replace raises on a name that no longer exists, so a
@@ -362,6 +367,7 @@ SHADING_ABLATIONS = (
     ("no_scale_cap", "no cap on the scale ratio", {"model.max_scale_ratio": 0.0}),
     ("no_isometry", "no as-isometric-as-possible term", {"loss.isometry": 0.0}),
     ("sphere_init", "spherical initial Gaussians instead of discs", {"model.init_flatness": 1.0}),
+    ("sh_light", "free second-order SH light instead of distant lights", {"model.light_model": "sh"}),
 )
 
 
@@ -845,10 +851,16 @@ def build_parser() -> argparse.ArgumentParser:
         "--quick", action="store_true", help="a reduced grid in minutes (tiny images, few iterations)"
     )
     p.add_argument(
+        "--scale",
+        default=None,
+        choices=tuple(SCALES),
+        help="data and schedule sizes: full (default), mid (256 px, iterations / 3), quick (= --quick)",
+    )
+    p.add_argument(
         "--out",
         default=None,
         help="runs, results and (default) the data cache "
-        "(default runs/tradeoff, or runs/tradeoff_quick with --quick)",
+        "(default runs/tradeoff, or runs/tradeoff_SCALE for another scale)",
     )
     p.add_argument(
         "--data-cache", default=None, help="where the synthetic subjects are generated (default OUT/data)"
@@ -857,13 +869,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--docs",
         default=None,
         help="markdown file the section goes into "
-        "(default docs/BENCHMARKS.md; with --quick, OUT/BENCHMARKS_quick.md)",
+        "(default docs/BENCHMARKS.md; at another scale, OUT/BENCHMARKS_SCALE.md)",
     )
     p.add_argument(
         "--plot",
         default=None,
         help="Pareto plot PNG (default docs/tradeoff_pareto.png; "
-        "with --quick, OUT/tradeoff_pareto_quick.png)",
+        "at another scale, OUT/tradeoff_pareto_SCALE.png)",
     )
     p.add_argument(
         "--base", default="fast", help="the preset the ablations flip switches of (default %(default)s)"
@@ -899,7 +911,10 @@ def run(args: argparse.Namespace, argv: list[str]) -> int:
     from stg_node.progress import progress
     from stg_node.threads import configure_threads
 
-    scale = QUICK if args.quick else FULL
+    if args.quick and args.scale not in (None, "quick"):
+        raise UsageError(f"--quick and --scale {args.scale} contradict each other")
+    scale = SCALES[args.scale or ("quick" if args.quick else "full")]
+    reduced = scale is not FULL
     try:
         rows = grid(args.base)
     except ValueError as exc:
@@ -915,18 +930,18 @@ def run(args: argparse.Namespace, argv: list[str]) -> int:
             print(f"{row.name:18s} {row.subject:6s} {row.group:8s} {target}")
         return 0
     configure_threads(args.threads)
-    out = Path(args.out or ("runs/tradeoff_quick" if args.quick else "runs/tradeoff"))
+    out = Path(args.out or (f"runs/tradeoff_{scale.name}" if reduced else "runs/tradeoff"))
     args.out = str(out)
     cache = Path(args.data_cache) if args.data_cache else out / "data"
     docs = (
         Path(args.docs)
         if args.docs
-        else (out / "BENCHMARKS_quick.md" if args.quick else REPO / "docs/BENCHMARKS.md")
+        else (out / f"BENCHMARKS_{scale.name}.md" if reduced else REPO / "docs/BENCHMARKS.md")
     )
     plot = (
         Path(args.plot)
         if args.plot
-        else (out / "tradeoff_pareto_quick.png" if args.quick else REPO / "docs/tradeoff_pareto.png")
+        else (out / f"tradeoff_pareto_{scale.name}.png" if reduced else REPO / "docs/tradeoff_pareto.png")
     )
     selected = [r for r in rows if not r.alias_of and (not args.only or r.name in args.only)]
     subjects = sorted({r.subject for r in selected}, key=list(SUBJECTS).index)

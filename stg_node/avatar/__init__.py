@@ -6,6 +6,7 @@ Public interface:
   online trainer node alike; :class:`TrainFrame` is what it learns from;
 - :func:`preset` (``fast``, ``balanced``, ``quality``) -> :class:`TrainConfig`;
 - :class:`AvatarRenderer` (``from_snapshot(msg)``, ``render(camera, smpl, time)``);
+- :func:`evaluate_trainer`: a live trainer's model on a dataset's held-out cameras;
 - snapshots and checkpoints: :mod:`stg_node.avatar.snapshot`.
 
 Layout: gaussians (the parameter table), rigid (LBS), spacetime (STG terms), timecode (novel-pose
@@ -14,6 +15,7 @@ trainer, snapshot / checkpoint, renderer, evaluate, animation, export, data_spec
 """
 
 from stg_node.avatar.config import DensifyConfig, LossConfig, ModelConfig, TrainConfig
+from stg_node.avatar.evaluate import evaluate_trainer
 from stg_node.avatar.frames import TrainFrame
 from stg_node.avatar.presets import PRESETS, preset
 from stg_node.avatar.renderer import AvatarRenderer, RenderOutput
@@ -30,5 +32,6 @@ __all__ = [
     "TrainConfig",
     "TrainFrame",
     "Trainer",
+    "evaluate_trainer",
     "preset",
 ]

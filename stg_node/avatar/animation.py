@@ -1,24 +1,41 @@
-"""Rendering sequences of a trained avatar: orbits, dataset cameras, animations from pose files.
+"""Rendering sequences of a trained avatar: orbits, follow cameras, dataset cameras, animations.
 
 The library half of ``stg-render``: choose the poses (a pose file, or the training frames), the
-cameras (an orbit about the subject, or the dataset's cameras tiled in a grid), render every
-frame with the novel-pose time rule kept stable along the sequence, and write an MP4 or PNGs.
+cameras (a turntable orbit around the avatar, a camera that follows the body, or the dataset's
+cameras tiled in a grid), render every frame with the novel-pose time rule kept stable along
+the sequence, and write an MP4 or PNGs. Orbit and follow cameras frame the avatar
+(stg_node.avatar.framing): centred and about two thirds of the image tall whatever the
+distance of the training camera, aimed at the body of each frame so a walking subject stays
+whole. Every render reports how the avatar sat in its frames (:class:`FramingReport`).
 """
 
 from __future__ import annotations
 
 import logging
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from stg_node.avatar.cameras import body_up, orbit
+from stg_node.avatar.cameras import body_front, mean_up
+from stg_node.avatar.framing import (
+    FramingMeter,
+    FramingReport,
+    FramingRule,
+    follow_cameras,
+    orbit_rotations,
+    portrait_intrinsics,
+    view_rotation,
+    viewing_direction,
+)
 from stg_node.avatar.loading import corrected, load_run_renderer
 from stg_node.progress import progress
 
 log = logging.getLogger(__name__)
 ORBIT_FRAMES = 120
+VIEWS = ("orbit", "follow", "dataset")
+FOLLOW_SMOOTH_S = 0.5  # the aim point follows the body averaged over this long
 
 
 class FrameWriter:
@@ -82,11 +99,20 @@ def tile(images: list[np.ndarray]) -> np.ndarray:
     return grid
 
 
+@dataclass
+class RenderSummary:
+    """What :func:`render_run` wrote and how its frames showed the avatar."""
+
+    frames: int
+    views: str
+    framing: FramingReport
+
+
 def render_run(
     run_path: Path,
     out: Path,
     *,
-    views: str = "orbit",
+    views: str | None = None,
     poses=None,
     frames: int | None = None,
     size: int | None = None,
@@ -95,10 +121,20 @@ def render_run(
     device="cpu",
     backend="auto",
     show_progress: bool = True,
+    rule: FramingRule | None = None,
     light=None,
-) -> int:
-    """Render a run (see module docstring); returns the number of frames written. ``light``: a
-    shading.LightSpec (None: the model's learned light)."""
+) -> RenderSummary:
+    """Render a run (see module docstring).
+
+    ``views``: ``orbit`` (a turntable around the avatar), ``follow`` (the training camera's bearing,
+    or the body's front when animating, following the body) or ``dataset`` (the dataset's own
+    cameras, tiled); None: ``follow`` with ``poses``, else ``orbit``. Orbit and follow cameras
+    frame the avatar by ``rule`` (stg_node.avatar.framing: centred, 2/3 of the height).
+    ``light``: a shading.LightSpec (None: the model's learned light)."""
+    if views is None:
+        views = "follow" if poses is not None else "orbit"
+    if views not in VIEWS:
+        raise ValueError(f"views must be one of {', '.join(VIEWS)}, got {views!r}")
     run, renderer, corrections, _ = load_run_renderer(run_path, device=device, backend=backend, light=light)
     spec = run.data_spec()
     if data:
@@ -113,46 +149,95 @@ def render_run(
         smpls = [corrected(train.smpl(f), corrections.get(f)) for f in train.frames]
         times = [train.time(f) for f in train.frames]
     count = frames or (max(len(smpls), ORBIT_FRAMES) if views == "orbit" and poses is None else len(smpls))
-    if views == "orbit":
-        first = smpls[0]
-        center = _subject_center(renderer, first, reference)
-        cams = orbit(center, body_up(first.Rh), reference, count, width=size, height=size)
-    else:
+
+    def pose_of(i: int) -> int:
+        if poses is not None or views != "orbit":
+            return i % len(smpls)
+        return min(i * len(smpls) // count, len(smpls) - 1)
+
+    if views == "dataset":
         cams = _dataset_cameras(spec, size)
+    else:
+        cams = _framed_cameras(
+            renderer,
+            smpls,
+            times,
+            [pose_of(i) for i in range(count)],
+            reference,
+            views,
+            size,
+            rule,
+            animating=poses is not None,
+            fps=fps,
+            show_progress=show_progress,
+        )
+    meter = FramingMeter()
     writer = FrameWriter(out, fps)
     try:
         for i in progress(range(count), desc="rendering", unit="frame", enabled=show_progress):
-            k = (
-                i % len(smpls)
-                if poses is not None or views != "orbit"
-                else min(i * len(smpls) // count, len(smpls) - 1)
-            )
+            k = pose_of(i)
             smpl, t = smpls[k], times[k]
-            if views == "orbit":
-                out_img = renderer.render(cams[i], smpl, t, follow=True).image
-            else:
+            if views == "dataset":
                 out_img = tile([renderer.render(c, smpl, t, follow=True).image for c in cams])
+            else:
+                rendered = renderer.render(cams[i], smpl, t, follow=True)
+                meter.add(rendered.alpha)
+                out_img = rendered.image
             writer.write(out_img)
     finally:
         writer.close()
-    return writer.count
+    return RenderSummary(writer.count, views, meter.report())
 
 
-def _subject_center(renderer, smpl, camera) -> np.ndarray:
-    import torch
-
-    from stg_node.avatar.model import BodyState, Camera3
-
-    cam = Camera3.from_camera(camera, device=renderer.device)
-    with torch.no_grad():
-        posed = renderer.model.pose(BodyState.from_smpl(smpl, renderer.device), 0.0, cam.center)
-    return posed.means.mean(0).cpu().numpy().astype(np.float64)
+def _framed_cameras(
+    renderer, smpls, times, pose_indices, reference, views, size, rule, *, animating, fps, show_progress
+):
+    """One framed camera per output frame (orbit or follow), aimed at the body of that frame."""
+    width = size or reference.width
+    height = size or reference.height
+    K = portrait_intrinsics(reference.K, reference.height, width, height)
+    used = sorted(set(pose_indices))
+    up = mean_up([smpls[k].Rh for k in used])
+    points = {}
+    for k in progress(used, desc="framing", unit="pose", enabled=show_progress):
+        points[k] = renderer.posed_points(smpls[k], times[k])
+    first = points[pose_indices[0]]
+    if animating:  # the body's front, a little from above: nothing says where a camera was
+        front = body_front(smpls[pose_indices[0]].Rh)
+        eye = first.mean(axis=0) + front - 0.1 * up
+    else:  # the training camera's bearing on the body
+        eye = -np.asarray(reference.R, np.float64).T @ np.asarray(reference.t, np.float64).reshape(3)
+    forward = viewing_direction(eye, first.mean(axis=0), up)
+    count = len(pose_indices)
+    if views == "orbit":
+        rotations = orbit_rotations(forward, up, count)
+    else:
+        rotations = [view_rotation(forward, up)] * count
+    return follow_cameras(
+        [points[k] for k in pose_indices],
+        rotations,
+        K,
+        width,
+        height,
+        rule,
+        smooth_frames=max(1, round(FOLLOW_SMOOTH_S * fps)),
+        name=views,
+    )
 
 
 def _dataset_cameras(spec, size):
-    """The training camera, then the held-out ones, at ``size``."""
-    from stg_node.avatar.data_spec import DataSpec
+    """The training camera(s), then the held-out ones (a rig that trains on all has none), at ``size``."""
+    import dataclasses
 
-    sized = DataSpec(spec.root, spec.format, spec.train_frames, spec.train_camera, size or spec.size)
-    train, held_out = sized.open("train"), sized.open("novel_view")
-    return [train.camera(train.camera_names[0])] + [held_out.camera(n) for n in held_out.camera_names]
+    from stg_node.data.errors import DatasetError
+
+    sized = dataclasses.replace(spec, size=size or spec.size)
+    train = sized.open("train")
+    cameras = [train.camera(name) for name in train.camera_names]
+    try:
+        held_out = sized.open("novel_view")
+    except DatasetError:
+        if not sized.rig:
+            raise
+        return cameras
+    return cameras + [held_out.camera(n) for n in held_out.camera_names]

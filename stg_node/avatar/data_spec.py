@@ -11,11 +11,17 @@ run actually used. Formats:
   with ``train_frames`` allowed to narrow the training range (held-out views are taken from the
   generator's grid inside it).
 - ``thuman``: THuman4.0 (SMPL-X fits; see docs/DATASETS.md).
-- ``video``: a video file or image folder; the tracker (stg-track) fits SMPL and masks first.
+- ``folder``: the folder format (docs/DATASETS.md), e.g. a capture of your own.
+- ``video``: a video file or image folder; the tracker (stg-track) fits SMPL and masks first. With
+  a rig's calibration, one video per camera (tracked together: docs/RIGS.md).
+
+``train_cameras`` (several cameras: ``stg-train --train-cameras A,B,C``) trains on all of them;
+the novel-view split is then every other camera (:class:`stg_node.data.splits.RigProtocol`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -50,25 +56,45 @@ class DataSpec:
     train_frames: tuple[int, int] | None = None
     train_camera: str | None = None
     size: int = 512
+    train_cameras: tuple[str, ...] | None = None  # several training cameras (a rig); excludes train_camera
 
     def __post_init__(self):
         if self.format not in FORMATS:
             raise ValueError(f"--format must be one of {', '.join(FORMATS)}, got {self.format!r}")
+        if self.train_cameras is not None:
+            cameras = tuple(str(c) for c in self.train_cameras)
+            if not cameras or len(set(cameras)) != len(cameras):
+                raise ValueError(f"--train-cameras must name distinct cameras, got {list(cameras)}")
+            if self.train_camera is not None:
+                raise ValueError("give --train-camera (one) or --train-cameras (several), not both")
+            object.__setattr__(self, "train_cameras", cameras)
 
     def to_dict(self) -> dict:
         d = asdict(self)
         d["train_frames"] = list(self.train_frames) if self.train_frames else None
+        d["train_cameras"] = list(self.train_cameras) if self.train_cameras else None
         return d
 
     @classmethod
     def from_dict(cls, d: dict) -> DataSpec:
         tf = d.get("train_frames")
+        cams = d.get("train_cameras")
         return cls(
-            d["root"], d["format"], tuple(tf) if tf else None, d.get("train_camera"), int(d.get("size", 512))
+            d["root"],
+            d["format"],
+            tuple(tf) if tf else None,
+            d.get("train_camera"),
+            int(d.get("size", 512)),
+            tuple(cams) if cams else None,
         )
 
     def with_root(self, root: str | Path) -> DataSpec:
-        return DataSpec(str(root), self.format, self.train_frames, self.train_camera, self.size)
+        return dataclasses.replace(self, root=str(root))
+
+    @property
+    def rig(self) -> bool:
+        """Trains on several cameras."""
+        return bool(self.train_cameras) and len(self.train_cameras) > 1
 
     def open(self, split: str):
         """The SequenceDataset of ``split`` ('train', 'novel_view', 'novel_pose')."""
@@ -82,6 +108,9 @@ class DataSpec:
             return self._open_synth(root, split)
         from stg_node.data.factory import open_dataset
 
+        kind = {"zju": "zju", "thuman": "thuman4"}.get(self.format, "folder")
+        if self.train_cameras:
+            return open_dataset(root, kind, self._rig_protocol(root, frames).split(split), size=self.size)
         options = {}
         if frames is not None:
             options["train_frames"] = frames
@@ -95,13 +124,29 @@ class DataSpec:
         # (see stg_node.avatar.video).
         return open_dataset(root, "folder", split, size=self.size, **options)
 
+    def _rig_protocol(self, root: Path, frames: FrameRange | None):
+        """The training range of the dataset's own protocol (ZJU-MoCap's per subject, else every
+        frame) unless --train-frames gives one, with the rig's cameras."""
+        from stg_node.data.splits import RigProtocol, zju_protocol
+
+        if frames is None:
+            frames = zju_protocol(root.name).train_frames if self.format == "zju" else FrameRange()
+        return RigProtocol(
+            self.train_cameras, frames, f"{self.format}: cameras {', '.join(self.train_cameras)}"
+        )
+
     def _open_synth(self, root: Path, split: str):
-        from stg_node.data.synth.dataset import open_synth
+        from stg_node.data.synth.dataset import loader_name, open_synth, train_cameras
         from stg_node.data.synth.writer import read_metadata
 
         meta = read_metadata(root)
         n_train, every = int(meta["num_train_frames"]), int(meta["view_every"])
-        train_cam = self.train_camera or meta["cameras"][0]["name"].removeprefix("Camera_B")
+        if self.train_cameras:
+            train_cams = self.train_cameras
+        elif self.train_camera:
+            train_cams = (self.train_camera,)
+        else:
+            train_cams = train_cameras(meta)
         a, b = self.train_frames or (0, n_train)
         if b > n_train:
             raise DatasetError(
@@ -109,11 +154,21 @@ class DataSpec:
                 f"--train-frames {a}:{b} reaches past the generator's training range (0:{n_train})",
                 f"a range inside 0:{n_train}; frames after it are the novel poses",
             )
+        rendered = {loader_name(name): set(frames) for name, frames in meta.get("rendered", {}).items()}
+        for cam in train_cams:
+            if cam in rendered and not set(range(a, b)) <= rendered[cam]:
+                dense = sorted((c for c, f in rendered.items() if set(range(a, b)) <= f), key=int)
+                raise DatasetError(
+                    root,
+                    f"camera {cam} was rendered on every {every}th frame only, not on every training frame",
+                    f"a camera rendered on frames {a}-{b - 1} ({', '.join(dense)}), or a benchmark generated "
+                    f"with stg-synth --train-cameras {','.join(train_cams)}",
+                )
         if split == "train":
-            spec = SplitSpec("train", FrameRange(a, b), cameras=(train_cam,))
+            spec = SplitSpec("train", FrameRange(a, b), cameras=tuple(train_cams))
         elif split == "novel_view":
             start = math.ceil(a / every) * every
-            spec = SplitSpec("novel_view", FrameRange(start, b, every), exclude=(train_cam,))
+            spec = SplitSpec("novel_view", FrameRange(start, b, every), exclude=tuple(train_cams))
         else:
             spec = SplitSpec("novel_pose", FrameRange(n_train, None, every))
         return open_synth(root, spec, size=self.size)

@@ -65,6 +65,47 @@ def evaluate_split(
     return report, kept
 
 
+def evaluate_trainer(
+    trainer, data: str | Path, *, split: str = "novel_view", lpips_net: str | None = "alex"
+) -> dict:
+    """A live trainer's model scored on a dataset's held-out cameras (what the online trainer node
+    reports at the end of the demo): the dataset at ``data`` (an stg-synth folder, else ZJU-MoCap),
+    loaded at the size of the frames the trainer learnt from, its ``split``; the training poses
+    with their learned corrections. Returns ``split``, ``views``, ``psnr``, ``ssim``, ``lpips``."""
+    from stg_node.avatar.data_spec import DataSpec
+    from stg_node.avatar.renderer import AvatarRenderer
+
+    if trainer.model is None or not len(trainer.store):
+        raise ValueError("the trainer has no model yet: nothing to evaluate")
+    root = Path(data)
+    fmt = "synthetic" if (root / "synth.json").is_file() else "zju"
+    camera = trainer.store.frames[0].frame.camera
+    size = max(int(camera.width), int(camera.height))
+    dataset = DataSpec(str(root.resolve()), fmt, size=size).open(split)
+    corrections = {}
+    if trainer.pose_deltas is not None:
+        deltas = trainer.pose_deltas.detach().cpu().numpy()
+        corrections = {frame: deltas[slot] for frame, slot in trainer.pose_slots.items()}
+    renderer = AvatarRenderer(trainer.model, backend=trainer.backend)
+    nets = (lpips_net,) if lpips_net else ()
+    report, _ = evaluate_split(
+        renderer,
+        dataset,
+        split=split,
+        lpips_nets=nets,
+        pose_corrections=corrections if split == "novel_view" else None,
+        show_progress=False,
+    )
+    lpips = report["lpips"].get(lpips_net) if lpips_net else None
+    return {
+        "split": split,
+        "views": report["views"],
+        "psnr": report["psnr"],
+        "ssim": report["ssim"],
+        "lpips": lpips,
+    }
+
+
 def save_comparison(views: list, path: Path) -> Path:
     """Rendered (top) over ground truth (bottom) for a few views, cropped to the person, as a PNG."""
     from PIL import Image

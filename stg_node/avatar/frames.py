@@ -3,7 +3,8 @@
 A :class:`TrainFrame` is one image of the person with its camera, SMPL parameters and time (the
 same fields as a dataset's FrameSample, or a bus Frame + BodyPose pair). The store keeps what a
 step needs ready: the crop window around the person (the trainer renders only that), the
-masked image, and the optical flow to the frame that followed it in the same camera, together
+masked image, and the optical flow to the frame that followed it in the same camera (frames of
+several cameras may arrive interleaved: each camera's last frame is remembered), together
 with that next frame's pose and time (so a frame keeps its flow even after its successor is
 evicted). With ``capacity`` set the store is a reservoir sample of the stream (memory stays flat
 on an endless stream, and old and new frames stay represented).
@@ -104,7 +105,7 @@ class FrameStore:
         self.frames: list[StoredFrame] = []
         self.seen = 0
         self._rng = np.random.default_rng(seed)
-        self._last: StoredFrame | None = None  # the previous frame added, for its flow
+        self._last: dict[str, StoredFrame] = {}  # each camera's previous frame, for its flow
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -117,7 +118,7 @@ class FrameStore:
             image = np.array(frame.image)
         crop = crop_box(frame.mask, int(frame.camera.width), int(frame.camera.height), self.crop_margin)
         stored = StoredFrame(frame, crop, image)
-        prev = self._last
+        prev = self._last.get(frame.camera.name)
         if (
             self.flow_enabled
             and prev is not None
@@ -131,7 +132,7 @@ class FrameStore:
             valid = prev.flow.valid_forward
             if valid.any():
                 prev.flow_magnitude = float(np.linalg.norm(prev.flow.forward[valid], axis=1).mean())
-        self._last = stored
+        self._last[frame.camera.name] = stored
         self.seen += 1
         if self.capacity <= 0 or len(self.frames) < self.capacity:
             self.frames.append(stored)

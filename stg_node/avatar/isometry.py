@@ -10,7 +10,8 @@ distance, in the training poses it sees:
 
     L_iso = mean_ij | |x_i(pose) - x_j(pose)| - |c_i - c_j| |        (cm)
 
-with ``c`` the canonical centres including the spacetime offsets (what is skinned), so the term
+over the graph's undirected edges (a pair that are each other's neighbours counts once), with
+``c`` the canonical centres including the spacetime offsets (what is skinned), so the term
 constrains the skinning, not the non-rigid motion (rigidity.py does that).
 
 Neighbours: an approximate k-nearest-neighbour graph of the canonical centres, rebuilt when the
@@ -91,6 +92,7 @@ class IsometryGraph:
         self.neighbours: torch.Tensor | None = None  # (N, k) rows of the table
         self._table = None  # weak reference to the table the graph was built for
         self._version = -1  # ... and its version (bumped by every row edit) then
+        self._edges: tuple | None = None  # (neighbours, (E,) rows a, (E,) rows b): see edges()
 
     def _built_for(self, table) -> None:
         self._table, self._version = weakref.ref(table), table.version
@@ -120,21 +122,37 @@ class IsometryGraph:
         left out."""
         if self._stale(table):
             self.neighbours = approximate_knn(table["means"].detach(), self.k)
-        nbrs = self.neighbours
-        if nbrs is None or nbrs.shape[1] == 0:
+        a, b = self.edges()
+        if a.numel() == 0:
             return means.new_zeros(())
-        n = table.num
-        if index is None:
-            pos = torch.arange(n, device=means.device)
-        else:
-            pos = torch.full((n,), -1, dtype=torch.int64, device=means.device)
+        if index is not None:
+            pos = torch.full((table.num,), -1, dtype=torch.int64, device=means.device)
             pos[index] = torch.arange(index.shape[0], device=means.device)
-        a = pos[:, None].expand_as(nbrs)
-        b = pos[nbrs]
-        valid = (a >= 0) & (b >= 0)
-        if not bool(valid.any()):
-            return means.new_zeros(())
-        a, b = a[valid], b[valid]
-        posed = (means[a] - means[b]).norm(dim=1)
-        rest = (canonical[a] - canonical[b]).norm(dim=1)
-        return 100.0 * (posed - rest).abs().mean()
+            a, b = pos[a], pos[b]
+            valid = (a >= 0) & (b >= 0)
+            if not bool(valid.all()):
+                if not bool(valid.any()):
+                    return means.new_zeros(())
+                a, b = a[valid], b[valid]
+        # Posed and canonical centres side by side: one gather per end of every edge.
+        both = torch.cat([means, canonical.to(means.dtype)], dim=1)
+        d = both.index_select(0, a) - both.index_select(0, b)
+        return 100.0 * (d[:, :3].norm(dim=1) - d[:, 3:].norm(dim=1)).abs().mean()
+
+    def edges(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The graph's undirected edges as table rows (a, b), a < b, each pair once (two points that
+        are each other's neighbours count once), computed once per graph."""
+        nbrs = self.neighbours
+        if self._edges is not None and self._edges[0] is nbrs:
+            return self._edges[1], self._edges[2]
+        if nbrs is None or nbrs.shape[1] == 0:
+            empty = torch.zeros(0, dtype=torch.int64)
+            a = b = empty if nbrs is None else empty.to(nbrs.device)
+        else:
+            n = nbrs.shape[0]
+            rows = torch.arange(n, device=nbrs.device)[:, None].expand_as(nbrs)
+            lo, hi = torch.minimum(rows, nbrs).reshape(-1), torch.maximum(rows, nbrs).reshape(-1)
+            keys = torch.unique(lo[lo != hi] * n + hi[lo != hi])
+            a, b = keys // n, keys % n
+        self._edges = (nbrs, a, b)
+        return a, b

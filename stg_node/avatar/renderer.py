@@ -110,6 +110,35 @@ class AvatarRenderer:
         return u
 
     @torch.no_grad()
+    def posed_points(
+        self, smpl, time: float | None = None, *, min_opacity: float = 0.1, max_points: int = 4096
+    ) -> np.ndarray:
+        """(N, 3) world centres of Gaussians that show (opacity >= ``min_opacity``) in this pose, at
+        most ``max_points`` of them (an even stride): what a camera must keep in view to show the
+        avatar whole (stg_node.avatar.framing). Cheap: skins only the rows it returns."""
+        from stg_node.avatar.rigid import blend_weights, skin
+
+        model = self.model
+        table = model.table
+        u = self.time_for(smpl, time)
+        state = model.spacetime(u, skip_inactive=True)
+        opacity = table.opacities()
+        if state.temporal is not None:
+            opacity = opacity * state.temporal
+        rows = (opacity >= min_opacity).nonzero().squeeze(1)
+        if rows.numel() == 0:  # a blank model: every centre, so a camera can still be placed
+            rows = torch.arange(table.num, device=self.device)
+        if rows.numel() > max_points:
+            rows = rows[torch.linspace(0, rows.numel() - 1, max_points, device=self.device).round().long()]
+        means = table["means"][rows]
+        if state.offsets is not None:
+            means = means + state.offsets[rows]
+        delta = table.get("skin_delta")
+        weights = blend_weights(table["skin_weights"][rows], None if delta is None else delta[rows])
+        bones = model.bones(BodyState.from_smpl(smpl, self.device))
+        return skin(means, weights, bones, rotations=False).means.cpu().numpy().astype(np.float64)
+
+    @torch.no_grad()
     def render(
         self,
         camera,

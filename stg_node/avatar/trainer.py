@@ -27,12 +27,14 @@ from stg_node.avatar import checkpoint, nonrigid, spacetime
 from stg_node.avatar import losses as L
 from stg_node.avatar.config import LBS_ONLY, TrainConfig
 from stg_node.avatar.densify import CanonicalSurface, DensifyInputs, DensifyStrategy, counts, motion_threshold
+from stg_node.avatar.exposure import ExposureCorrection
 from stg_node.avatar.frames import FrameStore, StoredFrame, TrainFrame
 from stg_node.avatar.gaussians import MOTION_COLUMNS, init_table, scale_ratio_percentile
 from stg_node.avatar.isometry import IsometryGraph
 from stg_node.avatar.model import AvatarModel, BodyState, Camera3, render
 from stg_node.avatar.motion_priors import line_of_sight, world_offsets
 from stg_node.avatar.optim import TableOptimizer
+from stg_node.avatar.pose_refine import PoseTrack
 from stg_node.avatar.rigid import Skeleton, skin
 from stg_node.avatar.rigidity import NeighbourGraph
 from stg_node.avatar.spacetime import TimeAxis
@@ -145,6 +147,10 @@ class Trainer:
             None  # (slots, 75) per-frame pose (72) and Th (3) correction
         )
         self.pose_slots: dict[int, int] = {}
+        self.pose_track = PoseTrack()  # the tracked poses, for the refined poses' smoothness
+        self.exposure = ExposureCorrection(  # per-frame colour correction, training only
+            config.lr_exposure, config.loss.exposure, config.loss.warmup_iters, self.device
+        )
         self.neighbours = NeighbourGraph()  # local rigidity of the non-rigid motion
         self.isometry = IsometryGraph()  # canonical neighbours keep their distances when posed
         self.profile: StepProfile | None = None  # set to a StepProfile to time the phases of each step
@@ -168,6 +174,10 @@ class Trainer:
                 self.model.shading.add_orientation(_root_rotation(frame.smpl))
         if self.config.lr_pose > 0:
             self._pose_slot(frame.index)
+            if self.config.loss.pose_smooth > 0:
+                self.pose_track.add(frame.index, frame.smpl, self.device)
+        if self.exposure.enabled:
+            self.exposure.add(frame.index)
         if self.store.capacity > 0:  # a stream: keep only what the held frames need (stream_window.py)
             window_to_frames(self.model, self.optimizer, self.store, self.config.time_noise_frames)
 
@@ -299,6 +309,8 @@ class Trainer:
         body = BodyState.from_smpl(smpl if smpl is not None else stored_frame.smpl, self.device)
         if refine and self.pose_deltas is not None and smpl is None and stored_frame.index in self.pose_slots:
             delta = self.pose_deltas[self.pose_slots[stored_frame.index]]
+            if not self.config.pose_refine_joints:  # the frame's alignment only: root rotation, Th
+                delta = torch.cat([delta[:3], torch.zeros_like(delta[3:72]), delta[72:75]])
             body = BodyState(
                 body.poses + delta[: 24 * 3].reshape(1, 24, 3), body.Rh, body.Th + delta[72:75][None]
             )
@@ -368,7 +380,7 @@ class Trainer:
 
         image, alpha, info = render(posed, camera, background=0.0, backend=self.backend, extra_channels=extra)
         timer.mark("render")
-        rgb = image[..., :3]
+        rgb = self.exposure.apply(image[..., :3], stored.frame.index, it)
         l1, dssim = L.photometric(rgb, target, c.loss.ssim)
         terms["photo"] = (1 - c.loss.ssim) * l1 + c.loss.ssim * dssim
         if mask is not None and c.loss.mask > 0:
@@ -386,6 +398,13 @@ class Trainer:
         if c.loss.isometry > 0:
             terms["isometry"] = self.isometry.loss(table, posed.means, posed.canonical, posed.index)
         terms.update(self._regularisers(body))
+        if c.loss.pose_smooth > 0 and self.pose_deltas is not None:
+            smooth = self.pose_track.smoothness(self.pose_deltas, self.pose_slots, stored.frame.index)
+            if smooth is not None:
+                terms["pose_smooth"] = smooth
+        gauge = self.exposure.penalty()
+        if gauge is not None:
+            terms["exposure"] = gauge
         weights = {
             "mask": c.loss.mask,
             "flow": c.loss.flow,
@@ -400,6 +419,8 @@ class Trainer:
             "pose": c.loss.pose_refine,
             "isometry": c.loss.isometry,
             "light": c.loss.light,
+            "pose_smooth": c.loss.pose_smooth,
+            "exposure": c.loss.exposure,
         }
         total, applied = self.weights.combine(terms, weights, it)
         timer.mark("loss")
@@ -417,12 +438,14 @@ class Trainer:
                 "step %d: non-finite loss or gradients (frame %d); step skipped", it, stored.frame.index
             )
             self.optimizer.zero_grad()
+            self.exposure.discard()
         else:
             gate = self.model.table.motion_gate()
             if gate is not None:  # static Gaussians keep exactly zero motion terms
                 for name in MOTION_COLUMNS:
                     self.optimizer.freeze_rows(name, ~gate)
             self.optimizer.step()
+            self.exposure.step()
             for name in ("motion", "rot_motion"):  # a basis coefficient's sparsity is its row's gate
                 self.optimizer.soft_threshold(name, c.loss.motion_sparsity)
             timer.mark("update")
@@ -708,6 +731,7 @@ class Trainer:
             nonrigid={} if self.decision is None else self.decision.to_dict(),
             isometry=self.isometry.state_arrays(),
             notes=dict(self.notes),
+            exposure=self.exposure.state_arrays(),
         )
         return checkpoint.save(path, state)
 
@@ -730,6 +754,7 @@ class Trainer:
             self.pose_slots = {f: i for i, f in enumerate(state.pose_frames)}
             self.pose_deltas = torch.nn.Parameter(state.pose_deltas.to(self.device))
         self._build_optimizer()
+        self.exposure.load_state_arrays(state.exposure)
         self.optimizer.load_table_state(state.table_adam)
         self.optimizer.load_dense_state(state.dense_adam)
         self.densify_state = self.densifier.initialize_state(self.model) | {

@@ -5,8 +5,11 @@ is tracked once (SMPL pose and shape per frame, a person mask, a confidence; cac
 video's content and the options under ``$STG_TRACK_CACHE``), and its confident frames are
 written under ``out`` in the folder format (docs/DATASETS.md), which the data spec's ``video``
 format opens. The camera is the tracking's: ``--intrinsics FILE.json`` (``K``, optional
-``dist``) or a pinhole with ``--fov`` degrees of horizontal field of view; the world frame is
-the camera's (``R = I``, ``t = 0``).
+``dist``), a pinhole with ``--fov`` degrees of horizontal field of view, or, with neither, the
+focal length the tracker estimates from the footage (stg_node.tracking.focal); the world frame
+is the camera's (``R = I``, ``t = 0``). Before training, ``RUN_DIR/fit_preview.mp4`` shows the
+fit (mesh and mask over every frame, its confidence, the frames skipped and why:
+stg_node.tracking.preview), and ``RUN_DIR/video_data/tracking.json`` counts them.
 """
 
 from __future__ import annotations
@@ -23,15 +26,19 @@ def prepare_video(
     fov_deg: float | None = None,
     progress: bool = True,
     threads: int | None = None,
+    preview: Path | None = None,
 ) -> Path:
     """Track ``source`` (a video file or image folder) into the folder format under ``out``; returns ``out``.
 
     ``smpl_model`` is the body the fit uses (the one training must use too; None: the open body).
-    Frames tracked with confidence below 0.5 are left out. Raises ValueError (nothing confident
+    Frames tracked with confidence below 0.5 are left out. ``preview``: where to write the fit
+    preview (an .mp4), from the cached tracking. Raises ValueError (nothing confident
     enough, a bad calibration file), FileNotFoundError (no such input) or
     :class:`~stg_node.tracking.model_files.PoseModelError` (pose networks not installed).
     """
     from stg_node.tracking import TrackOptions, video_to_folder
+    from stg_node.tracking.pipeline import track_video
+    from stg_node.tracking.preview import write_preview
 
     source = Path(source)
     if not source.exists():
@@ -44,4 +51,9 @@ def prepare_video(
     if fov_deg is not None:
         camera["fov_deg"] = float(fov_deg)
     options = TrackOptions(smpl_model=smpl_model, **camera)
-    return video_to_folder(source, out, options, progress=progress, threads=threads)
+    folder = video_to_folder(source, out, options, progress=progress, threads=threads)
+    if preview is not None:
+        poses = track_video(source, options, progress=progress, threads=threads)  # cached: no tracking
+        write_preview(source, poses, preview, masks_dir=poses.parent / "masks", smpl_model=smpl_model,
+                      progress=progress)  # fmt: skip
+    return folder

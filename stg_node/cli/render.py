@@ -1,9 +1,15 @@
 """``stg-render``: novel views and animations of a trained avatar, as an MP4 or a folder of PNGs.
 
-    stg-render RUN_DIR -o OUT(.mp4|dir) [--views orbit|dataset] [--poses FILE] [--light LIGHT]
+    stg-render RUN_DIR -o OUT(.mp4|dir) [--views orbit|follow|dataset] [--poses FILE] [--fill F]
+               [--light LIGHT]
 
-``--views orbit`` (default): a camera circling the subject at the training camera's distance.
-``--views dataset``: every camera of the dataset, tiled in a grid per frame.
+``--views orbit`` (default without --poses): a turntable around the avatar.
+``--views follow`` (default with --poses): the training camera's bearing (when animating: the
+body's front), following the body.
+Both frame the avatar: centred and about two thirds of the image tall (``--fill``), whatever
+the distance of the training camera, aimed at the body of each frame so it is never cut
+(stg_node/avatar/framing.py). ``--views dataset``: every camera of the dataset, tiled in a
+grid per frame, as they are.
 ``--poses FILE``: animate with SMPL parameters (``.npz`` with poses/Rh/Th, a ZJU-MoCap
 ``new_params`` folder, or a subject folder holding one); the avatar keeps its own body shape
 (the file's betas are ignored) and each pose takes the time code of the nearest training pose,
@@ -32,7 +38,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("run", help="run folder written by stg-train")
     p.add_argument("-o", "--out", required=True, help="output .mp4 file or folder for PNGs")
     p.add_argument(
-        "--views", default="orbit", choices=("orbit", "dataset"), help="cameras (default %(default)s)"
+        "--views",
+        default=None,
+        choices=("orbit", "follow", "dataset"),
+        help="cameras (default: orbit, or follow with --poses)",
+    )
+    p.add_argument(
+        "--fill",
+        type=float,
+        default=None,
+        metavar="F",
+        help="orbit/follow: the avatar's height as a fraction of the image's (default 2/3)",
     )
     p.add_argument("--poses", default=None, help="SMPL pose file (.npz) or ZJU-style folder to animate")
     p.add_argument(
@@ -67,8 +83,11 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.suffix and out.suffix.lower() != ".mp4":
         raise UsageError(f"-o must be a .mp4 file or a folder, got {out}")
+    if args.fill is not None and not 0.05 <= args.fill <= 1.0:
+        raise UsageError(f"--fill must lie in [0.05, 1], got {args.fill}")
     configure_threads(args.threads)
     from stg_node.avatar.animation import render_run
+    from stg_node.avatar.framing import FramingRule
     from stg_node.avatar.shading import parse_light
 
     try:
@@ -76,7 +95,8 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise UsageError(str(exc)) from exc
 
-    written = render_run(
+    rule = FramingRule() if args.fill is None else FramingRule(fraction=args.fill)
+    summary = render_run(
         Path(args.run),
         out,
         views=args.views,
@@ -88,9 +108,18 @@ def run(args: argparse.Namespace) -> int:
         device=args.device,
         backend=args.backend,
         show_progress=not args.no_progress,
+        rule=rule,
         light=light,
     )
-    print(f"wrote {written} frames to {out}")
+    print(f"wrote {summary.frames} frames to {out}")
+    framing = summary.framing
+    if framing.frames:
+        print(
+            f"framing ({summary.views}): the avatar whole in {100 * framing.whole:.0f}% of frames, "
+            f"at least {100 * framing.min_height:.0f}% of the image tall in "
+            f"{100 * framing.tall_enough:.0f}%, "
+            f"median height {100 * framing.median_height:.0f}%"
+        )
     return 0
 
 

@@ -53,6 +53,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="render the held-out cameras every K-th frame (default %(default)s, the ZJU-MoCap protocol)",
     )
     parser.add_argument(
+        "--train-cameras",
+        default="1",
+        metavar="N,...",
+        help="cameras that render every frame, by number (1 = Camera_B1, the training camera; e.g. 1,7,13,18 "
+        "for multi-view training with --views 22: docs/RIGS.md); the others every --view-every-th",
+    )
+    parser.add_argument(
         "--train-fraction",
         type=float,
         default=defaults.train_fraction,
@@ -96,6 +103,30 @@ def build_parser() -> argparse.ArgumentParser:
         "(orientations never seen in training; needs --train-yaw)",
     )
     parser.add_argument("--depth", action="store_true", help="also write depth/ (uint16 PNG, millimetres)")
+    filming = parser.add_argument_group("filming conditions (real footage)")
+    filming.add_argument(
+        "--distance",
+        type=float,
+        default=defaults.camera_distance,
+        metavar="M",
+        help="distance of the cameras to the subject (default %(default)s m; closer films it larger "
+        "with --fov)",
+    )
+    filming.add_argument(
+        "--fov",
+        type=float,
+        default=None,
+        metavar="DEG",
+        help="field of view of every camera (default: each frames 2.4 m of height at the subject)",
+    )
+    filming.add_argument(
+        "--exposure-jitter",
+        type=float,
+        default=defaults.exposure_jitter,
+        metavar="S",
+        help="per-frame exposure and white-balance drift of the training camera: std of the log "
+        "gain (default %(default)s: steady; 0.15 is a phone's auto-exposure)",
+    )
     parser.add_argument("--overwrite", action="store_true", help="replace a previous benchmark in --out")
     parser.add_argument(
         "--body", default=None, help="SMPL-format model file or folder (default: the open body)"
@@ -114,6 +145,12 @@ def run(args: argparse.Namespace) -> int:
 
     from stg_node.data.synth.generate import SynthConfig, generate
 
+    try:
+        train_cameras = tuple(int(n) - 1 for n in args.train_cameras.split(","))
+    except ValueError:
+        raise UsageError(
+            f"--train-cameras must be camera numbers like 1,7,13, got {args.train_cameras!r}"
+        ) from None
     config = SynthConfig(
         out=args.out,
         seed=args.seed,
@@ -131,6 +168,10 @@ def run(args: argparse.Namespace) -> int:
         test_yaw_deg=args.test_yaw,
         write_depth=args.depth,
         overwrite=args.overwrite,
+        train_cameras=train_cameras,
+        camera_distance=args.distance,
+        fov_deg=args.fov,
+        exposure_jitter=args.exposure_jitter,
     )
     try:
         config.validate()

@@ -1,6 +1,13 @@
 """``stg-track``: SMPL pose and person mask per frame of a video or an image folder -> POSES.npz.
 
     stg-track INPUT --out POSES.npz [--intrinsics FILE.json | --fov DEG] [--smpl-model FILE] [--masks DIR]
+              [--preview fit.mp4]
+    stg-track CAM1 CAM2 ... --calibration rig.json --out POSES.npz [--cameras NAME,...]  (docs/RIGS.md)
+
+Without --intrinsics or --fov the focal length is estimated from the footage and the command
+says how sure it is (an unsure estimate keeps the default 65 degrees). --preview writes the input
+with the fitted SMPL mesh, the person mask and each frame's confidence drawn over it. The last
+lines say how many frames were skipped (confidence below 0.5) and why.
 
 Exit codes as every command (docs/CLI.md): 0 done, 1 the tracking failed (unreadable input,
 missing network files, ...), 2 bad usage, 130 interrupted (POSES.npz is then not written).
@@ -27,7 +34,12 @@ def build_parser() -> argparse.ArgumentParser:
         description="Estimate the SMPL pose, shape and a person mask for every frame of a video file or an "
         "image folder, in the camera's frame, and write them to POSES.npz.",
     )
-    parser.add_argument("input", type=Path, help="a video file or a folder of images")
+    parser.add_argument(
+        "input",
+        nargs="+",
+        type=Path,
+        help="a video file or a folder of images; with --calibration, one per camera of the rig",
+    )
     parser.add_argument("--out", required=True, type=Path, help="the POSES.npz to write")
     camera = parser.add_mutually_exclusive_group()
     camera.add_argument(
@@ -38,13 +50,21 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         default=None,
         metavar="DEG",
-        help=f"horizontal field of view without a calibration (default {DEFAULT_FOV_DEG:g})",
+        help="horizontal field of view without a calibration (default: estimated from the footage, "
+        f"{DEFAULT_FOV_DEG:g} when it cannot be)",
     )
     parser.add_argument(
         "--smpl-model", default=None, help="SMPL .pkl/.npz file or folder (default: the open body that ships)"
     )
     parser.add_argument(
         "--masks", type=Path, default=None, metavar="DIR", help="also write masks DIR/000000.png ..."
+    )
+    parser.add_argument(
+        "--preview",
+        type=Path,
+        default=None,
+        metavar="FILE.mp4",
+        help="also write the input with the fitted mesh, the mask and the confidence drawn over it",
     )
     parser.add_argument(
         "--detector", choices=DETECTORS, default="blazepose", help="keypoint network (default %(default)s)"
@@ -72,6 +92,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="detect on frames scaled to this long side (default %(default)s)",
     )
     parser.add_argument("--no-smoothing", action="store_true", help="no One-Euro smoothing of the parameters")
+    from stg_node.cli.track_rig import add_rig_options
+
+    add_rig_options(parser)
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--threads", default=None, help="CPU threads (default: STG_THREADS or 1)")
     add_log_level_option(parser)
@@ -83,6 +106,11 @@ def run(args: argparse.Namespace) -> int:
         threads = configure_threads(args.threads)
     except ValueError as exc:
         raise UsageError(str(exc)) from exc
+    if args.calibration is not None or len(args.input) > 1:
+        from stg_node.cli.track_rig import run_rig
+
+        return run_rig(args, threads)
+    args.input = args.input[0]
     if not args.input.exists():
         raise UsageError(f"INPUT {args.input} does not exist (a video file or a folder of images)")
     if args.out.suffix != ".npz":
@@ -93,6 +121,8 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError("--detector onnx needs --pose-model FILE.onnx")
     if args.fps is not None and not args.fps > 0:
         raise UsageError(f"--fps must be positive, got {args.fps}")
+    if args.preview is not None and args.preview.suffix.lower() != ".mp4":
+        raise UsageError(f"--preview must name an .mp4 file, got {args.preview}")
     if args.max_side != 0 and args.max_side < 64:
         raise UsageError(f"--max-side must be 0 (native) or at least 64, got {args.max_side}")
 
@@ -111,12 +141,23 @@ def run(args: argparse.Namespace) -> int:
         **({} if args.fov is None else {"fov_deg": args.fov}),
     )
     summary = track_to_file(
-        args.input, args.out, options, masks_dir=args.masks, progress=not args.no_progress, threads=threads
+        args.input,
+        args.out,
+        options,
+        masks_dir=args.masks,
+        preview=args.preview,
+        progress=not args.no_progress,
+        threads=threads,
     )
     print(
         f"wrote {summary.out}: {summary.frames} frames, {summary.confident_frames} confident "
         f"(mean confidence {summary.mean_confidence:.2f}) in {summary.seconds:.1f} s"
     )
+    print(summary.describe_skipped())
+    if summary.camera:
+        print(summary.camera)
+    if args.preview is not None:
+        print(f"fit preview: {args.preview}")
     return 0
 
 

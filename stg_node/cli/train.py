@@ -5,6 +5,7 @@
               [--train-camera NAME] [--iters N]
               [--backend auto|cpu|cuda|torch] [--threads T] [--seed S] [--resume]
     stg-train --data VIDEO --format video --out RUN_DIR [--intrinsics FILE.json | --fov DEG] [...]
+    stg-train --data DIR --format video --calibration rig.json --out RUN_DIR [--train-cameras A,B]  (a rig)
 
 ``--format video`` takes a video file (or a folder of images): it is tracked first (stg-track's
 SMPL fit and person masks, cached by content; stg_node/avatar/video.py) into the folder format
@@ -58,6 +59,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--train-camera", default=None, help="training camera name (default: the protocol's, camera 1)"
     )
+    p.add_argument(
+        "--train-cameras",
+        default=None,
+        metavar="A,B,...",
+        help="several training cameras (a rig; the novel views are then every other camera): docs/RIGS.md",
+    )
     p.add_argument("--iters", type=int, default=None, help="training iterations (default: the preset's)")
     p.add_argument(
         "--checkpoint-every",
@@ -101,6 +108,12 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="DEG",
         help="--format video: horizontal field of view without a calibration (default 65)",
     )
+    p.add_argument(
+        "--calibration",
+        default=None,
+        metavar="RIG.json",
+        help="--format video of a rig: its rig.json; --data holds one recording per camera (docs/RIGS.md)",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_log_level_option(p)
     return p
@@ -128,11 +141,18 @@ def run(args: argparse.Namespace) -> int:
         frames = parse_frame_range(args.train_frames)
     except ValueError as exc:
         raise UsageError(str(exc)) from exc
+    train_cameras = rig_cameras_option(args)
     if args.format != "video" and (args.intrinsics is not None or args.fov is not None):
         raise UsageError("--intrinsics and --fov describe the camera of a video: only with --format video")
     if args.fov is not None and not 1.0 <= args.fov <= 170.0:
         raise UsageError(f"--fov must be between 1 and 170 degrees, got {args.fov}")
-    if args.format == "video" and not Path(args.data).exists():
+    if args.calibration is not None and (args.format != "video" or args.intrinsics or args.fov):
+        raise UsageError(
+            "--calibration (a rig's rig.json) goes with --format video, without --intrinsics/--fov"
+        )
+    if args.calibration is not None and not Path(args.calibration).is_file():
+        raise UsageError(f"--calibration {args.calibration} does not exist")
+    if args.format == "video" and args.calibration is None and not Path(args.data).exists():
         raise CommandFailed(f"--data {args.data}: no such video file or image folder")
     if args.format != "video" and not Path(args.data).is_dir():
         raise CommandFailed(f"--data {args.data}: no such folder")
@@ -140,15 +160,35 @@ def run(args: argparse.Namespace) -> int:
     from stg_node.avatar.presets import preset
     from stg_node.avatar.run import RunDir
 
+    base = preset(args.preset)
+    if args.format == "video":  # a tracker's poses: refined harder, kept smooth (avatar/pose_refine.py)
+        from stg_node.avatar.pose_refine import refinement_for
+
+        base = refinement_for(base, "tracked")
     try:
-        args.config = apply_settings(preset(args.preset), args.set)
+        args.config = apply_settings(base, args.set)
     except ValueError as exc:
         raise UsageError(f"--set: {exc}") from exc
     if args.set and args.resume and RunDir(Path(args.out)).checkpoint.is_file():
         raise UsageError(f"--set changes a new run's settings; {args.out} resumes with its own (config.json)")
+    args.train_cameras_tuple = train_cameras
     configure_threads(args.threads)
     with StopSignals() as stop:
         return _train(args, frames, stop)
+
+
+def rig_cameras_option(args) -> tuple[str, ...] | None:
+    """``--train-cameras A,B`` as a tuple (None without it), checked against ``--train-camera``."""
+    if args.train_cameras is None:
+        return None
+    if args.train_camera is not None:
+        raise UsageError("give --train-camera (one camera) or --train-cameras (several), not both")
+    names = tuple(n.strip() for n in args.train_cameras.split(","))
+    if not all(names) or len(set(names)) != len(names):
+        raise UsageError(
+            f"--train-cameras must be distinct names separated by commas, got {args.train_cameras!r}"
+        )
+    return names
 
 
 def _device(args) -> str:
@@ -172,7 +212,22 @@ def _train(args, frames, stop: StopSignals) -> int:
     wall_start = time.perf_counter()
     run = RunDir(Path(args.out))
     data_root = args.data
-    if args.format == "video":
+    if args.format == "video" and args.calibration is not None:
+        from stg_node.avatar.rig_video import prepare_rig_videos
+        from stg_node.calibration.rig import read_rig
+
+        data_root = str(
+            prepare_rig_videos(
+                args.data,
+                run.path / "video_data",
+                args.calibration,
+                smpl_model=args.smpl_model,
+                progress=not args.no_progress,
+            )
+        )
+        if args.train_cameras_tuple is None:  # every camera of the rig trains
+            args.train_cameras_tuple = tuple(read_rig(args.calibration).names)
+    elif args.format == "video":
         from stg_node.avatar.video import prepare_video
 
         data_root = str(
@@ -183,9 +238,17 @@ def _train(args, frames, stop: StopSignals) -> int:
                 intrinsics=args.intrinsics,
                 fov_deg=args.fov,
                 progress=not args.no_progress,
+                preview=run.path / "fit_preview.mp4",
             )
         )
-    spec = DataSpec(str(Path(data_root).resolve()), args.format, frames, args.train_camera, args.size)
+    spec = DataSpec(
+        str(Path(data_root).resolve()),
+        args.format,
+        frames,
+        args.train_camera,
+        args.size,
+        args.train_cameras_tuple,
+    )
     device = _device(args)
     flow_cache = FlowCache(run.flow_cache)
     resumed = False
@@ -207,6 +270,7 @@ def _train(args, frames, stop: StopSignals) -> int:
         config = args.config
         if args.iters is not None:
             config = config.replace(iterations=args.iters)
+        config = _scaled_budget(args, config, spec)
         trainer = Trainer(
             config,
             args.smpl_model,
@@ -271,6 +335,8 @@ def _train(args, frames, stop: StopSignals) -> int:
         "skipped_steps": trainer.skipped_steps,
         "frames": len(trainer.store),
         "preset": config.preset,
+        "budget": getattr(args, "budget", None),
+        "tracking": _tracking_report(run),
         **stats,
         "densify": trainer.densify_counts,
         "nonrigid": trainer.nonrigid_report(),
@@ -285,6 +351,28 @@ def _train(args, frames, stop: StopSignals) -> int:
         )
         return 130
     return 0
+
+
+def _tracking_report(run):
+    """What ``--format video``'s tracking kept, skipped (and why) and its camera; None otherwise."""
+    from stg_node.tracking.pipeline import TRACKING_REPORT
+
+    path = run.path / "video_data" / TRACKING_REPORT
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def _scaled_budget(args, config, spec):
+    """The preset's budget scaled with the person's size in pixels (stg_node/avatar/budget.py); what
+    the user set (``--set``, ``--iters``) stays as given."""
+    from stg_node.avatar.budget import SCALED, sample_masks, scale_budget
+
+    fixed = tuple(key for key in SCALED if any(item.split("=", 1)[0].strip() == key for item in args.set))
+    if args.iters is not None:
+        fixed += ("iterations",)
+    config, budget = scale_budget(config, sample_masks(spec.open("train")), fixed=fixed)
+    log.info("%s", budget.describe())
+    args.budget = budget.as_dict()
+    return config
 
 
 def _versions() -> dict:

@@ -96,6 +96,30 @@ class MonocularProtocol:
         raise ValueError(f"unknown split {name!r}; use one of {SPLIT_NAMES}")
 
 
+@dataclass(frozen=True)
+class RigProtocol:
+    """Several training cameras (a rig, docs/RIGS.md) over a frame range: novel view = every other
+    camera every 30th training frame; novel pose = every 30th frame after the range, all cameras.
+    The monocular protocol with a set of cameras in place of one."""
+
+    train_cameras: tuple[str, ...]
+    train_frames: FrameRange
+    source: str = ""
+
+    def split(self, name: str) -> SplitSpec:
+        start, stop = self.train_frames.start, self.train_frames.stop
+        if name == "train":
+            return SplitSpec("train", self.train_frames, cameras=self.train_cameras)
+        if name == "novel_view":
+            return SplitSpec(
+                "novel_view",
+                FrameRange(start, stop, TEST_STRIDE),
+                exclude=self.train_cameras,
+                note=f"every camera trains ({', '.join(self.train_cameras)}): none is left for novel views",
+            )
+        return MonocularProtocol(self.train_cameras[0], self.train_frames, self.source).split(name)
+
+
 _3DGS_AVATAR = "3DGS-Avatar configs/dataset/zjumocap_{}_mono.yaml"
 
 # 3DGS-Avatar monocular protocol: train_views ['1'], train_frames [0, N, 1] (N = 0: all frames).

@@ -2,7 +2,7 @@
 
 Loaders (ZJU-MoCap, THuman4.0, the folder format, the synthetic benchmark) all produce
 these, so the trainer and the evaluation never care where a frame came from. Units and
-axes follow ../shared/ARCHITECTURE.md: metres, seconds, OpenCV cameras with
+axes follow docs/ARCHITECTURE.md: metres, seconds, OpenCV cameras with
 world-to-camera R, t; images H x W x 3 uint8 RGB; masks H x W uint8 0/255. The SMPL parameters
 are :class:`stg_node.body.params.SmplParams` (ZJU-MoCap's ``Rh``/``Th`` convention), the
 project's one type for them, re-exported here.

@@ -133,6 +133,21 @@ class TrainerAdapter:
         self._trainer.notes = {str(k): float(v) for k, v in (notes or {}).items()}
         self._trainer.save(str(path))
 
+    def evaluate(self, data: str | Path) -> dict:
+        """The current model on the held-out cameras of the dataset at ``data``: ``split``,
+        ``views``, ``psnr``, ``ssim``, ``lpips`` (None when unavailable)."""
+        evaluate = getattr(self._module, "evaluate_trainer", None)
+        if evaluate is None:
+            raise RuntimeError(f"the avatar implementation {self._module.__name__} cannot evaluate")
+        report = dict(evaluate(self._trainer, str(data)))
+        return {
+            "split": str(report["split"]),
+            "views": int(report["views"]),
+            "psnr": float(report["psnr"]),
+            "ssim": float(report["ssim"]),
+            "lpips": None if report.get("lpips") is None else float(report["lpips"]),
+        }
+
 
 def _accepts(fn, name: str) -> bool:
     """Whether ``fn`` takes the keyword ``name`` (optional parts of the avatar API)."""
@@ -192,6 +207,15 @@ class RendererAdapter:
             else np.ascontiguousarray(out.depth, np.float32),
             render_ms=float(out.render_ms),
         )
+
+    def posed_points(self, smpl: SmplParams, time: float | None = None) -> np.ndarray | None:
+        """(N, 3) world points of the posed avatar (what a framing camera keeps in view), or None
+        when the implementation cannot tell."""
+        posed = getattr(self._renderer, "posed_points", None)
+        if posed is None:
+            return None
+        points = np.asarray(posed(smpl, time), np.float64).reshape(-1, 3)
+        return points if len(points) and np.all(np.isfinite(points)) else None
 
     def points(
         self, smpl: SmplParams, time: float | None = None, camera_center=None

@@ -2,10 +2,12 @@
 
 Sources (:mod:`.sources`): a dataset split (ZJU-MoCap, THuman4.0, stg-synth output, folder
 format), a video file, a V4L2 camera, an OAK camera (or a video file through depthai's host-side
-replay). Pacing (``rate_hz``): -1 the source's own rate (dataset fps, file fps, a live camera
-as it delivers), > 0 that rate, 0 as fast as consumers take it: frame k waits until a message
-on ``pace_topic`` (the tracker's body/pose, which names its frame) acknowledges frame
-k - ``max_ahead``, or ``pace_timeout_s`` passes.
+replay), a rig of several cameras (``source: rig``, :mod:`.rig_sources`: V4L2 devices or video
+files, each frame stamped at capture and published on its camera's own topic, ``NAME/camera/frame``
+under the remapped name: :mod:`.rig`). Pacing (``rate_hz``): -1 the source's own rate (dataset
+fps, file fps, a live camera as it delivers), > 0 that rate, 0 as fast as consumers take it:
+frame k waits until a message on ``pace_topic`` (the tracker's body/pose, which names its frame)
+acknowledges frame k - ``max_ahead``, or ``pace_timeout_s`` passes.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ from stg_node.nodes.sources import CapturedFrame, SourceError
 
 @dataclass
 class IngestParams:
-    source: Literal["dataset", "video", "v4l2", "oak"] = param("dataset", doc="where frames come from")
+    source: Literal["dataset", "video", "v4l2", "oak", "rig"] = param("dataset", doc="where frames come from")
     path: str = param("", doc="dataset folder or video file (oak: a video file replays through depthai)")
     dataset_kind: Literal["auto", "zju", "thuman4", "folder", "synth"] = param("auto", doc="dataset layout")
     split: str = param("train", doc="dataset split: train, novel_view, novel_pose, all")
@@ -50,10 +52,16 @@ class IngestParams:
     wait_subscribers_s: float = param(
         5.0, min=0.0, unit="s", doc="before the first frame, wait this long for a subscriber"
     )
+    # source rig (docs/RIGS.md): several cameras, one topic each
+    rig: str = param("", doc="rig: the rig.json (stg-calibrate) whose cameras the devices are")
+    devices: str = param("", doc="rig: V4L2 devices, one per rig camera in its order, comma-separated")
+    videos: str = param("", doc="rig without cameras: video files, one per rig camera, played together")
 
     def validate(self) -> None:
         if self.source in ("dataset", "video") and not self.path:
             raise ValueError(f"source {self.source!r} needs a path")
+        if self.source == "rig" and (not self.rig or bool(self.devices) == bool(self.videos)):
+            raise ValueError("source rig needs rig (a rig.json) and either devices or videos")
 
 
 class IngestNode(Node):
@@ -86,6 +94,11 @@ class IngestNode(Node):
                     calibration=p.calibration,
                     hfov_deg=p.hfov_deg,
                 )
+            elif p.source == "rig":
+                from stg_node.nodes.rig_sources import RigSource
+
+                targets = [t.strip() for t in (p.devices or p.videos).split(",") if t.strip()]
+                self.source = RigSource(p.rig, targets, v4l2=bool(p.devices), fps=p.fps, loop=p.loop)
             else:
                 self.source = sources.OakSource(
                     replay=p.path,
@@ -99,6 +112,7 @@ class IngestNode(Node):
         self.pace = self.subscribe(p.pace_topic) if p.rate_hz == 0 else None
         self.acked_seq = -1
         self.published = 0
+        self.rig_dropped = 0
 
     def _rate(self) -> float:
         if self.params.rate_hz > 0:
@@ -128,13 +142,27 @@ class IngestNode(Node):
             R=cam.R,
             t=cam.t,
         )
-        self.publish(frame, stamp_ns=captured.stamp_ns or None)
+        topic = None
+        if self.params.source == "rig":
+            from stg_node.nodes.rig import camera_topic
+
+            topic = camera_topic(self.topic("camera/frame"), cam.name)
+            dropped = sum(self.source.dropped().values())
+            if dropped > self.rig_dropped:  # frames a camera delivered faster than we published
+                self.drop("camera_backlog", dropped - self.rig_dropped)
+                self.rig_dropped = dropped
+        self.publish(frame, topic=topic, stamp_ns=captured.stamp_ns or None)
         self.published += 1
 
     def run(self) -> None:
         p = self.params
+        watched = self.topic("camera/frame")
+        if p.source == "rig":
+            from stg_node.nodes.rig import camera_topic
+
+            watched = camera_topic(watched, self.source.names[0])
         if p.wait_subscribers_s > 0 and not self.bus.publisher.wait_for_subscribers(
-            self.topic("camera/frame"), timeout=p.wait_subscribers_s
+            watched, timeout=p.wait_subscribers_s
         ):
             self.log.info("nobody subscribes to camera/frame yet; publishing anyway")
         rate = self._rate()
@@ -159,7 +187,7 @@ class IngestNode(Node):
                     self.log.info("published %d frames (max_frames)", self.published)
                     return
             passes += 1
-            if not p.loop or p.source in ("v4l2", "oak"):
+            if not p.loop or p.source in ("v4l2", "oak", "rig"):  # a rig loops its own files
                 break
             if p.source == "video":  # a fresh capture for the next pass
                 self.setup_source_again()

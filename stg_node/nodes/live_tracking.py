@@ -1,6 +1,6 @@
 """The tracker node's built-in live estimator: camera/frame -> SMPL pose, person mask, confidence.
 
-:class:`TrackingEstimator` is the node's :class:`~stg_node.nodes.tracker.PoseEstimator` backed by
+:class:`TrackingEstimator` is the node's :class:`~stg_node.nodes.estimate.PoseEstimator` backed by
 :class:`stg_node.tracking.Tracker` (BlazePose keypoints, SMPL fit, One-Euro smoothing, a mask;
 docs/TRACKING.md). The camera comes from each frame: a Tracker is built for the frame's size
 and ``K`` (Frame images are undistorted, so no distortion) and built again when either changes.
@@ -24,8 +24,8 @@ from typing import Literal
 import numpy as np
 
 from stg_node.bus import Frame
+from stg_node.nodes.estimate import PoseEstimate
 from stg_node.nodes.params import param, parse_params
-from stg_node.nodes.tracker import PoseEstimate
 
 log = logging.getLogger(__name__)
 

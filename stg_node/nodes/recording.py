@@ -1,7 +1,9 @@
 """What the renderer writes to disk: numbered PNGs as they are rendered, then an MP4 and a contact sheet.
 
 Images are written as they come (so a killed renderer still leaves them); :meth:`ImageRecorder.finish`
-assembles the MP4 (OpenCV, mp4v) and a contact sheet (a grid of evenly spaced frames, labelled).
+assembles the MP4 (OpenCV, mp4v: the whole session, the avatar learning included) and a contact
+sheet: the views the renderer gives it at the end (the trained avatar from the training camera
+and around an orbit), or else a grid of evenly spaced recorded frames, labelled.
 The number of images kept is bounded (``max_images``): past it every other one is thinned out, so
 an endless run does not fill the disk.
 """
@@ -43,8 +45,11 @@ class ImageRecorder:
             self.paths, self.labels = self.paths[::2], self.labels[::2]
             self.every *= 2
 
-    def finish(self, name: str = "avatar") -> dict[str, str]:
-        """Write ``name``.mp4 and ``name``_sheet.png from the recorded images; their paths."""
+    def finish(
+        self, name: str = "avatar", sheet: list[tuple[np.ndarray, str]] | None = None
+    ) -> dict[str, str]:
+        """Write ``name``.mp4 from the recorded images and ``name``_sheet.png from ``sheet`` ((RGB image,
+        label) pairs: what the avatar looks like at the end), else from the recorded images; their paths."""
         written: dict[str, str] = {}
         images = [cv2.imread(str(p)) for p in self.paths]
         images = [im for im in images if im is not None]
@@ -60,9 +65,14 @@ class ImageRecorder:
             written["video"] = str(video)
         else:  # pragma: no cover - OpenCV builds without an mp4 writer
             log.warning("OpenCV cannot write %s; the frames stay in %s", video, self.frames_dir)
-        sheet = self.folder / f"{name}_sheet.png"
-        cv2.imwrite(str(sheet), contact_sheet(images, self.labels[: len(images)]))
-        written["sheet"] = str(sheet)
+        sheet_path = self.folder / f"{name}_sheet.png"
+        if sheet:
+            tiles = [cv2.cvtColor(image, cv2.COLOR_RGB2BGR) for image, _ in sheet]
+            grid = contact_sheet(tiles, [label for _, label in sheet], count=len(tiles))
+        else:
+            grid = contact_sheet(images, self.labels[: len(images)])
+        cv2.imwrite(str(sheet_path), grid)
+        written["sheet"] = str(sheet_path)
         return written
 
 

@@ -39,7 +39,7 @@ from stg_node.nodes.avatar_adapter import DEFAULT_MODULE, RendererAdapter, avata
 from stg_node.nodes.convert import frame_camera, request_camera, request_smpl, resized_camera
 from stg_node.nodes.params import param
 from stg_node.nodes.runtime import Node
-from stg_node.nodes.views import default_camera, orbit_camera
+from stg_node.nodes.views import FramedOrbit, default_camera, orbit_camera
 
 
 @dataclass
@@ -177,6 +177,7 @@ class RendererNode(Node):
         self.oneshots: deque[ViewRequest] = deque()
         self.last_render = 0.0
         self.default_turn = 0
+        self.framed_orbit = FramedOrbit()
         self.started = time.monotonic()
         self.published = 0
         self.swaps = 0
@@ -314,13 +315,46 @@ class RendererNode(Node):
         if view in ("train", "both"):
             choices.append((train, "train"))
         if view in ("orbit", "both"):
-            angle = 2 * math.pi * ((time.monotonic() - self.started) / self.params.orbit_period_s % 1.0)
-            center = np.asarray(self.pose.Th, np.float64) if self.pose is not None else np.zeros(3)
-            choices.append((orbit_camera(train, center, angle), f"orbit {math.degrees(angle):.0f}"))
+            now = time.monotonic()
+            angle = 2 * math.pi * ((now - self.started) / self.params.orbit_period_s % 1.0)
+            choices.append((self._orbit_camera(train, angle, now), f"orbit {math.degrees(angle):.0f}"))
         if view == "both":
             self.default_turn += 1
             return [choices[self.default_turn % 2]]
         return choices
+
+    def _orbit_camera(self, train: Camera, angle: float, now: float) -> Camera:
+        """The orbit view framed on the live body (stg-render's rule), or, when the avatar cannot
+        say where its body is, circling the body's root at the training camera's distance."""
+        points = None
+        if self.pose is not None and self.current is not None:
+            points = self.current.posed_points(self.pose.to_smpl(), self.pose.time)
+        if points is not None:
+            return self.framed_orbit.camera(points, train, angle, now)
+        center = np.asarray(self.pose.Th, np.float64) if self.pose is not None else np.zeros(3)
+        return orbit_camera(train, center, angle)
+
+    def _final_views(self, orbit_views: int = 11) -> list[tuple[np.ndarray, str]] | None:
+        """The last snapshot on the last pose, from the training camera and ``orbit_views`` angles of
+        the framed orbit: the contact sheet of the recording shows the trained avatar."""
+        if self.current is None or self.pose is None:
+            return None
+        smpl = self.pose.to_smpl()
+        train = resized_camera(self.train_camera or default_camera(), self.params.size)
+        version = self.current.version
+        views = [(self.current.render(train, smpl, time=self.pose.time).image, f"v{version} training camera")]
+        points = self.current.posed_points(smpl, self.pose.time)
+        for k in range(orbit_views):
+            angle = 2 * math.pi * k / orbit_views
+            orbit = FramedOrbit()  # no smoothing history: each angle framed on its own
+            camera = (
+                orbit.camera(points, train, angle, 0.0)
+                if points is not None
+                else orbit_camera(train, np.asarray(self.pose.Th, np.float64), angle)
+            )
+            image = self.current.render(camera, smpl, time=self.pose.time).image
+            views.append((image, f"v{version} orbit {math.degrees(angle):.0f}"))
+        return views
 
     def _render_live(self) -> None:
         pose = self.pose
@@ -388,7 +422,7 @@ class RendererNode(Node):
             self._render_live()
         loader.close()
         if self.recorder is not None:
-            written = self.recorder.finish()
+            written = self.recorder.finish(sheet=self._final_views())
             for what, path in written.items():
                 self.log.info("wrote %s %s", what, path)
         self.log.info("published %d images, %d snapshot swaps", self.published, self.swaps)

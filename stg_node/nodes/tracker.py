@@ -17,6 +17,14 @@ Each BodyPose names its frame (``frame_seq``, ``frame_index``), carries the fram
 estimator's confidence, so the trainer pairs them (and skips unsure ones) and the renderer's
 latency counts from the camera.
 
+A rig of several cameras (``rig: rig.json``, ``mode: live``; docs/RIGS.md): the node reads each
+camera's own topic (:func:`stg_node.nodes.rig.camera_topic` of ``input_topic``), pairs the
+cameras' frames by capture stamp (within ``sync_tolerance_s``; :class:`stg_node.tracking.sync
+.StampMatcher`), tracks each complete set with a multi-view estimator (default
+:class:`stg_node.nodes.rig.RigTrackingEstimator`, or ``estimator`` with an ``estimate_set(frames)``
+method) and publishes, per camera, the frame with its mask on that camera's ``frame_topic`` and a
+BodyPose naming it, in the rig's world frame.
+
 The person mask travels where proto/ puts it, in a Frame (BodyPose has no image-sized arrays):
 with ``frame_topic`` set, the tracker republishes each frame it tracked, with the estimator's
 mask, on that topic, and the pose names that message. The live launch files remap the ingest's
@@ -29,49 +37,24 @@ from __future__ import annotations
 
 import importlib
 from dataclasses import dataclass
-from typing import Any, Literal, Protocol, runtime_checkable
+from typing import Any, Literal
 
 import numpy as np
 
 from stg_node.bus import Frame
-from stg_node.data.types import SmplParams
 from stg_node.nodes.convert import pose_message
+from stg_node.nodes.estimate import PoseEstimate, PoseEstimator, as_estimate
 from stg_node.nodes.params import param
 from stg_node.nodes.runtime import Node
 
 #: The estimator ``mode: live`` uses when ``estimator`` is empty.
 BUILTIN_ESTIMATOR = "stg_node.nodes.live_tracking:TrackingEstimator"
-
-
-@dataclass(frozen=True)
-class PoseEstimate:
-    """What an estimator returns for one frame."""
-
-    smpl: SmplParams  # in the frame's world (the Frame's R, t map it into the camera)
-    confidence: float  # 0..1
-    mask: np.ndarray | None = None  # (H, W) uint8 0/255 person mask of the frame, if the estimator makes one
-
-
-@runtime_checkable
-class PoseEstimator(Protocol):
-    def estimate(self, frame: Frame) -> PoseEstimate | tuple[SmplParams, float] | None:
-        """The body in ``frame`` (a camera/frame message: image, K, R, t, index, time), or None
-        when there is no person to fit. A plain ``(smpl, confidence)`` pair is accepted too."""
+#: The same with a ``rig``.
+BUILTIN_RIG_ESTIMATOR = "stg_node.nodes.rig:RigTrackingEstimator"
 
 
 class EstimateMismatch(ValueError):
     """The frame does not belong to the replayed dataset (index unknown or time stamp off)."""
-
-
-def as_estimate(result) -> PoseEstimate | None:
-    """An estimator's answer as a PoseEstimate (None stays None); TypeError for anything else."""
-    if result is None or isinstance(result, PoseEstimate):
-        return result
-    if isinstance(result, tuple) and len(result) == 2 and isinstance(result[0], SmplParams):
-        return PoseEstimate(result[0], float(result[1]))
-    raise TypeError(
-        f"an estimator returns PoseEstimate, (SmplParams, confidence) or None, got {type(result).__name__}"
-    )
 
 
 class ReplayEstimator:
@@ -135,8 +118,15 @@ class TrackerParams:
     latest_only: bool | None = param(
         None, doc="track only the newest frame (no backlog) or every frame in order; default: live yes"
     )
+    # several cameras (docs/RIGS.md)
+    rig: str = param("", doc="live: a rig.json: track its cameras together, each on its own topic")
+    sync_tolerance_s: float = param(
+        0.02, min=0.0, unit="s", doc="rig: frames of one instant lie within this of each other's stamps"
+    )
 
     def validate(self) -> None:
+        if self.rig and self.mode != "live":
+            raise ValueError("rig needs mode live")
         if self.mode == "replay" and not self.path:
             raise ValueError("mode replay needs path (the dataset the ingest node replays)")
         if self.mode == "live" and self.estimator and ":" not in self.estimator:
@@ -163,8 +153,8 @@ def load_estimator(target: str, options: dict) -> PoseEstimator:
     module_name, _, class_name = target.partition(":")
     cls = getattr(importlib.import_module(module_name), class_name)
     estimator = cls(**options)
-    if not isinstance(estimator, PoseEstimator):
-        raise TypeError(f"{target} has no estimate(frame) method")
+    if not isinstance(estimator, PoseEstimator) and not hasattr(estimator, "estimate_set"):
+        raise TypeError(f"{target} has no estimate(frame) (or, for a rig, estimate_set(frames)) method")
     return estimator
 
 
@@ -176,6 +166,14 @@ class TrackerNode(Node):
 
     def setup(self) -> None:
         p = self.params
+        self.rig = None
+        if p.rig:
+            from stg_node.nodes.rig import RigTracking
+
+            self.rig = RigTracking(
+                self, load_estimator(p.estimator or BUILTIN_RIG_ESTIMATOR, p.estimator_params)
+            )
+            return
         if p.mode == "replay":
             self.estimator: PoseEstimator = ReplayEstimator(
                 open_replay_dataset(p.path, p.dataset_kind), p.max_time_error_s, self.log
@@ -190,6 +188,9 @@ class TrackerNode(Node):
         self._error_logged = False
 
     def on_message(self, topic: str, msg) -> None:
+        if self.rig is not None:
+            self.rig.on_frame(topic, msg)
+            return
         try:
             result = as_estimate(self.estimator.estimate(msg))
         except EstimateMismatch as exc:

@@ -20,7 +20,10 @@
   bound (``max_frames``, in the avatar's config) and the node's own numbers (its wall time), so
   no two files can disagree after a kill. When respawned with ``resume`` it continues from the
   last checkpoint, iteration and bound included.
-- Ends on its own after ``iters`` iterations (0: never), writing ``out``/summary.json.
+- Ends on its own after ``iters`` iterations (0: never), writing ``out``/summary.json: the
+  training-view PSNR as a running mean over the last ``PSNR_WINDOW`` steps (one step's crop swings
+  by several dB from frame to frame), and, with ``eval_data``, the final model's quality on that
+  dataset's held-out cameras (novel-view PSNR / SSIM / LPIPS), which is what a user should judge.
 
 All calls into the avatar package go through :mod:`.avatar_adapter`.
 """
@@ -28,9 +31,10 @@ All calls into the avatar package go through :mod:`.avatar_adapter`.
 from __future__ import annotations
 
 import json
+import math
 import os
 import time
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -42,6 +46,7 @@ from stg_node.nodes.params import param
 from stg_node.nodes.runtime import Node
 
 CHECKPOINT_NAME = "trainer.ckpt"
+PSNR_WINDOW = 100  # steps the summary's training-view PSNR is averaged over
 
 
 @dataclass
@@ -75,13 +80,24 @@ class TrainerParams:
         doc="continue from checkpoint_dir's checkpoint: when respawned by stg-launch, always, or never",
     )
     out: str = param("", doc="folder for summary.json at the end (empty: none)")
+    rig: str = param("", doc="a rig.json: train from each of its cameras' NAME/camera/frame (docs/RIGS.md)")
+    eval_data: str = param(
+        "",
+        doc="when the iterations are done, score the model on this dataset's held-out cameras "
+        "(a stg-synth or ZJU-MoCap folder; empty: no)",
+    )
 
 
 class FramePairs:
-    """Frames and poses waiting for each other, keyed by (frame_index, frame_seq); bounded."""
+    """Frames and poses waiting for each other, keyed by (frame_index, frame_seq); bounded.
 
-    def __init__(self, limit: int):
+    ``camera_of(msg)``: which camera a message belongs to, for a rig whose cameras each have their
+    own frame and pose topics (seq numbers count per topic, so they repeat across cameras); the
+    key then starts with it. Default: one camera."""
+
+    def __init__(self, limit: int, camera_of=None):
         self.limit = limit
+        self.camera_of = camera_of or (lambda msg: "")
         self.frames: OrderedDict = OrderedDict()
         self.poses: OrderedDict = OrderedDict()
         self.rejected: OrderedDict = OrderedDict()  # keys of frames whose pose was refused
@@ -98,7 +114,7 @@ class FramePairs:
         return evicted
 
     def add_frame(self, frame):
-        key = (frame.index, frame.header.seq)
+        key = (self.camera_of(frame), frame.index, frame.header.seq)
         if self.rejected.pop(key, None) is not None:
             return None
         pose = self.poses.pop(key, None)
@@ -108,7 +124,7 @@ class FramePairs:
         return None
 
     def add_pose(self, pose):
-        key = (pose.frame_index, pose.frame_seq)
+        key = (self.camera_of(pose), pose.frame_index, pose.frame_seq)
         frame = self.frames.pop(key, None)
         if frame is not None:
             return frame, pose
@@ -117,7 +133,7 @@ class FramePairs:
 
     def reject(self, pose) -> None:
         """``pose``'s frame is not wanted: drop it if it waits, else drop it when it comes."""
-        key = (pose.frame_index, pose.frame_seq)
+        key = (self.camera_of(pose), pose.frame_index, pose.frame_seq)
         if self.frames.pop(key, None) is None:
             self._bounded(self.rejected, key, True, self.limit)
 
@@ -168,18 +184,24 @@ class TrainerNode(Node):
                 max_frames=p.max_frames,
             )
             self.iteration = 0
-        self.pairs = FramePairs(p.pending)
+        self.pairs = FramePairs(p.pending)  # a rig: replaced below, keyed by camera too
         self.owed_steps = 0  # steps_per_frame: steps still owed to the frames received
         self.owed_acks: list = []  # messages acknowledged once the steps they brought are done
         self.frames_in_buffer = 0
         self.frames_added = 0
         self.frames_unsure = 0  # skipped: pose confidence below min_confidence
         self.last: StepInfo | None = None
+        self.recent_psnr: deque[float] = deque(maxlen=PSNR_WINDOW)  # training view, per step
         self.published_version = -1
         self.model_figures: dict[str, float] = {}  # active_motion_fraction, model_mb: at each snapshot
         self.finished = False
-        self.frames = self.subscribe("camera/frame")  # keep-last: the newest frame when we have time
-        self.poses = self.subscribe("body/pose")
+        if p.rig:  # each camera its own frame and pose topics (docs/RIGS.md)
+            from stg_node.nodes.rig import rig_camera_names, rig_subscriptions
+
+            self.frames, self.poses, self.pairs.camera_of = rig_subscriptions(self, rig_camera_names(p.rig))
+        else:
+            self.frames = self.subscribe("camera/frame")  # keep-last: the newest frame when we have time
+            self.poses = self.subscribe("body/pose")
         self.started = time.monotonic()
         self.last_snapshot_time = self.started
         self.last_checkpoint_time = self.started
@@ -295,6 +317,8 @@ class TrainerNode(Node):
                 continue
             self.iteration = info.iteration
             self.last = info
+            if math.isfinite(info.psnr):
+                self.recent_psnr.append(info.psnr)
             if self.iteration % p.metrics_every == 0:
                 self._metrics(info)
             now = time.monotonic()
@@ -317,10 +341,15 @@ class TrainerNode(Node):
             return
         self._snapshot()
         self._save_checkpoint()
+        psnr = float(sum(self.recent_psnr) / len(self.recent_psnr)) if self.recent_psnr else None
+        heldout = self._evaluate() if self.finished and self.params.eval_data else None
         summary = {
             "iterations": self.iteration,
             "elapsed_s": round(self.elapsed, 2),
-            "psnr": None if self.last is None else self.last.psnr,
+            "psnr": psnr,
+            "psnr_note": f"training view: mean over the last {len(self.recent_psnr)} steps' crops",
+            "psnr_last_step": None if self.last is None else self.last.psnr,
+            "heldout": heldout,
             "num_gaussians": None if self.last is None else self.last.num_gaussians,
             "frames_added": self.frames_added,
             "frames_low_confidence": self.frames_unsure,
@@ -328,13 +357,32 @@ class TrainerNode(Node):
             "resumed_from": self.resumed_from,
         }
         self.log.info(
-            "summary: %d iterations in %.1f s, PSNR %s dB (training view), %s Gaussians",
+            "summary: %d iterations in %.1f s, PSNR %s dB (training view, mean of the last %d steps), "
+            "%s Gaussians",
             self.iteration,
             self.elapsed,
-            "n/a" if summary["psnr"] is None else f"{summary['psnr']:.2f}",
+            "n/a" if psnr is None else f"{psnr:.2f}",
+            len(self.recent_psnr),
             summary["num_gaussians"],
         )
+        if heldout is not None:
+            self.log.info(
+                "summary: held-out cameras (%s, %d views): PSNR %.2f dB, SSIM %.4f, LPIPS %s",
+                heldout["split"],
+                heldout["views"],
+                heldout["psnr"],
+                heldout["ssim"],
+                "n/a" if heldout["lpips"] is None else f"{heldout['lpips']:.4f}",
+            )
         if self.params.out:
             out = Path(self.params.out)
             out.mkdir(parents=True, exist_ok=True)
             (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+
+    def _evaluate(self) -> dict | None:
+        """The final model on ``eval_data``'s held-out cameras; None (and a warning) if that fails."""
+        try:
+            return self.trainer.evaluate(self.params.eval_data)
+        except Exception as exc:  # a summary without held-out figures beats no summary
+            self.log.warning("held-out evaluation on %s failed: %s", self.params.eval_data, exc)
+            return None

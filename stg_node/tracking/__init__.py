@@ -11,6 +11,9 @@ Public interface:
 - :func:`track_to_file` / :func:`track_video` (cached): a video file or image folder -> POSES.npz
   (the format ``stg-track`` writes: poses_file.py) and masks; :func:`video_to_folder`: the same
   as a folder-format dataset of the confident frames, for ``stg-train --format video``.
+- Several calibrated cameras (docs/RIGS.md): :class:`MultiViewTracker` (one instant of a rig ->
+  SMPL in its world frame), :func:`track_rig_to_file` / :func:`track_rig` / :func:`rig_to_folder`
+  (rig_pipeline.py: a rig's recordings, matched by time stamp: sync.py).
 
 Where it sits: it uses ``body`` (the body model, LBS), ``data`` (types, readers, the synthetic
 benchmark's joint limits) and the foundation helpers (progress, threads); it knows nothing of
@@ -20,6 +23,7 @@ the bus or the node runtime. ``cli`` (``stg-track``) and the tracker node call i
 from stg_node.tracking.camera import DEFAULT_FOV_DEG, Intrinsics, from_fov, load_intrinsics, smpl_to_world
 from stg_node.tracking.detectors import KeypointDetector, make_detector
 from stg_node.tracking.fitting import FitConfig, SmplFitter
+from stg_node.tracking.multiview import MultiViewConfig, MultiViewEstimate, MultiViewTracker
 from stg_node.tracking.pipeline import (
     TrackOptions,
     build_tracker,
@@ -28,6 +32,7 @@ from stg_node.tracking.pipeline import (
     video_to_folder,
 )
 from stg_node.tracking.poses_file import TrackedPoses, read_poses, write_poses
+from stg_node.tracking.rig_pipeline import rig_to_folder, track_rig, track_rig_to_file
 from stg_node.tracking.tracker import Tracker, TrackerConfig
 from stg_node.tracking.types import Keypoints, PoseEstimator, SmplParams, TrackEstimate
 
@@ -37,6 +42,9 @@ __all__ = [
     "Intrinsics",
     "KeypointDetector",
     "Keypoints",
+    "MultiViewConfig",
+    "MultiViewEstimate",
+    "MultiViewTracker",
     "PoseEstimator",
     "SmplFitter",
     "SmplParams",
@@ -50,7 +58,10 @@ __all__ = [
     "load_intrinsics",
     "make_detector",
     "read_poses",
+    "rig_to_folder",
     "smpl_to_world",
+    "track_rig",
+    "track_rig_to_file",
     "track_to_file",
     "track_video",
     "video_to_folder",

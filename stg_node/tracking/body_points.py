@@ -112,7 +112,10 @@ class BodyKeypoints(torch.nn.Module):
     the global rotation is ``Rh``). ``betas`` is (B, S) or (S,).
     """
 
-    def __init__(self, body: BodyModel, points: list[PointSpec]):
+    def __init__(self, body: BodyModel, points: list[PointSpec], offsets: dict | None = None):
+        """``offsets``: point name -> (carrier joint index, (3,) metres in that joint's rest axes):
+        the point is moved by the offset turned with the carrier joint (a detector's "hip" sits
+        a few centimetres from SMPL's hip joint: keypoint_offsets.py). Default: none."""
         super().__init__()
         if not points:
             raise ValueError("BodyKeypoints needs at least one point")
@@ -140,6 +143,16 @@ class BodyKeypoints(torch.nn.Module):
         index = [p.joint if p.joint is not None else 24 + slot[p.landmark] for p in points]
         self.register_buffer("gather_index", torch.as_tensor(index, dtype=torch.long))
         self.has_landmarks = bool(used)
+        offsets = {
+            name: value for name, value in (offsets or {}).items() if any(p.name == name for p in points)
+        }
+        carriers = [offsets[p.name][0] if p.name in offsets else 0 for p in points]
+        vectors = [offsets[p.name][1] if p.name in offsets else (0.0, 0.0, 0.0) for p in points]
+        self.register_buffer("offset_carrier", torch.as_tensor(carriers, dtype=torch.long))
+        self.register_buffer(
+            "offset_vector", torch.as_tensor(np.asarray(vectors, np.float64), dtype=torch.float64)
+        )
+        self.has_offsets = bool(offsets)
 
     def rest_joints(self, betas: torch.Tensor) -> torch.Tensor:
         """(B, 24, 3) shaped rest joints."""
@@ -152,10 +165,15 @@ class BodyKeypoints(torch.nn.Module):
         betas = betas.to(dtype).reshape(-1, self.num_betas).expand(batch, -1)
         joints, bone_transforms = lbs.rigid_chain(rotations.to(dtype), self.rest_joints(betas), self.parents)
         if not self.has_landmarks:
-            return joints[:, self.gather_index]
-        rest_points = self.landmark_template + torch.einsum("lcs,bs->blc", self.landmark_shapedirs, betas)
-        landmarks = lbs.skin_points(rest_points, self.landmark_weights, bone_transforms)
-        return torch.cat([joints, landmarks], dim=1)[:, self.gather_index]
+            points = joints[:, self.gather_index]
+        else:
+            rest_points = self.landmark_template + torch.einsum("lcs,bs->blc", self.landmark_shapedirs, betas)
+            landmarks = lbs.skin_points(rest_points, self.landmark_weights, bone_transforms)
+            points = torch.cat([joints, landmarks], dim=1)[:, self.gather_index]
+        if self.has_offsets:
+            carrier_rotation = bone_transforms[:, self.offset_carrier, :3, :3]  # (B, P, 3, 3)
+            points = points + (carrier_rotation @ self.offset_vector.to(dtype)[None, :, :, None]).squeeze(-1)
+        return points
 
     def forward(
         self, betas: torch.Tensor, body_pose: torch.Tensor, Rh: torch.Tensor, Th: torch.Tensor

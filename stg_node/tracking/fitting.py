@@ -110,6 +110,7 @@ class FitResult:
     rms_units: float  # the same in units of noise_fraction x person height
     used_targets: int
     reinitialised: bool
+    cost: float = float("nan")  # the robust cost of the solution (2D, 3D directions, priors; no temporal)
 
     @property
     def poses(self) -> np.ndarray:
@@ -415,6 +416,8 @@ class SmplFitter:
         self._last_time = timestamp
         self._tracking = True
         rms_units, rms_px, used = self._reprojection_error(theta, obs, ctx)
+        cost = self._cost(theta, obs, dict(ctx, previous=None, calibrating=False, betas=torch.as_tensor(
+            np.asarray(betas, dtype=np.float64))[None]))  # fmt: skip
         return FitResult(
             body_pose=self._pose.reshape(NUM_BODY_JOINTS, 3).copy(),
             Rh=_vector_from_rotation(rotation),
@@ -424,6 +427,7 @@ class SmplFitter:
             rms_units=rms_units,
             used_targets=used,
             reinitialised=reinit or rescued,
+            cost=cost,
         )
 
     def add_calibration(self, result: FitResult, confidence: float) -> None:

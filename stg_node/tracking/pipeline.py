@@ -1,6 +1,11 @@
 """Offline tracking of a whole video or image folder: what ``stg-track`` and ``stg-train --format video`` run.
 
-- :func:`track_to_file`: input -> POSES.npz (+ optional masks folder), with a progress bar.
+- :func:`track_to_file`: input -> POSES.npz (+ optional masks folder and fit preview), with a
+  progress bar. Without a calibration or a given field of view, the focal length is estimated
+  from the sequence (focal.py): the first pass tracks at the default field of view and keeps
+  each frame's keypoints; when the estimate is sure, a second pass re-fits those keypoints with
+  it (nothing is detected twice). Frames that cannot be trusted (frame_checks.py, tracker.py)
+  are counted by reason.
 - :func:`track_video`: the same into a cache folder keyed by the input's content and every
   setting that changes the result, so running it twice on the same video costs one hash.
   It returns the path of POSES.npz; the masks are ``masks/{frame:06d}.png`` beside it.
@@ -14,7 +19,7 @@ import logging
 import os
 import shutil
 import tempfile
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -31,7 +36,7 @@ from stg_node.tracking.sources import ImageFolderSource, open_source
 log = logging.getLogger(__name__)
 
 ENV_CACHE = "STG_TRACK_CACHE"
-CACHE_FORMAT = 1  # bump when the output of the same input and settings changes
+CACHE_FORMAT = 2  # bump when the output of the same input and settings changes
 
 
 @dataclass(frozen=True)
@@ -39,7 +44,7 @@ class TrackOptions:
     """Everything besides the input that decides the output."""
 
     intrinsics: str | None = None  # JSON file with K (and dist); None: pinhole from fov_deg
-    fov_deg: float = DEFAULT_FOV_DEG
+    fov_deg: float | None = None  # horizontal field of view; None: estimated from the footage (focal.py)
     smpl_model: str | None = None  # SMPL .pkl/.npz file or folder; None: the open body
     detector: str = "blazepose"
     pose_model: str | None = None  # ONNX file (detector "onnx") or a folder with the BlazePose files
@@ -62,6 +67,27 @@ class TrackSummary:
     confident_frames: int  # confidence >= 0.5
     mean_confidence: float
     seconds: float
+    skipped: dict[str, int] = field(default_factory=dict)  # reason -> frames below 0.5 with it
+    camera: str = ""  # where K came from, in words
+
+    def describe_skipped(self) -> str:
+        """``"12 frames skipped: 8 cut_by_border, 4 motion_blur"`` (a frame may have several reasons)."""
+        count = self.frames - self.confident_frames
+        if not count:
+            return "no frame skipped"
+        reasons = ", ".join(f"{n} {why}" for why, n in sorted(self.skipped.items(), key=lambda kv: -kv[1]))
+        return f"{count} of {self.frames} frames skipped (confidence < {DEFAULT_MIN_CONFIDENCE}): {reasons}"
+
+
+def skip_reasons(confidence: np.ndarray, flags, threshold: float = 0.5) -> dict[str, int]:
+    """Reason -> frames below ``threshold`` that carry it (``low_confidence`` when none is named)."""
+    counts: dict[str, int] = {}
+    for conf, text in zip(confidence, flags, strict=True):
+        if conf >= threshold:
+            continue
+        for why in [w for w in str(text).split(",") if w] or ["low_confidence"]:
+            counts[why] = counts.get(why, 0) + 1
+    return counts
 
 
 def input_digest(path: str | Path) -> str:
@@ -136,7 +162,7 @@ def build_tracker(
 def camera_for(options: TrackOptions, width: int, height: int) -> Intrinsics:
     if options.intrinsics is not None:
         return load_intrinsics(options.intrinsics, width, height)
-    return from_fov(width, height, options.fov_deg)
+    return from_fov(width, height, DEFAULT_FOV_DEG if options.fov_deg is None else options.fov_deg)
 
 
 def track_to_file(
@@ -145,35 +171,48 @@ def track_to_file(
     options: TrackOptions | None = None,
     *,
     masks_dir: str | Path | None = None,
+    preview: str | Path | None = None,
     progress: bool = True,
     threads: int | None = None,
 ) -> TrackSummary:
-    """Track every frame of a video or image folder; write POSES.npz (and masks when asked)."""
+    """Track every frame of a video or image folder; write POSES.npz (and masks, and the fit preview,
+    when asked). See the module docstring for the focal length and the frames that are skipped."""
     import time
+
+    from stg_node.tracking.focal import FocalObservation, estimate_focal
+    from stg_node.tracking.frame_checks import image_factor
 
     options = options or TrackOptions()
     source = open_source(input_path, options.fps)
     tracker, body = build_tracker(options, source.width, source.height, threads)
+    estimate_camera = options.intrinsics is None and options.fov_deg is None
+    scratch = None
+    if masks_dir is None and preview is not None:  # the preview draws the masks
+        scratch = tempfile.TemporaryDirectory(prefix="stg-track-masks-")
+        masks_dir = scratch.name
     if masks_dir is not None:
         masks_dir = Path(masks_dir)
         masks_dir.mkdir(parents=True, exist_ok=True)
     rows: dict[str, list] = {
-        k: [] for k in ("poses", "Rh", "Th", "shapes", "confidence", "frames", "times", "rms")
+        k: [] for k in ("poses", "Rh", "Th", "shapes", "confidence", "frames", "times", "rms", "flags")
     }
+    observations: list[FocalObservation | None] = []
+    shape = (source.height, source.width)
     t0 = time.perf_counter()
     bar = progress_bar(total=len(source) or None, unit="frame", desc="stg-track", enabled=progress)
     try:
         for frame in source:
             estimate = tracker.estimate(frame.image, frame.timestamp)
-            smpl = estimate.smpl
-            rows["poses"].append(np.asarray(smpl.poses, np.float32).reshape(72))
-            rows["Rh"].append(smpl.Rh)
-            rows["Th"].append(smpl.Th)
-            rows["shapes"].append(smpl.betas)
-            rows["confidence"].append(estimate.confidence)
-            rows["frames"].append(frame.index)
-            rows["times"].append(frame.timestamp)
-            rows["rms"].append(estimate.reprojection_px)
+            _append(rows, estimate, frame.index, frame.timestamp)
+            if estimate_camera:
+                kp = estimate.keypoints
+                observations.append(
+                    None
+                    if kp is None
+                    else FocalObservation(
+                        frame.timestamp, replace(kp, segmentation=None), estimate.confidence
+                    )
+                )
             if masks_dir is not None:
                 path = masks_dir / f"{frame.index:06d}.png"
                 if not cv2.imwrite(str(path), estimate.mask):
@@ -184,6 +223,27 @@ def track_to_file(
         bar.close()
     if not rows["poses"]:
         raise ValueError(f"{input_path}: no frames to track")
+    intrinsics = tracker.intrinsics
+    betas = tracker.fitter.betas
+    camera = {"method": "file", "path": str(options.intrinsics)} if options.intrinsics else None
+    if options.fov_deg is not None:
+        camera = {"method": "fov", "fov_deg": float(options.fov_deg)}
+    if estimate_camera:
+        found = estimate_focal(
+            [o for o in observations if o is not None], body, tracker.layout, source.width, source.height
+        )
+        log.info("%s", found.describe())
+        camera = {"method": "estimate", **json.loads(found.to_json()), "used": "default"}
+        if found.sure:
+            camera["used"] = "estimate"
+            intrinsics = from_fov(source.width, source.height, found.fov_deg)
+            rows, betas = _refit(tracker, body, intrinsics, rows, observations, shape, image_factor)
+        else:
+            log.warning(
+                "the field of view stays at the default %g degrees: %s (give --fov or --intrinsics)",
+                DEFAULT_FOV_DEG,
+                found.reason,
+            )
     tracked = TrackedPoses(
         poses=np.stack(rows["poses"]),
         Rh=np.stack(rows["Rh"]),
@@ -192,23 +252,92 @@ def track_to_file(
         confidence=np.asarray(rows["confidence"], np.float32),
         frames=np.asarray(rows["frames"], np.int64),
         times=np.asarray(rows["times"], np.float64),
-        K=tracker.intrinsics.K,
-        dist=np.zeros(0) if tracker.intrinsics.dist is None else tracker.intrinsics.dist,
+        K=intrinsics.K,
+        dist=np.zeros(0) if intrinsics.dist is None else intrinsics.dist,
         image_size=(source.width, source.height),
         fps=source.fps,
         body=str(body.name),
         reprojection_px=np.asarray(rows["rms"], np.float32),
+        flags=np.asarray(rows["flags"], dtype=str),
+        camera=json.dumps(camera),
     )
     # Shape calibration converges during the first frames: give every row the final shape.
-    tracked.shapes[:] = tracker.fitter.betas.astype(np.float32)
+    tracked.shapes[:] = np.asarray(betas, np.float32)
     write_poses(out, tracked)
+    if preview is not None:
+        from stg_node.tracking.preview import write_preview
+
+        write_preview(input_path, out, preview, masks_dir=masks_dir, smpl_model=options.smpl_model,
+                      fps=options.fps, progress=progress)  # fmt: skip
+    if scratch is not None:
+        scratch.cleanup()
     confidence = tracked.confidence
     return TrackSummary(
         out=Path(out),
         frames=len(tracked),
-        confident_frames=int((confidence >= 0.5).sum()),
+        confident_frames=int((confidence >= DEFAULT_MIN_CONFIDENCE).sum()),
         mean_confidence=float(confidence.mean()),
         seconds=time.perf_counter() - t0,
+        skipped=skip_reasons(confidence, tracked.flags, DEFAULT_MIN_CONFIDENCE),
+        camera=describe_camera(camera),
+    )
+
+
+def _append(rows: dict[str, list], estimate, index: int, timestamp: float) -> None:
+    smpl = estimate.smpl
+    rows["poses"].append(np.asarray(smpl.poses, np.float32).reshape(72))
+    rows["Rh"].append(smpl.Rh)
+    rows["Th"].append(smpl.Th)
+    rows["shapes"].append(smpl.betas)
+    rows["confidence"].append(estimate.confidence)
+    rows["frames"].append(index)
+    rows["times"].append(timestamp)
+    rows["rms"].append(estimate.reprojection_px)
+    rows["flags"].append(",".join(estimate.flags))
+
+
+def _refit(tracker, body, intrinsics, rows, observations, shape, image_factor):
+    """The second pass: the first pass's keypoints fitted with ``intrinsics``; the image checks
+    (border, blur) of the first pass carried over. Returns new rows and the calibrated shape."""
+    from stg_node.tracking.tracker import Tracker
+
+    again = Tracker(tracker.detector, body, intrinsics, tracker.config, tracker.masker)
+    new: dict[str, list] = {k: [] for k in rows}
+    for i, obs in enumerate(observations):
+        index, timestamp = rows["frames"][i], rows["times"][i]
+        old_flags = [f for f in rows["flags"][i].split(",") if f]
+        if obs is None:
+            estimate = again.skip(shape, timestamp, tuple(old_flags))
+        else:
+            estimate = again.fit_keypoints(obs.keypoints, timestamp, shape)
+            carried = [f for f in old_flags if f in ("cut_by_border", "motion_blur")]
+            estimate = replace(
+                estimate,
+                confidence=float(estimate.confidence * image_factor(carried)),
+                flags=tuple(f for f in estimate.flags if f not in carried) + tuple(carried),
+            )
+        _append(new, estimate, index, timestamp)
+    return new, again.fitter.betas
+
+
+def describe_camera(camera: dict | None) -> str:
+    """Where the tracking's camera came from, in words (stg-track's and stg-train's report)."""
+    if not camera:
+        return ""
+    if camera["method"] == "file":
+        return f"camera from {camera['path']}"
+    if camera["method"] == "fov":
+        return f"camera: the given {camera['fov_deg']:g} degree field of view"
+    interval = f"{camera['low_fov_deg']:.0f}-{camera['high_fov_deg']:.0f}"
+    if camera["used"] == "estimate":
+        return (
+            f"camera: {camera['fov_deg']:.1f} degree field of view estimated from the footage "
+            f"(68 % interval {interval} degrees, sure)"
+        )
+    return (
+        f"camera: UNSURE of the field of view (estimate {camera['fov_deg']:.0f}, interval {interval} "
+        f"degrees: {camera['reason']}); kept the default {DEFAULT_FOV_DEG:g} degrees: give --fov or "
+        "--intrinsics if you know it"
     )
 
 
@@ -264,6 +393,7 @@ def track_video(
 
 CAMERA_NAME = "camera"
 DEFAULT_MIN_CONFIDENCE = 0.5
+TRACKING_REPORT = "tracking.json"  # what video_to_folder kept and skipped, and the camera
 JPEG_QUALITY = 95
 
 
@@ -284,7 +414,8 @@ def video_to_folder(
     ``R = I``, ``t = 0``: the world frame is the camera's), ``images/camera/{frame:06d}.jpg``,
     ``masks/camera/{frame:06d}.png`` and ``poses.npz`` (``poses``, ``Rh``, ``Th``, ``shapes``,
     ``frames``, ``times``) for the frames whose confidence is at least ``min_confidence``; the
-    others are left out, so a trainer never sees them. Returns ``out``.
+    others are left out, so a trainer never sees them, and counted by reason in
+    ``tracking.json`` (with where the camera came from). Returns ``out``.
     """
     from stg_node.tracking.poses_file import read_poses
 
@@ -337,5 +468,29 @@ def video_to_folder(
         frames=tracked.frames[keep],
         times=tracked.times[keep],
     )
-    log.info("%s: %d of %d frames confident enough for training -> %s", source, keep.sum(), len(keep), out)
+    flags = tracked.flags if tracked.flags is not None else np.array([""] * len(tracked))
+    skipped = skip_reasons(tracked.confidence, flags, min_confidence)
+    camera = json.loads(tracked.camera) if tracked.camera else None
+    report = {
+        "frames": len(keep),
+        "kept": int(keep.sum()),
+        "skipped": int((~keep).sum()),
+        "skipped_by_reason": skipped,
+        "min_confidence": min_confidence,
+        "camera": camera,
+        "camera_text": describe_camera(camera),
+        "poses": str(poses_path),
+    }
+    (out / TRACKING_REPORT).write_text(json.dumps(report, indent=2) + "\n")
+    why = ", ".join(f"{n} {reason}" for reason, n in sorted(skipped.items(), key=lambda kv: -kv[1]))
+    log.info(
+        "%s: %d of %d frames confident enough for training -> %s%s",
+        source,
+        keep.sum(),
+        len(keep),
+        out,
+        f"; skipped {int((~keep).sum())}: {why}" if why else "",
+    )
+    if camera:
+        log.info("%s", describe_camera(camera))
     return out

@@ -14,8 +14,15 @@ Extra arrays (readers may ignore them): ``frames`` (N,) int frame index in the i
 (N,) float seconds, ``K`` (3, 3) the pinhole camera the parameters belong to, ``dist`` (n,) the
 input's distortion coefficients (empty when none), ``image_size`` (2,) width and height, ``fps``,
 ``body`` the body model's name, ``reprojection_px`` (N,) the fit's keypoint residual (NaN when
-no fit). The required keys are also what ``stg_node.body.load_smpl_params`` and the folder
-dataset's ``poses.npz`` read, so the file drops into either.
+no fit), ``flags`` (N,) str why a frame's confidence is low (comma-separated: ``no_person``,
+``cut_by_border``, ``motion_blur``, ``multiple_people``, ...; empty when nothing is wrong),
+``camera`` a JSON object saying where ``K`` came from (a file, a given field of view, or the
+focal length estimated from the footage with its interval and whether it is sure). From a rig
+(``stg-track CAM1 CAM2 ... --calibration rig.json``): the parameters are in the rig's world frame,
+``cameras`` (V,) names its cameras in input order and ``camera_frames`` (N, V) the frame of each
+input every row used; ``K``, ``dist`` and ``image_size`` are then the first camera's (rig.json
+holds them all). The required keys are also what ``stg_node.body.load_smpl_params`` and the
+folder dataset's ``poses.npz`` read, so the file drops into either.
 """
 
 from __future__ import annotations
@@ -49,6 +56,10 @@ class TrackedPoses:
     fps: float
     body: str = ""
     reprojection_px: np.ndarray | None = None  # (N,)
+    cameras: tuple[str, ...] = ()  # a rig's camera names (world-frame parameters); () for one camera
+    camera_frames: np.ndarray | None = None  # (N, V) int: a rig's input frame per row and camera
+    flags: np.ndarray | None = None  # (N,) str, comma-separated reasons for a low confidence
+    camera: str = ""  # JSON: where K came from (stg_node.tracking.focal)
 
     def __len__(self) -> int:
         return int(self.poses.shape[0])
@@ -77,6 +88,8 @@ class TrackedPoses:
                 raise PosesFileError(f"{where}: {name} contains NaN or infinite values")
         if np.any((self.confidence < 0) | (self.confidence > 1)):
             raise PosesFileError(f"{where}: confidence must lie in [0, 1]")
+        if self.flags is not None and np.shape(self.flags) != (n,):
+            raise PosesFileError(f"{where}: flags has shape {np.shape(self.flags)}, expected ({n},)")
 
 
 def write_poses(path: str | Path, tracked: TrackedPoses) -> Path:
@@ -100,6 +113,14 @@ def write_poses(path: str | Path, tracked: TrackedPoses) -> Path:
     }
     if tracked.reprojection_px is not None:
         arrays["reprojection_px"] = np.asarray(tracked.reprojection_px, dtype=np.float32)
+    if tracked.cameras:
+        arrays["cameras"] = np.asarray(tracked.cameras, dtype=str)
+    if tracked.camera_frames is not None:
+        arrays["camera_frames"] = np.asarray(tracked.camera_frames, dtype=np.int64)
+    if tracked.flags is not None:
+        arrays["flags"] = np.asarray(tracked.flags, dtype=str)
+    if tracked.camera:
+        arrays["camera"] = np.array(tracked.camera)
     with tempfile.NamedTemporaryFile(dir=path.parent, prefix=path.name, suffix=".tmp", delete=False) as fh:
         np.savez_compressed(fh, **arrays)
     os.replace(fh.name, path)
@@ -134,6 +155,10 @@ def read_poses(path: str | Path) -> TrackedPoses:
         fps=float(data.get("fps", 0.0)),
         body=str(data.get("body", "")),
         reprojection_px=data.get("reprojection_px"),
+        cameras=tuple(str(c) for c in data["cameras"]) if "cameras" in data else (),
+        camera_frames=data.get("camera_frames"),
+        flags=data.get("flags"),
+        camera=str(data.get("camera", "")),
     )
     tracked.validate(str(path))
     return tracked

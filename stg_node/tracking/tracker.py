@@ -4,7 +4,7 @@ Per frame: keypoints from the detector (on a copy scaled to at most ``max_side``
 back to full resolution), undistorted, fitted (fitting.py), smoothed (One-Euro), a mask from the
 masker, cleaned to the person's connected parts, and a confidence:
 
-``confidence = presence x visibility x fit x people x continuity``
+``confidence = presence x visibility x fit x people x continuity x border x blur``
 
 - presence: the detector's belief that a person is there (0 when none was found);
 - visibility: mean score of the torso points (shoulders, hips): low when the person is cut off;
@@ -13,7 +13,8 @@ masker, cleaned to the person's connected parts, and a confidence:
 - people: ``multi_person_factor`` when the detector sees more than one person (the mask and
   the keypoints may mix them up);
 - continuity: ``jump_factor`` when the global rotation jumped by more than ``max_jump_deg`` since
-  the last frame (a left/right swap or a re-initialisation that flipped the body).
+  the last frame (a left/right swap or a re-initialisation that flipped the body);
+- border, blur: the person cut by the image border, or smeared by motion blur (frame_checks.py).
 
 When nobody is found the last good parameters are held (never a wild pose), the mask is empty
 and the confidence is 0. The trainer skips frames below its threshold (docs/TRACKING.md).
@@ -34,6 +35,7 @@ from stg_node.body import BodyModel, lbs
 from stg_node.tracking.camera import Intrinsics
 from stg_node.tracking.detectors import KeypointDetector
 from stg_node.tracking.fitting import FACING_CAMERA, FitConfig, FitResult, SmplFitter
+from stg_node.tracking.frame_checks import FrameChecks
 from stg_node.tracking.layouts import get_layout
 from stg_node.tracking.masks import Masker, SegmentationMasker, clean_mask
 from stg_node.tracking.smoothing import OneEuroConfig, PoseSmoother
@@ -107,6 +109,7 @@ class Tracker:
         self.fitter = SmplFitter(body, self.layout, intrinsics.K, self.config.fit, betas=betas)
         self.smoother = PoseSmoother(self.config.rotation_filter, self.config.translation_filter)
         self._torso = [self.layout.index(name) for name in TORSO if name in self.layout.names]
+        self.checks = FrameChecks()  # cut by the border, motion blur (frame_checks.py)
         self.times = StageTimes()
         self._last: TrackEstimate | None = None
         self._last_raw_rh: np.ndarray | None = None
@@ -117,6 +120,7 @@ class Tracker:
         self.fitter.lose()
         self.smoother.reset()
         self.masker.reset()
+        self.checks.reset()
         self._last = None
         self._last_raw_rh = None
 
@@ -196,15 +200,42 @@ class Tracker:
         if scale != 1.0:
             # Back to full-resolution pixel centres.
             keypoints = replace(keypoints, xy=((keypoints.xy + 0.5) / scale - 0.5).astype(np.float32))
-        xy = self.intrinsics.undistort_points(keypoints.xy)
-        fit = self.fitter.fit(keypoints, timestamp, xy_undistorted=xy)
+        estimate = self.fit_keypoints(keypoints, timestamp, frame.shape)
         t_fit = time.perf_counter()
         self.times.fit = t_fit - t_detect
+        if "too_few_keypoints" in estimate.flags:
+            self.times.total = time.perf_counter() - t_start
+            return estimate
+        mask = self._mask(frame, small, scale, keypoints, float(estimate.smpl.Th[2]))
+        factor, image_flags = self.checks.check(small, mask, keypoints, self.layout)
+        estimate = replace(
+            estimate,
+            mask=mask,
+            confidence=float(estimate.confidence * factor),
+            flags=estimate.flags + tuple(image_flags),
+        )
+        self.times.mask = time.perf_counter() - t_fit
+        self.times.total = time.perf_counter() - t_start
+        self._last = estimate
+        return estimate
+
+    def skip(self, frame_shape, timestamp: float, flags: tuple[str, ...]) -> TrackEstimate:
+        """Nobody usable in this frame (what :meth:`estimate` does when the detector finds no one):
+        tracking and smoothing start over, the last good parameters are held, confidence 0."""
+        self.fitter.lose()
+        self.smoother.reset()
+        return self._hold(frame_shape, timestamp, flags)
+
+    def fit_keypoints(self, keypoints: Keypoints, timestamp: float, frame_shape) -> TrackEstimate:
+        """The fit, smoothing and keypoint-based confidence of one frame's (full-resolution) keypoints,
+        with an empty mask: what :meth:`estimate` does after detection, and what a second pass over
+        stored keypoints (another camera model, stg_node.tracking.focal) runs alone."""
+        xy = self.intrinsics.undistort_points(keypoints.xy)
+        fit = self.fitter.fit(keypoints, timestamp, xy_undistorted=xy)
         if fit is None:
             self.fitter.lose()
             self.smoother.reset()
-            self.times.total = time.perf_counter() - t_start
-            return self._hold(frame.shape, timestamp, ("too_few_keypoints",), keypoints)
+            return self._hold(frame_shape, timestamp, ("too_few_keypoints",), keypoints)
         confidence, flags = self._confidence(keypoints, fit)
         self.fitter.add_calibration(fit, confidence)
         self._last_raw_rh = fit.Rh
@@ -219,12 +250,9 @@ class Tracker:
             Th=np.asarray(Th, np.float32),
             betas=self.fitter.betas.astype(np.float32),
         )
-        mask = self._mask(frame, small, scale, keypoints, float(Th[2]))
-        self.times.mask = time.perf_counter() - t_fit
-        self.times.total = time.perf_counter() - t_start
         estimate = TrackEstimate(
             smpl=smpl,
-            mask=mask,
+            mask=np.zeros(tuple(frame_shape[:2]), np.uint8),
             confidence=confidence,
             timestamp=float(timestamp),
             keypoints=keypoints,

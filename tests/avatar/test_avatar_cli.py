@@ -149,6 +149,25 @@ def test_render_orbit_to_mp4_and_a_pose_file_to_pngs(run_dir, tmp_path, tiny_syn
     assert a.shape == (128, 128, 3) and a.any() and not np.array_equal(a, b)
 
 
+def test_default_renders_frame_the_avatar_whole_and_two_thirds_tall(run_dir, tmp_path):
+    """Orbit and follow renders: the avatar never touches the border and is about 2/3 of the height
+    (measured on the rendered alpha), also at another output size and fill."""
+    from stg_node.avatar.animation import render_run
+    from stg_node.avatar.framing import FramingRule
+
+    for views in ("orbit", "follow"):
+        summary = render_run(run_dir, tmp_path / f"{views}.mp4", views=views, frames=8, show_progress=False)
+        framing = summary.framing
+        assert summary.frames == framing.frames == 8
+        assert framing.whole == 1.0, views
+        assert 0.55 < framing.median_height < 0.8, (views, framing)
+    summary = render_run(
+        run_dir, tmp_path / "half", frames=4, size=96, rule=FramingRule(fraction=0.4), show_progress=False
+    )
+    assert summary.framing.whole == 1.0
+    assert 0.3 < summary.framing.median_height < 0.5
+
+
 def test_export_canonical_and_posed_ply(run_dir, tmp_path):
     from stg_node.splat.ply import load_ply
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 
+import cv2
 import numpy as np
 import pytest
 from fixtures.videos import count_tracking_runs, synthetic_clip
@@ -82,6 +83,14 @@ def test_a_video_becomes_an_avatar_with_two_commands(tmp_path, clip, monkeypatch
     config = json.loads((run / "config.json").read_text())
     assert config["data"]["format"] == "video" and config["data"]["root"] == str(data.resolve())
     assert summary["frames"] == len(kept)
+    # Before training: the fit preview (a frame per input frame) and what was skipped, and why.
+    preview = cv2.VideoCapture(str(run / "fit_preview.mp4"))
+    assert int(preview.get(cv2.CAP_PROP_FRAME_COUNT)) == clip.frames + clip.blank
+    tracking = summary["tracking"]
+    assert tracking["kept"] == len(kept) and tracking["skipped"] == clip.frames + clip.blank - len(kept)
+    assert tracking["skipped_by_reason"].get("no_person", 0) >= clip.blank  # the black frames
+    assert tracking["camera"]["method"] == "file"
+    assert config["config"]["lr_pose"] > 1e-4 and config["config"]["loss"]["pose_smooth"] > 0  # tracked poses
 
     # The second command: the avatar, rendered.
     video = tmp_path / "avatar.mp4"

@@ -7,10 +7,12 @@ simple enough to check from outside:
   1 / (1 + iteration); the buffer keeps at most ``config.max_frames`` frames; ``snapshot()`` carries
   the iteration and the mean colour of the buffered images' masked pixels; ``save``/``load``
   round-trip the iteration, the config and the notes exactly (np.savez).
+- evaluate_trainer: held-out figures that name the trainer's iteration (PSNR 20 + 0.001 k).
 - AvatarRenderer: draws a disc of the snapshot's colour at the projection of the body root
-  (``Th``) through the camera, radius = focal * 0.25 m / depth; alpha 255 inside. ``points``:
-  a ring of ``POINTS`` points of radius 0.25 m around ``Th`` (in the world's x-y plane), in
-  that colour, fully opaque.
+  (``Th``) through the camera, radius = focal * 0.25 m / depth; alpha 255 inside. Its posed
+  points (what a framing camera keeps in view) are a sphere of that radius around ``Th``.
+  ``points``: a ring of ``POINTS`` points of radius 0.25 m around ``Th`` (in the world's x-y
+  plane), in that colour, fully opaque.
 """
 
 from __future__ import annotations
@@ -139,6 +141,11 @@ class Trainer:
         return trainer
 
 
+def evaluate_trainer(trainer: Trainer, data: str) -> dict:
+    return {"split": "novel_view", "views": 4, "psnr": 20.0 + 0.001 * trainer.iteration, "ssim": 0.5,
+            "lpips": 0.1}  # fmt: skip
+
+
 @dataclass
 class PointsOut:
     positions: np.ndarray
@@ -174,6 +181,14 @@ class AvatarRenderer:
         if msg.meta.get("gate"):
             LOAD_GATE.wait(60)
         return cls(np.array(msg.arrays["color"]).reshape(3), msg.iteration)
+
+    def posed_points(self, smpl, time=None) -> np.ndarray:
+        """A sphere of radius BODY_RADIUS_M around the body root: 6 poles and 8 diagonals."""
+        directions = np.concatenate(
+            [np.eye(3), -np.eye(3), np.array(np.meshgrid(*[[-1, 1]] * 3)).reshape(3, -1).T]
+        )
+        directions = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+        return np.asarray(smpl.Th, np.float64) + BODY_RADIUS_M * directions
 
     def render(
         self, camera, smpl, time=None, *, background=(0, 0, 0), follow=False, depth=False

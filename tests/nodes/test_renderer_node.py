@@ -207,6 +207,67 @@ def test_the_renderer_keeps_serving_when_the_trainer_is_gone_and_on_a_late_start
     assert all(g is not None and g.snapshot_version == 9 for g in got), got
 
 
+def test_the_default_orbit_view_frames_the_body_whatever_the_training_distance(broker, bus_url):
+    """The orbit view aims at the body and makes it about 2/3 of the image tall (stg-render's
+    rule), with the training camera 3 m or 30 m away: the fake avatar is a 0.5 m sphere."""
+    for distance in (3.0, 30.0):
+        node = renderer(bus_url, default_view="orbit", orbit_period_s=2.0)
+        frame = train_frame()
+        frame.t = np.array([0.0, 0.0, distance])
+        with Subscriber(BusConfig(url=bus_url), ["avatar/image"]) as images, NodeThread(node):
+            with Bus(bus_url, node="pipeline", heartbeat_s=0) as bus:
+                wait_subscribed(bus, "avatar/snapshot", "body/pose", "camera/frame")
+                bus.publish(snapshot(3))
+                bus.publish(frame)
+                # the training camera (the distance the orbit starts from) has arrived
+                assert wait_until(lambda n=node: n.train_camera is not None, 30)
+                got = []
+                deadline = time.monotonic() + 20
+                while time.monotonic() < deadline and len(got) < 6:
+                    bus.publish(body_at([0.3, -0.2, 0.5]))
+                    image = images.recv(timeout=1)
+                    if image is not None and image.alpha.any():
+                        got.append(image)
+        assert len(got) == 6, distance
+        for image in got[2:]:  # after the smoothing has settled
+            ys, xs = np.nonzero(image.alpha)
+            assert (ys.max() - ys.min() + 1) / 64 == pytest.approx(2 / 3, abs=0.08), distance
+            assert disc_center(image) == pytest.approx((32.0, 32.0), abs=2.0), distance
+
+
+def test_the_contact_sheet_shows_the_last_snapshot_from_the_training_camera_and_an_orbit(
+    broker, bus_url, tmp_path
+):
+    """The sheet is the final model (not the first, untrained one) in 12 views; the MP4 has everything."""
+    import cv2
+
+    early, late = (0.9, 0.1, 0.1), (0.1, 0.9, 0.1)
+    node = renderer(bus_url, default_view="both", record_dir=str(tmp_path), idle_rate_hz=20)
+    with Subscriber(BusConfig(url=bus_url), ["avatar/image"]) as images, NodeThread(node) as thread:
+        with Bus(bus_url, node="pipeline", heartbeat_s=0) as bus:
+            wait_subscribed(bus, "avatar/snapshot", "body/pose", "camera/frame")
+            bus.publish(train_frame())
+            for version, color in ((1, early), (7, late)):
+                bus.publish(snapshot(version, color))
+                deadline = time.monotonic() + 10
+                got = None
+                while time.monotonic() < deadline and (got is None or got.snapshot_version != version):
+                    bus.publish(body_at([0.0, 0.0, 0.0]))
+                    got = images.recv(timeout=1)
+                assert got is not None and got.snapshot_version == version
+        assert thread.stop() == 0
+    sheet = cv2.cvtColor(cv2.imread(str(tmp_path / "avatar_sheet.png")), cv2.COLOR_BGR2RGB)
+    assert sheet.shape == (3 * 192, 4 * 192, 3)
+    late_rgb = np.rint(np.array(late) * 255)
+    early_rgb = np.rint(np.array(early) * 255)
+    for r in range(3):
+        for c in range(4):
+            tile = sheet[r * 192 : (r + 1) * 192, c * 192 : (c + 1) * 192].reshape(-1, 3).astype(float)
+            assert (np.abs(tile - late_rgb).max(axis=1) < 40).sum() > 50, (r, c)
+            assert (np.abs(tile - early_rgb).max(axis=1) < 40).sum() == 0, (r, c)
+    assert (tmp_path / "avatar.mp4").stat().st_size > 0
+
+
 def test_orbit_keeps_distance_and_height_and_looks_at_the_body():
     train = Camera(K=K, R=np.eye(3), t=np.array([0.0, 0.0, 3.0]), width=64, height=64)
     center = np.array([0.2, 0.0, 0.0])

@@ -6,6 +6,7 @@ import json
 import time
 
 import numpy as np
+import pytest
 from nodehelpers import NodeThread, recv_until, wait_until
 from sample_nodes import pose
 
@@ -63,6 +64,7 @@ def test_metrics_snapshots_checkpoints_and_resume(broker, bus_url, tmp_path, mon
         "snapshot_every_s": 0,
         "checkpoint_dir": str(ckpt),
         "out": str(out),
+        "eval_data": str(tmp_path),
     }
     with Subscriber(BusConfig(url=bus_url), ["trainer/metrics", "avatar/snapshot"]) as sub:
         with Bus(bus_url, node="feeder", heartbeat_s=0) as feeder:
@@ -88,6 +90,12 @@ def test_metrics_snapshots_checkpoints_and_resume(broker, bus_url, tmp_path, mon
             np.testing.assert_allclose(snapshots[-1].arrays["color"], [[60 / 255] * 3], rtol=1e-6)
             summary = json.loads((out / "summary.json").read_text())
             assert summary["iterations"] == 30 and summary["finished"]
+            # The fake's step k has PSNR 10 + 0.01 k: the summary's is the mean over the steps done.
+            assert summary["psnr"] == pytest.approx(10 + 0.01 * 15.5)
+            assert summary["psnr_last_step"] == pytest.approx(10.30)
+            assert "mean over the last 30 steps" in summary["psnr_note"]
+            assert summary["heldout"] == {"split": "novel_view", "views": 4, "psnr": 20.03, "ssim": 0.5,
+                                          "lpips": 0.1}  # fmt: skip
 
             # respawned (stg-launch says so): continues from the checkpoint, not from 0
             monkeypatch.setenv("STG_RESPAWN", "1")

@@ -142,6 +142,8 @@ def test_stg_track_on_a_synthetic_video_with_the_shipped_detector(tmp_path, synt
 
 
 def test_video_to_folder_gives_a_folder_dataset_of_the_confident_frames(tmp_path, synth_video, dot_model):
+    import json
+
     from stg_node.data import open_dataset
 
     options = pipeline.TrackOptions(detector="onnx", pose_model=str(dot_model), mask="mog2")
@@ -155,8 +157,36 @@ def test_video_to_folder_gives_a_folder_dataset_of_the_confident_frames(tmp_path
     data["confidence"] = np.where(np.arange(12) % 2 == 0, 0.9, 0.1).astype(np.float32)
     np.savez(poses, **data)
     out = pipeline.video_to_folder(synth_video, tmp_path / "data", options, cache_dir=cache, progress=False)
+    report = json.loads((out / pipeline.TRACKING_REPORT).read_text())
+    assert (report["kept"], report["skipped"]) == (6, 6)
+    expected: dict[str, int] = {}  # the reasons the tracker gave the frames left out
+    for i in range(1, 12, 2):
+        for why in [w for w in str(data["flags"][i]).split(",") if w] or ["low_confidence"]:
+            expected[why] = expected.get(why, 0) + 1
+    assert report["skipped_by_reason"] == expected and sum(expected.values()) >= 6
     dataset = open_dataset(out, kind="folder", split="all", size=None)
     assert dataset.frames == [0, 2, 4, 6, 8, 10] and len(dataset) == 6
     sample = dataset[1]
     assert sample.index == 2 and sample.image.shape == (256, 256, 3) and sample.mask.shape == (256, 256)
     assert np.allclose(sample.camera.K, data["K"]) and np.allclose(sample.smpl.Th, data["Th"][2])
+
+
+@needs_blazepose
+def test_stg_track_reports_skips_and_camera_and_writes_the_preview(tmp_path, synth_video, capsys):
+    """No calibration, no field of view: the focal length is estimated (12 frames are too few: unsure,
+    the default kept, said so); the preview has one frame per input frame."""
+    import json
+
+    out, preview = tmp_path / "POSES.npz", tmp_path / "fit.mp4"
+    assert main([str(synth_video), "--out", str(out), "--preview", str(preview), "--no-progress"]) == 0
+    printed = capsys.readouterr().out
+    assert "skipped" in printed and "camera: UNSURE" in printed and "fit preview" in printed
+    tracked = read_poses(out)
+    camera = json.loads(tracked.camera)
+    assert camera["method"] == "estimate" and camera["used"] == "default" and not camera["sure"]
+    assert tracked.K[0, 0] == pytest.approx(128 / np.tan(np.radians(65 / 2)))
+    assert tracked.flags.shape == (12,)
+    cap = cv2.VideoCapture(str(preview))
+    assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == 12
+    ok, frame = cap.read()
+    assert ok and frame.shape[:2] == (256, 256)

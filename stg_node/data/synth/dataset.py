@@ -15,20 +15,33 @@ from stg_node.data.splits import FrameRange, SplitSpec
 from stg_node.data.synth.writer import read_metadata
 
 
+def loader_name(camera_name: str) -> str:
+    """The loader's name of a generated camera: ``Camera_B7`` -> ``"7"``."""
+    return camera_name.removeprefix("Camera_B")
+
+
+def train_cameras(metadata: dict) -> tuple[str, ...]:
+    """Loader names of the cameras the generator rendered on every frame (role "train"):
+    ``("1",)`` unless it was run with ``--train-cameras``."""
+    names = tuple(loader_name(c["name"]) for c in metadata["cameras"] if c.get("role") == "train")
+    return names or (loader_name(metadata["cameras"][0]["name"]),)
+
+
 def synth_split(metadata: dict, name: str) -> SplitSpec:
     """The loader selection of split ``name`` ('train', 'novel_view', 'novel_pose') of a generated folder.
 
-    Training camera "1" over the training frames; the held-out cameras every ``view_every``-th
-    training frame; all cameras every ``view_every``-th frame after the training range (the
-    ZJU-MoCap protocol of stg_node.data.splits, with the generator's stride instead of 30).
+    The training cameras (camera "1", or those of ``stg-synth --train-cameras``) over the training
+    frames; the held-out cameras every ``view_every``-th training frame; all cameras every
+    ``view_every``-th frame after the training range (the ZJU-MoCap protocol of
+    stg_node.data.splits, with the generator's stride instead of 30).
     """
     n_train = int(metadata["num_train_frames"])
     every = int(metadata["view_every"])
-    train_camera = metadata["cameras"][0]["name"].removeprefix("Camera_B")
+    train = train_cameras(metadata)
     if name == "train":
-        return SplitSpec("train", FrameRange(0, n_train), cameras=(train_camera,))
+        return SplitSpec("train", FrameRange(0, n_train), cameras=train)
     if name == "novel_view":
-        return SplitSpec("novel_view", FrameRange(0, n_train, every), exclude=(train_camera,))
+        return SplitSpec("novel_view", FrameRange(0, n_train, every), exclude=train)
     if name == "novel_pose":
         return SplitSpec("novel_pose", FrameRange(n_train, None, every))
     raise ValueError(f"unknown split {name!r}; use 'train', 'novel_view', 'novel_pose' or a SplitSpec")

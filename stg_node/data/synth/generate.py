@@ -22,7 +22,8 @@ import stg_node
 from stg_node.body.motion import drive_body
 from stg_node.body.params import SmplSequence
 from stg_node.data.synth import writer
-from stg_node.data.synth.cameras import make_rig
+from stg_node.data.synth.cameras import DEFAULT_DISTANCE_M, make_rig
+from stg_node.data.synth.exposure import apply_gain, jitter_gains
 from stg_node.data.synth.garment import GarmentParams, garment_regions, simulate_garment
 from stg_node.data.synth.lighting import AMBIENT, DIFFUSE, LIGHT_DIRECTION_BODY, SHADING_MODES, lighting
 from stg_node.data.synth.mesh_raster import TexturedMesh, render_mesh
@@ -63,6 +64,14 @@ class SynthConfig:
     betas_std: float = 0.5
     overwrite: bool = False
     garment: GarmentParams = field(default_factory=GarmentParams)
+    # Multi-view training (docs/RIGS.md): 0-based cameras that render every frame, as camera 0
+    # does; the others render every view_every-th frame.
+    train_cameras: tuple[int, ...] = (0,)
+    # Filming conditions (real footage): the rig's distance and field of view, and the training
+    # camera's per-frame exposure / white-balance drift (exposure.py).
+    camera_distance: float = DEFAULT_DISTANCE_M
+    fov_deg: float | None = None  # None: each camera frames VIEW_HEIGHT_M at the subject
+    exposure_jitter: float = 0.0  # std of the per-frame log exposure gain (0: steady)
 
     def validate(self) -> None:
         if self.motion not in MOTIONS:
@@ -88,6 +97,20 @@ class SynthConfig:
             raise ValueError(f"--supersample must be >= 1, got {self.supersample}")
         if not self.fps > 0:
             raise ValueError(f"--fps must be positive, got {self.fps}")
+        count = self.num_novel_views + 1
+        if not self.train_cameras or len(set(self.train_cameras)) != len(self.train_cameras):
+            raise ValueError(f"--train-cameras must name distinct cameras, got {self.train_cameras}")
+        outside = [k + 1 for k in self.train_cameras if not 0 <= k < count]
+        if outside:
+            raise ValueError(
+                f"--train-cameras {outside}: the rig has cameras 1-{count} (--views {count - 1})"
+            )
+        if not 1.0 <= self.camera_distance <= 50.0:
+            raise ValueError(f"--distance must be 1 to 50 metres, got {self.camera_distance}")
+        if self.fov_deg is not None and not 10.0 <= self.fov_deg <= 120.0:
+            raise ValueError(f"--fov must be 10 to 120 degrees, got {self.fov_deg}")
+        if not 0.0 <= self.exposure_jitter <= 1.0:
+            raise ValueError(f"--exposure-jitter must be 0 to 1 (a log-gain std), got {self.exposure_jitter}")
 
     @property
     def num_train_frames(self) -> int:
@@ -113,10 +136,11 @@ def held_out_frames(config: SynthConfig) -> list[int]:
 
 
 def render_schedule(config: SynthConfig) -> list[list[int]]:
-    """Cameras per frame: the training camera always, the held-out ones on :func:`held_out_frames`."""
-    novel = list(range(1, config.num_novel_views + 1))
+    """Cameras per frame: the training cameras always, the held-out ones on :func:`held_out_frames`."""
+    train = sorted(config.train_cameras)
+    novel = [k for k in range(config.num_novel_views + 1) if k not in train]
     strided = set(held_out_frames(config))
-    return [[0] + (novel if frame in strided else []) for frame in range(config.num_frames)]
+    return [sorted(train + (novel if frame in strided else [])) for frame in range(config.num_frames)]
 
 
 def split_spec(config: SynthConfig) -> dict[str, list[dict]]:
@@ -126,10 +150,11 @@ def split_spec(config: SynthConfig) -> dict[str, list[dict]]:
     every held-out frame from the training camera (the monocular camera's own novel poses).
     """
     n_train = config.num_train_frames
-    novel = list(range(1, config.num_novel_views + 1))
+    train = sorted(config.train_cameras)
+    novel = [k for k in range(config.num_novel_views + 1) if k not in train]
     strided = held_out_frames(config)
     splits: dict[str, list[dict]] = {
-        "train": [{"cameras": [0], "frames": list(range(n_train))}],
+        "train": [{"cameras": train, "frames": list(range(n_train))}],
         "novel_view": [],
         "novel_pose": [],
     }
@@ -137,7 +162,7 @@ def split_spec(config: SynthConfig) -> dict[str, list[dict]]:
     if novel and view_frames:
         splits["novel_view"].append({"cameras": novel, "frames": view_frames})
     if n_train < config.num_frames:
-        splits["novel_pose"].append({"cameras": [0], "frames": list(range(n_train, config.num_frames))})
+        splits["novel_pose"].append({"cameras": train, "frames": list(range(n_train, config.num_frames))})
         pose_frames = [f for f in strided if f >= n_train]
         if novel and pose_frames:
             splits["novel_pose"].append({"cameras": novel, "frames": pose_frames})
@@ -216,7 +241,8 @@ def generate(config: SynthConfig, body=None, progress: bool = True) -> SynthResu
         )
     out = writer.prepare_output(Path(config.out), config.overwrite)
 
-    motion_seq, shape_seq, camera_seq = np.random.SeedSequence(config.seed).spawn(3)
+    # A fourth child for the exposure drift: the first three are those of spawn(3), unchanged.
+    motion_seq, shape_seq, camera_seq, exposure_seq = np.random.SeedSequence(config.seed).spawn(4)
     n_train = config.num_train_frames
     betas = np.clip(
         np.random.default_rng(shape_seq).normal(0.0, config.betas_std, size=int(body.num_betas)),
@@ -235,7 +261,16 @@ def generate(config: SynthConfig, body=None, progress: bool = True) -> SynthResu
         test_yaw_deg=config.test_yaw_deg,
     )
     light = lighting(config.shading)
-    cameras = make_rig(config.size, config.num_novel_views, np.random.default_rng(camera_seq))
+    cameras = make_rig(
+        config.size,
+        config.num_novel_views,
+        np.random.default_rng(camera_seq),
+        distance=config.camera_distance,
+        fov_deg=config.fov_deg,
+    )
+    gains = jitter_gains(
+        config.num_frames, n_train, config.exposure_jitter, config.fps, np.random.default_rng(exposure_seq)
+    )
 
     # Skinned body; then lift every frame so its lowest vertex touches the floor (z = 0).
     t0 = time.perf_counter()
@@ -304,9 +339,10 @@ def generate(config: SynthConfig, body=None, progress: bool = True) -> SynthResu
                         cull_backfaces=config.cull_backfaces,
                     )
                     depth = result.depth if config.write_depth else None
-                    pending.append(
-                        pool.submit(writer.write_view, out, k, frame, result.image, result.mask, depth)
-                    )
+                    image = result.image
+                    if k == 0 and config.exposure_jitter > 0:
+                        image = apply_gain(image, gains[frame])
+                    pending.append(pool.submit(writer.write_view, out, k, frame, image, result.mask, depth))
                     bar.update(1)
                 render_time += time.perf_counter() - t0
                 while len(pending) > MAX_PENDING_WRITES:
@@ -349,7 +385,7 @@ def generate(config: SynthConfig, body=None, progress: bool = True) -> SynthResu
             "in_new_vertices": True,
         },
         "cameras": [
-            {"index": k, "name": cam.name, "role": "train" if k == 0 else "novel_view"}
+            {"index": k, "name": cam.name, "role": "train" if k in config.train_cameras else "novel_view"}
             for k, cam in enumerate(cameras)
         ],
         "num_train_frames": n_train,
@@ -361,6 +397,14 @@ def generate(config: SynthConfig, body=None, progress: bool = True) -> SynthResu
         },
         "depth": {"written": bool(config.write_depth), "unit": "millimetre", "zero": "background"},
     }
+    filmed = (config.camera_distance, config.fov_deg, config.exposure_jitter)
+    if filmed != (DEFAULT_DISTANCE_M, None, 0.0):  # recorded when set (a default subject's file is as before)
+        metadata["filming"] = {
+            "camera_distance_m": float(config.camera_distance),
+            "fov_deg": None if config.fov_deg is None else float(config.fov_deg),
+            "exposure_jitter": float(config.exposure_jitter),
+            "exposure_gains": gains.round(5).tolist() if config.exposure_jitter > 0 else None,
+        }
     writer.write_metadata(out, metadata)
     timings["total"] = time.perf_counter() - t_start
     log.info(

@@ -27,6 +27,9 @@ Motions (``--motion``):
   no non-rigid modelling; the coverage rule below still turns it once, rigidly).
 - ``crouch``: standing, squatting down and up again every few seconds, arms forward for balance.
 - ``arms_up``: standing, raising both arms overhead and lowering them to the sides, stretching.
+- ``approach``: walks straight towards the training camera and away again (2 m each way,
+  turning round at each end): the body's distance to the camera changes by 2 m, which is what
+  a focal-length estimate from the footage needs (stg_node.tracking.focal).
 - ``mixed`` (default): turn, walk, wave and dance in turn over the training range.
 
 Held-out poses: the last ``novel_pose_start..`` frames use a fresh parameter draw of the
@@ -60,7 +63,7 @@ from stg_node.data.synth.joint_limits import (
 )
 from stg_node.data.synth.rotations import axis_rotation, euler_zyx_to_matrix, matrix_to_axis_angle
 
-MOTIONS = ("mixed", "turn", "walk", "wave", "dance", "still", "crouch", "arms_up")
+MOTIONS = ("mixed", "turn", "walk", "wave", "dance", "still", "crouch", "arms_up", "approach")
 DEFAULT_MOTION = "mixed"
 CROSSFADE_SECONDS = 0.5
 DEFAULT_NUM_BETAS = 10  # SMPL's usual shape space
@@ -128,6 +131,7 @@ class _Drive:
     root: np.ndarray  # (N, 3) degrees: pelvis pitch / yaw wobble / roll in the SMPL frame
     sway: np.ndarray  # (N, 2) metres: offset along the subject's left and forward axes
     walking: bool = False  # its yaw rate is the walking circle's curvature times the speed
+    steered: bool = True  # while walking, steered onto the circle (False: the path is its own)
 
 
 @dataclass(frozen=True)
@@ -448,6 +452,43 @@ def _walk_wave(t: np.ndarray, rng: np.random.Generator, style: _Style) -> _Drive
     return _Drive(euler, lower.yaw_rate, lower.speed, lower.root, lower.sway, walking=True)
 
 
+APPROACH_LENGTH_M = 2.0  # the straight walk towards the camera and back
+APPROACH_SPEED_MPS = 0.7  # fixed (not drawn), so a held-out tail continues the same path
+APPROACH_TURN_S = 1.2  # turning round at each end, stepping in place
+APPROACH_RAMP_S = 0.3  # speed and turning rate fade in and out over this long
+
+
+def _approach(t: np.ndarray, rng: np.random.Generator, style: _Style) -> _Drive:
+    """Walking straight towards the training camera and away again, turning round at each end.
+
+    The gait is the walk's; the path is a line through the origin along the subject's initial
+    heading (facing the camera), from ``-L/2`` to ``+L/2``: walk half a leg towards the camera,
+    turn round, walk a whole leg away, turn round (the same way: one revolution per cycle, so
+    every side is seen), and so on. Speed and turning rate fade in and out (smoothstep). The path
+    is a function of time alone, so a held-out tail (a fresh draw of the gait) stays on it."""
+    gait = _walk(t, rng, style)
+    speed_mps = APPROACH_SPEED_MPS
+    leg = APPROACH_LENGTH_M / speed_mps
+    period = 2.0 * (leg + APPROACH_TURN_S)
+    phase = (t + 0.5 * leg) % period  # starts half-way along a leg, walking towards the camera
+    in_leg = phase % (leg + APPROACH_TURN_S)  # time into the current leg-then-turn
+    ramp = APPROACH_RAMP_S
+
+    def window(x: np.ndarray, length: float) -> np.ndarray:
+        up = np.clip(x / ramp, 0.0, 1.0)
+        down = np.clip((length - x) / ramp, 0.0, 1.0)
+        w = np.minimum(up, down)
+        return w * w * (3 - 2 * w)
+
+    walking = np.where(in_leg < leg, window(in_leg, leg), 0.0)
+    turning = np.where(in_leg >= leg, window(in_leg - leg, APPROACH_TURN_S), 0.0)
+    # The turn's rate integrates to pi over the (smoothstepped) turn.
+    turn_area = APPROACH_TURN_S - ramp
+    yaw_rate = style.direction * np.pi / turn_area * turning
+    speed = speed_mps * walking * (leg / (leg - ramp))  # the ramps do not shorten the leg
+    return _Drive(gait.euler, yaw_rate, speed, gait.root, gait.sway, walking=True, steered=False)
+
+
 _PRIMITIVES = {
     "turn": _turn,
     "walk": _walk,
@@ -457,6 +498,7 @@ _PRIMITIVES = {
     "crouch": _crouch,
     "arms_up": _arms_up,
     "walk+wave": _walk_wave,
+    "approach": _approach,
 }
 
 
@@ -508,9 +550,10 @@ def _integrate_root(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Integrate yaw (N,) and ground position (N, 2) from the blended rates, frame by frame.
 
-    While walking, a steering term turns the subject onto the sequence's circle around the
-    origin (tangent to it, pulled radially back onto it), so every walking segment shares
-    one circle and the subject never leaves the cameras' view.
+    ``walking`` (N,): how much each frame walks on the circle. While walking, a steering term
+    turns the subject onto the sequence's circle around the origin (tangent to it, pulled
+    radially back onto it), so every walking segment shares one circle and the subject never
+    leaves the cameras' view. (A path of its own, as ``approach``'s, is not steered.)
     """
     n = yaw_rate.shape[0]
     yaw = np.empty(n)
@@ -588,8 +631,9 @@ def make_motion(
 
     dt = 1.0 / fps
     walking = weights @ np.array([float(d.walking) for d in drives])
+    steered = weights @ np.array([float(d.walking and d.steered) for d in drives])
     yaw0 = rng.uniform(-0.3, 0.3)
-    yaw, ground = _integrate_root(yaw_rate, speed, walking, style, dt, yaw0)
+    yaw, ground = _integrate_root(yaw_rate, speed, steered, style, dt, yaw0)
     cuts: tuple[int, ...] = ()
     if train_yaw_deg is not None:
         # Held-out orientations: a sweep through the window replaces the motion's own turning,
@@ -607,7 +651,7 @@ def make_motion(
         if room > 1e-6 and abs(target) > abs(turned):
             yaw_rate = yaw_rate.copy()
             yaw_rate[:train_end] += standing[:train_end] * (target - turned) / room
-            yaw, ground = _integrate_root(yaw_rate, speed, walking, style, dt, yaw0)
+            yaw, ground = _integrate_root(yaw_rate, speed, steered, style, dt, yaw0)
     yaw_rot = axis_rotation("z", yaw)  # (N, 3, 3)
     forward = yaw_rot @ np.array([0.0, -1.0, 0.0])
     left = yaw_rot @ np.array([1.0, 0.0, 0.0])

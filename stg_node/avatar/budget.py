@@ -1,0 +1,104 @@
+"""The Gaussian and step budget scaled with the person's size in pixels.
+
+The presets were tuned on the synthetic benchmark at 512 x 512, where the person covers about
+``REFERENCE_AREA_PX`` pixels (366 px tall). Detail to reconstruct grows with the pixels the person
+covers: a person filling a phone's frame at the same resolution covers two to three times as
+many, and with the same number of Gaussians each one has to cover more of them (blur); with the
+same number of steps, each Gaussian is fitted less. So a run scales its preset by the ratio of the
+person's median mask area in the training frames to the reference:
+
+- Gaussians (``num_gaussians``, ``max_gaussians``) and new Gaussians per flow-guided round in
+  proportion to the area ratio (Gaussians per person pixel kept);
+- iterations by its square root (more Gaussians converge in fewer visits each than the ratio
+  would say, since each step still renders all of them), at most twice the preset's.
+
+The ratio is clamped to [1, ``MAX_SCALE``]: a person smaller than the reference keeps the preset
+(fewer Gaussians would save time but never quality, and the tuned presets are the tested ones),
+and a huge image does not make a run unbounded. ``--set`` on any of these settings wins (the user
+said so), and ``--resume`` keeps the budget the run started with.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+REFERENCE_AREA_PX = 20_000.0  # median person mask area of the benchmark's training frames at 512 px
+MAX_SCALE = 4.0
+SCALED = ("model.num_gaussians", "model.max_gaussians", "densify.flow_max_new", "iterations")
+
+
+@dataclass(frozen=True)
+class Budget:
+    person_area_px: float  # median mask area over the training frames
+    person_height_px: float  # median mask height
+    scale: float  # the Gaussian budget's factor (the area ratio, clamped)
+    steps_scale: float
+    changes: dict  # setting -> new value (those the user did not set)
+
+    def as_dict(self) -> dict:
+        return {
+            "person_area_px": self.person_area_px,
+            "person_height_px": self.person_height_px,
+            "reference_area_px": REFERENCE_AREA_PX,
+            "gaussian_scale": self.scale,
+            "steps_scale": self.steps_scale,
+            "changes": self.changes,
+        }
+
+    def describe(self) -> str:
+        size = f"person {self.person_height_px:.0f} px tall, {self.person_area_px:.0f} px"
+        if not self.changes:
+            return f"{size}: the preset's budget"
+        changed = ", ".join(f"{k}={v}" for k, v in self.changes.items())
+        return f"{size} ({self.scale:.2f}x the presets' reference): budget scaled: {changed}"
+
+
+def person_size(masks) -> tuple[float, float]:
+    """(median area, median height) in pixels of the non-empty masks in ``masks`` (H, W uint8 arrays)."""
+    areas, heights = [], []
+    for mask in masks:
+        if mask is None:
+            continue
+        on = np.asarray(mask) > 127
+        if not on.any():
+            continue
+        rows = np.flatnonzero(on.any(axis=1))
+        areas.append(float(on.sum()))
+        heights.append(float(rows[-1] - rows[0] + 1))
+    if not areas:
+        return math.nan, math.nan
+    return float(np.median(areas)), float(np.median(heights))
+
+
+def sample_masks(dataset, count: int = 25):
+    """The masks of ``count`` training views spread over ``dataset`` (a SequenceDataset)."""
+    n = len(dataset)
+    for i in sorted(set(np.linspace(0, n - 1, min(count, n)).round().astype(int).tolist())):
+        yield dataset[i].mask
+
+
+def scale_budget(config, masks, *, fixed: tuple[str, ...] = ()) -> tuple[object, Budget]:
+    """``config`` with its budget scaled for the person in ``masks`` (module docstring); settings named
+    in ``fixed`` (what the user set) are left alone. Returns the config and what was decided."""
+    area, height = person_size(masks)
+    if not math.isfinite(area):
+        return config, Budget(area, height, 1.0, 1.0, {})
+    scale = min(max(area / REFERENCE_AREA_PX, 1.0), MAX_SCALE)
+    steps = min(math.sqrt(scale), 2.0)
+    wanted = {
+        "model.num_gaussians": round(config.model.num_gaussians * scale),
+        "model.max_gaussians": round(config.model.max_gaussians * scale),
+        "densify.flow_max_new": round(config.densify.flow_max_new * scale),
+        "iterations": round(config.iterations * steps),
+    }
+    current = {
+        "model.num_gaussians": config.model.num_gaussians,
+        "model.max_gaussians": config.model.max_gaussians,
+        "densify.flow_max_new": config.densify.flow_max_new,
+        "iterations": config.iterations,
+    }
+    changes = {k: v for k, v in wanted.items() if k not in fixed and v != current[k]}
+    return (config.replace(**changes) if changes else config), Budget(area, height, scale, steps, changes)

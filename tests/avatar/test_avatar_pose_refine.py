@@ -1,0 +1,60 @@
+"""Refined training poses kept smooth in time, and how strongly poses from a tracker are refined."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from stg_node.avatar.pose_refine import ROTATION_SIGMA_RAD, TRANSLATION_SIGMA_M, PoseTrack, refinement_for
+from stg_node.avatar.presets import preset
+from stg_node.body.params import SmplParams
+
+
+def smpl(angle: float, x: float) -> SmplParams:
+    poses = np.zeros((24, 3), np.float32)
+    poses[18, 1] = angle  # an elbow
+    return SmplParams(
+        poses=poses, Rh=np.zeros(3, np.float32), Th=np.array([x, 0, 3], np.float32), betas=np.zeros(10)
+    )
+
+
+def test_smoothness_is_the_scaled_second_difference_of_the_refined_trajectory():
+    track = PoseTrack()
+    for i, (angle, x) in enumerate([(0.0, 0.0), (0.3, 0.1), (0.2, 0.2)]):
+        track.add(i, smpl(angle, x), "cpu")
+    slots = {0: 2, 1: 0, 2: 1}  # slots in any order
+    deltas = torch.zeros(3, 75, requires_grad=True)
+    value = track.smoothness(deltas, slots, 1)
+    # Hand computed: elbow 0 - 2 * 0.3 + 0.2 = -0.4 rad; root x 0 - 0.2 + 0.2 = 0.
+    expected = ((-0.4 / ROTATION_SIGMA_RAD) ** 2) / 75
+    assert float(value.detach()) == pytest.approx(expected, rel=1e-5)
+    value.backward()
+    # Lowering the middle frame's elbow correction smooths it: its gradient is positive (d/dx of (a - 2x)^2).
+    assert float(deltas.grad[0, 18 * 3 + 1]) > 0 and float(deltas.grad[2, 18 * 3 + 1]) < 0
+    with torch.no_grad():
+        deltas[0, 18 * 3 + 1] = -0.2  # the middle frame refined onto the straight line
+    assert float(track.smoothness(deltas, slots, 1).detach()) == pytest.approx(0.0, abs=1e-10)
+    # A translation kink costs in its own unit.
+    track.add(3, smpl(0.2, 0.25 + 0.02), "cpu")
+    value = track.smoothness(torch.zeros(4, 75), {0: 0, 1: 1, 2: 2, 3: 3}, 2)
+    kink = (0.3 - 2 * 0.2 + 0.2, 0.1 - 2 * 0.2 + 0.27)
+    assert float(value) == pytest.approx(
+        ((kink[0] / ROTATION_SIGMA_RAD) ** 2 + (kink[1] / TRANSLATION_SIGMA_M) ** 2) / 75, rel=1e-4
+    )
+
+
+def test_no_smoothness_at_the_ends_of_what_was_seen():
+    track = PoseTrack()
+    track.add(5, smpl(0.1, 0.0), "cpu")
+    track.add(6, smpl(0.1, 0.0), "cpu")
+    assert track.smoothness(torch.zeros(2, 75), {5: 0, 6: 1}, 5) is None
+
+
+def test_tracked_poses_are_refined_harder_than_given_ones():
+    fast = preset("fast")
+    tracked, given = refinement_for(fast, "tracked"), refinement_for(fast, "given")
+    assert tracked.lr_pose > given.lr_pose and tracked.loss.pose_smooth > 0 == given.loss.pose_smooth
+    assert tracked.model == fast.model and tracked.iterations == fast.iterations
+    with pytest.raises(ValueError, match="pose source"):
+        refinement_for(fast, "guessed")

@@ -1,0 +1,72 @@
+"""Scoring a tracked run on a synthetic subject (stg_node.avatar.synth_eval): the world alignment
+against a pinhole projection done by hand, the scale from depths, and the true-root diagnostic."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from stg_node.avatar.synth_eval import WorldAlignment, _joints, _root_at_truth, tracked_alignment
+from stg_node.body import load_body_model
+from stg_node.body.params import SmplParams
+from stg_node.data.types import Camera
+
+
+def _camera(R, t, f=500.0):
+    K = np.array([[f, 0, 256.0], [0, f, 256.0], [0, 0, 1]])
+    return Camera(K, np.asarray(R, np.float64), np.asarray(t, np.float64), 512, 512, "c")
+
+
+def _project(camera: Camera, x: np.ndarray) -> np.ndarray:
+    p = (camera.R @ x.T).T + camera.t.reshape(3)
+    p = (camera.K @ p.T).T
+    return p[:, :2] / p[:, 2:]
+
+
+def test_a_camera_moved_into_the_runs_world_sees_the_same_picture():
+    """x_run = s (R x_world + t): the held-out camera in the run's world projects x_run where the
+    original projects x_world (any rotation, translation and scale)."""
+    rng = np.random.default_rng(0)
+    align = WorldAlignment(Rotation.random(random_state=1).as_matrix(), rng.normal(size=3), 0.7)
+    held_out = _camera(Rotation.random(random_state=2).as_matrix(), np.array([0.1, -0.2, 4.0]))
+    points = rng.normal(scale=0.5, size=(20, 3))
+    in_run = align.scale * ((align.R @ points.T).T + align.t)
+    expected = _project(held_out, points)
+    np.testing.assert_allclose(_project(align.camera(held_out), in_run), expected, atol=1e-9)
+
+
+def test_the_scale_is_the_median_depth_ratio():
+    camera = _camera(np.eye(3), np.zeros(3))
+    true = np.zeros((5, 24, 3))
+    true[..., 2] = np.arange(2.0, 7.0)[:, None]
+    run = true.copy()
+    run[..., 2] *= 1.25
+    run[0, :, 2] = 100.0  # one bad frame does not move a median
+    assert tracked_alignment(camera, true, run).scale == pytest.approx(1.25)
+
+
+def test_the_true_root_diagnostic_puts_the_tracked_pelvis_on_the_true_one_and_keeps_the_pose():
+    body = load_body_model()
+    rng = np.random.default_rng(3)
+    truth = SmplParams(
+        poses=rng.normal(scale=0.2, size=(24, 3)).astype(np.float32),
+        Rh=np.array([0.1, 0.4, -0.2], np.float32),
+        Th=np.array([0.3, -0.1, 2.0], np.float32),
+        betas=np.zeros(10, np.float32),
+    )
+    tracked = SmplParams(
+        poses=truth.poses + rng.normal(scale=0.05, size=(24, 3)).astype(np.float32),
+        Rh=truth.Rh,
+        Th=np.array([0.5, 0.2, 3.1], np.float32),  # the wrong depth and offset
+        betas=np.full(10, 0.5, np.float32),  # another shape: another pelvis offset
+    )
+    align = WorldAlignment(Rotation.random(random_state=4).as_matrix(), np.array([0.0, 0.2, 3.0]), 1.1)
+    moved = _root_at_truth(body, tracked, truth, align)
+    pelvis = _joints(body, [moved])[0, 0]
+    true_pelvis = _joints(body, [truth])[0, 0]
+    np.testing.assert_allclose(pelvis, align.scale * (align.R @ true_pelvis + align.t), atol=1e-5)
+    np.testing.assert_array_equal(moved.poses, tracked.poses)
+    before = _joints(body, [tracked])[0]
+    after = _joints(body, [moved])[0]
+    np.testing.assert_allclose(after - after[0], before - before[0], atol=1e-5)  # a translation only
