@@ -11,7 +11,9 @@ entries of held frames; the Adam moments of the kept knots are sliced with them,
 The store is a reservoir sample (old and new frames stay represented), so the knots kept are
 runs around the held frames, not one window: at most about ``(2 + 2 * KNOT_MARGIN + 1)`` knots
 per held frame whatever the stream's length. An unbounded store (offline training holds every
-frame) never calls this, so offline runs are unchanged.
+frame) never calls this, so offline runs are unchanged. The per-frame exposure gains and
+tracked poses (exposure.py, pose_refine.py) are forgotten with their frames too
+(:func:`forget_unheld_frames`), as the pose corrections are (``Trainer._compact_pose_slots``).
 """
 
 from __future__ import annotations
@@ -50,3 +52,15 @@ def window_to_frames(model, optimizer, store: FrameStore, noise_frames: float = 
     if optimizer is not None:
         optimizer.select_dense(old, bases.values, 1, index)
     return int((~keep).sum())
+
+
+def forget_unheld_frames(store: FrameStore, exposure, pose_track) -> None:
+    """The per-frame exposure gains and tracked poses of frames the store no longer holds go too,
+    once they are twice the store's bound (each cut copies what is kept: amortised)."""
+    if len(exposure.slots) <= 2 * store.capacity and len(pose_track.raw) <= 4 * store.capacity + 2:
+        return
+    held = {stored.frame.index for stored in store.frames}
+    if len(exposure.slots) > 2 * store.capacity:
+        exposure.retain(held)
+    if len(pose_track.raw) > 4 * store.capacity + 2:  # held frames and their neighbours: up to 3x
+        pose_track.retain(held)

@@ -38,7 +38,7 @@ from stg_node.avatar.pose_refine import PoseTrack
 from stg_node.avatar.rigid import Skeleton, skin
 from stg_node.avatar.rigidity import NeighbourGraph
 from stg_node.avatar.spacetime import TimeAxis
-from stg_node.avatar.stream_window import window_to_frames
+from stg_node.avatar.stream_window import forget_unheld_frames, window_to_frames
 from stg_node.body.canonical import big_pose_output
 
 log = logging.getLogger(__name__)
@@ -180,6 +180,7 @@ class Trainer:
             self.exposure.add(frame.index)
         if self.store.capacity > 0:  # a stream: keep only what the held frames need (stream_window.py)
             window_to_frames(self.model, self.optimizer, self.store, self.config.time_noise_frames)
+            forget_unheld_frames(self.store, self.exposure, self.pose_track)
 
     def add_frames(self, frames) -> None:
         for frame in frames:
