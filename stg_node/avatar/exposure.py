@@ -63,6 +63,17 @@ class ExposureCorrection:
         self.exp_avg_sq = torch.cat([self.exp_avg_sq, pad])
         self.steps = torch.cat([self.steps, torch.zeros(1, dtype=torch.int64)])
 
+    def retain(self, frames) -> None:
+        """Keep the rows (gains and Adam state) of ``frames`` only: a bounded trainer forgets the
+        frames its store no longer holds, so a stream's rows stay as many as its frames."""
+        kept = sorted((row, f) for f, row in self.slots.items() if f in frames)
+        rows = torch.tensor([row for row, _ in kept], dtype=torch.long)
+        self.gains = self.gains[rows.to(self.device)]
+        self.exp_avg = self.exp_avg[rows.to(self.device)]
+        self.exp_avg_sq = self.exp_avg_sq[rows.to(self.device)]
+        self.steps = self.steps[rows]
+        self.slots = {f: i for i, (_, f) in enumerate(kept)}
+
     def apply(self, rgb: torch.Tensor, index: int, iteration: int) -> torch.Tensor:
         """``rgb`` (H, W, 3) times this frame's gains (learnable from ``start_iter`` on)."""
         self._active = None

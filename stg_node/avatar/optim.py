@@ -193,6 +193,30 @@ class TableOptimizer:
                     self.dense.state[new] = grown
                 return
 
+    @torch.no_grad()
+    def select_dense(self, old: torch.Tensor, new: nn.Parameter, dim: int, index: torch.Tensor) -> None:
+        """Put ``new`` (``old.index_select(dim, index)``, zero-padded along ``dim`` where ``new`` is
+        longer) in ``old``'s place; its Adam moments are sliced and padded the same way (the kept
+        entries keep theirs: a window moving over a stream)."""
+        if self.dense is None:
+            return
+        for group in self.dense.param_groups:
+            for i, p in enumerate(group["params"]):
+                if p is not old:
+                    continue
+                group["params"][i] = new
+                state = self.dense.state.pop(old, None)
+                if state:
+                    kept = {}
+                    for key, value in state.items():
+                        if torch.is_tensor(value) and value.shape == old.shape:
+                            chosen = value.index_select(dim, index.to(value.device))
+                            value = chosen.new_zeros(new.shape)
+                            value.narrow(dim, 0, chosen.shape[dim]).copy_(chosen)
+                        kept[key] = value
+                    self.dense.state[new] = kept
+                return
+
     def dense_state(self) -> dict[str, dict[str, torch.Tensor]]:
         """Adam state of the dense modules, keyed ``"<group>.<i>"`` (i: the parameter's place in it)."""
         out = {}

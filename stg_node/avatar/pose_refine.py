@@ -46,6 +46,17 @@ class PoseTrack:
         )
         self.raw[int(index)] = values.to(device)
 
+    def retain(self, frames) -> None:
+        """Keep the tracked poses of ``frames``, of their neighbours (the second difference of a
+        held frame needs them) and the newest (the next frame's neighbour): a bounded trainer's
+        track stays as long as its store."""
+        newest = max(self.raw, default=None)
+        self.raw = {
+            f: v
+            for f, v in self.raw.items()
+            if f in frames or f - 1 in frames or f + 1 in frames or f == newest
+        }
+
     def smoothness(self, deltas: torch.Tensor, slots: dict[int, int], index: int) -> torch.Tensor | None:
         """Mean squared, unit-scaled second difference of the refined trajectory around frame
         ``index``; None when a neighbour is missing."""

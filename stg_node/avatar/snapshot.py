@@ -9,7 +9,9 @@ The trainer node publishes exactly what ``stg-train`` saves: a GaussianSnapshot 
   or SH coefficients) and the mean training orientation (``shading.reference``,
   ``shading.orientation_sum``), shading mode "sh";
 - ``motion.bases`` (B, K, 3, 4): the shared affine motion bases at their K knots (``model.motion_basis``
-  > 0; motion_basis.py);
+  > 0; motion_basis.py), ``motion.knot_ids`` (K,): each knot's grid index less the first one's,
+  which ``meta["motion.first_knot"]`` holds (a bounded trainer drops knots no held frame needs;
+  a snapshot without them holds knots ``0..K-1``);
 - ``body.rest_joints`` (24, 3), ``body.parents`` (24,), ``body.big_pose_inverse`` (24, 4, 4),
   ``body.betas`` (S,), ``body.bounds`` (2, 3): the skeleton, so a renderer needs no body file;
 - ``time.pose_keys`` (F, 207), ``time.times`` (F,): the novel-pose time-code index;
@@ -114,6 +116,9 @@ def model_arrays(model: AvatarModel) -> dict[str, np.ndarray]:
     arrays["body.bounds"] = _np(model.bounds)
     if model.motion_bases is not None:
         arrays["motion.bases"] = _np(model.motion_bases.values)
+        # the knots' grid indices less the first one's (meta motion.first_knot): exact in float32
+        ids = model.motion_bases.knot_ids
+        arrays["motion.knot_ids"] = (ids - ids[0]).astype(np.float32)
     arrays["time.pose_keys"] = np.ascontiguousarray(model.pose_index.keys, np.float32)
     arrays["time.times"] = np.ascontiguousarray(model.pose_index.times, np.float32)
     return arrays
@@ -134,6 +139,8 @@ def to_snapshot(
     meta = model_config_meta(model.config)
     meta["time.origin_s"] = float(model.time_axis.origin_s)
     meta["time.unit_s"] = float(model.time_axis.unit_s)
+    if model.motion_bases is not None:
+        meta["motion.first_knot"] = float(model.motion_bases.first_knot)
     if extra_arrays:
         arrays.update(extra_arrays)
     if extra_meta:
@@ -195,9 +202,10 @@ def model_from_snapshot(msg, device="cpu") -> AvatarModel:
     model = AvatarModel(config, table, skeleton, get("body.bounds"), axis, index).to(device)
     if model.motion_bases is not None:
         try:
-            model.motion_bases = MotionBases(
-                config.n_b, model.motion_bases.knot_units, values=get("motion.bases")
-            )
+            values = get("motion.bases")
+            ids = _knot_ids(msg, values.shape[1])
+            knot_units = model.motion_bases.knot_units
+            model.motion_bases = MotionBases(config.n_b, knot_units, values=values, knot_ids=ids)
         except ValueError as exc:
             raise SnapshotError(f"motion bases do not fit the model settings: {exc}") from exc
         model.motion_bases.to(device)
@@ -215,6 +223,19 @@ def model_from_snapshot(msg, device="cpu") -> AvatarModel:
         except RuntimeError as exc:
             raise SnapshotError(f"snapshot's light does not fit its shading settings: {exc}") from exc
     return model
+
+
+def _knot_ids(msg, knots: int) -> np.ndarray:
+    """The grid indices of the snapshot's knots; a snapshot from before the bounded trainer kept
+    windowed knots has neither entry and holds knots ``0..K-1``."""
+    first = msg.meta.get("motion.first_knot", 0.0)
+    offsets = msg.arrays.get("motion.knot_ids")
+    offsets = np.arange(knots, dtype=np.float64) if offsets is None else np.asarray(offsets, np.float64)
+    if not float(first) >= 0 or float(first) != round(float(first)) or offsets.shape != (knots,):
+        raise SnapshotError(
+            f"motion.first_knot {first} / motion.knot_ids {offsets.shape} do not fit {knots} knots"
+        )
+    return np.round(offsets).astype(np.int64) + int(first)
 
 
 # --- files ---------------------------------------------------------------------------------------

@@ -13,7 +13,8 @@ blink. :meth:`PoseTimeIndex.time_for` therefore keeps the previous choice unless
 is closer by a margin (hysteresis, ``HYSTERESIS`` of the current distance).
 
 The index keeps at most ``capacity`` keys (a stream evicts the oldest half-stride by
-reservoir-style thinning: every other key is dropped when full), so it stays small.
+reservoir-style thinning: every other key is dropped when full), so it stays small; a bounded
+trainer keeps only the entries of the frames it still holds (:meth:`PoseTimeIndex.retain`).
 """
 
 from __future__ import annotations
@@ -51,6 +52,20 @@ class PoseTimeIndex:
             self.times = self.times[::2].copy()
         self.keys = np.concatenate([self.keys, pose_key(poses)])
         self.times = np.concatenate([self.times, np.float32([time_u])])
+
+    def retain(self, times: np.ndarray) -> None:
+        """Keep the entries at ``times`` only (a bounded trainer: its held frames, so a stream's
+        index stays as small as its frame store and never points at knots it has dropped)."""
+        held = np.asarray(times, np.float64).reshape(-1)
+        if len(self) == 0:
+            return
+        if held.size == 0:
+            keep = np.zeros(len(self), bool)
+        else:
+            keep = np.isclose(self.times[:, None].astype(np.float64), held[None, :], atol=1e-6).any(axis=1)
+        if not keep.all():
+            self.keys = self.keys[keep].copy()
+            self.times = self.times[keep].copy()
 
     def set(self, keys: np.ndarray, times: np.ndarray) -> None:
         self.keys = np.asarray(keys, np.float32).reshape(-1, 23 * 9)

@@ -38,6 +38,7 @@ from stg_node.avatar.pose_refine import PoseTrack
 from stg_node.avatar.rigid import Skeleton, skin
 from stg_node.avatar.rigidity import NeighbourGraph
 from stg_node.avatar.spacetime import TimeAxis
+from stg_node.avatar.stream_window import forget_unheld_frames, window_to_frames
 from stg_node.body.canonical import big_pose_output
 
 log = logging.getLogger(__name__)
@@ -177,6 +178,9 @@ class Trainer:
                 self.pose_track.add(frame.index, frame.smpl, self.device)
         if self.exposure.enabled:
             self.exposure.add(frame.index)
+        if self.store.capacity > 0:  # a stream: keep only what the held frames need (stream_window.py)
+            window_to_frames(self.model, self.optimizer, self.store, self.config.time_noise_frames)
+            forget_unheld_frames(self.store, self.exposure, self.pose_track)
 
     def add_frames(self, frames) -> None:
         for frame in frames:
@@ -255,14 +259,19 @@ class Trainer:
         grown = None if bases is None else bases.grown(u)
         if grown is None:
             return
-        old = bases.values
-        bases.values = torch.nn.Parameter(grown.to(old.device))
+        old = bases.install(grown, bases.grown_ids(grown.shape[1]))
         if self.optimizer is not None:
             self.optimizer.replace_dense(old, bases.values)
 
     def _pose_slot(self, frame_index: int) -> int:
         if frame_index in self.pose_slots:
             return self.pose_slots[frame_index]
+        if (
+            self.store.capacity > 0
+            and self.pose_deltas is not None
+            and len(self.pose_slots) >= len(self.pose_deltas)
+        ):
+            self._compact_pose_slots()  # a stream: reuse the slots of frames no longer held
         slot = len(self.pose_slots)
         self.pose_slots[frame_index] = slot
         grow = self.pose_deltas is None or slot >= self.pose_deltas.shape[0]
@@ -276,6 +285,20 @@ class Trainer:
             if self.optimizer is not None:
                 self._rebuild_dense()
         return slot
+
+    def _compact_pose_slots(self) -> None:
+        """Keep the pose corrections (and their Adam moments) of the frames the store still holds,
+        in the first slots: a bounded trainer's corrections stay as many as its frames."""
+        held = {stored.frame.index for stored in self.store.frames}
+        kept = sorted((slot, f) for f, slot in self.pose_slots.items() if f in held)
+        index = torch.tensor([slot for slot, _ in kept], dtype=torch.long, device=self.device)
+        old = self.pose_deltas
+        new = torch.zeros_like(old.detach())
+        new[: len(kept)] = old.detach()[index]
+        self.pose_deltas = torch.nn.Parameter(new)
+        self.pose_slots = {f: i for i, (_, f) in enumerate(kept)}
+        if self.optimizer is not None:
+            self.optimizer.select_dense(old, self.pose_deltas, 0, index)
 
     def _rebuild_dense(self) -> None:
         table_state = self.optimizer.table_state()
