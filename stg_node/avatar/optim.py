@@ -174,30 +174,31 @@ class TableOptimizer:
     def replace_dense(self, old: torch.Tensor, new: nn.Parameter) -> None:
         """Put ``new`` (grown along any dimension) in ``old``'s place; its Adam moments keep the old
         values where ``old`` had them and start at zero in the new part."""
-        if self.dense is None:
-            return
-        for group in self.dense.param_groups:
-            for i, p in enumerate(group["params"]):
-                if p is not old:
-                    continue
-                group["params"][i] = new
-                state = self.dense.state.pop(old, None)
-                if state:
-                    grown = {}
-                    for key, value in state.items():
-                        if torch.is_tensor(value) and value.shape == old.shape:
-                            padded = value.new_zeros(new.shape)
-                            padded[tuple(slice(0, n) for n in old.shape)] = value
-                            value = padded
-                        grown[key] = value
-                    self.dense.state[new] = grown
-                return
+
+        def grow(value: torch.Tensor) -> torch.Tensor:
+            padded = value.new_zeros(new.shape)
+            padded[tuple(slice(0, n) for n in old.shape)] = value
+            return padded
+
+        self._swap_dense(old, new, grow)
 
     @torch.no_grad()
     def select_dense(self, old: torch.Tensor, new: nn.Parameter, dim: int, index: torch.Tensor) -> None:
         """Put ``new`` (``old.index_select(dim, index)``, zero-padded along ``dim`` where ``new`` is
         longer) in ``old``'s place; its Adam moments are sliced and padded the same way (the kept
         entries keep theirs: a window moving over a stream)."""
+
+        def select(value: torch.Tensor) -> torch.Tensor:
+            chosen = value.index_select(dim, index.to(value.device))
+            out = chosen.new_zeros(new.shape)
+            out.narrow(dim, 0, chosen.shape[dim]).copy_(chosen)
+            return out
+
+        self._swap_dense(old, new, select)
+
+    def _swap_dense(self, old: torch.Tensor, new: nn.Parameter, moments) -> None:
+        """``new`` in ``old``'s place in the dense optimizer; ``moments`` maps each of ``old``'s
+        per-element Adam tensors to ``new``'s shape (scalars such as the step are kept)."""
         if self.dense is None:
             return
         for group in self.dense.param_groups:
@@ -207,14 +208,10 @@ class TableOptimizer:
                 group["params"][i] = new
                 state = self.dense.state.pop(old, None)
                 if state:
-                    kept = {}
-                    for key, value in state.items():
-                        if torch.is_tensor(value) and value.shape == old.shape:
-                            chosen = value.index_select(dim, index.to(value.device))
-                            value = chosen.new_zeros(new.shape)
-                            value.narrow(dim, 0, chosen.shape[dim]).copy_(chosen)
-                        kept[key] = value
-                    self.dense.state[new] = kept
+                    self.dense.state[new] = {
+                        key: moments(value) if torch.is_tensor(value) and value.shape == old.shape else value
+                        for key, value in state.items()
+                    }
                 return
 
     def dense_state(self) -> dict[str, dict[str, torch.Tensor]]:
