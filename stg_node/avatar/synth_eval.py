@@ -20,6 +20,12 @@ live user has nothing better: no optimisation against the held-out image). A run
 ground-truth parameters (``--format synthetic``) is scored the same way with the identity
 alignment, so the two sets of figures compare directly.
 
+``align="similarity"`` replaces the extrinsics and depth ratio by the one similarity (rotation,
+translation, scale) that best maps all true joints of the training frames onto the tracked ones:
+a tracked world may sit tilted or turned against the truth as a whole (a tracker's systematic
+bias), which no live user would notice and a fair novel-view score should not charge. Still one
+gauge per sequence, never per frame.
+
 A diagnostic, never the score: ``root="true"`` moves each frame's tracked body so its pelvis sits
 on the true pelvis (the tracked joint rotations and shape kept). A single camera knows a
 person's distance only through the body's apparent size; a few centimetres of per-frame depth
@@ -82,6 +88,22 @@ def tracked_alignment(
     return WorldAlignment(R, t, float(np.median(run_depth[ok] / true_depth[ok])))
 
 
+def similarity_alignment(true_joints_world: np.ndarray, run_joints: np.ndarray) -> WorldAlignment:
+    """The one similarity (rotation, translation, scale) for the whole sequence that best maps the
+    true joints onto the run's (joints (N, J, 3) of the same frames, every joint of every frame
+    pooled): the fairest single gauge for a tracked world, which may sit rotated and scaled
+    against the truth beyond what the training camera's extrinsics say (a tracker's systematic
+    tilt, its shape's size). Never per frame: a per-frame fit would hide the tracker's errors."""
+    from stg_node.tracking.evaluation import similarity
+
+    scale, rotation, translation = similarity(
+        np.asarray(true_joints_world, np.float64).reshape(-1, 3), np.asarray(run_joints, np.float64).reshape(-1, 3)
+    )
+    if not scale > 0:
+        raise ValueError("no similarity maps the true joints onto the run's (degenerate joints)")
+    return WorldAlignment(rotation, translation / scale, scale)
+
+
 def _joints(body, smpls) -> np.ndarray:
     from stg_node.tracking.evaluation import joints_from_params
 
@@ -94,12 +116,27 @@ def _joints(body, smpls) -> np.ndarray:
     )
 
 
+def _tracker_world(folder: Path) -> bool:
+    """Whether a folder dataset's cameras are a tracker's: one camera, at the origin, unrotated."""
+    import json
+
+    cameras = json.loads((folder / "cameras.json").read_text()).get("cameras", {})
+    if len(cameras) != 1:
+        return False
+    (camera,) = cameras.values()
+    return np.allclose(camera.get("R", 0), np.eye(3)) and np.allclose(camera.get("t", 1), 0)
+
+
 def _run_poses(run, spec) -> dict:
-    """Frame -> the pose the run has for it (a video run: every tracked frame; else the dataset's)."""
+    """Frame -> the pose the run has for it: a video run's every tracked frame, and so for a folder
+    dataset in a tracker's world (one camera at the origin, as stg-track writes it: a tracking
+    edited by hand, a diagnostic's substituted poses); empty for a dataset in the subject's world."""
     from stg_node.body.motion import load_smpl_params
     from stg_node.safe_load import load_npz
 
-    if spec.format != "video":
+    if spec.format not in ("video", "folder"):
+        return {}
+    if spec.format == "folder" and not _tracker_world(Path(spec.root)):
         return {}
     path = Path(spec.root) / "poses.npz"
     sequence = load_smpl_params(path)
@@ -122,6 +159,7 @@ def evaluate_on_synth(
     split: str = "novel_view",
     *,
     root: str = "tracked",
+    align: str = "camera",
     protocol: str = "full",
     lpips_nets: tuple[str, ...] = ("alex",),
     parts: bool = True,
@@ -132,7 +170,9 @@ def evaluate_on_synth(
     """A run scored on an stg-synth subject's ``split`` (module docstring): PSNR / SSIM / LPIPS under
     ``protocol`` (``full``: the whole image, as stg-eval; ``bbox``: the person's box), PSNR per body
     part, the alignment used and the views that had no pose (a frame the tracker was unsure of).
-    ``root``: ``tracked`` (the score) or ``true`` (the diagnostic of the module docstring)."""
+    ``root``: ``tracked`` (the score) or ``true`` (the diagnostic of the module docstring).
+    ``align`` (a tracked run): ``camera`` (the training camera's extrinsics and the depth-ratio
+    scale) or ``similarity`` (:func:`similarity_alignment`)."""
     from stg_node.avatar.data_spec import DataSpec
     from stg_node.avatar.loading import corrected, load_run_renderer
     from stg_node.body import load_body_model
@@ -144,6 +184,8 @@ def evaluate_on_synth(
         raise ValueError(f"split must be novel_view or novel_pose, got {split!r}")
     if root not in ("tracked", "true"):
         raise ValueError(f"root must be tracked or true, got {root!r}")
+    if align not in ("camera", "similarity"):
+        raise ValueError(f"align must be camera or similarity, got {align!r}")
     synth_dir = Path(synth_dir)
     run, renderer, corrections, summary = load_run_renderer(Path(run_dir), device=device, backend=backend)
     spec = run.data_spec()
@@ -155,11 +197,12 @@ def evaluate_on_synth(
         frames = [f for f in train_truth.frames if f in tracked]
         if not frames:
             raise ValueError(f"{run.path}: none of its tracked frames is a training frame of {synth_dir}")
-        alignment = tracked_alignment(
-            train_truth.camera(train_truth.camera_names[0]),
-            _joints(body, [train_truth.smpl(f) for f in frames]),
-            _joints(body, [tracked[f] for f in frames]),
-        )
+        true_joints = _joints(body, [train_truth.smpl(f) for f in frames])
+        run_joints = _joints(body, [tracked[f] for f in frames])
+        if align == "similarity":
+            alignment = similarity_alignment(true_joints, run_joints)
+        else:
+            alignment = tracked_alignment(train_truth.camera(train_truth.camera_names[0]), true_joints, run_joints)
     else:
         alignment = WorldAlignment.identity()
     dataset = truth.open(split)
@@ -190,6 +233,7 @@ def evaluate_on_synth(
     return {
         "split": split,
         "root": root,
+        "align": align if tracked else "identity",
         "protocol": protocol,
         "format": spec.format,
         "psnr": report["psnr"],

@@ -41,8 +41,9 @@ def mpjpe(pred: np.ndarray, gt: np.ndarray, root: int = 0) -> np.ndarray:
     return np.linalg.norm(aligned - (gt - gt[:, root : root + 1]), axis=-1).mean(axis=1)
 
 
-def procrustes_align(source: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """``source`` (J, 3) moved by the similarity transform that best fits it to ``target`` (Umeyama)."""
+def similarity(source: np.ndarray, target: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """(scale, rotation, translation) that best map ``source`` (P, 3) onto ``target`` (P, 3) in the
+    least-squares sense: ``target ~ scale * rotation @ source + translation`` (Umeyama)."""
     mu_s, mu_t = source.mean(axis=0), target.mean(axis=0)
     a, b = source - mu_s, target - mu_t
     u, s, vt = np.linalg.svd(a.T @ b)
@@ -51,7 +52,13 @@ def procrustes_align(source: np.ndarray, target: np.ndarray) -> np.ndarray:
     rotation = vt.T @ np.diag(d) @ u.T
     variance = (a**2).sum()
     scale = (s * d).sum() / variance if variance > 0 else 1.0
-    return scale * a @ rotation.T + mu_t
+    return float(scale), rotation, mu_t - scale * rotation @ mu_s
+
+
+def procrustes_align(source: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """``source`` (J, 3) moved by the similarity transform that best fits it to ``target`` (Umeyama)."""
+    scale, rotation, translation = similarity(source, target)
+    return scale * source @ rotation.T + translation
 
 
 def pa_mpjpe(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:

@@ -7,7 +7,13 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from stg_node.avatar.synth_eval import WorldAlignment, _joints, _root_at_truth, tracked_alignment
+from stg_node.avatar.synth_eval import (
+    WorldAlignment,
+    _joints,
+    _root_at_truth,
+    similarity_alignment,
+    tracked_alignment,
+)
 from stg_node.body import load_body_model
 from stg_node.body.params import SmplParams
 from stg_node.data.types import Camera
@@ -70,3 +76,35 @@ def test_the_true_root_diagnostic_puts_the_tracked_pelvis_on_the_true_one_and_ke
     before = _joints(body, [tracked])[0]
     after = _joints(body, [moved])[0]
     np.testing.assert_allclose(after - after[0], before - before[0], atol=1e-5)  # a translation only
+
+
+def test_the_similarity_alignment_recovers_a_known_similarity_and_moves_cameras_with_it():
+    """Run joints made from true ones by a known x_run = s (R x + t) (plus noise): the fit finds s, R
+    and t, and a held-out camera moved by it sees the run's joints where the original sees the
+    true ones."""
+    rng = np.random.default_rng(5)
+    true = rng.normal(scale=0.4, size=(30, 24, 3)) + np.array([0.0, 0.0, 3.0])
+    R = Rotation.from_euler("xyz", [5.0, -20.0, 3.0], degrees=True).as_matrix()
+    t, s = np.array([0.1, -0.3, 0.5]), 1.15
+    run = s * (true @ R.T + t) + rng.normal(scale=1e-4, size=true.shape)
+    align = similarity_alignment(true, run)
+    assert align.scale == pytest.approx(s, rel=1e-3)
+    np.testing.assert_allclose(align.R, R, atol=1e-3)
+    np.testing.assert_allclose(align.t, t, atol=1e-3)
+    held_out = _camera(Rotation.random(random_state=6).as_matrix(), np.array([0.0, 0.1, 5.0]))
+    np.testing.assert_allclose(
+        _project(align.camera(held_out), run.reshape(-1, 3)), _project(held_out, true.reshape(-1, 3)), atol=0.1
+    )
+
+
+def test_the_similarity_alignment_of_a_camera_frame_world_agrees_with_the_extrinsics():
+    """A tracker that saw the truth exactly, in its camera's frame: the similarity is that camera's
+    extrinsics and scale 1, as tracked_alignment says."""
+    rng = np.random.default_rng(7)
+    camera = _camera(Rotation.random(random_state=8).as_matrix(), np.array([0.2, 0.0, 4.0]))
+    true = rng.normal(scale=0.4, size=(10, 24, 3))
+    run = true @ camera.R.T + camera.t
+    fitted, extrinsic = similarity_alignment(true, run), tracked_alignment(camera, true, run)
+    assert fitted.scale == pytest.approx(extrinsic.scale, abs=1e-9)
+    np.testing.assert_allclose(fitted.R, extrinsic.R, atol=1e-9)
+    np.testing.assert_allclose(fitted.t, extrinsic.t, atol=1e-9)
