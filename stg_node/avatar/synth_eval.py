@@ -97,7 +97,8 @@ def similarity_alignment(true_joints_world: np.ndarray, run_joints: np.ndarray) 
     from stg_node.tracking.evaluation import similarity
 
     scale, rotation, translation = similarity(
-        np.asarray(true_joints_world, np.float64).reshape(-1, 3), np.asarray(run_joints, np.float64).reshape(-1, 3)
+        np.asarray(true_joints_world, np.float64).reshape(-1, 3),
+        np.asarray(run_joints, np.float64).reshape(-1, 3),
     )
     if not scale > 0:
         raise ValueError("no similarity maps the true joints onto the run's (degenerate joints)")
@@ -202,7 +203,9 @@ def evaluate_on_synth(
         if align == "similarity":
             alignment = similarity_alignment(true_joints, run_joints)
         else:
-            alignment = tracked_alignment(train_truth.camera(train_truth.camera_names[0]), true_joints, run_joints)
+            alignment = tracked_alignment(
+                train_truth.camera(train_truth.camera_names[0]), true_joints, run_joints
+            )
     else:
         alignment = WorldAlignment.identity()
     dataset = truth.open(split)

@@ -93,7 +93,9 @@ def test_the_similarity_alignment_recovers_a_known_similarity_and_moves_cameras_
     np.testing.assert_allclose(align.t, t, atol=1e-3)
     held_out = _camera(Rotation.random(random_state=6).as_matrix(), np.array([0.0, 0.1, 5.0]))
     np.testing.assert_allclose(
-        _project(align.camera(held_out), run.reshape(-1, 3)), _project(held_out, true.reshape(-1, 3)), atol=0.1
+        _project(align.camera(held_out), run.reshape(-1, 3)),
+        _project(held_out, true.reshape(-1, 3)),
+        atol=0.1,
     )
 
 
