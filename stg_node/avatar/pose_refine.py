@@ -18,6 +18,15 @@ adds what a per-frame correction alone lacks:
   correction of several degrees in a few visits per frame, so ``stg-train --format video`` uses
   the ``tracked`` settings unless ``--set`` says otherwise.
 
+- **Only the frames a step saw move** (:func:`hold_unseen_rows`): the corrections are one tensor
+  in the trainer's dense Adam, whose moments keep moving every row for dozens of steps after it
+  had a gradient, and whose tiny epsilon turns the weak whole-table regulariser into a full-size
+  step for every row at every step. Each frame's correction would then random-walk by about the
+  learning rate per step whether or not its image was seen: at the tracked setting's rate this
+  cost 4 dB of novel-view PSNR with perfect poses (docs/BENCHMARKS.md "Real footage"). A step
+  now moves the rows of the frame it rendered (and of its two neighbours when the smoothness
+  term tied them in); the others stay put, as in a lazy (sparse) Adam.
+
 Held-out frames are never refined: a novel pose is rendered with the pose it is given.
 """
 
@@ -97,3 +106,24 @@ def refinement_for(config, source: str):
     return config.replace(
         **{"lr_pose": r.lr_pose, "loss.pose_refine": r.pose_refine, "loss.pose_smooth": r.pose_smooth}
     )
+
+
+def touched_slots(slots: dict[int, int], index: int, smoothed: bool) -> list[int]:
+    """The correction rows a step on frame ``index`` has a real gradient for: the frame's, and its
+    neighbours' when the smoothness term was in the loss."""
+    frames = (index - 1, index, index + 1) if smoothed else (index,)
+    return [slots[f] for f in frames if f in slots]
+
+
+def hold_unseen_rows(deltas: torch.Tensor, touched: list[int]):
+    """Before an optimiser step: a function that, called after it, puts every row of ``deltas`` but
+    ``touched`` back where it was (module docstring)."""
+    keep = torch.ones(deltas.shape[0], dtype=torch.bool, device=deltas.device)
+    keep[torch.as_tensor(touched, dtype=torch.long, device=deltas.device)] = False
+    before = deltas.detach()[keep].clone()
+
+    def restore() -> None:
+        with torch.no_grad():
+            deltas[keep] = before
+
+    return restore

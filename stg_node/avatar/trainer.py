@@ -34,7 +34,7 @@ from stg_node.avatar.isometry import IsometryGraph
 from stg_node.avatar.model import AvatarModel, BodyState, Camera3, render
 from stg_node.avatar.motion_priors import line_of_sight, world_offsets
 from stg_node.avatar.optim import TableOptimizer
-from stg_node.avatar.pose_refine import PoseTrack
+from stg_node.avatar.pose_refine import PoseTrack, hold_unseen_rows, touched_slots
 from stg_node.avatar.rigid import Skeleton, skin
 from stg_node.avatar.rigidity import NeighbourGraph
 from stg_node.avatar.spacetime import TimeAxis
@@ -445,7 +445,13 @@ class Trainer:
             if gate is not None:  # static Gaussians keep exactly zero motion terms
                 for name in MOTION_COLUMNS:
                     self.optimizer.freeze_rows(name, ~gate)
+            restore_unseen = None
+            if self.pose_deltas is not None and c.lr_pose > 0:  # only the frames seen move (pose_refine.py)
+                seen = touched_slots(self.pose_slots, stored.frame.index, "pose_smooth" in terms)
+                restore_unseen = hold_unseen_rows(self.pose_deltas, seen)
             self.optimizer.step()
+            if restore_unseen is not None:
+                restore_unseen()
             self.exposure.step()
             for name in ("motion", "rot_motion"):  # a basis coefficient's sparsity is its row's gate
                 self.optimizer.soft_threshold(name, c.loss.motion_sparsity)

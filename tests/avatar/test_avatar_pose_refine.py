@@ -58,3 +58,34 @@ def test_tracked_poses_are_refined_harder_than_given_ones():
     assert tracked.model == fast.model and tracked.iterations == fast.iterations
     with pytest.raises(ValueError, match="pose source"):
         refinement_for(fast, "guessed")
+
+
+@pytest.mark.parametrize("smooth", [0.0, 1e-2])
+def test_a_step_moves_only_the_corrections_of_the_frames_it_saw(tiny_frames, smooth):
+    """Each step: the correction of the frame it rendered changes (and its neighbours' when the
+    smoothness term ties them in); every other frame's stays exactly where it was, although the
+    dense Adam's moments and the whole-table regulariser would move them."""
+    from avatar_helpers import small_config
+
+    from stg_node.avatar.trainer import Trainer
+
+    config = small_config(iterations=30, lr_pose=1e-2).replace(
+        **{"loss.pose_refine": 1e-3, "loss.pose_smooth": smooth}
+    )
+    trainer = Trainer(config, seed=0)
+    trainer.add_frames(tiny_frames)
+    moved_neighbours = 0
+    for _ in range(config.iterations):
+        before = trainer.pose_deltas.detach().clone()
+        result = trainer.step()
+        assert not result.skipped
+        changed = (trainer.pose_deltas.detach() != before).any(dim=1)
+        seen = {trainer.pose_slots[result.frame]}
+        neighbours = {
+            trainer.pose_slots[f] for f in (result.frame - 1, result.frame + 1) if f in trainer.pose_slots
+        }
+        assert changed[trainer.pose_slots[result.frame]] or result.iteration == 1  # the first step's Adam
+        allowed = seen | (neighbours if smooth > 0 else set())
+        assert set(torch.nonzero(changed).flatten().tolist()) <= allowed, result.frame
+        moved_neighbours += int(changed[list(neighbours)].any()) if neighbours else 0
+    assert (moved_neighbours > 0) == (smooth > 0)
