@@ -3,6 +3,7 @@
 size in the frame and an unknown camera cost, and what each remedy buys back.
 
     python tools/bench_footage.py gap       [--size 512] [--frames 125] [--runs truth,...]  # tracked vs truth
+    python tools/bench_footage.py sources   [--train-size 256] [...]      # where the gap comes from
     python tools/bench_footage.py exposure  [...]                         # steady vs exposure/WB jitter
     python tools/bench_footage.py size      [...]                         # filmed close vs from afar
     python tools/bench_footage.py focal     [...]                         # focal estimate vs truth, 30-90 deg
@@ -25,6 +26,14 @@ to ``--out/results/EXPERIMENT.json``; a run folder that is already finished is n
   tracker's poses as tracked. Beside it (``true_root``, a diagnostic, never the score): the tracked
   bodies moved so their pelvis sits on the true one, which separates where the body stands (a
   single camera's depth) from how it is posed and what the avatar learned.
+- ``sources``: where the ``gap`` comes from. The training camera is tracked once
+  (``stg-train --format video``'s own preparation) and its folder dataset (the tracker's images,
+  masks, camera) is trained with the poses swapped: ``tracked``; ``true-orientation`` (the true
+  global orientation, the tracked joint rotations, shape and pelvis position); ``true`` (the
+  true parameters in the camera's frame), with the refinement for tracked poses and, as
+  ``true, light refinement``, the one for given poses; beside ``truth`` (``--format
+  synthetic``). True poses through the tracker's pipeline score what the pipeline costs; the
+  steps between say what the pose errors cost. Scored with both alignments.
 - ``exposure``: the mixed subject steady, and with ``--exposure-jitter 0.15`` trained with and
   without the per-frame colour correction (``lr_exposure=0``).
 - ``size``: the turning subject filmed by a 55 degree camera from 1.9 m (the person fills the
@@ -169,6 +178,102 @@ def gap(args) -> dict:
     return rows
 
 
+def pose_variants(video_data: Path, data: Path, out: Path) -> dict[str, Path]:
+    """Folder datasets in the tracker's world (its images, masks and camera) with the poses swapped:
+    ``tracked`` as tracked; ``true-orientation``: the tracked joint rotations, shape and pelvis
+    position with the true global orientation; ``true``: the true parameters (pose, shape,
+    orientation, position) in the training camera's frame. Each is ``out/NAME``."""
+    import dataclasses
+    import os
+    import shutil
+
+    import cv2
+    import numpy as np
+
+    from stg_node.avatar.data_spec import DataSpec
+    from stg_node.avatar.synth_eval import _joints
+    from stg_node.body import load_body_model
+    from stg_node.body.motion import load_smpl_params
+    from stg_node.safe_load import load_npz
+
+    tracked = {k: np.asarray(v) for k, v in load_npz(video_data / "poses.npz").items()}
+    sequence = load_smpl_params(video_data / "poses.npz")
+    truth = DataSpec(str(data.resolve()), "synthetic", None, None, None).open("train")
+    camera = truth.camera(truth.camera_names[0])
+    R1, t1 = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64).reshape(3)
+    body = load_body_model()
+    variants = {
+        name: {k: v.copy() for k, v in tracked.items()} for name in ("tracked", "true-orientation", "true")
+    }
+    for i, frame in enumerate(tracked["frames"].astype(int)):
+        true = truth.smpl(int(frame))
+        poses = np.asarray(true.poses, np.float64).reshape(24, 3).copy()
+        rotation = R1 @ cv2.Rodrigues(np.asarray(true.Rh, np.float64))[0] @ cv2.Rodrigues(poses[0])[0]
+        Rh = cv2.Rodrigues(rotation)[0].ravel()
+        poses[0] = 0.0  # the root rotation folded into Rh, as the tracker writes it
+        placed = dataclasses.replace(true, poses=poses.astype(np.float32), Rh=Rh.astype(np.float32),
+                                     Th=np.zeros(3, np.float32))  # fmt: skip
+        true_joints = _joints(body, [true])[0] @ R1.T + t1
+        row = variants["true"]
+        row["poses"][i], row["Rh"][i], row["shapes"][i] = poses.reshape(72), Rh, np.asarray(true.betas)[:10]
+        row["Th"][i] = (true_joints - _joints(body, [placed])[0]).mean(axis=0)  # a translation: exact
+        mine = sequence[i]
+        turned = dataclasses.replace(mine, Rh=Rh.astype(np.float32), Th=np.zeros(3, np.float32))
+        row = variants["true-orientation"]
+        row["Rh"][i] = Rh
+        row["Th"][i] = _joints(body, [mine])[0, 0] - _joints(body, [turned])[0, 0]  # the tracked pelvis kept
+    folders = {}
+    for name, rows in variants.items():
+        folder = out / name
+        folder.mkdir(parents=True, exist_ok=True)
+        for sub in ("images", "masks"):
+            if not (folder / sub).exists():
+                os.symlink((video_data / sub).resolve(), folder / sub)
+        shutil.copy(video_data / "cameras.json", folder / "cameras.json")
+        np.savez(folder / "poses.npz", **rows)
+        folders[name] = folder
+    return folders
+
+
+def sources(args) -> dict:
+    """Where the tracked-pose gap comes from: the tracked run's own images and masks trained with
+    the tracked poses, with the true global orientation, and with the true poses (each with
+    today's refinement for tracked poses; the true poses also with the light touch for given
+    ones), beside the ground-truth run, all at ``--train-size``."""
+    from stg_node.avatar.pose_refine import REFINEMENTS
+    from stg_node.avatar.video import prepare_video
+
+    out = args.out
+    data = subject(out, f"mixed_{args.size}", num_frames=args.frames, size=args.size)
+    video_data = out / "sources" / f"video_data_{args.size}"
+    if not (video_data / "poses.npz").is_file():
+        prepare_video(data / "Camera_B1", video_data, intrinsics=intrinsics_file(data), progress=False)
+    folders = pose_variants(video_data, data, out / "sources" / f"data_{args.size}")
+    size = str(args.train_size or args.size)
+
+    def refine(source: str) -> list[str]:
+        r = REFINEMENTS[source]
+        return ["--set", f"lr_pose={r.lr_pose}", "--set", f"loss.pose_refine={r.pose_refine}",
+                "--set", f"loss.pose_smooth={r.pose_smooth}"]  # fmt: skip
+
+    frames = ["--train-frames", f"0:{round(0.8 * args.frames)}", "--size", size]
+    runs = {"truth": ("--data", str(data), "--format", "synthetic", "--size", size)}
+    for name, source in (("tracked", "tracked"), ("true-orientation", "tracked"), ("true", "tracked"),
+                         ("true, light refinement", "given")):  # fmt: skip
+        folder = folders[name.split(",")[0]]
+        runs[name] = ("--data", str(folder), "--format", "folder", *frames, *refine(source))
+    rows = {}
+    for name, flags in runs.items():
+        slug = name.replace(", ", "_").replace(" ", "_").replace("-", "_")
+        run = train(out, f"sources_{slug}_{args.size}_{size}", args, *flags)
+        rows[name] = score(run, data, "novel_view")
+        if name != "truth":
+            rows[name]["similarity"] = score(run, data, "novel_view", align="similarity", parts=False)
+    for name in rows:
+        rows[name]["below_truth_db"] = rows["truth"]["psnr"] - rows[name]["psnr"]
+    return rows
+
+
 def exposure(args) -> dict:
     out = args.out
     steady = subject(out, f"mixed_{args.size}", num_frames=args.frames, size=args.size)
@@ -278,7 +383,14 @@ def framing(args) -> dict:
     return rows
 
 
-EXPERIMENTS = {"gap": gap, "exposure": exposure, "size": size, "focal": focal, "framing": framing}
+EXPERIMENTS = {
+    "gap": gap,
+    "sources": sources,
+    "exposure": exposure,
+    "size": size,
+    "focal": focal,
+    "framing": framing,
+}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -290,6 +402,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--size", type=int, default=512, help="image size of subjects and training (default %(default)s)"
     )
     p.add_argument("--frames", type=int, default=125, help="frames per subject (default %(default)s)")
+    p.add_argument(
+        "--train-size", type=int, default=None, help="sources: training image size (default: --size)"
+    )
     p.add_argument("--preset", default="fast")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument(
