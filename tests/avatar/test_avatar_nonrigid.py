@@ -153,14 +153,14 @@ def test_runs_stored_before_the_trial_and_the_bases_resume_as_they_were():
     assert model_config_from_meta(meta).motion_basis == 0
 
 
-def test_a_gate_opens_on_flow_the_model_misses_or_where_moving_helps_not_on_motion_skinning_explains(
-    tiny_frames,
-):
+def test_a_gate_opens_where_skinning_misses_the_motion_and_moving_would_pay(tiny_frames):
     """Row 0: large flow the model's own motion explains (a turn): stays static. Row 1: flow it misses
-    and the image pulls: opens. Row 2: no missed flow, but moving with its bones' shared motions
-    would lower the loss (the normalised sum -<g, m> = 0.8): opens. Row 3: pulled, but moving would
-    raise the loss: stays static. Each newly moving row starts with its skinning weights as
-    coefficients."""
+    and the image pulls: opens. Row 2: moving with its bones' shared motions would lower the loss
+    (normalised -<g, m> = 0.8) but skinning explains the flow there: stays static. Row 3: misses flow
+    and moving would help, though the image pulls little: opens. Row 4: pulled, but moving would raise
+    the loss: stays static. Each newly moving row starts with its skinning weights as coefficients.
+    Without ``gate_needs_missed`` (the earlier rule) row 2 opens too."""
+    import dataclasses
     from types import SimpleNamespace
 
     from stg_node.avatar.motion_basis import initial_coefficients
@@ -171,15 +171,62 @@ def test_a_gate_opens_on_flow_the_model_misses_or_where_moving_helps_not_on_moti
     for key in ("flow_w", "resid_w", "help_dot", "help_norm"):
         state[key] = torch.zeros(n)
     state["flow_w"][0] = 50.0
-    state["resid_w"][1] = 2 * c.residual_motion_px
-    state["help_dot"][2], state["help_norm"][2] = -0.8, 1.0
-    state["help_dot"][3], state["help_norm"][3] = 0.8, 1.0
+    state["resid_w"][[1, 3]] = 2 * c.residual_motion_px
+    state["help_dot"][[2, 3]], state["help_norm"][[2, 3]] = -0.8, 1.0
+    state["help_dot"][4], state["help_norm"][4] = 0.8, 1.0
     grads = torch.zeros(n)
-    grads[:4] = c.grad_threshold  # the image pulls on all four
+    grads[[0, 1, 2, 4]] = c.grad_threshold  # the image pulls on these
     inputs = SimpleNamespace(motion_threshold_px=1.0)
+    saved = {k: state[k].clone() for k in ("help_dot", "help_norm")}
     report = trainer.densifier._gate_motion(model, trainer.optimizer, state, inputs, grads)
     gate = model.table.motion_gate()
-    assert gate[:4].tolist() == [False, True, True, False] and report["motion_on"] == 2
-    expected = initial_coefficients(model.skin_weights().detach()[1:3], model.motion_bases.count)
-    assert torch.allclose(model.table["motion_coef"].detach()[1:3], expected)
-    assert not bool(model.table["motion_coef"].detach()[[0, 3]].any())
+    assert gate[:5].tolist() == [False, True, False, True, False] and report["motion_on"] == 2
+    expected = initial_coefficients(model.skin_weights().detach()[[1, 3]], model.motion_bases.count)
+    assert torch.allclose(model.table["motion_coef"].detach()[[1, 3]], expected)
+    assert not bool(model.table["motion_coef"].detach()[[0, 2, 4]].any())
+    state.update(saved)
+    model.table["motion_gate"].data.zero_()
+    state["was_dynamic"].zero_()
+    trainer.densifier.config = dataclasses.replace(c, gate_needs_missed=False)
+    trainer.densifier._gate_motion(model, trainer.optimizer, state, inputs, grads)
+    assert model.table.motion_gate()[:5].tolist() == [False, True, True, True, False]
+
+
+def test_motion_no_view_can_measure_settles_and_keeps_its_mean_offset(tiny_frames):
+    """Two dynamic rows follow basis 0 alone: a constant 2 cm shift along x at every knot, plus at the
+    last knot a stretch along y (dy = 0.01 y), so row 0 (canonical y = 0.1 m) swings 1 mm and row 1
+    (y = 3 m) 3 cm. Each is seen where a pixel spans 1 cm; with motion_min_px = 1.5 (1.5 cm) row 0
+    settles: its terms become exact zeros and its centre moves by its offset's mean over the knots
+    (by hand: 2 cm along x, 1 mm / K along y); row 1 keeps moving, its centre unchanged."""
+    from types import SimpleNamespace
+
+    trainer, _ = _trainer(tiny_frames, _trial_config(nonrigid="on", **{"densify.motion_min_px": 1.5}), 1)
+    model, state = trainer.model, trainer.densify_state
+    table, bases = model.table, model.motion_bases
+    n, knots = table.num, bases.knots
+    table["motion_gate"].data.zero_()
+    table["motion_gate"].data[:2] = 1.0
+    state["was_dynamic"] = table["motion_gate"].detach().clone()
+    state["m_per_px"] = torch.full((n,), 0.01)
+    for key in ("resid_w", "flow_w", "help_dot", "help_norm"):
+        state[key] = torch.zeros(n)
+    if "rot_motion" in table:
+        table["rot_motion"].data.zero_()
+    table["motion_coef"].data.zero_()
+    table["motion_coef"].data[:2, 0] = 1.0
+    values = torch.zeros_like(bases.values)
+    values[0, :, 0, 3] = 0.02
+    values[0, -1, 1, 1] = 0.01
+    bases.values.data.copy_(values)
+    table["means"].data[:2, 1] = torch.tensor([0.1, 3.0])
+    centres = table["means"].detach()[:2].clone()
+    swing = torch.tensor([0.001, 0.03])
+    assert float(swing[0] * (1 - 1 / knots)) < 0.015 < float(swing[1] * (1 - 1 / knots))
+    report = trainer.densifier._gate_motion(
+        model, trainer.optimizer, state, SimpleNamespace(motion_threshold_px=1.0), torch.zeros(n)
+    )
+    assert model.table.motion_gate()[:2].tolist() == [False, True] and report["motion_off"] == 1
+    assert not bool(table["motion_coef"].detach()[0].any())
+    expected = centres[0] + torch.tensor([0.02, 0.001 / knots, 0.0])
+    assert torch.allclose(table["means"].detach()[0], expected, atol=1e-6)
+    assert torch.equal(table["means"].detach()[1], centres[1])
