@@ -534,8 +534,7 @@ class DensifyStrategy:
         A static Gaussian becomes dynamic when it sits on motion its rendered (skinned) motion misses
         (``R_i > residual_motion_px``; raw flow ``W_i > delta`` with ``motion_signal="flow"``) and the
         image still pulls on it (mean screen gradient above half the clone threshold), or, with shared
-        bases, when it misses motion and moving with its bones' shared motions would lower the loss
-        (``gate_needs_missed``; without it the second test alone opens). A dynamic one whose motion
+        bases, where moving with its bones' shared motions would lower the loss. A dynamic one whose motion
         varied over time by less than ``motion_min_px`` pixels of the views it is seen in (and at
         least ``motion_min_m``; shared bases: the spread of its offset over the knots around their
         mean, polynomials: ``sum |b_ik|``) goes back to static: its centre keeps the mean offset, its
@@ -550,13 +549,14 @@ class DensifyStrategy:
         # region of the dance benchmark, but novel views got worse: from one camera the extra freedom
         # is spent on placements other views disagree with. docs/AVATAR.md.)
         c = self.config
-        missed = state["resid_w"] > c.residual_motion_px
-        moving = state["flow_w"] > inputs.motion_threshold_px if c.motion_signal == "flow" else missed
+        if c.motion_signal == "flow":
+            moving = state["flow_w"] > inputs.motion_threshold_px
+        else:
+            moving = state["resid_w"] > c.residual_motion_px
         activate = ~gate & moving & (grads > 0.5 * c.grad_threshold)
         if "motion_coef" in table:  # shared bases: also where moving with them would lower the loss
             helps = -state["help_dot"] / state["help_norm"].clamp_min(1e-20)
-            would_help = (helps > c.motion_help) & (state["help_norm"] > 0)
-            activate |= ~gate & would_help & (missed if c.gate_needs_missed else True)
+            activate |= ~gate & (helps > c.motion_help) & (state["help_norm"] > 0)
         amplitude = torch.zeros(table.num, device=gate.device)
         mean_offset = None
         if "motion" in table:

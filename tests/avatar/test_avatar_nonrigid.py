@@ -153,14 +153,14 @@ def test_runs_stored_before_the_trial_and_the_bases_resume_as_they_were():
     assert model_config_from_meta(meta).motion_basis == 0
 
 
-def test_a_gate_opens_where_skinning_misses_the_motion_and_moving_would_pay(tiny_frames):
+def test_a_gate_opens_on_flow_the_model_misses_or_where_moving_helps_not_on_motion_skinning_explains(
+    tiny_frames,
+):
     """Row 0: large flow the model's own motion explains (a turn): stays static. Row 1: flow it misses
-    and the image pulls: opens. Row 2: moving with its bones' shared motions would lower the loss
-    (normalised -<g, m> = 0.8) but skinning explains the flow there: stays static. Row 3: misses flow
-    and moving would help, though the image pulls little: opens. Row 4: pulled, but moving would raise
-    the loss: stays static. Each newly moving row starts with its skinning weights as coefficients.
-    Without ``gate_needs_missed`` (the earlier rule) row 2 opens too."""
-    import dataclasses
+    and the image pulls: opens. Row 2: no missed flow, but moving with its bones' shared motions
+    would lower the loss (the normalised sum -<g, m> = 0.8): opens. Row 3: pulled, but moving would
+    raise the loss: stays static. Each newly moving row starts with its skinning weights as
+    coefficients."""
     from types import SimpleNamespace
 
     from stg_node.avatar.motion_basis import initial_coefficients
@@ -171,25 +171,18 @@ def test_a_gate_opens_where_skinning_misses_the_motion_and_moving_would_pay(tiny
     for key in ("flow_w", "resid_w", "help_dot", "help_norm"):
         state[key] = torch.zeros(n)
     state["flow_w"][0] = 50.0
-    state["resid_w"][[1, 3]] = 2 * c.residual_motion_px
-    state["help_dot"][[2, 3]], state["help_norm"][[2, 3]] = -0.8, 1.0
-    state["help_dot"][4], state["help_norm"][4] = 0.8, 1.0
+    state["resid_w"][1] = 2 * c.residual_motion_px
+    state["help_dot"][2], state["help_norm"][2] = -0.8, 1.0
+    state["help_dot"][3], state["help_norm"][3] = 0.8, 1.0
     grads = torch.zeros(n)
-    grads[[0, 1, 2, 4]] = c.grad_threshold  # the image pulls on these
+    grads[:4] = c.grad_threshold  # the image pulls on all four
     inputs = SimpleNamespace(motion_threshold_px=1.0)
-    saved = {k: state[k].clone() for k in ("help_dot", "help_norm")}
     report = trainer.densifier._gate_motion(model, trainer.optimizer, state, inputs, grads)
     gate = model.table.motion_gate()
-    assert gate[:5].tolist() == [False, True, False, True, False] and report["motion_on"] == 2
-    expected = initial_coefficients(model.skin_weights().detach()[[1, 3]], model.motion_bases.count)
-    assert torch.allclose(model.table["motion_coef"].detach()[[1, 3]], expected)
-    assert not bool(model.table["motion_coef"].detach()[[0, 2, 4]].any())
-    state.update(saved)
-    model.table["motion_gate"].data.zero_()
-    state["was_dynamic"].zero_()
-    trainer.densifier.config = dataclasses.replace(c, gate_needs_missed=False)
-    trainer.densifier._gate_motion(model, trainer.optimizer, state, inputs, grads)
-    assert model.table.motion_gate()[:5].tolist() == [False, True, True, True, False]
+    assert gate[:4].tolist() == [False, True, True, False] and report["motion_on"] == 2
+    expected = initial_coefficients(model.skin_weights().detach()[1:3], model.motion_bases.count)
+    assert torch.allclose(model.table["motion_coef"].detach()[1:3], expected)
+    assert not bool(model.table["motion_coef"].detach()[[0, 3]].any())
 
 
 def test_motion_no_view_can_measure_settles_and_keeps_its_mean_offset(tiny_frames):
@@ -230,3 +223,31 @@ def test_motion_no_view_can_measure_settles_and_keeps_its_mean_offset(tiny_frame
     expected = centres[0] + torch.tensor([0.02, 0.001 / knots, 0.0])
     assert torch.allclose(table["means"].detach()[0], expected, atol=1e-6)
     assert torch.equal(table["means"].detach()[1], centres[1])
+
+
+def test_a_pixel_spans_depth_over_focal_at_each_gaussian_running_mean():
+    """What one pixel spans at a Gaussian (metres), the scale motion_min_px is read in: depth / fx at
+    its first sighting, then the running mean of later ones (the flow's decay, W_DECAY); rows not seen
+    keep 0 (the absolute floor motion_min_m applies to them)."""
+    from types import SimpleNamespace
+
+    from stg_node.avatar.config import DensifyConfig
+    from stg_node.avatar.densify import W_DECAY, DensifyStrategy
+
+    n = 3
+    state = {k: torch.zeros(n) for k in ("grad_sum", "vis_count", "flow_w", "resid_w", "m_per_px")}
+    state["steps_seen"] = torch.zeros(1)
+    means2d = torch.zeros(n, 2, requires_grad=True)
+    means2d.grad = torch.ones(n, 2)
+    camera = SimpleNamespace(K=torch.tensor([[500.0, 0, 50], [0, 500.0, 50], [0, 0, 1]]))
+
+    def step(depths, radii):
+        info = {"radii": torch.tensor(radii), "means2d": means2d, "depths": torch.tensor(depths)}
+        inputs = SimpleNamespace(info=info, index=None, crop=(0, 0, 100, 100), flow=None, camera=camera)
+        DensifyStrategy(DensifyConfig(), 100)._accumulate(state, inputs)
+
+    step([2.0, 3.0, 4.0], [1, 1, 0])
+    assert torch.allclose(state["m_per_px"], torch.tensor([2.0 / 500, 3.0 / 500, 0.0]))
+    step([4.0, 3.0, 4.0], [1, 0, 0])
+    expected0 = W_DECAY * 2.0 / 500 + (1 - W_DECAY) * 4.0 / 500
+    assert torch.allclose(state["m_per_px"], torch.tensor([expected0, 3.0 / 500, 0.0]))
