@@ -192,10 +192,11 @@ class DensifyConfig:
     # Motion terms only where they are measured (densify.py, issue 22): flow-guided seeds need flow the
     # model's own motion misses (> residual_motion_px), not the raw flow; a dynamic Gaussian whose
     # offset swings over time by less than motion_min_px pixels of the views it is seen in settles (its
-    # mean offset kept in its centre). 3 px = 2 x residual_motion_px: a swing the gates could not tell
-    # from the flow's own error at both ends.
+    # mean offset kept in its centre). From one camera small swings are mostly the training view's
+    # residue: at 3, 6 and 12 px (512 px frames) the medium study's dance and mixed subjects scored best
+    # on held-out views at 6 (docs/BENCHMARKS.md, "The non-rigid part").
     flow_seed_missed: bool = True
-    motion_min_px: float = 3.0
+    motion_min_px: float = 6.0
     new_time_scale: float = 0.25  # temporal scale (units) of Gaussians added along the flow
     resample_fraction: float = 0.3  # re-sample body parts whose density fell below this x initial
     # Temporal split: a dynamic Gaussian that the image still pulls on is replaced by copies on
