@@ -199,7 +199,9 @@ class DensifyStrategy:
 
     def _gate_round(self, model, optimizer, state: dict, inputs: DensifyInputs) -> dict[str, int]:
         grads = state["grad_sum"] / state["vis_count"].clamp_min(1)
-        out = self._gate_motion(model, optimizer, state, inputs, grads)
+        c = self.config
+        last = inputs.iteration + c.interval >= int(c.stop_fraction * self.total)  # no round follows
+        out = self._gate_motion(model, optimizer, state, inputs, grads, last_round=last)
         state["help_dot"].zero_()
         state["help_norm"].zero_()
         return out
@@ -527,7 +529,13 @@ class DensifyStrategy:
 
     @torch.no_grad()
     def _gate_motion(
-        self, model, optimizer, state: dict, inputs: DensifyInputs, grads: torch.Tensor
+        self,
+        model,
+        optimizer,
+        state: dict,
+        inputs: DensifyInputs,
+        grads: torch.Tensor,
+        last_round: bool = False,
     ) -> dict[str, int]:
         """Decide which Gaussians may move, so motion terms exist only where the scene needs them.
 
@@ -538,7 +546,8 @@ class DensifyStrategy:
         varied over time by less than ``motion_min_px`` pixels of the views it is seen in (and at
         least ``motion_min_m``; shared bases: the spread of its offset over the knots around their
         mean, polynomials: ``sum |b_ik|``) goes back to static: its centre keeps the mean offset, its
-        terms and their Adam moments become exact zeros.
+        terms and their Adam moments become exact zeros. With ``motion_min_px`` > 0 the last round opens
+        no gate: a gate opened then would keep its motion unchecked to the end of training.
         """
         table = model.table
         gate = table.motion_gate()
@@ -571,6 +580,8 @@ class DensifyStrategy:
             amplitude = amplitude + 0.1 * table["rot_motion"].norm(dim=-1).sum(dim=1)  # ~0.1 m per radian
         # Motion no view can measure: below motion_min_px of the views the Gaussian is seen in.
         floor = torch.clamp_min(c.motion_min_px * state["m_per_px"], c.motion_min_m)
+        if last_round and c.motion_min_px > 0:
+            activate[:] = False
         settle = gate & (state["was_dynamic"] > 0.5) & (amplitude < floor)
         if mean_offset is not None and bool(settle.any()):  # keep where the motion held it on average
             table["means"].data[settle] += mean_offset[settle]

@@ -160,7 +160,7 @@ def test_a_gate_opens_on_flow_the_model_misses_or_where_moving_helps_not_on_moti
     and the image pulls: opens. Row 2: no missed flow, but moving with its bones' shared motions
     would lower the loss (the normalised sum -<g, m> = 0.8): opens. Row 3: pulled, but moving would
     raise the loss: stays static. Each newly moving row starts with its skinning weights as
-    coefficients."""
+    coefficients. In the last round none opens."""
     from types import SimpleNamespace
 
     from stg_node.avatar.motion_basis import initial_coefficients
@@ -183,6 +183,12 @@ def test_a_gate_opens_on_flow_the_model_misses_or_where_moving_helps_not_on_moti
     expected = initial_coefficients(model.skin_weights().detach()[1:3], model.motion_bases.count)
     assert torch.allclose(model.table["motion_coef"].detach()[1:3], expected)
     assert not bool(model.table["motion_coef"].detach()[[0, 3]].any())
+    # The last round before densification stops opens nothing: no later round could settle it.
+    model.table["motion_gate"].data.zero_()
+    state["was_dynamic"].zero_()
+    state["help_dot"][2], state["help_norm"][2] = -0.8, 1.0
+    report = trainer.densifier._gate_motion(model, trainer.optimizer, state, inputs, grads, last_round=True)
+    assert not bool(model.table.motion_gate().any()) and report["motion_on"] == 0
 
 
 def test_motion_no_view_can_measure_settles_and_keeps_its_mean_offset(tiny_frames):
