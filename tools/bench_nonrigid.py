@@ -80,14 +80,6 @@ ROWS = [
     ),
     ("auto_before", "the trial, before (seeds on raw flow, small swings kept)", "dance", BEFORE),
     ("auto", "default (bases, the trainer's trial)", "dance", {}),
-    ("settle3", "the trial, settle below 3 px (default 6)", "dance", {"densify.motion_min_px": 3.0}),
-    (
-        "settle3_raw_seeds",
-        "the trial, settle below 3 px, seeds on raw flow",
-        "dance",
-        {"densify.motion_min_px": 3.0, "densify.flow_seed_missed": False},
-    ),
-    ("settle12", "the trial, settle below 12 px", "dance", {"densify.motion_min_px": 12.0}),
     ("still_auto", "still subject, default", "still", {}),
     ("still_on", "still subject, forced on", "still", ON),
     (
@@ -98,7 +90,6 @@ ROWS = [
     ),
     ("mixed_auto", "mixed subject, default", "mixed", {}),
     ("mixed_auto_before", "mixed subject, before (seeds on raw flow, small swings kept)", "mixed", BEFORE),
-    ("mixed_settle3", "mixed subject, settle below 3 px", "mixed", {"densify.motion_min_px": 3.0}),
     (
         "mixed_lbs",
         "mixed subject, LBS only",
