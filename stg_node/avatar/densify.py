@@ -297,11 +297,7 @@ class DensifyStrategy:
         px, py, rows, table_rows = px[inside], py[inside], rows[inside], table_rows[inside]
         tile_err = tiles[py // r, px // r]
         flow_w = state["flow_w"]
-        if c.flow_seed_missed and inputs.rendered_flow is not None:  # motion the model does not follow
-            moving = state["resid_w"][table_rows] > c.residual_motion_px
-        else:
-            moving = flow_w[table_rows] > inputs.motion_threshold_px
-        seeds = (tile_err > c.error_threshold) & moving
+        seeds = (tile_err > c.error_threshold) & self._seed_motion(state, table_rows, inputs)
         if not bool(seeds.any()):
             return 0
         fwd = torch.from_numpy(inputs.flow.forward[y0 : y0 + h, x0 : x0 + w]).to(xy.device)
@@ -367,6 +363,14 @@ class DensifyStrategy:
             )
         self._append(optimizer, state, rows_new)
         return int(keep.numel())
+
+    def _seed_motion(self, state: dict, rows: torch.Tensor, inputs: DensifyInputs) -> torch.Tensor:
+        """(len(rows),) bool: rows on motion a flow-guided seed needs: flow the model's own rendered
+        motion misses (``flow_seed_missed``, when the step rendered its motion), else raw flow > delta."""
+        c = self.config
+        if c.flow_seed_missed and inputs.rendered_flow is not None:
+            return state["resid_w"][rows] > c.residual_motion_px
+        return state["flow_w"][rows] > inputs.motion_threshold_px
 
     # --- clone / split / prune / re-sample -------------------------------------------------------
     @torch.no_grad()

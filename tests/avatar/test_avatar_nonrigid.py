@@ -257,3 +257,24 @@ def test_a_pixel_spans_depth_over_focal_at_each_gaussian_running_mean():
     step([4.0, 3.0, 4.0], [1, 0, 0])
     expected0 = W_DECAY * 2.0 / 500 + (1 - W_DECAY) * 4.0 / 500
     assert torch.allclose(state["m_per_px"], torch.tensor([expected0, 3.0 / 500, 0.0]))
+
+
+def test_flow_guided_seeds_sit_on_motion_the_model_misses_not_on_motion_it_follows():
+    """Row 0: fast raw flow the model's motion follows (a turn); row 1: slow, but missed by 2 px;
+    row 2: neither. Seeds need the missed flow (row 1); with flow_seed_missed off, or when the step
+    did not render its motion, the raw flow above delta (row 0), as STG-Avatar's rule."""
+    import dataclasses
+    from types import SimpleNamespace
+
+    from stg_node.avatar.config import DensifyConfig
+    from stg_node.avatar.densify import DensifyStrategy
+
+    state = {"flow_w": torch.tensor([6.0, 0.5, 0.2]), "resid_w": torch.tensor([0.3, 2.0, 0.1])}
+    rows = torch.arange(3)
+    rendered = SimpleNamespace(motion_threshold_px=1.0, rendered_flow=torch.zeros(1, 1, 2))
+    unrendered = SimpleNamespace(motion_threshold_px=1.0, rendered_flow=None)
+    config = DensifyConfig(residual_motion_px=1.5)
+    assert DensifyStrategy(config, 100)._seed_motion(state, rows, rendered).tolist() == [False, True, False]
+    assert DensifyStrategy(config, 100)._seed_motion(state, rows, unrendered).tolist() == [True, False, False]
+    raw = DensifyStrategy(dataclasses.replace(config, flow_seed_missed=False), 100)
+    assert raw._seed_motion(state, rows, rendered).tolist() == [True, False, False]
