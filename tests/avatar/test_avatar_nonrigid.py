@@ -137,15 +137,19 @@ def test_the_rigid_part_renders_like_the_model_with_its_terms_at_zero(tiny_frame
 
 
 def test_runs_stored_before_the_trial_and_the_bases_resume_as_they_were():
-    """A config or snapshot written before these settings existed keeps the polynomial motion and no
-    trial (what those runs did), not today's defaults."""
+    """A config or snapshot written before these settings existed keeps the polynomial motion, no
+    trial, no settling and raw-flow seeds (what those runs did), not today's defaults."""
     from stg_node.avatar.config import ModelConfig, TrainConfig
     from stg_node.avatar.snapshot import model_config_from_meta, model_config_meta
 
     old = TrainConfig().to_dict()
     del old["nonrigid"], old["model"]["motion_basis"]
+    del old["densify"]["motion_min_px"], old["densify"]["flow_seed_missed"]
     restored = TrainConfig.from_dict(old)
     assert restored.nonrigid == "on" and restored.model.motion_basis == 0
+    # nor settling of small swings, and seeds on raw flow
+    assert restored.densify.motion_min_px == 0.0 and not restored.densify.flow_seed_missed
+    assert TrainConfig().densify.motion_min_px > 0 and TrainConfig().densify.flow_seed_missed
     assert TrainConfig.from_dict(TrainConfig().to_dict()) == TrainConfig()
     meta = model_config_meta(ModelConfig())
     assert model_config_from_meta(meta).motion_basis == ModelConfig().motion_basis == 24
