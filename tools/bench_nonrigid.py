@@ -50,6 +50,8 @@ END = "<!-- nonrigid:end -->"
 
 POLY = {"model.motion_basis": 0, "densify.motion_signal": "flow", "nonrigid": "on"}  # the previous default
 ON = {"nonrigid": "on"}
+# Before motion had to be measured: flow-guided seeds on raw flow, no settling of small swings.
+BEFORE = {"densify.flow_seed_missed": False, "densify.motion_min_px": 0.0}
 LOS = {"loss.line_of_sight": 0.1}
 NOISE = {"time_noise_frames": 1.0}
 # (name, label, subject, changes to the fast preset)
@@ -76,6 +78,7 @@ ROWS = [
         "dance",
         ON | {"densify.flow_guided": False},
     ),
+    ("auto_before", "the trial, before (seeds on raw flow, small swings kept)", "dance", BEFORE),
     ("auto", "default (bases, the trainer's trial)", "dance", {}),
     ("still_auto", "still subject, default", "still", {}),
     ("still_on", "still subject, forced on", "still", ON),
@@ -86,6 +89,7 @@ ROWS = [
         {"model.spacetime": False, "densify.flow_guided": False},
     ),
     ("mixed_auto", "mixed subject, default", "mixed", {}),
+    ("mixed_auto_before", "mixed subject, before (seeds on raw flow, small swings kept)", "mixed", BEFORE),
     (
         "mixed_lbs",
         "mixed subject, LBS only",

@@ -195,6 +195,7 @@ PIXEL_KEYS = {
     "densify.region_px": True,
     "densify.flow_consistency_px": False,
     "densify.residual_motion_px": False,
+    "densify.motion_min_px": False,
     "crop_margin_px": True,
 }
 

@@ -2,6 +2,7 @@
 
     python tools/tradeoff_multiview.py            # the full study (hours on a CPU): docs/BENCHMARKS.md
     python tools/tradeoff_multiview.py --quick    # a reduced one in minutes, into --out
+    python tools/tradeoff_multiview.py --mid --only cams4_full cams4_lbs_only   # 256 px, into --out
     python tools/tradeoff_multiview.py --list     # the configurations, without running anything
 
 The subject is a synthetic one in ZJU-MoCap's layout (``stg-synth``, seed 0, the mixed motion):
@@ -22,6 +23,8 @@ settings and the data (a re-run skips what is measured; ``--fresh`` measures aga
 goes between marker comments in ``--docs`` (a re-run replaces it), with a plot ``--plot``.
 
 ``--quick``: 96 x 96 images, 30 frames, 8 cameras, iterations / 25: the pipeline works, no more.
+``--mid``: 256 x 256, 90 frames, 23 cameras (held-out ones every 9th frame), iterations x 0.6 and
+Gaussian budgets x 0.5 (tools/bench_nonrigid.py's medium scale): a configuration in minutes.
 """
 
 from __future__ import annotations
@@ -74,6 +77,7 @@ class Scale:
 
 FULL = Scale("full", 512, 125, 23, 10, 2, 1.0)
 QUICK = Scale("quick", 96, 30, 8, 5, 1, 1 / 25)
+MID = Scale("mid", 256, 90, 23, 9, 1, 0.6)
 
 
 def spread(count: int, total: int) -> tuple[str, ...]:
@@ -105,8 +109,13 @@ def _tradeoff_scale(scale: Scale):
     import tradeoff
 
     reference = tradeoff.QUICK if scale.name == "quick" else tradeoff.FULL
+    budgets = 0.5 if scale.name == "mid" else reference.gaussian_factor
     return dataclasses.replace(
-        reference, size=scale.size, frames=scale.frames, iteration_factor=scale.iteration_factor
+        reference,
+        size=scale.size,
+        frames=scale.frames,
+        iteration_factor=scale.iteration_factor,
+        gaussian_factor=budgets,
     )
 
 
@@ -433,7 +442,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--quick", action="store_true", help="a reduced study in minutes (tiny images, few iterations)"
     )
     p.add_argument(
-        "--out", default=None, help="runs, results and the data (default runs/tradeoff_multiview[_quick])"
+        "--mid", action="store_true", help="256 px, 90 frames, iterations x0.6, budgets x0.5 (into --out)"
+    )
+    p.add_argument(
+        "--out", default=None, help="runs, results and the data (default runs/tradeoff_multiview[_SCALE])"
     )
     p.add_argument(
         "--data", default=None, help="an existing subject folder (default: generated into OUT/data)"
@@ -470,7 +482,10 @@ def run(args: argparse.Namespace, argv: list[str]) -> int:
     from stg_node.cli.runner import UsageError
     from stg_node.threads import configure_threads
 
-    scale = QUICK if args.quick else FULL
+    if args.quick and args.mid:
+        raise UsageError("--quick and --mid: choose one")
+    scale = QUICK if args.quick else (MID if args.mid else FULL)
+    reduced = args.quick or args.mid
     table_rows = rows(scale)
     if args.only:
         unknown = sorted(set(args.only) - {r.name for r in table_rows})
@@ -481,18 +496,17 @@ def run(args: argparse.Namespace, argv: list[str]) -> int:
             print(f"{row.name:16s} cameras {','.join(row.cameras):12s} {row.label}")
         return 0
     configure_threads(args.threads)
-    out = Path(args.out or ("runs/tradeoff_multiview_quick" if args.quick else "runs/tradeoff_multiview"))
+    out = Path(args.out or ("runs/tradeoff_multiview" + (f"_{scale.name}" if reduced else "")))
     args.out = str(out)
     docs = (
         Path(args.docs)
         if args.docs
-        else (out / "BENCHMARKS_quick.md" if args.quick else REPO / "docs/BENCHMARKS.md")
+        else (out / f"BENCHMARKS_{scale.name}.md" if reduced else REPO / "docs/BENCHMARKS.md")
     )
-    plot = (
-        Path(args.plot)
-        if args.plot
-        else (out / "tradeoff_multiview_quick.png" if args.quick else REPO / "docs/tradeoff_multiview.png")
-    )
+    default_plot = REPO / "docs/tradeoff_multiview.png"
+    if reduced:
+        default_plot = out / f"tradeoff_multiview_{scale.name}.png"
+    plot = Path(args.plot) if args.plot else default_plot
     data = Path(args.data) if args.data else ensure_subject(out / "data", scale, fresh=args.fresh)
     results = {}
     for row in table_rows:

@@ -29,6 +29,7 @@ LIGHT_MODELS = ("distant", "sh")  # the learned light: an ambient term and dista
 PREDATING_DEFAULTS = {
     "model": {"shading": False, "init_flatness": 1.0, "max_scale_ratio": 0.0, "motion_basis": 0},
     "loss": {"isometry": 0.0},
+    "densify": {"flow_seed_missed": False, "motion_min_px": 0.0},
     "nonrigid": "on",  # runs stored before the trial kept their non-rigid part
     "lr_exposure": 0.0,  # no exposure correction before real footage had one
 }
@@ -188,6 +189,14 @@ class DensifyConfig:
     # Shared motion bases: a static Gaussian also starts to move where moving with its bones' shared
     # motions would lower the loss: -sum <dL/dx, m> / sum |dL/dx| |m| over an interval above this.
     motion_help: float = 0.3
+    # Motion terms only where they are measured (densify.py, issue 22): flow-guided seeds need flow the
+    # model's own motion misses (> residual_motion_px), not the raw flow; a dynamic Gaussian whose
+    # offset swings over time by less than motion_min_px pixels of the views it is seen in settles (its
+    # mean offset kept in its centre). From one camera small swings are mostly the training view's
+    # residue: at 3, 6 and 12 px (512 px frames) the medium study's dance and mixed subjects scored best
+    # on held-out views at 6 (docs/BENCHMARKS.md, "The non-rigid part").
+    flow_seed_missed: bool = True
+    motion_min_px: float = 6.0
     new_time_scale: float = 0.25  # temporal scale (units) of Gaussians added along the flow
     resample_fraction: float = 0.3  # re-sample body parts whose density fell below this x initial
     # Temporal split: a dynamic Gaussian that the image still pulls on is replaced by copies on

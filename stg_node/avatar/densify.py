@@ -91,7 +91,7 @@ class DensifyInputs:
 
 
 # Per-Gaussian entries of the state (resized with the table's rows).
-ROW_STATE = ("grad_sum", "vis_count", "flow_w", "resid_w", "help_dot", "help_norm", "was_dynamic")
+ROW_STATE = ("grad_sum", "vis_count", "flow_w", "resid_w", "help_dot", "help_norm", "was_dynamic", "m_per_px")
 COUNT_PREFIX = "count."
 
 
@@ -128,6 +128,7 @@ class DensifyStrategy:
             "was_dynamic": torch.zeros(n, device=dev)
             if gate is None
             else gate.float(),  # at the last density step
+            "m_per_px": torch.zeros(n, device=dev),  # metres one pixel spans at the Gaussian (running mean)
             "steps_seen": torch.zeros(1, device=dev),  # scalars are 1-element tensors (as stored)
             "initial_part_counts": self._part_counts(model),
         }
@@ -165,6 +166,8 @@ class DensifyStrategy:
         c = self.config
         if not c.enabled:
             return {}
+        if "m_per_px" not in state:  # a state saved before it was kept
+            state["m_per_px"] = torch.zeros_like(state["vis_count"])
         self._accumulate(state, inputs)
         self._accumulate_help(model, state, inputs)
         report: dict[str, int] = {}
@@ -196,7 +199,9 @@ class DensifyStrategy:
 
     def _gate_round(self, model, optimizer, state: dict, inputs: DensifyInputs) -> dict[str, int]:
         grads = state["grad_sum"] / state["vis_count"].clamp_min(1)
-        out = self._gate_motion(model, optimizer, state, inputs, grads)
+        c = self.config
+        last = inputs.iteration + c.interval >= int(c.stop_fraction * self.total)  # no round follows
+        out = self._gate_motion(model, optimizer, state, inputs, grads, last_round=last)
         state["help_dot"].zero_()
         state["help_norm"].zero_()
         return out
@@ -219,6 +224,12 @@ class DensifyStrategy:
         state["grad_sum"].index_add_(0, table_rows, grad[rows].norm(dim=-1) * pixels)
         vis_count.index_add_(0, table_rows, torch.ones_like(table_rows, dtype=vis_count.dtype))
         state["steps_seen"] += 1
+        depths = info.get("depths")
+        if depths is not None:  # what a pixel spans at the Gaussian: depth / focal length
+            span = depths.detach()[rows].reshape(-1) / float(inputs.camera.K[0, 0])
+            m_per_px = state["m_per_px"]
+            old = m_per_px[table_rows]
+            m_per_px[table_rows] = torch.where(old > 0, W_DECAY * old + (1 - W_DECAY) * span, span)
         if inputs.flow is None:
             return
         x0, y0, w, h = inputs.crop
@@ -286,7 +297,7 @@ class DensifyStrategy:
         px, py, rows, table_rows = px[inside], py[inside], rows[inside], table_rows[inside]
         tile_err = tiles[py // r, px // r]
         flow_w = state["flow_w"]
-        seeds = (tile_err > c.error_threshold) & (flow_w[table_rows] > inputs.motion_threshold_px)
+        seeds = (tile_err > c.error_threshold) & self._seed_motion(state, table_rows, inputs)
         if not bool(seeds.any()):
             return 0
         fwd = torch.from_numpy(inputs.flow.forward[y0 : y0 + h, x0 : x0 + w]).to(xy.device)
@@ -352,6 +363,14 @@ class DensifyStrategy:
             )
         self._append(optimizer, state, rows_new)
         return int(keep.numel())
+
+    def _seed_motion(self, state: dict, rows: torch.Tensor, inputs: DensifyInputs) -> torch.Tensor:
+        """(len(rows),) bool: rows on motion a flow-guided seed needs: flow the model's own rendered
+        motion misses (``flow_seed_missed``, when the step rendered its motion), else raw flow > delta."""
+        c = self.config
+        if c.flow_seed_missed and inputs.rendered_flow is not None:
+            return state["resid_w"][rows] > c.residual_motion_px
+        return state["flow_w"][rows] > inputs.motion_threshold_px
 
     # --- clone / split / prune / re-sample -------------------------------------------------------
     @torch.no_grad()
@@ -514,15 +533,25 @@ class DensifyStrategy:
 
     @torch.no_grad()
     def _gate_motion(
-        self, model, optimizer, state: dict, inputs: DensifyInputs, grads: torch.Tensor
+        self,
+        model,
+        optimizer,
+        state: dict,
+        inputs: DensifyInputs,
+        grads: torch.Tensor,
+        last_round: bool = False,
     ) -> dict[str, int]:
         """Decide which Gaussians may move, so motion terms exist only where the scene needs them.
 
-        A static Gaussian becomes dynamic when it sits on sustained motion (``W_i > delta``) and the
-        image still pulls on it (mean screen gradient above half the clone threshold): the rigid part
-        does not explain it. A dynamic one whose motion terms stayed below ``motion_min_m``
-        (metres at |tau| = 1) since the last density step goes back to static: its terms and their
-        Adam moments become exact zeros.
+        A static Gaussian becomes dynamic when it sits on motion its rendered (skinned) motion misses
+        (``R_i > residual_motion_px``; raw flow ``W_i > delta`` with ``motion_signal="flow"``) and the
+        image still pulls on it (mean screen gradient above half the clone threshold), or, with shared
+        bases, where moving with its bones' shared motions would lower the loss. A dynamic one whose motion
+        varied over time by less than ``motion_min_px`` pixels of the views it is seen in (and at
+        least ``motion_min_m``; shared bases: the spread of its offset over the knots around their
+        mean, polynomials: ``sum |b_ik|``) goes back to static: its centre keeps the mean offset, its
+        terms and their Adam moments become exact zeros. With ``motion_min_px`` > 0 the last round opens
+        no gate: a gate opened then would keep its motion unchecked to the end of training.
         """
         table = model.table
         gate = table.motion_gate()
@@ -532,24 +561,34 @@ class DensifyStrategy:
         # motion above the 1 px floor fits the training view's cloth better, +6 dB in the garment
         # region of the dance benchmark, but novel views got worse: from one camera the extra freedom
         # is spent on placements other views disagree with. docs/AVATAR.md.)
-        if self.config.motion_signal == "flow":
+        c = self.config
+        if c.motion_signal == "flow":
             moving = state["flow_w"] > inputs.motion_threshold_px
         else:
-            moving = state["resid_w"] > self.config.residual_motion_px
-        activate = ~gate & moving & (grads > 0.5 * self.config.grad_threshold)
+            moving = state["resid_w"] > c.residual_motion_px
+        activate = ~gate & moving & (grads > 0.5 * c.grad_threshold)
         if "motion_coef" in table:  # shared bases: also where moving with them would lower the loss
             helps = -state["help_dot"] / state["help_norm"].clamp_min(1e-20)
-            activate |= ~gate & (helps > self.config.motion_help) & (state["help_norm"] > 0)
+            activate |= ~gate & (helps > c.motion_help) & (state["help_norm"] > 0)
         amplitude = torch.zeros(table.num, device=gate.device)
+        mean_offset = None
         if "motion" in table:
             amplitude = amplitude + table["motion"].norm(dim=-1).sum(dim=1)
         if "motion_coef" in table and model.motion_bases is not None:
             rows = gate.nonzero().squeeze(1)
             coef = table["motion_coef"].detach()[rows]
-            amplitude[rows] += model.motion_bases.amplitude(coef, table["means"].detach()[rows])
+            swing, mean = model.motion_bases.variation(coef, table["means"].detach()[rows])
+            amplitude[rows] += swing
+            mean_offset = torch.zeros_like(table["means"]).index_put((rows,), mean)
         if "rot_motion" in table:
             amplitude = amplitude + 0.1 * table["rot_motion"].norm(dim=-1).sum(dim=1)  # ~0.1 m per radian
-        settle = gate & (state["was_dynamic"] > 0.5) & (amplitude < self.config.motion_min_m)
+        # Motion no view can measure: below motion_min_px of the views the Gaussian is seen in.
+        floor = torch.clamp_min(c.motion_min_px * state["m_per_px"], c.motion_min_m)
+        if last_round and c.motion_min_px > 0:
+            activate[:] = False
+        settle = gate & (state["was_dynamic"] > 0.5) & (amplitude < floor)
+        if mean_offset is not None and bool(settle.any()):  # keep where the motion held it on average
+            table["means"].data[settle] += mean_offset[settle]
         for name in MOTION_COLUMNS:
             if name in table:
                 optimizer.zero_rows(name, settle)

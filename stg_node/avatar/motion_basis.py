@@ -199,13 +199,19 @@ class MotionBases(nn.Module):
         return 100.0 * per[:, run].mean()
 
     @torch.no_grad()
-    def amplitude(self, coef: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
-        """(M,) the largest offset each row's mixture reaches over the knots (metres)."""
+    def variation(self, coef: torch.Tensor, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(M,) how far each row's offset strays over the knots from its mean over them (metres), and
+        (M, 3) that mean: a constant offset is a displaced centre, not motion. Two passes over the
+        knots, so memory stays (M, 3) however many knots a long stream has."""
         if coef.shape[0] == 0:
-            return coef.new_zeros(0)
-        p = torch.cat([points, torch.ones_like(points[:, :1])], dim=1)  # (M, 4)
-        best = coef.new_zeros(coef.shape[0])
+            return coef.new_zeros(0), coef.new_zeros(0, 3)
+        p = torch.cat([points, torch.ones_like(points[:, :1])], dim=1)[..., None]  # (M, 4, 1)
+
+        def offset(k: int) -> torch.Tensor:
+            return (torch.einsum("mb,bij->mij", coef, self.values[:, k]) @ p).squeeze(-1)
+
+        mean = sum(offset(k) for k in range(self.knots)) / self.knots
+        swing = coef.new_zeros(coef.shape[0])
         for k in range(self.knots):
-            mixed = torch.einsum("mb,bij->mij", coef, self.values[:, k])
-            best = torch.maximum(best, (mixed @ p[..., None]).squeeze(-1).norm(dim=1))
-        return best
+            swing = torch.maximum(swing, (offset(k) - mean).norm(dim=1))
+        return swing, mean

@@ -137,15 +137,19 @@ def test_the_rigid_part_renders_like_the_model_with_its_terms_at_zero(tiny_frame
 
 
 def test_runs_stored_before_the_trial_and_the_bases_resume_as_they_were():
-    """A config or snapshot written before these settings existed keeps the polynomial motion and no
-    trial (what those runs did), not today's defaults."""
+    """A config or snapshot written before these settings existed keeps the polynomial motion, no
+    trial, no settling and raw-flow seeds (what those runs did), not today's defaults."""
     from stg_node.avatar.config import ModelConfig, TrainConfig
     from stg_node.avatar.snapshot import model_config_from_meta, model_config_meta
 
     old = TrainConfig().to_dict()
     del old["nonrigid"], old["model"]["motion_basis"]
+    del old["densify"]["motion_min_px"], old["densify"]["flow_seed_missed"]
     restored = TrainConfig.from_dict(old)
     assert restored.nonrigid == "on" and restored.model.motion_basis == 0
+    # nor settling of small swings, and seeds on raw flow
+    assert restored.densify.motion_min_px == 0.0 and not restored.densify.flow_seed_missed
+    assert TrainConfig().densify.motion_min_px > 0 and TrainConfig().densify.flow_seed_missed
     assert TrainConfig.from_dict(TrainConfig().to_dict()) == TrainConfig()
     meta = model_config_meta(ModelConfig())
     assert model_config_from_meta(meta).motion_basis == ModelConfig().motion_basis == 24
@@ -160,7 +164,7 @@ def test_a_gate_opens_on_flow_the_model_misses_or_where_moving_helps_not_on_moti
     and the image pulls: opens. Row 2: no missed flow, but moving with its bones' shared motions
     would lower the loss (the normalised sum -<g, m> = 0.8): opens. Row 3: pulled, but moving would
     raise the loss: stays static. Each newly moving row starts with its skinning weights as
-    coefficients."""
+    coefficients. In the last round none opens."""
     from types import SimpleNamespace
 
     from stg_node.avatar.motion_basis import initial_coefficients
@@ -183,3 +187,98 @@ def test_a_gate_opens_on_flow_the_model_misses_or_where_moving_helps_not_on_moti
     expected = initial_coefficients(model.skin_weights().detach()[1:3], model.motion_bases.count)
     assert torch.allclose(model.table["motion_coef"].detach()[1:3], expected)
     assert not bool(model.table["motion_coef"].detach()[[0, 3]].any())
+    # The last round before densification stops opens nothing: no later round could settle it.
+    model.table["motion_gate"].data.zero_()
+    state["was_dynamic"].zero_()
+    state["help_dot"][2], state["help_norm"][2] = -0.8, 1.0
+    report = trainer.densifier._gate_motion(model, trainer.optimizer, state, inputs, grads, last_round=True)
+    assert not bool(model.table.motion_gate().any()) and report["motion_on"] == 0
+
+
+def test_motion_no_view_can_measure_settles_and_keeps_its_mean_offset(tiny_frames):
+    """Two dynamic rows follow basis 0 alone: a constant 2 cm shift along x at every knot, plus at the
+    last knot a stretch along y (dy = 0.01 y), so row 0 (canonical y = 0.1 m) swings 1 mm and row 1
+    (y = 3 m) 3 cm. Each is seen where a pixel spans 1 cm; with motion_min_px = 1.5 (1.5 cm) row 0
+    settles: its terms become exact zeros and its centre moves by its offset's mean over the knots
+    (by hand: 2 cm along x, 1 mm / K along y); row 1 keeps moving, its centre unchanged."""
+    from types import SimpleNamespace
+
+    trainer, _ = _trainer(tiny_frames, _trial_config(nonrigid="on", **{"densify.motion_min_px": 1.5}), 1)
+    model, state = trainer.model, trainer.densify_state
+    table, bases = model.table, model.motion_bases
+    n, knots = table.num, bases.knots
+    table["motion_gate"].data.zero_()
+    table["motion_gate"].data[:2] = 1.0
+    state["was_dynamic"] = table["motion_gate"].detach().clone()
+    state["m_per_px"] = torch.full((n,), 0.01)
+    for key in ("resid_w", "flow_w", "help_dot", "help_norm"):
+        state[key] = torch.zeros(n)
+    if "rot_motion" in table:
+        table["rot_motion"].data.zero_()
+    table["motion_coef"].data.zero_()
+    table["motion_coef"].data[:2, 0] = 1.0
+    values = torch.zeros_like(bases.values)
+    values[0, :, 0, 3] = 0.02
+    values[0, -1, 1, 1] = 0.01
+    bases.values.data.copy_(values)
+    table["means"].data[:2, 1] = torch.tensor([0.1, 3.0])
+    centres = table["means"].detach()[:2].clone()
+    swing = torch.tensor([0.001, 0.03])
+    assert float(swing[0] * (1 - 1 / knots)) < 0.015 < float(swing[1] * (1 - 1 / knots))
+    report = trainer.densifier._gate_motion(
+        model, trainer.optimizer, state, SimpleNamespace(motion_threshold_px=1.0), torch.zeros(n)
+    )
+    assert model.table.motion_gate()[:2].tolist() == [False, True] and report["motion_off"] == 1
+    assert not bool(table["motion_coef"].detach()[0].any())
+    expected = centres[0] + torch.tensor([0.02, 0.001 / knots, 0.0])
+    assert torch.allclose(table["means"].detach()[0], expected, atol=1e-6)
+    assert torch.equal(table["means"].detach()[1], centres[1])
+
+
+def test_a_pixel_spans_depth_over_focal_at_each_gaussian_running_mean():
+    """What one pixel spans at a Gaussian (metres), the scale motion_min_px is read in: depth / fx at
+    its first sighting, then the running mean of later ones (the flow's decay, W_DECAY); rows not seen
+    keep 0 (the absolute floor motion_min_m applies to them)."""
+    from types import SimpleNamespace
+
+    from stg_node.avatar.config import DensifyConfig
+    from stg_node.avatar.densify import W_DECAY, DensifyStrategy
+
+    n = 3
+    state = {k: torch.zeros(n) for k in ("grad_sum", "vis_count", "flow_w", "resid_w", "m_per_px")}
+    state["steps_seen"] = torch.zeros(1)
+    means2d = torch.zeros(n, 2, requires_grad=True)
+    means2d.grad = torch.ones(n, 2)
+    camera = SimpleNamespace(K=torch.tensor([[500.0, 0, 50], [0, 500.0, 50], [0, 0, 1]]))
+
+    def step(depths, radii):
+        info = {"radii": torch.tensor(radii), "means2d": means2d, "depths": torch.tensor(depths)}
+        inputs = SimpleNamespace(info=info, index=None, crop=(0, 0, 100, 100), flow=None, camera=camera)
+        DensifyStrategy(DensifyConfig(), 100)._accumulate(state, inputs)
+
+    step([2.0, 3.0, 4.0], [1, 1, 0])
+    assert torch.allclose(state["m_per_px"], torch.tensor([2.0 / 500, 3.0 / 500, 0.0]))
+    step([4.0, 3.0, 4.0], [1, 0, 0])
+    expected0 = W_DECAY * 2.0 / 500 + (1 - W_DECAY) * 4.0 / 500
+    assert torch.allclose(state["m_per_px"], torch.tensor([expected0, 3.0 / 500, 0.0]))
+
+
+def test_flow_guided_seeds_sit_on_motion_the_model_misses_not_on_motion_it_follows():
+    """Row 0: fast raw flow the model's motion follows (a turn); row 1: slow, but missed by 2 px;
+    row 2: neither. Seeds need the missed flow (row 1); with flow_seed_missed off, or when the step
+    did not render its motion, the raw flow above delta (row 0), as STG-Avatar's rule."""
+    import dataclasses
+    from types import SimpleNamespace
+
+    from stg_node.avatar.config import DensifyConfig
+    from stg_node.avatar.densify import DensifyStrategy
+
+    state = {"flow_w": torch.tensor([6.0, 0.5, 0.2]), "resid_w": torch.tensor([0.3, 2.0, 0.1])}
+    rows = torch.arange(3)
+    rendered = SimpleNamespace(motion_threshold_px=1.0, rendered_flow=torch.zeros(1, 1, 2))
+    unrendered = SimpleNamespace(motion_threshold_px=1.0, rendered_flow=None)
+    config = DensifyConfig(residual_motion_px=1.5)
+    assert DensifyStrategy(config, 100)._seed_motion(state, rows, rendered).tolist() == [False, True, False]
+    assert DensifyStrategy(config, 100)._seed_motion(state, rows, unrendered).tolist() == [True, False, False]
+    raw = DensifyStrategy(dataclasses.replace(config, flow_seed_missed=False), 100)
+    assert raw._seed_motion(state, rows, rendered).tolist() == [True, False, False]
