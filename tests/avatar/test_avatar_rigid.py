@@ -26,12 +26,30 @@ def _random_pose(seed: int):
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_skeleton_bones_equal_body_canonical_transforms(body, seed):
+@pytest.mark.parametrize("grad", [True, False], ids=["torch", "numpy-no-grad"])
+def test_skeleton_bones_equal_body_canonical_transforms(body, seed, grad):
     poses, Rh, Th, betas = _random_pose(seed)
     skeleton = Skeleton.from_body(body, betas).double()
-    ours = skeleton.bones(poses, Rh, Th).transforms
     truth = canonical_transforms(body, betas, poses.reshape(1, 72), Rh, Th)
-    assert torch.allclose(ours, truth, atol=1e-6)  # the Skeleton stores float32
+    bones = skeleton.bones(poses.requires_grad_(grad), Rh, Th)
+    assert bones.transforms.dtype == torch.float64 and bones.transforms.requires_grad == grad
+    assert torch.allclose(bones.transforms.detach(), truth, atol=1e-6)  # the Skeleton stores float32
+
+
+@pytest.mark.parametrize("seed", [0, 5])
+def test_bones_without_gradient_match_the_differentiable_path_quaternions_included(body, seed):
+    """The no-gradient kinematics (numpy) against the torch path: transforms and the one-hemisphere
+    quaternions, in float32 as a renderer uses them, at small and large joint angles."""
+    poses, Rh, Th, betas = _random_pose(seed)
+    skeleton = Skeleton.from_body(body, betas)
+    for scale in (0.0, 1.0, 6.0):
+        p = (poses * scale).float()
+        with_grad = skeleton.bones(p.clone().requires_grad_(True), Rh.float(), Th.float())
+        with torch.no_grad():
+            plain = skeleton.bones(p, Rh.float(), Th.float())
+        assert plain.transforms.dtype == torch.float32
+        torch.testing.assert_close(plain.transforms, with_grad.transforms.detach(), atol=2e-6, rtol=0)
+        torch.testing.assert_close(plain.quats, with_grad.quats.detach(), atol=2e-6, rtol=0)
 
 
 @pytest.mark.parametrize("seed", [3, 4])
