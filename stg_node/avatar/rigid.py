@@ -38,12 +38,7 @@ class PosedBones:
     @classmethod
     def from_transforms(cls, transforms: torch.Tensor, parents: list[int]) -> PosedBones:
         quats = lbs.matrix_to_quaternion(transforms[..., :3, :3])
-        aligned = [quats[:, 0]]
-        for j in range(1, quats.shape[1]):
-            q = quats[:, j]
-            sign = torch.where((q * aligned[parents[j]]).sum(-1, keepdim=True) < 0, -1.0, 1.0)
-            aligned.append(q * sign)
-        return cls(transforms, torch.stack(aligned, dim=1))
+        return cls(transforms, quats * hemisphere_signs(quats, parents))
 
     def detach(self) -> PosedBones:
         return PosedBones(self.transforms.detach(), self.quats.detach())
@@ -112,13 +107,19 @@ class Skeleton(torch.nn.Module):
         transforms = root[:, None] @ world @ _float64(self.big_pose_inverse)
         dtype = torch.promote_types(self.rest_joints.dtype, poses.dtype)
         out = torch.as_tensor(transforms, device=self.rest_joints.device).to(dtype)
-        quats = lbs.matrix_to_quaternion(out[..., :3, :3])
-        q = quats.cpu().numpy().astype(np.float64)
-        sign = np.ones((batch, 24))
-        for j in range(1, 24):  # one hemisphere along the chain, as PosedBones.from_transforms
-            parent = parents[j]
-            sign[:, j] = np.where((q[:, j] * q[:, parent]).sum(-1) * sign[:, parent] < 0, -1.0, 1.0)
-        return PosedBones(out, quats * torch.as_tensor(sign[..., None], dtype=quats.dtype, device=quats.device))
+        return PosedBones.from_transforms(out, parents)
+
+
+def hemisphere_signs(quats: torch.Tensor, parents: list[int]) -> torch.Tensor:
+    """(B, J, 1) signs +-1 that put each joint's quaternion of ``quats`` (B, J, 4) in its parent's
+    hemisphere (the parent's already flipped), root first. Constants for the gradient, so found
+    without it: one numpy loop over the joints instead of ~100 autograd nodes a frame."""
+    q = _float64(quats)
+    sign = np.ones(q.shape[:2])
+    for j in range(1, q.shape[1]):
+        parent = parents[j]
+        sign[:, j] = np.where((q[:, j] * q[:, parent]).sum(-1) * sign[:, parent] < 0, -1.0, 1.0)
+    return torch.as_tensor(sign[..., None], dtype=quats.dtype, device=quats.device)
 
 
 def _float64(t: torch.Tensor) -> np.ndarray:
