@@ -81,10 +81,9 @@ class Skeleton(torch.nn.Module):
         world = lbs.make_rigid(lbs.axis_angle_to_matrix(Rh), Th)
         return PosedBones.from_transforms(world[:, None] @ local @ self.big_pose_inverse, self.parent_list)
 
-
     def _bones_without_grad(self, poses: torch.Tensor, Rh: torch.Tensor, Th: torch.Tensor) -> PosedBones:
         """:meth:`bones` where no gradient is wanted (a renderer's frames, a training frame's fixed
-        bones): the same kinematics on 24 joints in float64 numpy, about a fifth of the cost of
+        bones): the same kinematics on 24 joints in float64 numpy, about half the cost of
         the ~150 small torch ops (and their autograd bookkeeping) of the differentiable path."""
         batch = poses.shape[0]
         rest = _float64(self.rest_joints)
