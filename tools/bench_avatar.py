@@ -58,7 +58,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tools"))
 
-from baseline import BASELINE_REV, export_revision  # noqa: E402
+from baseline import BASELINE_REV, child_env, export_revision  # noqa: E402
 
 STEP_TARGET = 2.0  # step / rasterizer fwd+bwd
 RENDER_TARGETS = {20_000: 60.0, 50_000: 30.0}  # FPS, one thread, 512x512
@@ -294,7 +294,7 @@ def run_worker(spec_text: str, root: str) -> None:
 
 
 def spawn(spec: dict, root: Path) -> dict:
-    env = dict(os.environ, STG_THREADS="1", PYTHONPATH=str(root))
+    env = child_env(root, STG_THREADS="1")
     cmd = [sys.executable, __file__, "--worker", json.dumps(spec), "--root", str(root)]
     done = subprocess.run(cmd, env=env, capture_output=True, text=True)
     if done.returncode != 0:

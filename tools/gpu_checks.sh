@@ -1,11 +1,13 @@
 #!/usr/bin/env bash
-# The checks a CUDA machine is for, in one go (docs/SPLAT.md, "On a GPU"): build the kernels, run
+# The checks a CUDA machine is for, in one go (docs/BENCHMARKS.md, "On a GPU"): build the kernels, run
 # the gpu tests, then the GPU rows of tools/bench_render.py, tools/bench_avatar.py and
 # tools/tradeoff.py. GPU time is scarce, so every step has its own time limit, a failing step
 # does not stop the next, and each writes its log into OUTDIR as it goes.
 #
 #     tools/gpu_checks.sh OUTDIR
 #
+# Needs the project's dependencies and gsplat importable (pip install -e '.[cuda,dev]', or
+# wheels on PYTHONPATH: the measuring children keep it).
 # The trade-off row trains the fast preset on the dance subject on the GPU; the same row on this
 # machine's CPU (one thread, CUDA hidden) trains beside the GPU steps as the same-run baseline.
 set -u
