@@ -15,7 +15,8 @@ The 1-minute load average is printed with every row.
    512x512 frame is rendered): per-phase CPU time (data, pose = LBS + spacetime + colour, flow
    target, render, loss, backward, update, densify) and the whole step against the rasterizer's
    own forward+backward on the same Gaussians and crop (what a step costs beyond splatting).
-   Target (issue 24): step <= 2x the rasterizer.
+   Target (issue 24): step <= 2x the rasterizer. Also timed: the rasterizer with the two flow
+   channels a step splats along with RGB (what the step's own splatting costs).
 2. render: a posed avatar at 512x512 (pose + colour + splat, AvatarRenderer) over 60 consecutive
    frames of the benchmark (one camera following the body): ``exact`` (every colour every frame)
    and ``stream`` (colours recomputed in turns, every 2nd frame: the renderer node's default,
@@ -188,6 +189,15 @@ def worker_step(spec: dict) -> dict:
         (image.sum() + alpha.sum()).backward()
 
     alone = _timed(raster, max(steps // 2, 5), sync=sync)
+    # ... and with the two flow channels a step splats along with RGB (its flow loss)
+    flow = torch.zeros(leaves[0].shape[0], 2, device=leaves[0].device, requires_grad=True)
+
+    def raster_with_flow():
+        posed.means, posed.quats, posed.scales, posed.opacities, posed.colors = leaves
+        image, alpha, _ = render(posed, cam, background=0.0, backend=trainer.backend, extra_channels=flow)
+        (image.sum() + alpha.sum()).backward()
+
+    with_flow = _timed(raster_with_flow, max(steps // 2, 5), sync=sync)
     return {
         "gaussians": trainer.model.table.num,
         "step_wall_ms": 1e3 * statistics.median(wall),
@@ -195,6 +205,7 @@ def worker_step(spec: dict) -> dict:
         "phases_cpu_ms": phases,
         "raster_wall_ms": alone["wall_ms"],
         "raster_cpu_ms": alone["cpu_ms"],
+        "raster_flow_cpu_ms": with_flow["cpu_ms"],
     }
 
 
@@ -347,6 +358,8 @@ def section_step(args, trees) -> list[dict]:
                 f"({r['step_wall_ms']:.1f} ms wall); "
                 f"rasterizer fwd+bwd alone {r[f'raster_{clock}_ms']:.1f} ms {unit}; step / rasterizer = "
                 f"{r['ratio']:.2f}x {unit} (target <= {STEP_TARGET:g}x: {ok}); "
+                f"with the step's two flow channels {r['raster_flow_cpu_ms']:.1f} ms CPU "
+                f"(step / that = {r['step_cpu_ms'] / r['raster_flow_cpu_ms']:.2f}x); "
                 f"phases (ms {'CPU' if args.device == 'cpu' else 'host wall'}): {phases}; "
                 f"load {res['load'][0]:.1f}-{res['load'][1]:.1f}",
                 flush=True,

@@ -239,12 +239,13 @@ class DensifyStrategy:
         fwd = torch.from_numpy(inputs.flow.forward[y0 : y0 + h, x0 : x0 + w]).to(xy.device)
         valid = torch.from_numpy(inputs.flow.valid_forward[y0 : y0 + h, x0 : x0 + w]).to(xy.device)
         ok = valid[py, px]
-        mag = fwd[py, px].norm(dim=-1)
+        seen_flow = fwd[py, px]
+        mag = seen_flow.norm(dim=-1)
         sel = table_rows[ok]
         flow_w = state["flow_w"]
         flow_w[sel] = W_DECAY * flow_w[sel] + (1 - W_DECAY) * mag[ok]
         if inputs.rendered_flow is not None:
-            missed = (fwd[py, px] - inputs.rendered_flow[py, px]).norm(dim=-1)
+            missed = (seen_flow - inputs.rendered_flow[py, px]).norm(dim=-1)
             resid_w = state["resid_w"]
             resid_w[sel] = W_DECAY * resid_w[sel] + (1 - W_DECAY) * missed[ok]
 
@@ -266,7 +267,11 @@ class DensifyStrategy:
         rows = (~gate & (grad.abs().sum(dim=1) > 0)).nonzero().squeeze(1)
         if rows.numel() == 0:
             return
-        coef = initial_coefficients(model.skin_weights().detach()[rows], bases.count)
+        table_delta = table.get("skin_delta")
+        weights = blend_weights(  # of these rows only: the blend is row by row
+            table["skin_weights"].detach()[rows], None if table_delta is None else table_delta.detach()[rows]
+        )
+        coef = initial_coefficients(weights, bases.count)
         would = MotionBases.apply(bases.at(inputs.u).detach(), coef, table["means"].detach()[rows])
         g = grad[rows]
         state["help_dot"].index_add_(0, rows, (g * would).sum(dim=1))

@@ -88,11 +88,15 @@ def photometric(render: torch.Tensor, target: torch.Tensor, ssim_weight: float) 
 def flow_loss(rendered: torch.Tensor, alpha: torch.Tensor, flow: torch.Tensor, valid: torch.Tensor):
     """Charbonnier distance (px) between rendered (H, W, 2) and observed flow where ``valid`` (H, W)."""
     use = valid & (alpha[..., 0].detach() > 0.5)
-    if not bool(use.any()):
+    count = int(use.sum())
+    if count == 0:
         return rendered.new_zeros(())
-    predicted = rendered[use] / alpha[use].clamp_min(0.5)
-    diff = predicted - flow[use]
-    return (diff.pow(2).sum(-1) + CHARBONNIER_EPS**2).sqrt().mean() - CHARBONNIER_EPS
+    # Dense over the image, the unused pixels weighted out (their target zeroed, so a NaN where the
+    # flow is invalid cannot reach a gradient): no boolean gathers forward or scatters backward.
+    observed = torch.where(use[..., None], flow, 0.0)
+    diff = rendered / alpha.clamp_min(0.5) - observed
+    distance = (diff.pow(2).sum(-1) + CHARBONNIER_EPS**2).sqrt()
+    return torch.where(use, distance, 0.0).sum() / count - CHARBONNIER_EPS
 
 
 @dataclass

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from stg_node.avatar import kernels
@@ -37,12 +38,7 @@ class PosedBones:
     @classmethod
     def from_transforms(cls, transforms: torch.Tensor, parents: list[int]) -> PosedBones:
         quats = lbs.matrix_to_quaternion(transforms[..., :3, :3])
-        aligned = [quats[:, 0]]
-        for j in range(1, quats.shape[1]):
-            q = quats[:, j]
-            sign = torch.where((q * aligned[parents[j]]).sum(-1, keepdim=True) < 0, -1.0, 1.0)
-            aligned.append(q * sign)
-        return cls(transforms, torch.stack(aligned, dim=1))
+        return cls(transforms, quats * hemisphere_signs(quats, parents))
 
     def detach(self) -> PosedBones:
         return PosedBones(self.transforms.detach(), self.quats.detach())
@@ -76,12 +72,71 @@ class Skeleton(torch.nn.Module):
         Same convention as stg_node.body (world = R(Rh) @ smpl + Th): equal to
         ``stg_node.body.canonical_transforms`` without pose blend shapes.
         """
+        if not (torch.is_grad_enabled() and (poses.requires_grad or Rh.requires_grad or Th.requires_grad)):
+            return self._bones_without_grad(poses, Rh, Th)
         batch = poses.shape[0]
         rotations = lbs.axis_angle_to_matrix(poses.reshape(batch, 24, 3))
         rest = self.rest_joints.expand(batch, 24, 3)
         _, local = lbs.rigid_chain(rotations, rest, self.parents)
         world = lbs.make_rigid(lbs.axis_angle_to_matrix(Rh), Th)
         return PosedBones.from_transforms(world[:, None] @ local @ self.big_pose_inverse, self.parent_list)
+
+    def _bones_without_grad(self, poses: torch.Tensor, Rh: torch.Tensor, Th: torch.Tensor) -> PosedBones:
+        """:meth:`bones` where no gradient is wanted (a renderer's frames, a training frame's fixed
+        bones): the same kinematics on 24 joints in float64 numpy, about half the cost of
+        the ~150 small torch ops (and their autograd bookkeeping) of the differentiable path."""
+        batch = poses.shape[0]
+        rest = _float64(self.rest_joints)
+        parents = self.parent_list
+        offsets = rest.copy()
+        offsets[1:] -= rest[parents[1:]]
+        local = np.zeros((batch, 24, 4, 4))
+        local[..., :3, :3] = _rodrigues(_float64(poses).reshape(batch, 24, 3))
+        local[..., :3, 3] = offsets
+        local[..., 3, 3] = 1.0
+        world = np.empty_like(local)
+        world[:, 0] = local[:, 0]
+        for j in range(1, 24):
+            world[:, j] = world[:, parents[j]] @ local[:, j]
+        world[..., :3, 3] -= (world[..., :3, :3] @ rest[..., None])[..., 0]  # act on rest-space points
+        root = np.zeros((batch, 4, 4))
+        root[:, :3, :3] = _rodrigues(_float64(Rh).reshape(batch, 3))
+        root[:, :3, 3] = _float64(Th).reshape(batch, 3)
+        root[:, 3, 3] = 1.0
+        transforms = root[:, None] @ world @ _float64(self.big_pose_inverse)
+        dtype = torch.promote_types(self.rest_joints.dtype, poses.dtype)
+        out = torch.as_tensor(transforms, device=self.rest_joints.device).to(dtype)
+        return PosedBones.from_transforms(out, parents)
+
+
+def hemisphere_signs(quats: torch.Tensor, parents: list[int]) -> torch.Tensor:
+    """(B, J, 1) signs +-1 that put each joint's quaternion of ``quats`` (B, J, 4) in its parent's
+    hemisphere (the parent's already flipped), root first. Constants for the gradient, so found
+    without it: one numpy loop over the joints instead of ~100 autograd nodes a frame."""
+    q = _float64(quats)
+    sign = np.ones(q.shape[:2])
+    for j in range(1, q.shape[1]):
+        parent = parents[j]
+        sign[:, j] = np.where((q[:, j] * q[:, parent]).sum(-1) * sign[:, parent] < 0, -1.0, 1.0)
+    return torch.as_tensor(sign[..., None], dtype=quats.dtype, device=quats.device)
+
+
+def _float64(t: torch.Tensor) -> np.ndarray:
+    return t.detach().cpu().numpy().astype(np.float64)
+
+
+def _rodrigues(axis_angle: np.ndarray) -> np.ndarray:
+    """lbs.axis_angle_to_matrix in numpy (the same small-angle series)."""
+    theta2 = (axis_angle * axis_angle).sum(-1)[..., None]
+    small = theta2 < 1e-8
+    safe = np.where(small, 1.0, theta2)
+    theta = np.sqrt(safe)
+    sinc = np.where(small, 1.0 - theta2 / 6.0, np.sin(theta) / theta)
+    cosc = np.where(small, 0.5 - theta2 / 24.0, (1.0 - np.cos(theta)) / safe)
+    x, y, z = axis_angle[..., 0], axis_angle[..., 1], axis_angle[..., 2]
+    zero = np.zeros_like(x)
+    skew = np.stack([zero, -z, y, z, zero, -x, -y, x, zero], axis=-1).reshape(axis_angle.shape + (3,))
+    return np.eye(3) + sinc[..., None] * skew + cosc[..., None] * (skew @ skew)
 
 
 def blend_weights(skin_weights: torch.Tensor, skin_delta: torch.Tensor | None) -> torch.Tensor:

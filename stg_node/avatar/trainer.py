@@ -699,11 +699,14 @@ class Trainer:
         return out
 
     def _grads_finite(self) -> bool:
-        for group in self.optimizer.groups():
-            for p in group["params"]:
-                if p.grad is not None and not bool(torch.isfinite(p.grad).all()):
-                    return False
-        return True
+        """Whether every gradient is finite, in three batched ops over all of them (one test per
+        tensor cost ~3 ms a step): ``g * 0`` is 0 where ``g`` is finite and NaN where it is not,
+        and a sum of squares of zeros stays 0 exactly."""
+        grads = [p.grad for group in self.optimizer.groups() for p in group["params"] if p.grad is not None]
+        if not grads:
+            return True
+        zeros = torch._foreach_mul(grads, 0.0)
+        return bool(torch.stack(torch._foreach_norm(zeros)).sum() == 0)
 
     # --- snapshots and checkpoints ----------------------------------------------------------------
     def snapshot(self):

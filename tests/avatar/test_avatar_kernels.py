@@ -212,3 +212,22 @@ def test_a_cache_fed_by_another_model_starts_afresh_even_at_a_freed_models_addre
         torch.testing.assert_close(posed.colors, exact.colors)
         del model, posed, exact
         gc.collect()  # the next copy may take this one's address
+
+
+@pytest.mark.parametrize("shape", [(5, 7), (700, 600, 3), (3, 1)])
+def test_image_conversion_in_slices_gives_the_rounded_clamped_levels_and_leaves_its_input(shape):
+    """renderer._to_uint8 converts cache-sized slices; the levels are numpy's round-half-up of the
+    clamped values over the whole array, across slice borders (700x600x3 spans five slices)."""
+    from stg_node.avatar.renderer import _to_uint8
+
+    gen = torch.Generator().manual_seed(1)
+    values = torch.rand(shape, generator=gen) * 1.4 - 0.2  # out of range on both sides
+    edges = torch.tensor([0.5 / 255, 1.5 / 255 - 1e-6, 1.0, 0.0])[: values.numel()]
+    values.view(-1)[: edges.numel()] = edges
+    before = values.clone()
+    scaled = values.numpy() * np.float32(255.0) + np.float32(0.5)  # float32 steps, as the renderer
+    want = np.floor(np.clip(scaled, 0.0, 255.0)).astype(np.uint8)
+    got = _to_uint8(values)
+    assert got.dtype == np.uint8 and got.shape == shape
+    assert np.array_equal(got, want)
+    assert torch.equal(values, before)

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from stg_node.avatar.rigid import Skeleton, blend_weights, skin
-from stg_node.body import canonical_transforms, load_body_model
+from stg_node.body import canonical_transforms, lbs, load_body_model
 from stg_node.body.canonical import big_pose_output
 
 
@@ -26,12 +26,30 @@ def _random_pose(seed: int):
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_skeleton_bones_equal_body_canonical_transforms(body, seed):
+@pytest.mark.parametrize("grad", [True, False], ids=["torch", "numpy-no-grad"])
+def test_skeleton_bones_equal_body_canonical_transforms(body, seed, grad):
     poses, Rh, Th, betas = _random_pose(seed)
     skeleton = Skeleton.from_body(body, betas).double()
-    ours = skeleton.bones(poses, Rh, Th).transforms
     truth = canonical_transforms(body, betas, poses.reshape(1, 72), Rh, Th)
-    assert torch.allclose(ours, truth, atol=1e-6)  # the Skeleton stores float32
+    bones = skeleton.bones(poses.requires_grad_(grad), Rh, Th)
+    assert bones.transforms.dtype == torch.float64 and bones.transforms.requires_grad == grad
+    assert torch.allclose(bones.transforms.detach(), truth, atol=1e-6)  # the Skeleton stores float32
+
+
+@pytest.mark.parametrize("seed", [0, 5])
+def test_bones_without_gradient_match_the_differentiable_path_quaternions_included(body, seed):
+    """The no-gradient kinematics (numpy) against the torch path: transforms and the one-hemisphere
+    quaternions, in float32 as a renderer uses them, at small and large joint angles."""
+    poses, Rh, Th, betas = _random_pose(seed)
+    skeleton = Skeleton.from_body(body, betas)
+    for scale in (0.0, 1.0, 6.0):
+        p = (poses * scale).float()
+        with_grad = skeleton.bones(p.clone().requires_grad_(True), Rh.float(), Th.float())
+        with torch.no_grad():
+            plain = skeleton.bones(p, Rh.float(), Th.float())
+        assert plain.transforms.dtype == torch.float32
+        torch.testing.assert_close(plain.transforms, with_grad.transforms.detach(), atol=2e-6, rtol=0)
+        torch.testing.assert_close(plain.quats, with_grad.quats.detach(), atol=2e-6, rtol=0)
 
 
 @pytest.mark.parametrize("seed", [3, 4])
@@ -93,3 +111,21 @@ def test_matrix_to_quaternion_gradient_is_finite_at_half_turns():
     q = lbs.matrix_to_quaternion(lbs.axis_angle_to_matrix(angles))
     q.sum().backward()
     assert torch.isfinite(angles.grad).all()
+
+
+@pytest.mark.parametrize("grad", [True, False], ids=["torch", "numpy-no-grad"])
+def test_bone_quaternions_are_the_bone_rotations_each_in_its_parents_hemisphere(body, grad):
+    poses, Rh, Th, betas = _random_pose(7)
+    skeleton = Skeleton.from_body(body, betas)
+    angles = (poses * 6.0).float().requires_grad_(grad)
+    bones = skeleton.bones(angles, Rh.float(), Th.float())
+    quats = bones.quats.detach()[0]
+    rotations = bones.transforms.detach()[0, :, :3, :3]
+    torch.testing.assert_close(lbs.quaternion_to_matrix(quats), rotations, atol=1e-5, rtol=0)
+    torch.testing.assert_close(quats.norm(dim=1), torch.ones(24), atol=1e-6, rtol=0)
+    parents = skeleton.parent_list
+    dots = torch.stack([(quats[j] * quats[parents[j]]).sum() for j in range(1, 24)])
+    assert (dots >= 0).all()
+    if grad:  # the signs are constants: the gradient reaches the pose through every joint
+        (g,) = torch.autograd.grad(bones.quats.sum() + bones.transforms.sum(), angles)
+        assert torch.isfinite(g).all() and (g[0].abs().sum(dim=1) > 0).all()

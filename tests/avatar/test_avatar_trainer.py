@@ -269,3 +269,42 @@ def test_a_trainer_node_respawned_from_its_checkpoint_keeps_its_frame_bound(
     finally:
         second.bus.close()
         shutil.rmtree(folder, ignore_errors=True)
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
+def test_the_finiteness_check_finds_one_bad_gradient_and_passes_huge_finite_ones(tiny_frames, bad):
+    trainer = _train(tiny_frames[:3], small_config(iterations=10), steps=1)
+    params = [p for group in trainer.optimizer.groups() for p in group["params"]]
+    for p in params:
+        p.grad = torch.full_like(p, 1e38)  # finite, though its square overflows
+    assert trainer._grads_finite()
+    last = params[-1]
+    last.grad.view(-1)[last.numel() // 2] = bad
+    assert not trainer._grads_finite()
+
+
+def test_flow_loss_matches_a_per_pixel_charbonnier_and_ignores_invalid_nan_flow():
+    gen = torch.Generator().manual_seed(3)
+    h, w = 9, 7
+    rendered = torch.randn(h, w, 2, generator=gen, dtype=torch.float64, requires_grad=True)
+    alpha = torch.rand(h, w, 1, generator=gen, dtype=torch.float64, requires_grad=True)
+    flow = torch.randn(h, w, 2, generator=gen, dtype=torch.float64)
+    valid = torch.rand(h, w, generator=gen) > 0.3
+    flow[~valid] = float("nan")  # what an invalid flow pixel may hold
+    loss = L.flow_loss(rendered, alpha, flow, valid)
+    g_rendered, g_alpha = torch.autograd.grad(loss, (rendered, alpha))
+    # the definition, pixel by pixel: Charbonnier distance of alpha-normalised rendered flow
+    terms = []
+    for y in range(h):
+        for x in range(w):
+            if valid[y, x] and alpha[y, x, 0] > 0.5:
+                d = rendered[y, x] / alpha[y, x, 0] - flow[y, x]
+                terms.append(torch.sqrt((d * d).sum() + L.CHARBONNIER_EPS**2))
+    want = torch.stack(terms).mean() - L.CHARBONNIER_EPS
+    w_rendered, w_alpha = torch.autograd.grad(want, (rendered, alpha))
+    assert len(terms) > 10 and float(loss) == pytest.approx(float(want), rel=1e-12)
+    assert torch.isfinite(g_rendered).all() and torch.isfinite(g_alpha).all()
+    torch.testing.assert_close(g_rendered, w_rendered, rtol=1e-10, atol=1e-14)
+    torch.testing.assert_close(g_alpha, w_alpha, rtol=1e-10, atol=1e-14)
+    nothing = torch.zeros(h, w, dtype=torch.bool)
+    assert float(L.flow_loss(rendered, alpha, flow, nothing)) == 0.0
