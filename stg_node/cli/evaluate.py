@@ -92,7 +92,22 @@ def run(args: argparse.Namespace) -> int:
     condition = result.get("condition")
     if condition:
         print(_condition_text(condition))
+    shape = any_scores.get("shape")
+    if shape:
+        print(_shape_text(shape))
     return 0
+
+
+def _shape_text(shape: dict) -> str:
+    def p(d: dict, fmt: str) -> str:
+        return " / ".join(format(d[k], fmt) for k in ("p50", "p90", "p99"))
+
+    return (
+        "Gaussian shape (p50 / p90 / p99): largest/smallest axis "
+        f"{p(shape['scale_ratio'], '.1f')}, largest/middle {p(shape['needle_ratio'], '.2f')}; skinning "
+        f"disagreement with neighbours {p(shape['skin_disagreement'], '.3f')} (the body's "
+        f"{p(shape['body_skin_disagreement'], '.3f')})"
+    )
 
 
 def _scores_text(split: str, r: dict) -> str:
@@ -104,6 +119,18 @@ def _scores_text(split: str, r: dict) -> str:
         text += "\n  per body part (PSNR, dB): " + ", ".join(
             f"{name} {value:.2f}" for name, value in r["parts"].items()
         )
+    spill = r.get("spill")
+    if spill:
+        text += (
+            f"\n  spill (alpha beyond the true silhouette + {spill['margin_px']:g} px, % of its area): "
+            f"{spill['spill_pct']:.2f}"
+        )
+        if spill["regions"]:
+            text += (
+                " ("
+                + ", ".join(f"{name} {value['spill_pct']:.2f}" for name, value in spill["regions"].items())
+                + ")"
+            )
     return text
 
 
@@ -191,6 +218,11 @@ def _evaluate_split(args, split: str, loaded, spec, labeller) -> dict:
     }
     if "regions" in report:
         result["parts"] = {name: value["psnr"] for name, value in report["regions"].items()}
+    if "spill" in report:
+        result["spill"] = report["spill"]
+    from stg_node.avatar.shape_stats import shape_stats
+
+    result["shape"] = shape_stats(model).to_dict()
     if spec.format == "synthetic":
         from stg_node.data.synth.split_distances import benchmark_condition
         from stg_node.data.synth.writer import read_metadata
