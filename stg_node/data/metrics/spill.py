@@ -1,9 +1,9 @@
 """Spill: how much of a render covers pixels where the true subject is not, and next to which part.
 
 A Gaussian stretched into a needle under a pose it was never trained in shows as a thin streak
-hanging off a limb. PSNR barely sees it: a streak is a few hundred pixels in a 256 x 256 image
-whose background is black in both images, so it costs a fraction of a dB. What sees it is the
-rendered opacity where the true background is:
+hanging off a limb. PSNR counts it with every other error (a colour off, a limb a little
+misplaced) and cannot say which it was; what sees it alone is the rendered opacity where the
+true background is:
 
     spill = sum over true-background pixels farther than ``margin_px`` from the true silhouette
             of the rendered alpha (0..1), in percent of the true silhouette's area.
