@@ -11,7 +11,10 @@ goes to RUN_DIR/eval_<split>.png. On a synthetic benchmark (stg-synth) the repor
 per body part (from the ground-truth surface: stg_node.data.synth.body_parts) and the condition
 the benchmark tests (its light, motions, and how far the held-out frames are from training in
 pose and orientation); ``--split both`` scores the two splits and their gap (novel views minus
-novel poses, dB). ``--light`` renders an avatar with shading under another light than its
+novel poses, dB). Every view with a true mask adds the spill (the rendered alpha beyond the true
+silhouette, per body part on a synthetic benchmark: streaks off a limb), and the run's Gaussians
+their shape (axis ratios) and skinning disagreement with their neighbours
+(stg_node.avatar.shape_stats). ``--light`` renders an avatar with shading under another light than its
 learned one (``baked``: the light turning with the body, for comparison; as stg-render). Exit
 codes: 0 ok, 1 failed, 2 bad usage.
 """
@@ -182,6 +185,7 @@ def _evaluate_split(args, split: str, loaded, spec, labeller) -> dict:
     import math
 
     from stg_node.avatar.evaluate import evaluate_split, save_comparison
+    from stg_node.avatar.shape_stats import shape_stats
     from stg_node.avatar.snapshot import model_nbytes
 
     run, renderer, corrections, summary = loaded
@@ -220,8 +224,6 @@ def _evaluate_split(args, split: str, loaded, spec, labeller) -> dict:
         result["parts"] = {name: value["psnr"] for name, value in report["regions"].items()}
     if "spill" in report:
         result["spill"] = report["spill"]
-    from stg_node.avatar.shape_stats import shape_stats
-
     result["shape"] = shape_stats(model).to_dict()
     if spec.format == "synthetic":
         from stg_node.data.synth.split_distances import benchmark_condition
