@@ -13,12 +13,21 @@ kernels, culling before colour, colour streams): the "today's code" of its bench
 from __future__ import annotations
 
 import io
+import os
 import subprocess
 import tarfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 BASELINE_REV = "6bbdca2"
+
+
+def child_env(root: Path | str, **overrides: str) -> dict[str, str]:
+    """The environment of a measuring child that must import ``root``'s stg_node: ``root`` goes
+    first on PYTHONPATH and the caller's entries stay after it (packages installed there, gsplat
+    on a GPU machine say, must stay importable in the child)."""
+    path = os.pathsep.join(p for p in (str(root), os.environ.get("PYTHONPATH", "")) if p)
+    return {**os.environ, **overrides, "PYTHONPATH": path}
 
 
 def _git(*args: str) -> bytes:

@@ -2,6 +2,7 @@
 
     python tools/bench_avatar.py [--data DIR] [--baseline REV | --no-baseline] [--rounds 3]
                                  [--gaussians 20000 50000] [--only step render extremes ssim skip]
+                                 [--device cuda]
 
 Every timed case runs in a child process (``--worker``), once on this tree and once on the
 baseline revision (tools/baseline.py exports it; default: the code before issue 24), alternating
@@ -32,6 +33,10 @@ The 1-minute load average is printed with every row.
    30 consecutive frames rendered with colours recomputed every 2nd, 3rd, 4th frame against
    the exact renders (PSNR of the 8-bit images, largest difference in grey levels; this tree).
 
+With ``--device cuda`` the step and render cases run on the GPU (cuda splatting backend, gsplat),
+this tree only: the figures are wall times with the device synchronised around each timed call,
+and the same-run baselines are the rasterizer alone on the same device and the cpu rows.
+
 The data is generated if --data is not given (stg-synth, 125 frames, 100 for training).
 Figures go to docs/BENCHMARKS.md with this command line, the machine and the load.
 """
@@ -52,7 +57,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tools"))
 
-from baseline import BASELINE_REV, export_revision  # noqa: E402
+from baseline import BASELINE_REV, child_env, export_revision  # noqa: E402
 
 STEP_TARGET = 2.0  # step / rasterizer fwd+bwd
 RENDER_TARGETS = {20_000: 60.0, 50_000: 30.0}  # FPS, one thread, 512x512
@@ -67,6 +72,14 @@ MILLION = ("1M at 512x512", 1_000_000, 512)
 def _machine() -> str:
     cpu = platform.processor() or "cpu"
     return f"{platform.machine()}, {os.cpu_count()} cpus, {cpu}, Python {platform.python_version()}"
+
+
+def _device_name(device: str) -> str:
+    if device == "cpu":
+        return "cpu"
+    import torch
+
+    return torch.cuda.get_device_name()
 
 
 def ensure_data(path: str | None) -> Path:
@@ -84,13 +97,24 @@ def ensure_data(path: str | None) -> Path:
 # ---- the children ----------------------------------------------------------------------------------
 
 
-def _timed(fn, repeats: int, warmup: int = 2) -> dict:
+def _sync_for(device: str):
+    """What makes a wall time honest on `device`: CUDA kernels run asynchronously."""
+    if device == "cuda":
+        import torch
+
+        return torch.cuda.synchronize
+    return lambda: None
+
+
+def _timed(fn, repeats: int, warmup: int = 2, sync=lambda: None) -> dict:
     for _ in range(warmup):
         fn()
     wall, cpu = [], []
     for _ in range(repeats):
+        sync()
         w, c = time.perf_counter(), time.thread_time()
         fn()
+        sync()
         cpu.append(time.thread_time() - c)
         wall.append(time.perf_counter() - w)
     return {"wall_ms": 1e3 * statistics.median(wall), "cpu_ms": 1e3 * statistics.median(cpu)}
@@ -124,28 +148,35 @@ def worker_step(spec: dict) -> dict:
     from stg_node.avatar import Trainer
     from stg_node.avatar.data_spec import DataSpec
     from stg_node.avatar.model import BodyState, Camera3, render
+    from stg_node.avatar.trainer import StepProfile
 
     n, steps = spec["gaussians"], spec["steps"]
+    device = spec.get("device", "cpu")
+    sync = _sync_for(device)
     config = _balanced(n, **{"densify.start_iter": 10, "densify.interval": 20})
-    trainer = Trainer(config, seed=0)
+    trainer = Trainer(config, seed=0, **_device_args(device))
     size = spec.get("size")
     frames = DataSpec(spec["data"], "synthetic", **({"size": size} if size else {})).open("train")
     trainer.add_frames(frames)
     for _ in range(5):
         trainer.step()
-    trainer.profile = _cpu_profile_class()()
+    # on CUDA the phases are host wall time (kernels run asynchronously: read them as launch cost)
+    trainer.profile = _cpu_profile_class()() if device == "cpu" else StepProfile()
     wall, cpu = [], []
     for _ in range(steps):
+        sync()
         w, c = time.perf_counter(), time.thread_time()
         trainer.step()
+        sync()
         cpu.append(time.thread_time() - c)
         wall.append(time.perf_counter() - w)
     phases = trainer.profile.per_step_ms()
     # the rasterizer alone, forward + backward, on the same posed Gaussians and crop
     stored = trainer.store.frames[0]
-    cam = Camera3.from_camera(stored.frame.camera, stored.crop)
+    cam = Camera3.from_camera(stored.frame.camera, stored.crop, device)
     with torch.no_grad():
-        posed = trainer.model.pose(BodyState.from_smpl(stored.frame.smpl), 0.0, cam.center)
+        body = BodyState.from_smpl(stored.frame.smpl, trainer.device)
+        posed = trainer.model.pose(body, 0.0, cam.center)
     leaves = [
         t.detach().clone().requires_grad_(True)
         for t in (posed.means, posed.quats, posed.scales, posed.opacities, posed.colors)
@@ -156,7 +187,7 @@ def worker_step(spec: dict) -> dict:
         image, alpha, _ = render(posed, cam, background=0.0, backend=trainer.backend)
         (image.sum() + alpha.sum()).backward()
 
-    alone = _timed(raster, max(steps // 2, 5))
+    alone = _timed(raster, max(steps // 2, 5), sync=sync)
     return {
         "gaussians": trainer.model.table.num,
         "step_wall_ms": 1e3 * statistics.median(wall),
@@ -178,17 +209,20 @@ def worker_render(spec: dict) -> dict:
     from stg_node.avatar.data_spec import DataSpec
     from stg_node.avatar.model import BodyState, Camera3, render
 
+    device = spec.get("device", "cpu")
+    sync = _sync_for(device)
+    backend = _device_args(device).get("backend", "auto")
     train = DataSpec(spec["data"], "synthetic").open("train")
-    trainer = Trainer(_balanced(spec["gaussians"]), seed=0)
+    trainer = Trainer(_balanced(spec["gaussians"]), seed=0, **_device_args(device))
     trainer.add_frame(TrainFrame.from_sample(train[0]))
     model = trainer.model
     stream = spec["mode"] == "stream"
     if stream:
         if "color_refresh_every" not in inspect.signature(AvatarRenderer).parameters:
             return {"unsupported": "no colour streams in this tree"}
-        renderer = AvatarRenderer(model, color_refresh_every=2)
+        renderer = AvatarRenderer(model, color_refresh_every=2, **_device_args(device, trainer=False))
     else:
-        renderer = AvatarRenderer(model)
+        renderer = AvatarRenderer(model, **_device_args(device, trainer=False))
     frames = [train[i] for i in range(min(len(train), spec["frames"]))]
     from stg_node.nodes.convert import resized_camera
 
@@ -197,8 +231,10 @@ def worker_render(spec: dict) -> dict:
     wall, cpu, drawn = [], [], 0
     for _ in range(spec["passes"]):
         for frame, camera in zip(frames, cameras, strict=False):
+            sync()
             w, c = time.perf_counter(), time.thread_time()
             out = renderer.render(camera, frame.smpl, time=frame.time, **extra)
+            sync()
             cpu.append(time.thread_time() - c)
             wall.append(time.perf_counter() - w)
             drawn = out.num_rendered
@@ -210,17 +246,25 @@ def worker_render(spec: dict) -> dict:
         "rendered": drawn,
     }
     # the rasterizer alone on the first frame's posed Gaussians
-    cam = Camera3.from_camera(cameras[0])
+    cam = Camera3.from_camera(cameras[0], device=device)
     with torch.no_grad():
-        posed = model.pose(BodyState.from_smpl(frames[0].smpl), model.time_axis(frames[0].time), cam.center)
+        body = BodyState.from_smpl(frames[0].smpl, trainer.device)
+        posed = model.pose(body, model.time_axis(frames[0].time), cam.center)
 
     def raster():
         with torch.no_grad():
-            render(posed, cam, background=0.0)
+            render(posed, cam, background=0.0, backend=backend)
 
-    alone = _timed(raster, 10)
+    alone = _timed(raster, 10, sync=sync)
     result["raster_wall_ms"], result["raster_cpu_ms"] = alone["wall_ms"], alone["cpu_ms"]
     return result
+
+
+def _device_args(device: str, trainer: bool = True) -> dict:
+    """Trainer/renderer keywords for `device`: on CUDA the cuda splatting backend (gsplat)."""
+    if device == "cpu":
+        return {}
+    return {"device": device, "backend": "cuda"} if trainer else {"backend": "cuda"}
 
 
 WORKERS = {"step": worker_step, "render": worker_render}
@@ -239,7 +283,7 @@ def run_worker(spec_text: str, root: str) -> None:
 
 
 def spawn(spec: dict, root: Path) -> dict:
-    env = dict(os.environ, STG_THREADS="1", PYTHONPATH=str(root))
+    env = child_env(root, STG_THREADS="1")
     cmd = [sys.executable, __file__, "--worker", json.dumps(spec), "--root", str(root)]
     done = subprocess.run(cmd, env=env, capture_output=True, text=True)
     if done.returncode != 0:
@@ -271,6 +315,16 @@ def interleaved(spec: dict, trees: dict[str, Path], rounds: int) -> dict[str, di
     return out
 
 
+def _clock(args) -> tuple[str, str]:
+    """Which time a figure is read from: CPU time on the CPU (what the code costs on a shared box),
+    synchronised wall time on a GPU (the CPU thread mostly waits there)."""
+    return ("cpu", "CPU") if args.device == "cpu" else ("wall", "wall")
+
+
+def _on(args) -> str:
+    return "" if args.device == "cpu" else f", {args.device}"
+
+
 def _ratio(new: float, old: float) -> str:
     return f"{old / new:.2f}x" if new > 0 else "-"
 
@@ -278,18 +332,22 @@ def _ratio(new: float, old: float) -> str:
 def section_step(args, trees) -> list[dict]:
     rows = []
     for n in args.gaussians:
-        spec = {"case": "step", "data": str(args.data), "gaussians": n, "steps": args.steps}
+        spec = {"case": "step", "data": str(args.data), "gaussians": n, "steps": args.steps,
+                "device": args.device}  # fmt: skip
         res = interleaved(spec, trees, args.rounds)
+        clock, unit = _clock(args)
         for name in trees:
             r = res[name]
             r["ratio_cpu"] = r["step_cpu_ms"] / r["raster_cpu_ms"]
-            ok = "OK" if r["ratio_cpu"] <= STEP_TARGET else "MISSED"
+            r["ratio"] = r[f"step_{clock}_ms"] / r[f"raster_{clock}_ms"]
+            ok = "OK" if r["ratio"] <= STEP_TARGET else "MISSED"
             phases = ", ".join(f"{k} {v:.1f}" for k, v in r["phases_cpu_ms"].items())
             print(
-                f"step {n} Gaussians [{name}]: {r['step_cpu_ms']:.1f} ms CPU "
+                f"step {n} Gaussians [{name}{_on(args)}]: {r['step_cpu_ms']:.1f} ms CPU "
                 f"({r['step_wall_ms']:.1f} ms wall); "
-                f"rasterizer fwd+bwd alone {r['raster_cpu_ms']:.1f} ms CPU; step / rasterizer = "
-                f"{r['ratio_cpu']:.2f}x (target <= {STEP_TARGET:g}x: {ok}); phases (ms CPU): {phases}; "
+                f"rasterizer fwd+bwd alone {r[f'raster_{clock}_ms']:.1f} ms {unit}; step / rasterizer = "
+                f"{r['ratio']:.2f}x {unit} (target <= {STEP_TARGET:g}x: {ok}); "
+                f"phases (ms {'CPU' if args.device == 'cpu' else 'host wall'}): {phases}; "
                 f"load {res['load'][0]:.1f}-{res['load'][1]:.1f}",
                 flush=True,
             )
@@ -313,6 +371,7 @@ def section_render(args, trees) -> list[dict]:
             "size": 512,
             "frames": 60,
             "passes": 1,
+            "device": args.device,
         }
         exact = interleaved({**spec, "mode": "exact"}, trees, args.rounds)
         streamed = interleaved({**spec, "mode": "stream"}, {"new": trees["new"]}, args.rounds)
@@ -321,8 +380,9 @@ def section_render(args, trees) -> list[dict]:
         if base is not None:
             cases.append(("baseline", base))
         target = RENDER_TARGETS.get(n)
+        clock, unit = _clock(args)
         for label, r in cases:
-            fps = 1e3 / r["cpu_ms"]
+            fps = 1e3 / r[f"{clock}_ms"]
             verdict = "" if target is None or label == "baseline" else (" OK" if fps >= target else " MISSED")
             vs = (
                 f", {_ratio(r['cpu_ms'], base['cpu_ms'])} the baseline"
@@ -330,9 +390,10 @@ def section_render(args, trees) -> list[dict]:
                 else ""
             )
             print(
-                f"render 512x512 {n} Gaussians [{label}]: {r['cpu_ms']:.1f} ms CPU = {fps:.1f} FPS "
-                f"({r['wall_ms']:.1f} ms wall){vs}; target >= {target} FPS{verdict}; rasterizer alone "
-                f"{r['raster_cpu_ms']:.1f} ms CPU; load {exact['load'][0]:.1f}-{exact['load'][1]:.1f}",
+                f"render 512x512 {n} Gaussians [{label}{_on(args)}]: {r['cpu_ms']:.1f} ms CPU, "
+                f"{r['wall_ms']:.1f} ms wall = {fps:.1f} FPS ({unit}){vs}; target >= {target} FPS{verdict}; "
+                f"rasterizer alone {r[f'raster_{clock}_ms']:.1f} ms {unit}; "
+                f"load {exact['load'][0]:.1f}-{exact['load'][1]:.1f}",
                 flush=True,
             )
         rows.append({"gaussians": n, "exact": exact, "stream": streamed})
@@ -517,6 +578,12 @@ def main(argv=None) -> int:
     parser.add_argument(
         "--no-million", action="store_true", help="extremes: leave out the 1M-Gaussian render"
     )
+    parser.add_argument(
+        "--device",
+        default="cpu",
+        choices=("cpu", "cuda"),
+        help="cuda: the step and render cases on the GPU with the cuda backend, this tree only",
+    )
     parser.add_argument("--json", type=Path, help="also write the results here")
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     parser.add_argument("--root", default=str(ROOT), help=argparse.SUPPRESS)
@@ -530,11 +597,16 @@ def main(argv=None) -> int:
     configure_threads("1")
     args.data = ensure_data(args.data)
     trees = {"new": ROOT}
+    if args.device != "cpu":
+        args.no_baseline = True  # the baselines are the rasterizer on the same device and the cpu rows
+        args.only = [s for s in (args.only or ["step", "render"]) if s in ("step", "render")]
     if not args.no_baseline:
         trees["baseline"] = export_revision(args.baseline)
-    print(f"# machine: {_machine()}; trees: " + ", ".join(f"{k} = {v}" for k, v in trees.items()), flush=True)
+    tree_list = ", ".join(f"{k} = {v}" for k, v in trees.items())
+    print(f"# machine: {_machine()}; device: {_device_name(args.device)}; trees: {tree_list}", flush=True)
     sections = args.only or ["step", "render", "extremes", "ssim", "skip", "streams"]
-    results: dict = {"machine": _machine(), "baseline": None if args.no_baseline else args.baseline}
+    results: dict = {"machine": _machine(), "baseline": None if args.no_baseline else args.baseline,
+                     "device": _device_name(args.device)}  # fmt: skip
     if "step" in sections:
         results["step"] = section_step(args, trees)
     if "render" in sections:

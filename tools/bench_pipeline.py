@@ -429,7 +429,7 @@ def live_with_baseline(args) -> dict:
     """The live run on this tree and on ``args.baseline``, alternating, each in a child process
     that imports its own tree (and launches its nodes from it)."""
     sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from baseline import export_revision
+    from baseline import child_env, export_revision
 
     trees = {"new": Path(__file__).resolve().parents[1], "baseline": export_revision(args.baseline)}
     out: dict[str, list] = {name: [] for name in trees}
@@ -447,7 +447,7 @@ def live_with_baseline(args) -> dict:
             ]
             cmd += ["--live-s", str(args.live_s), "--live-rate", str(args.live_rate)]
             cmd += ["--live-size", str(args.live_size), "--live-warmup-s", str(args.live_warmup_s)]
-            env = dict(os.environ, PYTHONPATH=str(trees[name]))
+            env = child_env(trees[name])
             done = subprocess.run(cmd, env=env, cwd=trees[name], capture_output=True, text=True)
             if done.returncode != 0:
                 raise SystemExit(f"bench: the live child on {trees[name]} failed:\n{done.stderr[-4000:]}")

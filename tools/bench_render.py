@@ -196,11 +196,11 @@ def main() -> int:
     if args.png:
         _write_png(args.png)
 
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from baseline import child_env, export_revision
+
     trees = {"this tree": ROOT}
     if args.baseline:
-        sys.path.insert(0, str(Path(__file__).resolve().parent))
-        from baseline import export_revision
-
         trees["baseline"] = export_revision(args.baseline)
     runs: dict[str, list[list[dict]]] = {name: [] for name in trees}
     names = list(trees)
@@ -208,7 +208,7 @@ def main() -> int:
         for name in names if r % 2 == 0 else names[::-1]:
             found = []
             for threads in args.threads:
-                env = dict(os.environ, STG_THREADS=str(threads), PYTHONPATH=str(trees[name]))
+                env = child_env(trees[name], STG_THREADS=str(threads))
                 cmd = [
                     sys.executable,
                     __file__,

@@ -41,6 +41,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tools"))
 
+from baseline import child_env  # noqa: E402
 from headless_chromium import HeadlessChromium  # noqa: E402
 
 
@@ -162,7 +163,7 @@ def synthetic_renderer(url: str, size: int, rate: float, stop: threading.Event) 
 
 
 def spawn(args: list[str]) -> subprocess.Popen:
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "STG_THREADS": os.environ.get("STG_THREADS", "1")}
+    env = child_env(ROOT, STG_THREADS=os.environ.get("STG_THREADS", "1"))
     return subprocess.Popen(
         [sys.executable, *args], cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
         start_new_session=True,

@@ -156,6 +156,9 @@ class AvatarModel(nn.Module):
     ):
         super().__init__()
         config.validate()
+        # names this model in colour caches: the key holds it, so unlike id() it cannot be taken by
+        # another model once this one is freed, and a copy (deepcopy, pickle) gets its own
+        self.cache_token = object()
         self.config = config
         self.table = table
         self.skeleton = skeleton
@@ -316,7 +319,7 @@ class AvatarModel(nn.Module):
 
             if color_cache is not None and not torch.is_grad_enabled():
                 versions = (table["features"]._version, *(p._version for p in self.color_mlp.parameters()))
-                colors = color_cache.colors(evaluate, index, table.num, (id(self), degree, versions))
+                colors = color_cache.colors(evaluate, index, table.num, (self.cache_token, degree, versions))
             else:
                 colors = evaluate(None)
         else:

@@ -276,13 +276,15 @@ class Trainer:
         self.pose_slots[frame_index] = slot
         grow = self.pose_deltas is None or slot >= self.pose_deltas.shape[0]
         if grow:
-            old = None if self.pose_deltas is None else self.pose_deltas.detach()
+            old = self.pose_deltas
             size = 64 if old is None else old.shape[0] * 2
             new = torch.zeros(size, 75, device=self.device)
             if old is not None:
-                new[: old.shape[0]] = old
+                new[: old.shape[0]] = old.detach()
             self.pose_deltas = torch.nn.Parameter(new)
-            if self.optimizer is not None:
+            if self.optimizer is not None and old is not None:
+                self.optimizer.replace_dense(old, self.pose_deltas)  # every other moment stays
+            elif self.optimizer is not None:
                 self._rebuild_dense()
         return slot
 

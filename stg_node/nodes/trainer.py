@@ -2,7 +2,7 @@
 
 - Pairs each frame with its pose (BodyPose names its frame: ``frame_index`` and ``frame_seq``);
   unpaired messages wait in bounded tables (``pending``), so memory stays flat on an endless
-  stream; the avatar trainer itself keeps at most ``max_frames`` frames (it evicts).
+  stream; the avatar trainer itself keeps at most ``max_frames`` frames (a reservoir sample of the stream).
 - Skips frames whose pose has a confidence below ``min_confidence`` (a live tracker that lost
   the person, saw two, or fitted badly), counted as drops ``low_confidence``: the frame and its
   pose never reach the avatar.
@@ -58,7 +58,9 @@ class TrainerParams:
     backend: str = param("auto", doc="rasterizer backend: auto, cpu, cuda, torch")
     seed: int = param(0, doc="random seed")
     iters: int = param(0, min=0, doc="stop after this many iterations (0: train until stopped)")
-    max_frames: int = param(64, min=1, doc="frames the trainer keeps (older ones are evicted)")
+    max_frames: int = param(
+        64, min=1, doc="frames the trainer keeps (a reservoir sample: old and new frames stay)"
+    )
     min_confidence: float = param(
         0.5, min=0.0, max=1.0, doc="skip frames whose pose's tracker confidence is below this"
     )

@@ -188,3 +188,27 @@ def test_training_with_the_kernels_scores_like_the_torch_path(tiny_frames, tiny_
             scores[name] = _held_out_psnr(trainer, tiny_synth)
     assert scores["torch"] > 18.0
     assert abs(scores["kernels"] - scores["torch"]) <= 0.1, scores
+
+
+def test_a_cache_fed_by_another_model_starts_afresh_even_at_a_freed_models_address(trained, tiny_frames):
+    """The cache key names the model by a token the key itself holds, not id(): a model freed and
+    another built in its place (a hot swap) may get the same id, and with the same version
+    counters its colours were taken for the old model's. Copies get tokens of their own."""
+    import copy
+    import gc
+
+    frame = tiny_frames[0]
+    body = trained.body_state(frame)
+    center = Camera3.from_camera(frame.camera).center
+    cache = ColorCache(refresh_every=3)
+    for scale in (1.0, 1.5, 2.0, 2.5):  # each model: the same number of edits, other weights
+        model = copy.deepcopy(trained.model)
+        with torch.no_grad():
+            for p in model.color_mlp.parameters():
+                p.mul_(scale)
+            posed = model.pose(body, 0.01, center, color_cache=cache)
+            exact = model.pose(body, 0.01, center)
+        assert cache.evaluated == posed.colors.shape[0]  # a new model: every colour evaluated
+        torch.testing.assert_close(posed.colors, exact.colors)
+        del model, posed, exact
+        gc.collect()  # the next copy may take this one's address

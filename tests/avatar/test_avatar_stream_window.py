@@ -251,3 +251,38 @@ def test_exposure_gains_and_tracked_poses_follow_the_held_frames(tiny_frames):
         assert all(f - 1 in track for f in held if f > 0)  # the neighbours a second difference needs
     exposure.step()  # consistent shapes after the cuts
     trainer.step()
+
+
+def test_growing_the_pose_slots_keeps_every_dense_moment(tiny_frames):
+    """An unbounded stream doubles the pose corrections' slots; the colour MLP, light and every
+    other dense module keep their Adam moments, and the held corrections keep theirs."""
+    trainer = Trainer(small_config(), seed=0)  # max_frames 0: every frame kept
+    trainer.add_frames(_stream(tiny_frames, 64))
+    assert trainer.pose_deltas.shape[0] == 64
+    dense = trainer.optimizer.dense
+    gen = torch.Generator().manual_seed(3)
+    for group in dense.param_groups:
+        for p in group["params"]:
+            p.grad = torch.randn(p.shape, generator=gen)
+    dense.step()
+    before = {
+        (group["name"], i): {k: v.clone() for k, v in dense.state[p].items()}
+        for group in dense.param_groups
+        for i, p in enumerate(group["params"])
+    }
+    assert len(before) > 1  # the pose corrections and at least the colour MLP
+    trainer.add_frame(_stream(tiny_frames, 1, start=64)[0])  # slot 65: the block doubles
+    assert trainer.pose_deltas.shape[0] == 128
+    dense = trainer.optimizer.dense
+    for group in dense.param_groups:
+        for i, p in enumerate(group["params"]):
+            old = before[(group["name"], i)]
+            state = dense.state[p]
+            assert float(state["step"]) == float(old["step"])
+            for key in ("exp_avg", "exp_avg_sq"):
+                value = state[key]
+                grown = tuple(slice(0, n) for n in old[key].shape)
+                assert torch.equal(value[grown], old[key]), (group["name"], key)
+                rest = value.clone()
+                rest[grown] = 0
+                assert not rest.any()  # the new slots start at zero
