@@ -48,6 +48,10 @@ def test_distances_match_rotations_built_by_scipy():
     assert bent.nearest_orientation_frame == 2 and bent.orientation_deg == pytest.approx(75.0, abs=1e-6)
     assert knee.orientation_deg == pytest.approx(5.0, abs=1e-6)
     assert bent.yaw_deg == pytest.approx(95.0, abs=1e-6) and knee.yaw_deg == pytest.approx(15.0, abs=1e-6)
+    # The most extrapolated joint: the elbow 30 deg beyond its nearest training bend (frame 1's, not
+    # frame 0's straight one), the knee 23 deg beyond the straight knee every training frame had.
+    assert bent.joint_max_name == "left_elbow" and bent.joint_max_deg == pytest.approx(30.0, abs=1e-6)
+    assert knee.joint_max_name == "left_knee" and knee.joint_max_deg == pytest.approx(23.0, abs=1e-6)
     with pytest.raises(ValueError, match="training frame"):
         held_out_distances(poses, Rh, [], [3])
 
@@ -97,7 +101,7 @@ def test_held_out_motions_play_in_equal_parts_without_a_fade_across_a_cut():
     assert continuous.cuts == () and [s.name for s in continuous.segments] == ["turn", "crouch"]
 
 
-def test_crouch_and_arms_up_do_what_their_names_say():
+def test_crouch_arms_up_and_reach_do_what_their_names_say():
     crouch = make_motion("crouch", 150, FPS, np.random.default_rng(0))
     arms = make_motion("arms_up", 150, FPS, np.random.default_rng(0))
     from stg_node.data.synth.joint_limits import JOINT_INDEX
@@ -105,6 +109,10 @@ def test_crouch_and_arms_up_do_what_their_names_say():
     assert crouch.euler_deg[:, JOINT_INDEX["left_knee"], 0].max() > 80.0  # a deep knee bend
     assert arms.euler_deg[:, JOINT_INDEX["left_shoulder"], 2].max() > 70.0  # the arm above the shoulder
     assert arms.euler_deg[:, JOINT_INDEX["right_shoulder"], 2].min() < -70.0  # mirrored side
+    reach = make_motion("reach", 150, FPS, np.random.default_rng(0))
+    folded = reach.euler_deg[:, JOINT_INDEX["left_elbow"], 1] < -130.0  # the elbow folded far
+    assert folded.any() and (reach.euler_deg[folded, JOINT_INDEX["left_shoulder"], 2] > 60.0).all()
+    assert reach.euler_deg[:, JOINT_INDEX["right_elbow"], 1].max() > 130.0  # mirrored side
 
 
 def test_bad_held_out_options_are_clear_errors():

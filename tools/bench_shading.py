@@ -41,6 +41,7 @@ CONFIGS = {
     "no_scale_cap": {"model.max_scale_ratio": 0.0},
     "no_isometry": {"loss.isometry": 0.0},
     "sphere_init": {"model.init_flatness": 1.0},
+    "no_joint_shrink": {"model.joint_shrink": False},
 }
 
 

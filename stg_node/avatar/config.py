@@ -27,7 +27,13 @@ LIGHT_MODELS = ("distant", "sh")  # the learned light: an ambient term and dista
 # behaviour it was trained with (snapshot.model_config_from_meta, TrainConfig.from_dict).
 # A group's entries are a dict; a top-level setting's entry is its value.
 PREDATING_DEFAULTS = {
-    "model": {"shading": False, "init_flatness": 1.0, "max_scale_ratio": 0.0, "motion_basis": 0},
+    "model": {
+        "shading": False,
+        "init_flatness": 1.0,
+        "max_scale_ratio": 0.0,
+        "motion_basis": 0,
+        "joint_shrink": False,
+    },
     "loss": {"isometry": 0.0},
     "densify": {"flow_seed_missed": False, "motion_min_px": 0.0},
     "nonrigid": "on",  # runs stored before the trial kept their non-rigid part
@@ -71,6 +77,9 @@ class ModelConfig:
     light_count: int = 2
     init_flatness: float = 0.3  # initial Gaussians: discs along the surface, normal axis x this (1 = spheres)
     max_scale_ratio: float = 10.0  # largest / smallest axis of a rendered Gaussian at most this (0 = no cap)
+    # A Gaussian between bones that bend apart shrinks as linear blend skinning squeezes the surface
+    # there (rigid.joint_shrink), instead of keeping its size and sticking out of a folded joint.
+    joint_shrink: bool = True
 
     def validate(self) -> None:
         if self.light_model not in LIGHT_MODELS:

@@ -37,10 +37,15 @@ def evaluate_split(
     ``regions``: optional ``(frame, camera) -> {name: (H, W) bool}`` (e.g. the synthetic benchmark's
     body parts, stg_node.data.synth.body_parts); the report then has ``regions``: name -> {psnr,
     pixels}, squared errors pooled over the split's views per region.
+
+    Views with a true mask also give ``spill`` (stg_node.data.metrics.spill): the rendered alpha
+    beyond the true silhouette, per region when ``regions`` is given (streaks off a limb).
     """
     from stg_node.data.metrics import Evaluator
+    from stg_node.data.metrics.spill import SpillScores
     from stg_node.data.synth.body_parts import RegionScores
 
+    spill = SpillScores()
     evaluator = Evaluator(protocol, lpips_nets=lpips_nets)
     region_scores = RegionScores() if regions is not None else None
     kept = []
@@ -54,14 +59,19 @@ def evaluate_split(
         out = renderer.render(sample.camera, smpl, time_s)
         times.append(out.render_ms)
         evaluator.add(out.image, image, sample.mask)
+        view_regions = regions(sample.index, sample.camera) if regions is not None else None
         if region_scores is not None:
-            region_scores.add(out.image, image, regions(sample.index, sample.camera))
+            region_scores.add(out.image, image, view_regions)
+        if sample.mask is not None:
+            spill.add(out.alpha, sample.mask, view_regions)
         if len(kept) < keep_images:
             kept.append((sample.index, sample.camera.name, out.image, image))
     report = evaluator.report().as_dict()
     report["render_ms_mean"] = float(np.mean(times)) if times else 0.0
     if region_scores is not None:
         report["regions"] = region_scores.report()
+    if spill.views:
+        report["spill"] = spill.report()
     return report, kept
 
 

@@ -22,7 +22,15 @@ from stg_node.avatar.color_cache import ColorCache
 from stg_node.avatar.config import ModelConfig
 from stg_node.avatar.gaussians import GaussianTable, cap_scale_ratio
 from stg_node.avatar.motion_basis import MotionBases
-from stg_node.avatar.rigid import QUAT_EPS, PosedBones, Skeleton, blend_weights, skin, skin_with_kernel
+from stg_node.avatar.rigid import (
+    QUAT_EPS,
+    PosedBones,
+    Skeleton,
+    blend_weights,
+    joint_shrink,
+    skin,
+    skin_with_kernel,
+)
 from stg_node.avatar.shading import LightSpec, Shading, gaussian_normals
 from stg_node.avatar.spacetime import TimeAxis
 from stg_node.avatar.timecode import PoseTimeIndex, pose_key
@@ -284,6 +292,10 @@ class AvatarModel(nn.Module):
         canonical = rows(canonical)
         means, quats, view_canonical = self._skin(canonical, bones, rows(st.quats), camera_center, rows)
         scales = rows(self.scales())
+        if cfg.joint_shrink:
+            weights = self._render_skin_weights()
+            weights = rows(self.skin_weights() if weights is None else weights)
+            scales = scales * joint_shrink(weights, bones)[:, None]
         if camera is not None:  # what the camera cannot see needs no colour
             seen = may_be_visible(means, scales, camera.viewmat, camera.K, camera.width, camera.height)
             if not bool(seen.all()):

@@ -173,6 +173,29 @@ def blend_rotation(weights: torch.Tensor, bones: PosedBones) -> torch.Tensor:
     return q / q.norm(dim=1, keepdim=True).clamp_min(QUAT_EPS)
 
 
+JOINT_SHRINK_FLOOR = 0.05  # a Gaussian between bones that point opposite ways keeps 5 % of its size
+
+
+def joint_shrink(weights: torch.Tensor, bones: PosedBones, floor: float = JOINT_SHRINK_FLOOR) -> torch.Tensor:
+    """(N,) how much linear blend skinning squeezes the body around each point, in ``(floor, 1]``.
+
+    A point between two bones takes the blend of their transforms, ``M = sum_b w_b R_b``, which is a
+    rotation only when the bones agree; where they bend apart ``M`` squeezes the surface (the mesh
+    thins at a bent elbow). Skinning turns a Gaussian by the rotation of the blend and keeps its
+    size (``skin``): a Gaussian that straddles an elbow folded far beyond training keeps its full
+    extent while the surface around it collapses, and sticks out of the limb as a streak. Its size
+    follows the surface instead when scaled by the squeeze of ``M``. For two bones turned by ``t``
+    about one axis with weights 1/2 the blended quaternion has norm ``|q| = cos(t/4)`` and ``M``
+    shrinks the plane of the bend by ``cos(t/2) = 2|q|^2 - 1``; that closed form, computed from the
+    blended quaternion of any number of bones, is the factor: 1 for a point on one bone or bones
+    that agree (every Gaussian away from the joints, and at joints bent as in a relaxed pose it is
+    within a few percent of 1), falling as the bones part. No gradient: it is the body's, not learnt.
+    """
+    with torch.no_grad():
+        q = weights.detach() @ bones.quats[0]
+        return (2.0 * q.pow(2).sum(dim=1) - 1.0).clamp(floor, 1.0)
+
+
 def skin(means: torch.Tensor, weights: torch.Tensor, bones: PosedBones, rotations: bool = True) -> Skinned:
     """Centres (and, with ``rotations``, orientations) of canonical points under one frame's bones."""
     blended = blend(weights, bones)

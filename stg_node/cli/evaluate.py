@@ -11,7 +11,10 @@ goes to RUN_DIR/eval_<split>.png. On a synthetic benchmark (stg-synth) the repor
 per body part (from the ground-truth surface: stg_node.data.synth.body_parts) and the condition
 the benchmark tests (its light, motions, and how far the held-out frames are from training in
 pose and orientation); ``--split both`` scores the two splits and their gap (novel views minus
-novel poses, dB). ``--light`` renders an avatar with shading under another light than its
+novel poses, dB). Every view with a true mask adds the spill (the rendered alpha beyond the true
+silhouette, per body part on a synthetic benchmark: streaks off a limb), and the run's Gaussians
+their shape (axis ratios) and skinning disagreement with their neighbours
+(stg_node.avatar.shape_stats). ``--light`` renders an avatar with shading under another light than its
 learned one (``baked``: the light turning with the body, for comparison; as stg-render). Exit
 codes: 0 ok, 1 failed, 2 bad usage.
 """
@@ -92,7 +95,22 @@ def run(args: argparse.Namespace) -> int:
     condition = result.get("condition")
     if condition:
         print(_condition_text(condition))
+    shape = any_scores.get("shape")
+    if shape:
+        print(_shape_text(shape))
     return 0
+
+
+def _shape_text(shape: dict) -> str:
+    def p(d: dict, fmt: str) -> str:
+        return " / ".join(format(d[k], fmt) for k in ("p50", "p90", "p99"))
+
+    return (
+        "Gaussian shape (p50 / p90 / p99): largest/smallest axis "
+        f"{p(shape['scale_ratio'], '.1f')}, largest/middle {p(shape['needle_ratio'], '.2f')}; skinning "
+        f"disagreement with neighbours {p(shape['skin_disagreement'], '.3f')} (the body's "
+        f"{p(shape['body_skin_disagreement'], '.3f')})"
+    )
 
 
 def _scores_text(split: str, r: dict) -> str:
@@ -104,6 +122,18 @@ def _scores_text(split: str, r: dict) -> str:
         text += "\n  per body part (PSNR, dB): " + ", ".join(
             f"{name} {value:.2f}" for name, value in r["parts"].items()
         )
+    spill = r.get("spill")
+    if spill:
+        text += (
+            f"\n  spill (alpha beyond the true silhouette + {spill['margin_px']:g} px, % of its area): "
+            f"{spill['spill_pct']:.2f}"
+        )
+        if spill["regions"]:
+            text += (
+                " ("
+                + ", ".join(f"{name} {value['spill_pct']:.2f}" for name, value in spill["regions"].items())
+                + ")"
+            )
     return text
 
 
@@ -155,6 +185,7 @@ def _evaluate_split(args, split: str, loaded, spec, labeller) -> dict:
     import math
 
     from stg_node.avatar.evaluate import evaluate_split, save_comparison
+    from stg_node.avatar.shape_stats import shape_stats
     from stg_node.avatar.snapshot import model_nbytes
 
     run, renderer, corrections, summary = loaded
@@ -191,6 +222,9 @@ def _evaluate_split(args, split: str, loaded, spec, labeller) -> dict:
     }
     if "regions" in report:
         result["parts"] = {name: value["psnr"] for name, value in report["regions"].items()}
+    if "spill" in report:
+        result["spill"] = report["spill"]
+    result["shape"] = shape_stats(model).to_dict()
     if spec.format == "synthetic":
         from stg_node.data.synth.split_distances import benchmark_condition
         from stg_node.data.synth.writer import read_metadata

@@ -129,3 +129,47 @@ def test_bone_quaternions_are_the_bone_rotations_each_in_its_parents_hemisphere(
     if grad:  # the signs are constants: the gradient reaches the pose through every joint
         (g,) = torch.autograd.grad(bones.quats.sum() + bones.transforms.sum(), angles)
         assert torch.isfinite(g).all() and (g[0].abs().sum(dim=1) > 0).all()
+
+
+def _bones_about_z(angles_deg):
+    """24 bones, bone b turned by angles_deg[b] (0 for the rest) about z, no translation."""
+    from stg_node.avatar.rigid import PosedBones
+    from stg_node.body import lbs
+
+    angles = torch.zeros(24, dtype=torch.float64)
+    angles[: len(angles_deg)] = torch.tensor(angles_deg, dtype=torch.float64)
+    axis_angle = torch.zeros(24, 3, dtype=torch.float64)
+    axis_angle[:, 2] = torch.deg2rad(angles)
+    transforms = torch.eye(4, dtype=torch.float64).repeat(24, 1, 1)
+    transforms[:, :3, :3] = lbs.axis_angle_to_matrix(axis_angle)
+    return PosedBones.from_transforms(transforms[None], list(range(-1, 23)))
+
+
+@pytest.mark.parametrize("angle", [0.0, 20.0, 90.0, 150.0])
+def test_joint_shrink_is_the_squeeze_of_the_blended_matrix(angle):
+    """Two bones turned ``angle`` apart about z, the point weighted half and half: the blended
+    matrix's singular values in the plane of the bend (numpy's SVD, an independent path) are the
+    factor; a point on one bone is not shrunk."""
+    from stg_node.avatar.rigid import blend, joint_shrink
+
+    bones = _bones_about_z([0.0, angle])
+    weights = torch.zeros(2, 24, dtype=torch.float64)
+    weights[0, :2] = 0.5
+    weights[1, 1] = 1.0
+    factor = joint_shrink(weights, bones, floor=0.0)
+    matrix = blend(weights, bones)[0, :3, :3].numpy()
+    singular = np.linalg.svd(matrix, compute_uv=False)
+    assert factor[0].item() == pytest.approx(np.cos(np.radians(angle) / 2), abs=1e-9)
+    assert sorted(singular)[:2] == pytest.approx([factor[0].item()] * 2, abs=1e-9)
+    assert factor[1].item() == pytest.approx(1.0, abs=1e-12)
+
+
+def test_joint_shrink_is_floored_and_posing_applies_it():
+    """Opposite bones squeeze to nothing: the floor holds. A model posed with the shrink on renders
+    the Gaussians of a bent joint smaller by the factor, and those on one bone unchanged."""
+    from stg_node.avatar.rigid import JOINT_SHRINK_FLOOR, joint_shrink
+
+    bones = _bones_about_z([0.0, 180.0])
+    weights = torch.zeros(1, 24, dtype=torch.float64)
+    weights[0, :2] = 0.5
+    assert joint_shrink(weights, bones).item() == pytest.approx(JOINT_SHRINK_FLOOR)

@@ -27,6 +27,10 @@ Motions (``--motion``):
   no non-rigid modelling; the coverage rule below still turns it once, rigidly).
 - ``crouch``: standing, squatting down and up again every few seconds, arms forward for balance.
 - ``arms_up``: standing, raising both arms overhead and lowering them to the sides, stretching.
+- ``reach``: standing, raising both arms far overhead with the elbows folded (hands behind the
+  head, forearms against the upper arms) and lowering them again: joint angles at the ends of
+  their ranges, far from what a clip of walking or turning shows (a held-out motion that
+  extrapolates the shoulders and elbows).
 - ``approach``: walks straight towards the training camera and away again (2 m each way,
   turning round at each end): the body's distance to the camera changes by 2 m, which is what
   a focal-length estimate from the footage needs (stg_node.tracking.focal).
@@ -63,7 +67,7 @@ from stg_node.data.synth.joint_limits import (
 )
 from stg_node.data.synth.rotations import axis_rotation, euler_zyx_to_matrix, matrix_to_axis_angle
 
-MOTIONS = ("mixed", "turn", "walk", "wave", "dance", "still", "crouch", "arms_up", "approach")
+MOTIONS = ("mixed", "turn", "walk", "wave", "dance", "still", "crouch", "arms_up", "reach", "approach")
 DEFAULT_MOTION = "mixed"
 CROSSFADE_SECONDS = 0.5
 DEFAULT_NUM_BETAS = 10  # SMPL's usual shape space
@@ -443,6 +447,38 @@ def _arms_up(t: np.ndarray, rng: np.random.Generator, style: _Style) -> _Drive:
     return _Drive(euler, yaw_rate, speed, root, sway)
 
 
+def _reach(t: np.ndarray, rng: np.random.Generator, style: _Style) -> _Drive:
+    """Both arms raised far overhead with the elbows folded (hands behind the head), and down again.
+
+    Each arm rises from hanging to 80 deg above the horizontal (a 150 deg swing of the shoulder) and
+    its elbow folds to 120-145 deg on the way up, the second arm a little behind the first; the
+    chest opens and the head tips back. A held-out motion for bodies trained on arms that hang or
+    swing (turn, walk): the shoulders and elbows leave every training angle far behind.
+    """
+    n = t.shape[0]
+    euler = _relaxed(n)
+    speed, _, root, sway = _zeros(t)
+    yaw_rate = np.full(n, style.direction * 2 * np.pi / rng.uniform(12.0, 16.0))
+    period = rng.uniform(3.0, 4.0)
+    phases = rng.uniform(0, 2 * np.pi, size=3)
+    fold_depth = 120.0 + 25.0 * (0.5 + 0.5 * np.sin(2 * np.pi * t / (2.7 * period) + phases[1]))
+    for side, delay in (("left", 0.0), ("right", rng.uniform(0.15, 0.45))):
+        level = 0.5 - 0.5 * np.cos(2 * np.pi * t / period + phases[0] - delay)  # 0 down .. 1 overhead
+        level = level * level * (3 - 2 * level)
+        shoulder = np.stack([-20.0 * level, -25.0 * level, -70.0 + 150.0 * level], axis=-1)
+        elbow = np.stack([np.zeros(n), -(12.0 + (fold_depth - 12.0) * level), np.zeros(n)], axis=-1)
+        if side == "right":
+            shoulder, elbow = _mirror(shoulder), _mirror(elbow)
+        euler[:, JOINT_INDEX[f"{side}_shoulder"]] = shoulder
+        euler[:, JOINT_INDEX[f"{side}_elbow"]] = elbow
+        euler[:, JOINT_INDEX[f"{side}_collar"], 2] = (1.0 if side == "left" else -1.0) * 20.0 * level
+    both = 0.5 - 0.5 * np.cos(2 * np.pi * t / period + phases[0])
+    euler[:, JOINT_INDEX["spine3"], 0] = -12.0 * both  # the chest opens
+    euler[:, JOINT_INDEX["neck"], 0] = -20.0 * both  # the head tips back
+    euler[:, JOINT_INDEX["spine2"], 1] = 10.0 * np.sin(2 * np.pi * t / (2 * period) + phases[2])
+    return _Drive(euler, yaw_rate, speed, root, sway)
+
+
 def _walk_wave(t: np.ndarray, rng: np.random.Generator, style: _Style) -> _Drive:
     """Walking while waving: lower body and root from a walk, arms and head from a wave."""
     lower = _walk(t, rng, style)
@@ -497,6 +533,7 @@ _PRIMITIVES = {
     "still": _still,
     "crouch": _crouch,
     "arms_up": _arms_up,
+    "reach": _reach,
     "walk+wave": _walk_wave,
     "approach": _approach,
 }

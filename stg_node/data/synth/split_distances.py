@@ -12,6 +12,11 @@ A held-out frame can be new in two separate ways, and an avatar fails them for s
   angle between the frame's global orientation (``Rh`` after SMPL's root joint) and any training
   frame's, in degrees; ``yaw_deg`` is the frame's heading about the world's up axis, 0 when the
   body faces the training camera (the benchmark's world: z up, the camera on -y).
+- **joint extrapolation**: the RMS above dilutes a motion that takes a few joints far (raised arms
+  with folded elbows move 4 of 23 joints) among the joints that stay where training had them.
+  ``joint_max_deg`` is, over the joints, the largest angle between the joint's rotation and the
+  nearest rotation *that joint* had in any training frame (``joint_max_name`` names the joint):
+  how far beyond anything seen the most extrapolated joint goes.
 
 ``stg-synth`` writes both for every held-out frame into ``synth.json``; ``stg-eval`` and the
 trade-off study report them beside the scores.
@@ -23,6 +28,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from stg_node.body import SMPL_JOINT_NAMES
 from stg_node.data.synth.rotations import axis_angle_to_matrix
 
 
@@ -37,6 +43,9 @@ class HeldOutDistance:
     nearest_orientation_frame: int  # the training frame whose global orientation is nearest
     orientation_deg: float  # rotation angle between the two global orientations, degrees
     yaw_deg: float  # heading about world up, 0 = facing the training camera, (-180, 180]
+    # the most extrapolated joint: its angle to its own nearest training rotation (None: not recorded)
+    joint_max_deg: float | None = None
+    joint_max_name: str | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -80,6 +89,8 @@ def held_out_distances(poses: np.ndarray, Rh: np.ndarray, train_frames, test_fra
     orient = global_orientations(poses, Rh)
     out = []
     for frame in test.tolist():
+        per_joint = rotation_angle_deg(local[train], local[frame][None]).min(axis=0)  # (23,)
+        worst = int(per_joint.argmax())
         dist = np.linalg.norm(keys[train] - keys[frame], axis=1)
         k = int(dist.argmin())
         joint_angles = rotation_angle_deg(local[train[k]], local[frame])
@@ -94,6 +105,8 @@ def held_out_distances(poses: np.ndarray, Rh: np.ndarray, train_frames, test_fra
                 nearest_orientation_frame=int(train[j]),
                 orientation_deg=float(angles[j]),
                 yaw_deg=float(heading_deg(orient[frame])),
+                joint_max_deg=float(per_joint[worst]),
+                joint_max_name=SMPL_JOINT_NAMES[worst + 1],
             )
         )
     return out
@@ -107,11 +120,15 @@ def summarise(distances: list[HeldOutDistance]) -> dict:
             return {"median": float("nan"), "max": float("nan")}
         return {"median": float(np.median(values)), "max": float(np.max(values))}
 
-    return {
+    out = {
         "frames": len(distances),
         "pose_rms_deg": stats([d.pose_rms_deg for d in distances]),
         "orientation_deg": stats([d.orientation_deg for d in distances]),
     }
+    joint = [d.joint_max_deg for d in distances if d.joint_max_deg is not None]
+    if joint or not distances:
+        out["joint_max_deg"] = stats(joint)
+    return out
 
 
 def benchmark_condition(metadata: dict, frames=None) -> dict:
