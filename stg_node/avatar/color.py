@@ -79,11 +79,17 @@ def sh_color(coeffs: torch.Tensor, dirs: torch.Tensor, degree: int) -> torch.Ten
 
 def positional_encoding(x: torch.Tensor, freqs: int) -> torch.Tensor:
     """``[x, sin(2^k pi x), cos(2^k pi x)]_{k<freqs}`` for x roughly in [-1, 1]."""
+    return x if freqs == 0 else encoded_inputs(x, freqs)
+
+
+def encoded_inputs(x: torch.Tensor, freqs: int, *rest: torch.Tensor) -> torch.Tensor:
+    """``cat([positional_encoding(x, freqs), *rest], -1)``, the same values in one concatenation
+    instead of two (the colour MLP's input: a renderer builds it every frame)."""
     if freqs == 0:
-        return x
+        return torch.cat([x, *rest], dim=-1)
     scales = (2.0 ** torch.arange(freqs, dtype=x.dtype, device=x.device)) * math.pi
     angles = (x[..., None] * scales).flatten(-2)
-    return torch.cat([x, torch.sin(angles), torch.cos(angles)], dim=-1)
+    return torch.cat([x, torch.sin(angles), torch.cos(angles), *rest], dim=-1)
 
 
 class ColorMLP(nn.Module):
@@ -120,7 +126,7 @@ class ColorMLP(nn.Module):
     ) -> torch.Tensor:
         lo, hi = self.bounds[0], self.bounds[1]
         x = (canonical_means - lo) / (hi - lo).clamp_min(1e-6) * 2.0 - 1.0
-        parts = [positional_encoding(x, self.config.pos_freqs), features]
+        freqs = self.config.pos_freqs
         n = canonical_means.shape[0]
         pose = None if self.pose_encoder is None else self.pose_encoder(pose_key)
         basis = sh_basis(self.config.sh_degree, view_dirs)
@@ -130,9 +136,10 @@ class ColorMLP(nn.Module):
         layers = mlp_ops.layers_of(self.net, "sigmoid")
         if layers is not None and kernels.use_kernels(canonical_means, features, *self.net.parameters()):
             if pose is not None:  # the same pose code in every row: folded into the first bias
-                start = sum(p.shape[1] for p in parts)
+                start = x.shape[1] * (1 + 2 * freqs) + features.shape[1]
                 layers = mlp_ops.fold_constant_inputs(layers, slice(start, start + pose.shape[1]), pose[0])
-            return mlp_ops.mlp(torch.cat([*parts, basis], dim=-1), layers)
+            return mlp_ops.mlp(encoded_inputs(x, freqs, features, basis), layers)
+        parts = [positional_encoding(x, freqs), features]
         if pose is not None:
             parts.append(pose.expand(n, -1))
         parts.append(basis)

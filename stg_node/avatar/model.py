@@ -20,7 +20,7 @@ from stg_node.avatar import spacetime
 from stg_node.avatar.color import ColorMLP, sh_color
 from stg_node.avatar.color_cache import ColorCache
 from stg_node.avatar.config import ModelConfig
-from stg_node.avatar.gaussians import GaussianTable, cap_scale_ratio
+from stg_node.avatar.gaussians import MOTION_COLUMNS, GaussianTable, cap_scale_ratio
 from stg_node.avatar.motion_basis import MotionBases
 from stg_node.avatar.rigid import (
     QUAT_EPS,
@@ -171,6 +171,7 @@ class AvatarModel(nn.Module):
             MotionBases(config.n_b, config.basis_knot_s / self.time_axis.unit_s) if config.n_b else None
         )
         self._skin_weight_cache: tuple | None = None  # (key, weights): see _render_skin_weights
+        self._moving_rows_cache: tuple | None = None  # (key, rows): see _render_spacetime
 
     @property
     def device(self) -> torch.device:
@@ -199,6 +200,37 @@ class AvatarModel(nn.Module):
             cached = (key, self.skin_weights().detach())
             self._skin_weight_cache = cached
         return cached[1]
+
+    def _render_spacetime(self, u: float, skip_inactive: bool) -> spacetime.SpacetimeState:
+        """:meth:`spacetime` without gradient (a renderer's frames), the same terms: the rows that
+        move and those with a finite temporal window are found once for a model that does not
+        change, not every frame (that search cost more than the terms on a CPU). Only those rows are
+        evaluated (every other row's offset is exactly zero, its rotation its own, its temporal
+        factor exactly 1) unless most rows move, where the dense evaluation is cheaper."""
+        table = self.table
+        columns = [table.get(name) for name in (*MOTION_COLUMNS, "t_log_scale")]
+        key = (table.version, *((c._version, c.shape[0]) for c in columns if c is not None))
+        cached = self._moving_rows_cache
+        if cached is None or cached[0] != key:
+            moving = table.motion_active().nonzero().squeeze(1)
+            log_scale = table.get("t_log_scale")
+            windowed = None
+            if log_scale is not None:
+                windowed = (log_scale.detach().exp() < spacetime.PERSISTENT_SCALE).nonzero().squeeze(1)
+            cached = (key, moving, windowed)
+            self._moving_rows_cache = cached
+        _, moving, windowed = cached
+        dense = not skip_inactive and 2 * moving.numel() > table.num
+        cfg = self.config
+        return spacetime.evaluate(
+            table,
+            u,
+            cfg.time_horizon,
+            temporal_opacity=cfg.uses_temporal_opacity,
+            bases=self.motion_bases,
+            rows=None if dense else moving,
+            windowed=windowed,
+        )
 
     def scales(self) -> torch.Tensor:
         """(N, 3) the Gaussians' scales as rendered: the table's, largest / smallest axis capped."""
@@ -275,7 +307,12 @@ class AvatarModel(nn.Module):
         cfg = self.config
         table = self.table
         bones = bones or self.bones(body)
-        st = state or self.spacetime(u, skip_inactive=skip_inactive)
+        if state is not None:
+            st = state
+        elif torch.is_grad_enabled():
+            st = self.spacetime(u, skip_inactive=skip_inactive)
+        else:
+            st = self._render_spacetime(u, skip_inactive)
         opacity = table.opacities()
         if st.temporal is not None:
             opacity = opacity * st.temporal

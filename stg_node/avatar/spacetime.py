@@ -94,6 +94,7 @@ def evaluate(
     skip_inactive: bool = False,
     bases=None,
     rows: torch.Tensor | None = None,
+    windowed: torch.Tensor | None = None,
 ) -> SpacetimeState:
     """The spacetime terms of every Gaussian of ``table`` at normalised time ``u``.
 
@@ -102,6 +103,9 @@ def evaluate(
     its base rotation (static Gaussians, whose terms are exact zeros), and only finite temporal
     windows are evaluated (the rest are 1). ``skip_inactive`` takes the rows with a non-zero motion
     term. With no such rows the offsets are None: the rigid part alone, at its cost.
+    ``windowed``: the rows whose temporal window is finite, when the caller has them (a renderer
+    keeps them between frames); the temporal opacity is then evaluated on those rows only, every
+    other row's factor is exactly 1 either way.
     """
     quats = table["quats"]
     motion = table.get("motion")
@@ -139,7 +143,12 @@ def evaluate(
             else:
                 quats = quats + polynomial(rot_motion, tau)
     temporal = None
-    if temporal_opacity:
+    if temporal_opacity and windowed is not None:
+        if windowed.numel():
+            log_scale = table["t_log_scale"]
+            factor = torch.exp(-(((u - t_center[windowed]) / log_scale[windowed].exp()) ** 2))
+            temporal = torch.ones_like(log_scale).index_put((windowed,), factor)
+    elif temporal_opacity:
         scale = table["t_log_scale"].exp()
         if restricted:
             finite = (scale.detach() < PERSISTENT_SCALE).nonzero().squeeze(1)

@@ -231,3 +231,82 @@ def test_image_conversion_in_slices_gives_the_rounded_clamped_levels_and_leaves_
     assert got.dtype == np.uint8 and got.shape == shape
     assert np.array_equal(got, want)
     assert torch.equal(values, before)
+
+
+def _pose_both_ways(model, body, u, camera):
+    """Posed without gradient (the renderer's path: moving rows kept between frames) and with the
+    spacetime terms of every row evaluated densely and handed in (the reference)."""
+    with torch.no_grad():
+        fast = model.pose(body, u, camera.center, camera=camera)
+        dense = model.spacetime(u)
+        ref = model.pose(body, u, camera.center, camera=camera, state=dense)
+    return fast, ref
+
+
+def _assert_same_posed(fast, ref, exact: bool):
+    assert (fast.index is None) == (ref.index is None)
+    if fast.index is not None:
+        assert torch.equal(fast.index, ref.index)
+    for name in ("means", "quats", "scales", "opacities", "colors", "canonical"):
+        a, b = getattr(fast, name), getattr(ref, name)
+        if exact:
+            assert torch.equal(a, b), name
+        else:  # the moving rows' terms on a gathered subset: the same maths, float rounding apart
+            torch.testing.assert_close(a, b, atol=1e-6, rtol=1e-6, msg=name)
+
+
+def test_render_pose_evaluates_only_moving_rows_and_matches_the_dense_terms(trained, tiny_frames):
+    import copy
+
+    from stg_node.avatar import spacetime
+
+    model = copy.deepcopy(trained.model).eval()
+    frame = tiny_frames[4]
+    camera = Camera3.from_camera(frame.camera)
+    body = trained.body_state(frame)
+    u = model.time_axis(frame.time) + 0.01
+    table = model.table
+    gen = torch.Generator().manual_seed(5)
+    with torch.no_grad():  # a few finite temporal windows around u (temporal opacity below 1)
+        windowed = torch.rand(table.num, generator=gen) < 0.2
+        table["t_log_scale"][windowed] = math.log(0.5)
+        table["t_center"][windowed] = u + 0.3 * torch.randn(int(windowed.sum()), generator=gen)
+    moving = int(table.motion_active().sum())
+    assert 0 < moving < table.num // 2  # the subset path
+    fast, ref = _pose_both_ways(model, body, u, camera)
+    assert not torch.equal(fast.canonical, model.table["means"][fast.index])  # offsets applied
+    assert float(fast.opacities.min()) < 0.5 * float(ref.opacities.max())  # temporal factors applied
+    _assert_same_posed(fast, ref, exact=False)
+    with torch.no_grad():
+        image, alpha, _ = render(fast, camera, background=0.0)
+        ref_image, ref_alpha, _ = render(ref, camera, background=0.0)
+    torch.testing.assert_close(image, ref_image, atol=1e-5, rtol=0)
+    torch.testing.assert_close(alpha, ref_alpha, atol=1e-5, rtol=0)
+    # the kept rows follow edits of the table: most rows moving (the dense path, bit for bit) ...
+    with torch.no_grad():
+        table["motion"][: 3 * table.num // 4] = 0.01
+    _assert_same_posed(*_pose_both_ways(model, body, u, camera), exact=True)
+    # ... and nothing moving, every window persistent: the rigid part alone, bit for bit
+    with torch.no_grad():
+        for name in ("motion", "rot_motion"):
+            table[name].zero_()
+        table["t_log_scale"].fill_(math.log(2 * spacetime.PERSISTENT_SCALE))
+    fast, ref = _pose_both_ways(model, body, u, camera)
+    with torch.no_grad():
+        assert model._render_spacetime(u, False).offsets is None
+    _assert_same_posed(fast, ref, exact=True)
+
+
+def test_colour_input_encoding_is_the_closed_form():
+    from stg_node.avatar.color import encoded_inputs, positional_encoding
+
+    gen = torch.Generator().manual_seed(0)
+    x = torch.rand(50, 3, generator=gen) * 2 - 1
+    rest = torch.randn(50, 7, generator=gen)
+    columns = [x[:, i] for i in range(3)]
+    for fn in (np.sin, np.cos):
+        columns += [torch.as_tensor(fn(2.0**k * np.pi * x[:, i].double().numpy())) for i in range(3) for k in range(4)]
+    want = torch.stack([c.float() for c in columns], dim=1)
+    torch.testing.assert_close(positional_encoding(x, 4), want, atol=2e-6, rtol=0)
+    assert torch.equal(encoded_inputs(x, 4, rest), torch.cat([positional_encoding(x, 4), rest], dim=1))
+    assert torch.equal(encoded_inputs(x, 0, rest), torch.cat([x, rest], dim=1))
