@@ -305,7 +305,9 @@ def test_colour_input_encoding_is_the_closed_form():
     rest = torch.randn(50, 7, generator=gen)
     columns = [x[:, i] for i in range(3)]
     for fn in (np.sin, np.cos):
-        columns += [torch.as_tensor(fn(2.0**k * np.pi * x[:, i].double().numpy())) for i in range(3) for k in range(4)]
+        columns += [
+            torch.as_tensor(fn(2.0**k * np.pi * x[:, i].double().numpy())) for i in range(3) for k in range(4)
+        ]
     want = torch.stack([c.float() for c in columns], dim=1)
     torch.testing.assert_close(positional_encoding(x, 4), want, atol=2e-6, rtol=0)
     assert torch.equal(encoded_inputs(x, 4, rest), torch.cat([positional_encoding(x, 4), rest], dim=1))
