@@ -169,3 +169,23 @@ def test_bad_shapes_are_refused_with_the_argument_named():
         kernel(f[0], f[1].requires_grad_(True), f[2], f[3], f[4], f[5], f[6])
     assert not skin_ops.skin_kernel_applies(means)  # float64: the caller runs torch
     assert skin_ops.skin_kernel_applies(f[0], None, f[1])
+
+
+@pytest.mark.parametrize("with_delta", [True, False])
+def test_blend_norms_are_the_squared_norms_of_the_blended_quaternions(with_delta):
+    """The joint squeeze's input (rigid.joint_shrink): |sum_b w_b q_b|^2 with the effective weights,
+    against float64 torch; the other outputs unchanged by asking for it."""
+    means, weights, delta, transforms, quats, local, camera = scene(seed=7)
+    delta = delta if with_delta else None
+    want = (blend_weights(weights, delta) @ quats).pow(2).sum(dim=1)
+    f = [None if t is None else t.float() for t in (means, weights, delta, transforms, quats, local, camera)]
+    with torch.no_grad():
+        plain = kernel(*f)
+        out = kernel(*f, blend_norms=True)
+    assert plain.blend_norm2 is None
+    assert bool((want < 0.9).any())  # points between bones that disagree: squeezed
+    torch.testing.assert_close(out.blend_norm2.double(), want, atol=2e-6, rtol=1e-5)
+    for name in ("means", "quats", "view_dirs"):
+        assert torch.equal(getattr(out, name), getattr(plain, name))
+    with pytest.raises(ValueError, match="blend_norms"):
+        kernel(f[0], f[1], f[2], f[3], f[4], None, None, rotations=False, blend_norms=True)

@@ -30,6 +30,7 @@ from stg_node.avatar.rigid import (
     joint_shrink,
     skin,
     skin_with_kernel,
+    squeeze_of_blend,
 )
 from stg_node.avatar.shading import LightSpec, Shading, gaussian_normals
 from stg_node.avatar.spacetime import TimeAxis
@@ -327,9 +328,16 @@ class AvatarModel(nn.Module):
 
         canonical = table["means"] if st.offsets is None else table["means"] + st.offsets
         canonical = rows(canonical)
-        means, quats, view_canonical = self._skin(canonical, bones, rows(st.quats), camera_center, rows)
+        # a renderer's frame takes the joint squeeze from the skinning kernel's blend (training keeps
+        # the torch factor: its result does not move by a rounding)
+        squeeze_from_kernel = cfg.joint_shrink and not torch.is_grad_enabled()
+        means, quats, view_canonical, blend_norm2 = self._skin(
+            canonical, bones, rows(st.quats), camera_center, rows, blend_norms=squeeze_from_kernel
+        )
         scales = rows(self.scales())
-        if cfg.joint_shrink:
+        if blend_norm2 is not None:
+            scales = scales * squeeze_of_blend(blend_norm2)[:, None]
+        elif cfg.joint_shrink:
             weights = self._render_skin_weights()
             weights = rows(self.skin_weights() if weights is None else weights)
             scales = scales * joint_shrink(weights, bones)[:, None]
@@ -369,9 +377,11 @@ class AvatarModel(nn.Module):
             colors = self.shading(colors, normals, light, root)
         return PosedGaussians(means, quats, scales, rows(opacity), colors, index, canonical)
 
-    def _skin(self, canonical, bones: PosedBones, local_quats, camera_center, rows):
-        """Posed centres, orientations (blended bones x local rotation) and the viewing direction in
-        each Gaussian's canonical frame (no gradient): the fused kernel, or torch (the reference)."""
+    def _skin(self, canonical, bones: PosedBones, local_quats, camera_center, rows, blend_norms=False):
+        """Posed centres, orientations (blended bones x local rotation), the viewing direction in
+        each Gaussian's canonical frame (no gradient) and, with ``blend_norms`` where the kernel
+        runs, the squared norms of the blended bone quaternions (else None): the fused kernel, or
+        torch (the reference)."""
         table = self.table
         effective = self._render_skin_weights()
         fused = skin_with_kernel(
@@ -381,16 +391,17 @@ class AvatarModel(nn.Module):
             bones,
             local_quats=local_quats,
             camera_center=camera_center,
+            blend_norms=blend_norms,
         )
         if fused is not None:
-            return fused.means, fused.quats, fused.view_dirs
+            return fused.means, fused.quats, fused.view_dirs, fused.blend_norm2
         skinned = skin(canonical, rows(self.skin_weights()), bones)
         quats = quat_multiply(skinned.quats, _normalise(local_quats))
         with torch.no_grad():
             view = skinned.means - camera_center
             view = view / view.norm(dim=1, keepdim=True).clamp_min(1e-9)
             view_canonical = rotate(conjugate(skinned.quats), view)
-        return skinned.means, quats, view_canonical
+        return skinned.means, quats, view_canonical, None
 
 
 def render(

@@ -4,8 +4,9 @@ renderer node call.
 Built from a model or straight from a GaussianSnapshot (the renderer node hot-swaps those).
 Without a time the pose's time code comes from the nearest training pose (timecode.py); with
 ``follow`` state kept between calls, an animation keeps its time code stable (hysteresis).
-Rendering runs without gradients, skips motion terms that are exactly zero (except on a CPU,
-where that costs more than it saves), and colours only the Gaussians the camera can see. A live
+Rendering runs without gradients, evaluates the motion terms only on the rows that move (found
+once per model state, AvatarModel._render_spacetime), and colours only the Gaussians the camera
+can see. A live
 stream (``render(..., stream=name)``: one camera following one body, frame after frame) can carry
 its colours from frame to frame and recompute them in turns (``color_refresh_every``;
 color_cache.py); a render without a stream is always exact.
@@ -64,8 +65,9 @@ class AvatarRenderer:
         self.light = light  # None: the model's learned light (shading.py)
         self._last_key: int | None = None
         self._streams: OrderedDict[str, ColorCache] = OrderedDict()
-        # Skipping the exactly-zero motion terms costs more than it saves on a CPU, where the
-        # polynomials are cheap next to the index bookkeeping (docs/BENCHMARKS.md, "Live rate").
+        # The model evaluates the motion terms of the moving rows only unless most rows move; on a
+        # CPU the dense terms are then cheaper than the index bookkeeping (docs/BENCHMARKS.md, "Live
+        # rate"), on a GPU the subset is taken whatever its size.
         self.skip_inactive = self.device.type != "cpu"
 
     @classmethod

@@ -193,7 +193,13 @@ def joint_shrink(weights: torch.Tensor, bones: PosedBones, floor: float = JOINT_
     """
     with torch.no_grad():
         q = weights.detach() @ bones.quats[0]
-        return (2.0 * q.pow(2).sum(dim=1) - 1.0).clamp(floor, 1.0)
+        return squeeze_of_blend(q.pow(2).sum(dim=1), floor)
+
+
+def squeeze_of_blend(norm2: torch.Tensor, floor: float = JOINT_SHRINK_FLOOR) -> torch.Tensor:
+    """:func:`joint_shrink` from the squared norms (N,) of the blended quaternions (the fused
+    skinning kernel gives them as it blends)."""
+    return (2.0 * norm2 - 1.0).clamp(floor, 1.0)
 
 
 def skin(means: torch.Tensor, weights: torch.Tensor, bones: PosedBones, rotations: bool = True) -> Skinned:
@@ -213,6 +219,7 @@ def skin_with_kernel(
     local_quats: torch.Tensor | None = None,
     camera_center: torch.Tensor | None = None,
     rotations: bool = True,
+    blend_norms: bool = False,
 ):
     """The fused C++ skinning of ``means`` (stg_node.splat.skin_ops): ``blend_weights`` + ``skin``
     (+ the local rotation and the canonical view direction, see AvatarModel.pose) in one pass,
@@ -234,4 +241,5 @@ def skin_with_kernel(
         local_quats=local_quats,
         camera_center=camera_center,
         rotations=rotations,
+        blend_norms=blend_norms,
     )

@@ -34,6 +34,7 @@ class SkinnedPoints:
     means: torch.Tensor  # (N, 3) world centres
     quats: torch.Tensor | None  # (N, 4) unit wxyz: blended bone rotation x local rotation
     view_dirs: torch.Tensor | None  # (N, 3) unit viewing directions in each point's canonical frame
+    blend_norm2: torch.Tensor | None = None  # (N,) squared norm of the blended bone quaternion
 
 
 def _empty() -> torch.Tensor:
@@ -73,23 +74,25 @@ class _Skin(torch.autograd.Function):
         weight_eps,
         quat_eps,
         grad,
+        blend_norms,
     ):
         ops = load_kernels().ops
         m, sw, bo = _f32(means), _f32(skin_weights), _f32(bones)
         delta = _f32(skin_delta) if skin_delta is not None else _empty()
         local = _f32(local_quats) if local_quats is not None else _empty()
         cam = _f32(camera) if camera is not None else _empty()
-        world, quats, view, weights = ops.skin_fwd(
-            m, sw, delta, bo, local, cam, rotations, weight_eps, quat_eps, grad, torch.get_num_threads()
-        )
-        ctx.mark_non_differentiable(view)
+        world, quats, view, weights, norms = ops.skin_fwd(
+            m, sw, delta, bo, local, cam, rotations, weight_eps, quat_eps, grad, blend_norms,
+            torch.get_num_threads(),
+        )  # fmt: skip
+        ctx.mark_non_differentiable(view, norms)
         if grad:
             ctx.save_for_backward(m, weights, bo, local)
         ctx.args = (skin_delta is not None, rotations, quat_eps)
-        return world, quats, view
+        return world, quats, view, norms
 
     @staticmethod
-    def backward(ctx, g_world, g_quats, _g_view):
+    def backward(ctx, g_world, g_quats, _g_view, _g_norms):
         m, weights, bo, local = ctx.saved_tensors
         has_delta, rotations, quat_eps = ctx.args
         ops = load_kernels().ops
@@ -112,6 +115,7 @@ class _Skin(torch.autograd.Function):
             None,
             None,
             None,
+            None,
         )
 
 
@@ -127,6 +131,7 @@ def skin(
     local_quats: torch.Tensor | None = None,
     camera_center: torch.Tensor | None = None,
     rotations: bool = True,
+    blend_norms: bool = False,
 ) -> SkinnedPoints:
     """Skin ``means (N, 3)`` with ``skin_weights (N, B)`` by ``bone_transforms (B, 4, 4)`` (or
     (B, 3, 4)) whose rotations are ``bone_quats (B, 4)`` (wxyz, one hemisphere along the chain).
@@ -135,7 +140,9 @@ def skin(
     added to the body's weights first); ``local_quats (N, 4)``: each point's own rotation
     (normalised here; a norm <= ``quat_eps`` is the identity), applied after the bones';
     ``camera_center (3,)``: also return the viewing directions in the canonical frame.
-    ``rotations=False`` returns the centres only (cheaper).
+    ``rotations=False`` returns the centres only (cheaper). ``blend_norms``: also return the squared
+    norm of each point's blended bone quaternion (``sum_b w_b q_b``, before it is normalised; needs
+    rotations): the joint squeeze, stg_node.avatar.rigid.joint_shrink.
     """
     n = means.shape[0]
     b = skin_weights.shape[1] if skin_weights.dim() == 2 else -1
@@ -157,8 +164,8 @@ def skin(
         raise ValueError(f"skin_delta must be ({n}, {b}), got {tuple(skin_delta.shape)}")
     if local_quats is not None and local_quats.shape != (n, 4):
         raise ValueError(f"local_quats must be ({n}, 4), got {tuple(local_quats.shape)}")
-    if not rotations and (local_quats is not None or camera_center is not None):
-        raise ValueError("local_quats and camera_center need rotations=True")
+    if not rotations and (local_quats is not None or camera_center is not None or blend_norms):
+        raise ValueError("local_quats, camera_center and blend_norms need rotations=True")
     if skin_weights.requires_grad:
         raise ValueError("skin() does not differentiate skin_weights (learn skin_delta instead)")
     rows = bone_transforms.reshape(b, -1, 4)[:, :3, :].reshape(b, 12)
@@ -167,7 +174,7 @@ def skin(
     grad = torch.is_grad_enabled() and any(
         t is not None and t.requires_grad for t in (means, skin_delta, bones, local_quats)
     )
-    world, quats, view = _Skin.apply(
+    world, quats, view, norms = _Skin.apply(
         means,
         skin_weights,
         skin_delta,
@@ -178,5 +185,11 @@ def skin(
         float(weight_eps),
         float(quat_eps),
         grad,
+        bool(blend_norms),
     )
-    return SkinnedPoints(world, quats if rotations else None, view if camera is not None else None)
+    return SkinnedPoints(
+        world,
+        quats if rotations else None,
+        view if camera is not None else None,
+        norms if blend_norms else None,
+    )

@@ -101,7 +101,8 @@ inline float local_rotation(const SkinShape& s, const float* l, float* ln) {
 
 void skin_forward(const SkinShape& s, const float* means, const float* skin_weights,
                   const float* skin_delta, const float* bones, const float* local_quats,
-                  const float* camera, float* world, float* quats, float* view, float* weights) {
+                  const float* camera, float* world, float* quats, float* view, float* weights,
+                  float* blend_norm2) {
     const int B = s.bones;
 #pragma omp parallel num_threads(s.threads)
     {
@@ -119,6 +120,8 @@ void skin_forward(const SkinShape& s, const float* means, const float* skin_weig
             for (int r = 0; r < 3; ++r) world[i * 3 + r] = p[r];
             if (!s.rotations) continue;
             const float* qr = bl + 12;
+            if (blend_norm2 != nullptr)
+                blend_norm2[i] = qr[0] * qr[0] + qr[1] * qr[1] + qr[2] * qr[2] + qr[3] * qr[3];
             const float inv = 1.0f / std::max(norm4(qr), s.quat_eps);
             const float qn[4] = {qr[0] * inv, qr[1] * inv, qr[2] * inv, qr[3] * inv};
             if (s.has_local) {

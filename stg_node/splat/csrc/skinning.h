@@ -34,10 +34,13 @@ struct SkinShape {
 };
 
 // Outputs: world [n*3]; quats [n*4] (if rotations); view [n*3] (if camera != nullptr, needs
-// rotations); weights [n*B] the effective weights (if not nullptr: the backward pass takes them).
+// rotations); weights [n*B] the effective weights (if not nullptr: the backward pass takes them);
+// blend_norm2 [n] the squared norm of the blended bone quaternion (if not nullptr, needs
+// rotations: how much the blend squeezes the body there, stg_node.avatar.rigid.joint_shrink).
 void skin_forward(const SkinShape& shape, const float* means, const float* skin_weights,
                   const float* skin_delta, const float* bones, const float* local_quats,
-                  const float* camera, float* world, float* quats, float* view, float* weights);
+                  const float* camera, float* world, float* quats, float* view, float* weights,
+                  float* blend_norm2);
 
 // Given dL/dworld [n*3] and dL/dquats [n*4] (if rotations), writes dL/dmeans [n*3], dL/ddelta
 // [n*B] (if has_delta), dL/dbones [B*16] and dL/dlocal_quats [n*4] (if has_local). `weights` are

@@ -347,10 +347,10 @@ at::Tensor ssim_bwd(const at::Tensor& a, const at::Tensor& b, c10::ArrayRef<doub
 // ---- skinning (skinning.h); an absent optional tensor is passed as an empty one ----
 bool given(const at::Tensor& t) { return t.defined() && t.numel() > 0; }
 
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> skin_fwd(
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> skin_fwd(
     const at::Tensor& means, const at::Tensor& skin_weights, const at::Tensor& skin_delta,
     const at::Tensor& bones, const at::Tensor& local_quats, const at::Tensor& camera, bool rotations,
-    double weight_eps, double quat_eps, bool save_weights, int64_t threads) {
+    double weight_eps, double quat_eps, bool save_weights, bool blend_norms, int64_t threads) {
     const int64_t n = means.size(0);
     check_cpu_float(means, "means", n, 3);
     TORCH_CHECK(bones.dim() == 2 && bones.size(1) == stg_skin::kBoneStride, "bones must be [B, ",
@@ -366,13 +366,15 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> skin_fwd(
         TORCH_CHECK(camera.numel() == 3, "camera must hold 3 values, got ", camera.numel());
         check_cpu_float(camera, "camera", camera.size(0), 0);
     }
-    TORCH_CHECK(rotations || (!has_local && !has_camera), "local rotations and the view need rotations");
+    TORCH_CHECK(rotations || (!has_local && !has_camera && !blend_norms),
+                "local rotations, the view and the blend norms need rotations");
     TORCH_CHECK(threads >= 1, "threads must be >= 1");
     const auto f32 = means.options();
     at::Tensor world = at::empty({n, 3}, f32);
     at::Tensor quats = at::empty({rotations ? n : 0, 4}, f32);
     at::Tensor view = at::empty({has_camera ? n : 0, 3}, f32);
     at::Tensor weights = at::empty({save_weights ? n : 0, B}, f32);
+    at::Tensor norms = at::empty({blend_norms ? n : 0}, f32);
     const stg_skin::SkinShape shape{n,         static_cast<int>(B),
                                     has_delta, rotations,
                                     has_local, static_cast<float>(weight_eps),
@@ -383,8 +385,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> skin_fwd(
                            has_camera ? camera.data_ptr<float>() : nullptr, world.data_ptr<float>(),
                            rotations ? quats.data_ptr<float>() : nullptr,
                            has_camera ? view.data_ptr<float>() : nullptr,
-                           save_weights ? weights.data_ptr<float>() : nullptr);
-    return {world, quats, view, weights};
+                           save_weights ? weights.data_ptr<float>() : nullptr,
+                           blend_norms ? norms.data_ptr<float>() : nullptr);
+    return {world, quats, view, weights, norms};
 }
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> skin_bwd(
@@ -548,8 +551,8 @@ TORCH_LIBRARY(STG_SPLAT_NS, m) {
         &raster_bwd);
     m.def(
         "skin_fwd(Tensor means, Tensor skin_weights, Tensor skin_delta, Tensor bones, Tensor local_quats, "
-        "Tensor camera, bool rotations, float weight_eps, float quat_eps, bool save_weights, int threads) -> "
-        "(Tensor, Tensor, Tensor, Tensor)",
+        "Tensor camera, bool rotations, float weight_eps, float quat_eps, bool save_weights, bool blend_norms, "
+        "int threads) -> (Tensor, Tensor, Tensor, Tensor, Tensor)",
         &skin_fwd);
     m.def(
         "skin_bwd(Tensor means, Tensor weights, bool has_delta, Tensor bones, Tensor local_quats, "
