@@ -173,6 +173,7 @@ class AvatarModel(nn.Module):
         )
         self._skin_weight_cache: tuple | None = None  # (key, weights): see _render_skin_weights
         self._moving_rows_cache: tuple | None = None  # (key, rows): see _render_spacetime
+        self._scale_cache: tuple | None = None  # (key, scales): see _render_scales
 
     @property
     def device(self) -> torch.device:
@@ -236,6 +237,19 @@ class AvatarModel(nn.Module):
     def scales(self) -> torch.Tensor:
         """(N, 3) the Gaussians' scales as rendered: the table's, largest / smallest axis capped."""
         return cap_scale_ratio(self.table.scales(), self.config.max_scale_ratio)
+
+    def _render_scales(self) -> torch.Tensor:
+        """:meth:`scales` computed once for a model that does not change (a renderer's frames);
+        while gradients are on, every call (training differentiates them)."""
+        if torch.is_grad_enabled():
+            return self.scales()
+        column = self.table["log_scales"]
+        key = (self.table.version, column._version, column.shape[0], self.config.max_scale_ratio)
+        cached = self._scale_cache
+        if cached is None or cached[0] != key:
+            cached = (key, self.scales().detach())
+            self._scale_cache = cached
+        return cached[1]
 
     def bones(self, body: BodyState) -> PosedBones:
         return self.skeleton.bones(body.poses, body.Rh, body.Th)
@@ -334,7 +348,7 @@ class AvatarModel(nn.Module):
         means, quats, view_canonical, blend_norm2 = self._skin(
             canonical, bones, rows(st.quats), camera_center, rows, blend_norms=squeeze_from_kernel
         )
-        scales = rows(self.scales())
+        scales = rows(self._render_scales())
         if blend_norm2 is not None:
             scales = scales * squeeze_of_blend(blend_norm2)[:, None]
         elif cfg.joint_shrink:

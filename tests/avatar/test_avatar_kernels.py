@@ -312,3 +312,31 @@ def test_colour_input_encoding_is_the_closed_form():
     torch.testing.assert_close(positional_encoding(x, 4), want, atol=2e-6, rtol=0)
     assert torch.equal(encoded_inputs(x, 4, rest), torch.cat([positional_encoding(x, 4), rest], dim=1))
     assert torch.equal(encoded_inputs(x, 0, rest), torch.cat([x, rest], dim=1))
+
+
+def test_render_pose_follows_edits_of_the_scales(trained, tiny_frames):
+    """A renderer's poses keep the capped scales between frames; an edit of the table (a training
+    step, densification) or of the cap is seen by the next pose."""
+    import copy
+    import dataclasses
+
+    from stg_node.avatar.gaussians import cap_scale_ratio
+
+    model = copy.deepcopy(trained.model).eval()
+    model.config = dataclasses.replace(model.config, joint_shrink=False)
+    frame = tiny_frames[1]
+    body = trained.body_state(frame)
+    center = Camera3.from_camera(frame.camera).center
+
+    def posed_scales():
+        with torch.no_grad():
+            return model.pose(body, 0.0, center, cull_transparent=False).scales
+
+    first = posed_scales()
+    with torch.no_grad():
+        model.table["log_scales"][::3] += 0.5
+    second = posed_scales()
+    want = cap_scale_ratio(model.table["log_scales"].detach().exp(), model.config.max_scale_ratio)
+    assert not torch.equal(first, second) and torch.equal(second, want)
+    model.config = dataclasses.replace(model.config, max_scale_ratio=2.0)
+    assert torch.equal(posed_scales(), cap_scale_ratio(model.table["log_scales"].detach().exp(), 2.0))
