@@ -5,9 +5,11 @@
 docs/TRACKING.md). The camera comes from each frame: a Tracker is built for the frame's size
 and ``K`` (Frame images are undistorted, so no distortion) and built again when either changes.
 The tracker's parameters are in the camera's frame; :func:`stg_node.tracking.smpl_to_world`
-re-expresses them in the frame's world with the frame's ``R``, ``t``. Time is the frame's
-``stamp_ns`` (capture time for a live camera), so the smoothing sees real time gaps; a frame
-index that goes backwards (a video that loops, a new sequence) is a cut and resets tracking.
+re-expresses them in the frame's world with the frame's ``R``, ``t``. The smoothing's clock is
+the frame's ``time`` (time since the sequence's first frame: from the capture stamps of a live
+camera, the media time of a file), so it sees the motion's time gaps, never when a frame happened
+to be published (a file replayed as fast as the tracker takes it gave load-dependent poses); a
+frame index that goes backwards (a video that loops, a new sequence) is a cut and resets tracking.
 
 Its options (``estimator_params`` of the tracker node) are :class:`LiveTrackingParams`, checked
 and coerced like node parameters; they are the :class:`stg_node.tracking.TrackOptions` that
@@ -126,8 +128,14 @@ class TrackingEstimator:
         self._last_index = frame.index
         if frame.depth is not None and hasattr(tracker.masker, "set_depth"):
             tracker.masker.set_depth(frame.depth)
-        stamp_ns = frame.header.stamp_ns
-        timestamp = stamp_ns * 1e-9 if stamp_ns > 0 else float(frame.time)
-        estimate = tracker.estimate(np.asarray(frame.image), timestamp)
+        estimate = tracker.estimate(np.asarray(frame.image), motion_time(frame))
         smpl = smpl_to_world(estimate.smpl, frame.R, frame.t)
         return PoseEstimate(smpl, float(estimate.confidence), estimate.mask)
+
+
+def motion_time(frame: Frame) -> float:
+    """The frame's time on the motion's clock (seconds): its sequence ``time``; the capture stamp
+    where a producer left ``time`` unset (0 after the first frame)."""
+    if frame.time <= 0.0 and frame.index > 0 and frame.header.stamp_ns > 0:
+        return frame.header.stamp_ns * 1e-9
+    return float(frame.time)

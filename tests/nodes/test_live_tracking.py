@@ -11,7 +11,7 @@ import pytest
 from nodehelpers import ROOT
 
 from stg_node.bus import Frame
-from stg_node.nodes.live_tracking import LiveTrackingParams, TrackingEstimator
+from stg_node.nodes.live_tracking import LiveTrackingParams, TrackingEstimator, motion_time
 from stg_node.nodes.params import ParamError, params_markdown
 from stg_node.tracking import TrackOptions, fitting
 from tests.tracking.trackhelpers import needs_blazepose
@@ -76,3 +76,34 @@ def test_lag_is_not_a_cut_but_a_new_camera_or_an_index_going_back_is(clip, monke
     bad = Frame(index=6, time=0.3, image=small.image, K=np.diag([-1.0, 1.0, 1.0]), R=small.R, t=small.t)
     with pytest.raises(ValueError, match="pinhole"):
         estimator.estimate(bad)
+
+
+def test_the_motion_clock_is_the_frames_time_and_the_stamp_only_where_time_is_unset():
+    image = np.zeros((4, 4, 3), np.uint8)
+    camera = {"K": np.eye(3), "R": np.eye(3), "t": np.zeros(3)}
+    stamp_ns = 2_000_500_000_000
+    frame = Frame(index=3, time=0.1, image=image, **camera)
+    frame.header.stamp_ns = stamp_ns
+    assert motion_time(frame) == pytest.approx(0.1)  # not when it was published
+    unset = Frame(index=3, time=0.0, image=image, **camera)
+    unset.header.stamp_ns = stamp_ns
+    assert motion_time(unset) == pytest.approx(2000.5)
+    first = Frame(index=0, time=0.0, image=image, **camera)
+    first.header.stamp_ns = stamp_ns
+    assert motion_time(first) == 0.0  # the first frame of a sequence is at 0
+
+
+@needs_blazepose
+def test_poses_do_not_depend_on_when_frames_were_published(clip):
+    """A file replayed as fast as the tracker takes it: publish stamps follow the machine's load.
+    The poses follow the frames' times only (they were load-dependent when the stamps were used)."""
+    runs = []
+    for spacing_s in (0.005, 1.7):  # an idle machine, and one that fell far behind
+        estimator = TrackingEstimator(max_side=256)
+        poses = []
+        for k, frame in enumerate(_frames(clip, 4)):
+            frame.header.stamp_ns = int((1000 + spacing_s * k) * 1e9)
+            estimate = estimator.estimate(frame)
+            poses.append(np.concatenate([estimate.smpl.poses.ravel(), estimate.smpl.Th.ravel()]))
+        runs.append(np.stack(poses))
+    np.testing.assert_array_equal(runs[0], runs[1])
