@@ -189,3 +189,29 @@ def test_blend_norms_are_the_squared_norms_of_the_blended_quaternions(with_delta
         assert torch.equal(getattr(out, name), getattr(plain, name))
     with pytest.raises(ValueError, match="blend_norms"):
         kernel(f[0], f[1], f[2], f[3], f[4], None, None, rotations=False, blend_norms=True)
+
+
+def test_shading_normals_kernel_matches_the_torch_reference():
+    """skin_ops.gaussian_normals against stg_node.avatar.shading.gaussian_normals run by torch: the
+    same operations in the same order (torch's own kernels may fuse a multiply-add: a last bit
+    apart); ties of the shortest axis take the first, as torch.argmin."""
+    from stg_node.avatar import kernels
+    from stg_node.avatar.shading import gaussian_normals
+
+    gen = torch.Generator().manual_seed(4)
+    n = 2000
+    quats = torch.nn.functional.normalize(torch.randn(n, 4, generator=gen), dim=1)
+    scales = torch.rand(n, 3, generator=gen) + 0.01
+    scales[::7, 2] = scales[::7, 0]  # ties: the first axis wins
+    scales[::11] = 0.05  # isotropic
+    means = torch.randn(n, 3, generator=gen)
+    camera = torch.tensor([0.2, -0.1, 4.0])
+    with kernels.reference():
+        want = gaussian_normals(quats, scales, means, camera)
+    got = skin_ops.gaussian_normals(quats, scales, means, camera)
+    torch.testing.assert_close(got, want, atol=3e-7, rtol=0)
+    assert torch.equal(gaussian_normals(quats, scales, means, camera), got)  # the dispatch
+    facing = ((camera - means) * got).sum(dim=1)
+    assert bool((facing >= 0).all())  # every normal faces the camera
+    with pytest.raises(ValueError, match="quats"):
+        skin_ops.gaussian_normals(quats[:, :3], scales, means, camera)

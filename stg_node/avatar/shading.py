@@ -59,6 +59,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from stg_node.avatar import kernels
 from stg_node.avatar.color import SH_C0, sh_basis
 from stg_node.avatar.config import LIGHT_MODELS
 
@@ -206,7 +207,14 @@ def gaussian_normals(
     quats: torch.Tensor, scales: torch.Tensor, means: torch.Tensor, camera_center: torch.Tensor
 ) -> torch.Tensor:
     """(M, 3) unit world normals: each Gaussian's shortest axis turned by its world rotation
-    ``quats`` (M, 4, unit wxyz), flipped to face ``camera_center`` (3,)."""
+    ``quats`` (M, 4, unit wxyz), flipped to face ``camera_center`` (3,). Without gradient the
+    fused kernel (stg_node.splat.skin_ops.gaussian_normals: the same operations in one pass,
+    equal to float rounding)."""
+    wants_grad = torch.is_grad_enabled() and (quats.requires_grad or means.requires_grad)
+    if not wants_grad and kernels.use_kernels(quats, scales, means, camera_center):
+        from stg_node.splat import skin_ops
+
+        return skin_ops.gaussian_normals(quats, scales, means, camera_center)
     axis = torch.zeros_like(scales)
     axis.scatter_(1, scales.detach().argmin(dim=1, keepdim=True), 1.0)
     w, u = quats[:, :1], quats[:, 1:]

@@ -193,3 +193,22 @@ def skin(
         view if camera is not None else None,
         norms if blend_norms else None,
     )
+
+
+def gaussian_normals(
+    quats: torch.Tensor, scales: torch.Tensor, means: torch.Tensor, camera_center: torch.Tensor
+) -> torch.Tensor:
+    """(M, 3) shading normals of posed Gaussians, no gradient: stg_node.avatar.shading's
+    ``gaussian_normals`` (its torch reference) in one pass per point instead of a dozen ops over
+    (M, 3) tensors; the same operations in the same order (a last bit apart where torch's own
+    kernels fuse a multiply-add)."""
+    n = quats.shape[0]
+    if quats.shape != (n, 4) or scales.shape != (n, 3) or means.shape != (n, 3) or camera_center.numel() != 3:
+        raise ValueError(
+            f"gaussian_normals needs quats (M, 4), scales (M, 3), means (M, 3), a camera centre (3,); got "
+            f"{tuple(quats.shape)}, {tuple(scales.shape)}, {tuple(means.shape)}, {tuple(camera_center.shape)}"
+        )
+    ops = load_kernels().ops
+    return ops.gaussian_normals_fwd(
+        _f32(quats), _f32(scales), _f32(means), _f32(camera_center.reshape(3)), torch.get_num_threads()
+    )

@@ -50,4 +50,12 @@ void skin_backward(const SkinShape& shape, const float* means, const float* weig
                    const float* g_quats, float* g_means, float* g_delta, float* g_bones,
                    float* g_local_quats);
 
+// Shading normals of posed Gaussians (no gradient; the torch reference is
+// stg_node.avatar.shading.gaussian_normals, which this follows operation for operation): each
+// point's shortest axis (the first of equal ones) of scales [n*3], turned by its unit rotation
+// quats [n*4] (v + 2 (w (u x v) + u x (u x v))), negated where it faces away from camera [3] as seen
+// from the centre means [n*3]. Writes normals [n*3].
+void gaussian_normals(int64_t n, const float* quats, const float* scales, const float* means,
+                      const float* camera, float* normals, int threads);
+
 }  // namespace stg_skin

@@ -390,6 +390,21 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> skin_fwd(
     return {world, quats, view, weights, norms};
 }
 
+at::Tensor gaussian_normals_fwd(const at::Tensor& quats, const at::Tensor& scales, const at::Tensor& means,
+                                const at::Tensor& camera, int64_t threads) {
+    const int64_t n = quats.size(0);
+    check_cpu_float(quats, "quats", n, 4);
+    check_cpu_float(scales, "scales", n, 3);
+    check_cpu_float(means, "means", n, 3);
+    TORCH_CHECK(camera.numel() == 3, "camera must hold 3 values, got ", camera.numel());
+    check_cpu_float(camera, "camera", camera.size(0), 0);
+    TORCH_CHECK(threads >= 1, "threads must be >= 1");
+    at::Tensor normals = at::empty({n, 3}, quats.options());
+    stg_skin::gaussian_normals(n, quats.data_ptr<float>(), scales.data_ptr<float>(), means.data_ptr<float>(),
+                               camera.data_ptr<float>(), normals.data_ptr<float>(), static_cast<int>(threads));
+    return normals;
+}
+
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> skin_bwd(
     const at::Tensor& means, const at::Tensor& weights, bool has_delta, const at::Tensor& bones,
     const at::Tensor& local_quats, bool rotations, double quat_eps, const at::Tensor& g_world,
@@ -554,6 +569,8 @@ TORCH_LIBRARY(STG_SPLAT_NS, m) {
         "Tensor camera, bool rotations, float weight_eps, float quat_eps, bool save_weights, bool blend_norms, "
         "int threads) -> (Tensor, Tensor, Tensor, Tensor, Tensor)",
         &skin_fwd);
+    m.def("gaussian_normals_fwd(Tensor quats, Tensor scales, Tensor means, Tensor camera, int threads) -> Tensor",
+          &gaussian_normals_fwd);
     m.def(
         "skin_bwd(Tensor means, Tensor weights, bool has_delta, Tensor bones, Tensor local_quats, "
         "bool rotations, float quat_eps, Tensor g_world, Tensor g_quats, int threads) -> "
