@@ -302,7 +302,7 @@ def test_flow_loss_matches_a_per_pixel_charbonnier_and_ignores_invalid_nan_flow(
                 terms.append(torch.sqrt((d * d).sum() + L.CHARBONNIER_EPS**2))
     want = torch.stack(terms).mean() - L.CHARBONNIER_EPS
     w_rendered, w_alpha = torch.autograd.grad(want, (rendered, alpha))
-    assert len(terms) > 10 and float(loss) == pytest.approx(float(want), rel=1e-12)
+    assert len(terms) > 10 and float(loss.detach()) == pytest.approx(float(want.detach()), rel=1e-12)
     assert torch.isfinite(g_rendered).all() and torch.isfinite(g_alpha).all()
     torch.testing.assert_close(g_rendered, w_rendered, rtol=1e-10, atol=1e-14)
     torch.testing.assert_close(g_alpha, w_alpha, rtol=1e-10, atol=1e-14)
