@@ -7,7 +7,7 @@ size in the frame and an unknown camera cost, and what each remedy buys back.
     python tools/bench_footage.py exposure  [...]                         # steady vs exposure/WB jitter
     python tools/bench_footage.py size      [...]                         # filmed close vs from afar
     python tools/bench_footage.py focal     [...]                         # focal estimate vs truth, 30-90 deg
-    python tools/bench_footage.py fit       [--size 256] [--frames 60]    # tracking accuracy, silhouette off/on
+    python tools/bench_footage.py fit       [--size 256] [--frames 60]    # tracking, silhouette off/on
     python tools/bench_footage.py framing RUN_DIR [...]                   # how stg-render frames a run
     common: --out DIR (default runs/bench_footage) --preset fast --seed 0 --json
 
@@ -403,15 +403,13 @@ JOINT_GROUPS = {  # SMPL joint indices
 
 def rotation_angles_deg(a, b):
     """Angle (degrees) of the relative rotation between matching (..., 3) axis-angle vectors."""
-    import cv2
     import numpy as np
 
+    from stg_node.data.synth.rotations import axis_angle_to_matrix
+    from stg_node.data.synth.split_distances import rotation_angle_deg
+
     a, b = np.asarray(a, np.float64).reshape(-1, 3), np.asarray(b, np.float64).reshape(-1, 3)
-    out = []
-    for x, y in zip(a, b):
-        rel = cv2.Rodrigues(x)[0].T @ cv2.Rodrigues(y)[0]
-        out.append(math.degrees(math.acos(np.clip((np.trace(rel) - 1.0) / 2.0, -1.0, 1.0))))
-    return np.asarray(out)
+    return rotation_angle_deg(axis_angle_to_matrix(a), axis_angle_to_matrix(b))
 
 
 def track_accuracy(data: Path, fit_config, poses_out: Path, smoothing: bool = True) -> dict:
@@ -433,7 +431,9 @@ def track_accuracy(data: Path, fit_config, poses_out: Path, smoothing: bool = Tr
     K = np.asarray(annots["cams"]["K"][0], np.float64)
     R = np.asarray(annots["cams"]["R"][0], np.float64)
     t = np.asarray(annots["cams"]["T"][0], np.float64).reshape(3) / 1000.0
-    options = TrackOptions(intrinsics=str(intrinsics_file(data)), fps=float(metadata["fps"]), smoothing=smoothing)
+    options = TrackOptions(
+        intrinsics=str(intrinsics_file(data)), fps=float(metadata["fps"]), smoothing=smoothing
+    )
     source = open_source(data / "Camera_B1", options.fps)
     tracker, body = build_tracker(options, source.width, source.height, fit=fit_config)
     rows = {k: [] for k in ("poses", "Rh", "Th", "betas", "mask", "confidence")}
@@ -460,10 +460,12 @@ def track_accuracy(data: Path, fit_config, poses_out: Path, smoothing: bool = Tr
     true_betas = np.concatenate([p["shapes"] for p in params]).astype(np.float64)
     truth_body = load_body_model()
     gt = joints_from_params(truth_body, true_poses, true_Rh, true_Th, true_betas) @ R.T + t
-    pred = joints_from_params(body, np.stack(rows["poses"]), np.stack(rows["Rh"]), np.stack(rows["Th"]), betas)
+    pred = joints_from_params(
+        body, np.stack(rows["poses"]), np.stack(rows["Rh"]), np.stack(rows["Th"]), betas
+    )
     joint_err = rotation_angles_deg(np.stack(rows["poses"])[:, 1:], true_poses[:, 1:]).reshape(n, 23)
     true_global = [cv2.Rodrigues(R @ cv2.Rodrigues(rh)[0] @ cv2.Rodrigues(p0)[0])[0].ravel()
-                   for rh, p0 in zip(true_Rh, true_poses[:, 0])]  # fmt: skip
+                   for rh, p0 in zip(true_Rh, true_poses[:, 0], strict=True)]  # fmt: skip
     global_err = rotation_angles_deg(np.stack(rows["Rh"]), np.stack(true_global))
 
     def in_mask(b, poses, Rh, Th, betas_, masks) -> np.ndarray:
@@ -472,10 +474,13 @@ def track_accuracy(data: Path, fit_config, poses_out: Path, smoothing: bool = Tr
         out = []
         with torch.no_grad():
             for i in range(n):
-                verts = b(betas=torch.as_tensor(betas_[i : i + 1], dtype=torch.float32),
-                          poses=torch.as_tensor(poses[i].reshape(1, 72), dtype=torch.float32),
-                          Rh=torch.as_tensor(Rh[i : i + 1], dtype=torch.float32),
-                          Th=torch.as_tensor(Th[i : i + 1], dtype=torch.float32)).vertices[0].double().numpy()  # fmt: skip
+                posed = b(
+                    betas=torch.as_tensor(betas_[i : i + 1], dtype=torch.float32),
+                    poses=torch.as_tensor(poses[i].reshape(1, 72), dtype=torch.float32),
+                    Rh=torch.as_tensor(Rh[i : i + 1], dtype=torch.float32),
+                    Th=torch.as_tensor(Th[i : i + 1], dtype=torch.float32),
+                )
+                verts = posed.vertices[0].double().numpy()
                 if b is truth_body:
                     verts = verts @ R.T + t
                 uv = verts @ K.T
@@ -492,10 +497,16 @@ def track_accuracy(data: Path, fit_config, poses_out: Path, smoothing: bool = Tr
         "seconds_per_frame": seconds / n,
         "mpjpe_mm": float(mpjpe(pred, gt).mean() * 1000),
         "pa_mpjpe_mm": float(pa_mpjpe(pred, gt).mean() * 1000),
-        "joint_rotation_deg": {"mean": float(joint_err.mean()), "median": float(np.median(joint_err)),
-                               **{g: float(per_joint[[j - 1 for j in js]].mean()) for g, js in JOINT_GROUPS.items()}},  # fmt: skip
-        "global_orientation_deg": {"mean": float(global_err.mean()), "median": float(np.median(global_err)),
-                                   "max": float(global_err.max())},  # fmt: skip
+        "joint_rotation_deg": {
+            "mean": float(joint_err.mean()),
+            "median": float(np.median(joint_err)),
+            **{g: float(per_joint[[j - 1 for j in js]].mean()) for g, js in JOINT_GROUPS.items()},
+        },  # fmt: skip
+        "global_orientation_deg": {
+            "mean": float(global_err.mean()),
+            "median": float(np.median(global_err)),
+            "max": float(global_err.max()),
+        },  # fmt: skip
         "mesh_in_own_mask": {"mean": float(own.mean()), "min": float(own.min())},
         "mesh_in_true_mask": {"mean": float(on_truth.mean()), "min": float(on_truth.min())},
         "true_mesh_in_own_mask": float(
@@ -512,13 +523,77 @@ def fit(args) -> dict:
     from stg_node.tracking.fitting import FitConfig
 
     data = subject(args.out, f"mixed_{args.size}", num_frames=args.frames, size=args.size)
-    variants = {"keypoints only": dataclasses.replace(FitConfig(), silhouette_weight=0.0), "silhouette": FitConfig()}
+    off = dataclasses.replace(FitConfig(), silhouette_weight=0.0)
+    variants = {
+        "keypoints only": (off, True),
+        "silhouette": (FitConfig(), True),
+        "keypoints only, unsmoothed": (off, False),
+        "silhouette, unsmoothed": (FitConfig(), False),
+    }
+    wanted = args.runs.split(",") if args.runs else ["accuracy"]
     rows = {}
-    for name, config in variants.items():
-        slug = name.replace(" ", "_")
-        rows[name] = track_accuracy(data, config, args.out / "fit" / f"{slug}_{args.size}" / "poses.npz")
+    for name, (config, smoothing) in variants.items():
+        if "accuracy" not in wanted:
+            break
+        slug = name.replace(", ", "_").replace(" ", "_")
+        rows[name] = track_accuracy(
+            data, config, args.out / "fit" / f"{slug}_{args.size}" / "poses.npz", smoothing
+        )
         log.info("%s: %s", name, json.dumps(rows[name]))
+    trained = [w for w in wanted if w in ("truth", "silhouette", "keypoints")]
+    if trained:
+        rows["training"] = fit_training(args, data, trained)
     return rows
+
+
+def fit_training(args, data: Path, wanted: list[str]) -> dict:
+    """Novel views of runs trained on the tracker's folder dataset (stg-train --format video's own
+    preparation: the default fit, silhouette on) and on the same folder with the keypoint-only
+    fit's poses (the ``accuracy`` pass's, same frames), beside ``--format synthetic``."""
+    import shutil
+
+    import numpy as np
+
+    from stg_node.avatar.video import prepare_video
+    from stg_node.safe_load import load_npz
+
+    out = args.out
+    video_data = out / "fit" / f"video_data_{args.size}"
+    if not (video_data / "poses.npz").is_file():
+        prepare_video(data / "Camera_B1", video_data, intrinsics=intrinsics_file(data), progress=False)
+    keypoints = out / "fit" / f"keypoints_data_{args.size}"
+    if not (keypoints / "poses.npz").is_file():
+        plain = np.load(out / "fit" / f"keypoints_only_{args.size}" / "poses.npz")
+        rows = {k: np.asarray(v).copy() for k, v in load_npz(video_data / "poses.npz").items()}
+        index = rows["frames"].astype(int)
+        rows["poses"] = plain["poses"][index].reshape(len(index), -1).astype(rows["poses"].dtype)
+        rows["Rh"], rows["Th"] = plain["Rh"][index].astype(np.float32), plain["Th"][index].astype(np.float32)
+        rows["shapes"][:] = plain["betas"][0, : rows["shapes"].shape[1]]
+        keypoints.mkdir(parents=True, exist_ok=True)
+        for sub in ("images", "masks"):
+            if not (keypoints / sub).exists():
+                (keypoints / sub).symlink_to((video_data / sub).resolve())
+        shutil.copy(video_data / "cameras.json", keypoints / "cameras.json")
+        np.savez(keypoints / "poses.npz", **rows)
+    frames = ["--train-frames", f"0:{round(0.8 * args.frames)}", "--size", str(args.size)]
+    runs = {
+        "truth": ("--data", str(data), "--format", "synthetic", "--size", str(args.size)),
+        "silhouette": ("--data", str(video_data), "--format", "folder", *frames),
+        "keypoints": ("--data", str(keypoints), "--format", "folder", *frames),
+    }
+    result = {}
+    for name in ("truth", "silhouette", "keypoints"):
+        run = out / "runs" / f"fit_{name}_{args.size}"
+        if name in wanted:
+            train(out, run.name, args, *runs[name])
+        if (run / "summary.json").is_file() and json.loads((run / "summary.json").read_text()).get(
+            "finished"
+        ):
+            result[name] = score(run, data, "novel_view")
+    for name in result:
+        if "truth" in result:
+            result[name]["below_truth_db"] = result["truth"]["psnr"] - result[name]["psnr"]
+    return result
 
 
 EXPERIMENTS = {
@@ -550,7 +625,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--runs",
         default=None,
         help="gap: which of truth,tracked-before,tracked to train and score here (default: all; "
-        "processes running different ones share --out, the last one reports all)",
+        "processes running different ones share --out, the last one reports all); fit: any of "
+        "accuracy,truth,silhouette,keypoints (default: accuracy; the trained ones need accuracy's "
+        "keypoint-only poses first)",
     )
     p.add_argument("--json", action="store_true", help="print the results as one JSON object")
     p.add_argument("--iters", type=int, default=None, help="override the iterations (smoke tests)")

@@ -202,7 +202,9 @@ class SmplFitter:
         sigma = torch.as_tensor(prior_sigma().reshape(-1), dtype=DTYPE)
         self._prior_scale = math.sqrt(self.config.prior_weight) / sigma
         self._root_rotation = torch.eye(3, dtype=DTYPE)[None, None]
-        self._mesh = MeshSamples(body, self.config.silhouette_samples) if self.config.silhouette_weight > 0 else None
+        self._mesh = (
+            MeshSamples(body, self.config.silhouette_samples) if self.config.silhouette_weight > 0 else None
+        )
         self._last_fit: tuple[_Observation, dict, bool] | None = None
         self._last_betas = np.zeros(self.num_betas)
         self._fixed_betas = betas is not None
@@ -324,7 +326,9 @@ class SmplFitter:
         parts += self._prior_terms(thetas, pose, body_rotations, betas, ctx)
         return torch.cat(parts, dim=1), norms
 
-    def _silhouette_rows(self, thetas, ctx: dict, betas, body_rotations, unit_px: float) -> list[torch.Tensor]:
+    def _silhouette_rows(
+        self, thetas, ctx: dict, betas, body_rotations, unit_px: float
+    ) -> list[torch.Tensor]:
         """The two chamfer halves of silhouette.py for the sampled mesh posed by ``thetas``."""
         cfg = self.config
         batch = thetas.shape[0]
@@ -384,7 +388,9 @@ class SmplFitter:
         with torch.no_grad():
             betas = theta[None, GLOBAL_PARAMS + POSE_PARAMS :] if ctx["calibrating"] else ctx["betas"]
             _, _, _, body_rotations = self._points(theta[None], ctx["base_rotation"], betas)
-            rows = torch.cat(self._silhouette_rows(theta[None], ctx, betas, body_rotations, obs.unit_px), dim=1)
+            rows = torch.cat(
+                self._silhouette_rows(theta[None], ctx, betas, body_rotations, obs.unit_px), dim=1
+            )
         return math.sqrt(float(rows.pow(2).sum()) / (2.0 * self.config.silhouette_weight))
 
     def world_trust(self, disagreement: float) -> float:

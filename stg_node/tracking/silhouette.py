@@ -69,7 +69,9 @@ class MeshSamples(torch.nn.Module):
             self.register_buffer("weights", body.weights.double()[self.vertex_ids])
             regressor = body.J_regressor.double()
             self.register_buffer("joint_template", regressor @ template)
-            self.register_buffer("joint_shapedirs", torch.einsum("jv,vcs->jcs", regressor, body.shapedirs.double()))
+            self.register_buffer(
+                "joint_shapedirs", torch.einsum("jv,vcs->jcs", regressor, body.shapedirs.double())
+            )
         self.parents = body.parents.clone()
         self.num_betas = int(body.num_betas)
 

@@ -273,7 +273,9 @@ class Tracker:
         self.smoother.reset()
         return self._hold(frame_shape, timestamp, flags)
 
-    def fit_keypoints(self, keypoints: Keypoints, timestamp: float, frame_shape, *, silhouette=None) -> TrackEstimate:
+    def fit_keypoints(
+        self, keypoints: Keypoints, timestamp: float, frame_shape, *, silhouette=None
+    ) -> TrackEstimate:
         """The fit, smoothing and keypoint-based confidence of one frame's (full-resolution) keypoints,
         with an empty mask: what :meth:`estimate` does after detection, and what a second pass over
         stored keypoints (another camera model, stg_node.tracking.focal) runs alone. ``silhouette``:
