@@ -50,7 +50,10 @@ to ``--out/results/EXPERIMENT.json``; a run folder that is already finished is n
   intrinsics); MPJPE / PA-MPJPE, the error of every joint's rotation and of the global
   orientation (camera frame; mean, median, the worst joints), and the share of the full mesh's
   vertices projecting inside the tracker's own mask and inside the true mask (the true mesh: the
-  ceiling). Each pass's poses go to ``--out/fit/NAME/poses.npz``.
+  ceiling). Each pass's poses go to ``--out/fit/NAME/poses.npz``. ``--runs`` adds training
+  runs (``truth``; ``silhouette``: stg-train --format video's own preparation; ``keypoints`` and
+  ``unsmoothed``: that folder with the keypoint-only or unsmoothed silhouette poses), scored on
+  novel views.
 - ``framing``: renders RUN_DIR's default orbit (and follow camera) and reports the share of
   frames with the avatar whole and at least 30 % of the image tall.
 
@@ -540,7 +543,7 @@ def fit(args) -> dict:
             data, config, args.out / "fit" / f"{slug}_{args.size}" / "poses.npz", smoothing
         )
         log.info("%s: %s", name, json.dumps(rows[name]))
-    trained = [w for w in wanted if w in ("truth", "silhouette", "keypoints")]
+    trained = [w for w in wanted if w in ("truth", "silhouette", "keypoints", "unsmoothed")]
     if trained:
         rows["training"] = fit_training(args, data, trained)
     return rows
@@ -548,8 +551,9 @@ def fit(args) -> dict:
 
 def fit_training(args, data: Path, wanted: list[str]) -> dict:
     """Novel views of runs trained on the tracker's folder dataset (stg-train --format video's own
-    preparation: the default fit, silhouette on) and on the same folder with the keypoint-only
-    fit's poses (the ``accuracy`` pass's, same frames), beside ``--format synthetic``."""
+    preparation: the default fit, silhouette on) and on the same folder with the poses of the
+    ``accuracy`` pass's keypoint-only fit (``keypoints``) and unsmoothed silhouette fit
+    (``unsmoothed``), same frames, beside ``--format synthetic``."""
     import shutil
 
     import numpy as np
@@ -561,28 +565,32 @@ def fit_training(args, data: Path, wanted: list[str]) -> dict:
     video_data = out / "fit" / f"video_data_{args.size}"
     if not (video_data / "poses.npz").is_file():
         prepare_video(data / "Camera_B1", video_data, intrinsics=intrinsics_file(data), progress=False)
-    keypoints = out / "fit" / f"keypoints_data_{args.size}"
-    if not (keypoints / "poses.npz").is_file():
-        plain = np.load(out / "fit" / f"keypoints_only_{args.size}" / "poses.npz")
+    swapped = {}
+    for name, accuracy_pass in (("keypoints", "keypoints_only"), ("unsmoothed", "silhouette_unsmoothed")):
+        folder = swapped[name] = out / "fit" / f"{name}_data_{args.size}"
+        if (folder / "poses.npz").is_file():
+            continue
+        plain = np.load(out / "fit" / f"{accuracy_pass}_{args.size}" / "poses.npz")
         rows = {k: np.asarray(v).copy() for k, v in load_npz(video_data / "poses.npz").items()}
         index = rows["frames"].astype(int)
         rows["poses"] = plain["poses"][index].reshape(len(index), -1).astype(rows["poses"].dtype)
         rows["Rh"], rows["Th"] = plain["Rh"][index].astype(np.float32), plain["Th"][index].astype(np.float32)
         rows["shapes"][:] = plain["betas"][0, : rows["shapes"].shape[1]]
-        keypoints.mkdir(parents=True, exist_ok=True)
+        folder.mkdir(parents=True, exist_ok=True)
         for sub in ("images", "masks"):
-            if not (keypoints / sub).exists():
-                (keypoints / sub).symlink_to((video_data / sub).resolve())
-        shutil.copy(video_data / "cameras.json", keypoints / "cameras.json")
-        np.savez(keypoints / "poses.npz", **rows)
+            if not (folder / sub).exists():
+                (folder / sub).symlink_to((video_data / sub).resolve())
+        shutil.copy(video_data / "cameras.json", folder / "cameras.json")
+        np.savez(folder / "poses.npz", **rows)
     frames = ["--train-frames", f"0:{round(0.8 * args.frames)}", "--size", str(args.size)]
     runs = {
         "truth": ("--data", str(data), "--format", "synthetic", "--size", str(args.size)),
         "silhouette": ("--data", str(video_data), "--format", "folder", *frames),
-        "keypoints": ("--data", str(keypoints), "--format", "folder", *frames),
+        "keypoints": ("--data", str(swapped["keypoints"]), "--format", "folder", *frames),
+        "unsmoothed": ("--data", str(swapped["unsmoothed"]), "--format", "folder", *frames),
     }
     result = {}
-    for name in ("truth", "silhouette", "keypoints"):
+    for name in runs:
         run = out / "runs" / f"fit_{name}_{args.size}"
         if name in wanted:
             train(out, run.name, args, *runs[name])
@@ -626,7 +634,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="gap: which of truth,tracked-before,tracked to train and score here (default: all; "
         "processes running different ones share --out, the last one reports all); fit: any of "
-        "accuracy,truth,silhouette,keypoints (default: accuracy; the trained ones need accuracy's "
+        "accuracy,truth,silhouette,keypoints,unsmoothed (default: accuracy; the trained ones need accuracy's "
         "keypoint-only poses first)",
     )
     p.add_argument("--json", action="store_true", help="print the results as one JSON object")
