@@ -7,6 +7,7 @@ size in the frame and an unknown camera cost, and what each remedy buys back.
     python tools/bench_footage.py exposure  [...]                         # steady vs exposure/WB jitter
     python tools/bench_footage.py size      [...]                         # filmed close vs from afar
     python tools/bench_footage.py focal     [...]                         # focal estimate vs truth, 30-90 deg
+    python tools/bench_footage.py fit       [--size 256] [--frames 60]    # tracking, silhouette off/on
     python tools/bench_footage.py framing RUN_DIR [...]                   # how stg-render frames a run
     common: --out DIR (default runs/bench_footage) --preset fast --seed 0 --json
 
@@ -43,6 +44,16 @@ to ``--out/results/EXPERIMENT.json``; a run folder that is already finished is n
 - ``focal``: the ``approach`` motion (walks 2 m towards the camera and back) filmed at 30, 50,
   70 and 90 degrees (from 6, 4, 3 and 2.5 m), and the ``still`` motion at 60 degrees; stg-track's
   estimate against the truth and its verdict.
+- ``fit``: the tracker's accuracy against the subject's truth, with the fit's silhouette term
+  off (``silhouette_weight=0``, the fit before it) and on (the default), in the same process:
+  the mixed subject's training camera through the Tracker (stg-track's per-frame path, the true
+  intrinsics); MPJPE / PA-MPJPE, the error of every joint's rotation and of the global
+  orientation (camera frame; mean, median, the worst joints), and the share of the full mesh's
+  vertices projecting inside the tracker's own mask and inside the true mask (the true mesh: the
+  ceiling). Each pass's poses go to ``--out/fit/NAME/poses.npz``. ``--runs`` adds training
+  runs (``truth``; ``silhouette``: stg-train --format video's own preparation; ``keypoints`` and
+  ``unsmoothed``: that folder with the keypoint-only or unsmoothed silhouette poses), scored on
+  novel views.
 - ``framing``: renders RUN_DIR's default orbit (and follow camera) and reports the share of
   frames with the avatar whole and at least 30 % of the image tall.
 
@@ -383,6 +394,216 @@ def framing(args) -> dict:
     return rows
 
 
+JOINT_GROUPS = {  # SMPL joint indices
+    "shoulders": (16, 17),
+    "elbows": (18, 19),
+    "hips": (1, 2),
+    "knees": (4, 5),
+    "spine": (3, 6, 9),
+    "neck_head": (12, 15),
+}
+
+
+def rotation_angles_deg(a, b):
+    """Angle (degrees) of the relative rotation between matching (..., 3) axis-angle vectors."""
+    import numpy as np
+
+    from stg_node.data.synth.rotations import axis_angle_to_matrix
+    from stg_node.data.synth.split_distances import rotation_angle_deg
+
+    a, b = np.asarray(a, np.float64).reshape(-1, 3), np.asarray(b, np.float64).reshape(-1, 3)
+    return rotation_angle_deg(axis_angle_to_matrix(a), axis_angle_to_matrix(b))
+
+
+def track_accuracy(data: Path, fit_config, poses_out: Path, smoothing: bool = True) -> dict:
+    """Track ``data``'s training camera (true intrinsics) with ``fit_config`` (and the tracker's
+    One-Euro smoothing unless told); accuracy vs truth."""
+    import cv2
+    import numpy as np
+
+    from stg_node.body import load_body_model
+    from stg_node.data.io import read_mask
+    from stg_node.safe_load import load_npy
+    from stg_node.tracking.evaluation import joints_from_params, mpjpe, pa_mpjpe
+    from stg_node.tracking.pipeline import TrackOptions, build_tracker
+    from stg_node.tracking.silhouette import inside_fraction
+    from stg_node.tracking.sources import open_source
+
+    metadata = json.loads((data / "synth.json").read_text())
+    annots = load_npy(data / "annots.npy")
+    K = np.asarray(annots["cams"]["K"][0], np.float64)
+    R = np.asarray(annots["cams"]["R"][0], np.float64)
+    t = np.asarray(annots["cams"]["T"][0], np.float64).reshape(3) / 1000.0
+    options = TrackOptions(
+        intrinsics=str(intrinsics_file(data)), fps=float(metadata["fps"]), smoothing=smoothing
+    )
+    source = open_source(data / "Camera_B1", options.fps)
+    tracker, body = build_tracker(options, source.width, source.height, fit=fit_config)
+    rows = {k: [] for k in ("poses", "Rh", "Th", "betas", "mask", "confidence")}
+    started = time.perf_counter()
+    for frame in source:
+        estimate = tracker.estimate(frame.image, frame.timestamp)
+        rows["poses"].append(np.asarray(estimate.smpl.poses, np.float64).reshape(24, 3))
+        rows["Rh"].append(np.asarray(estimate.smpl.Rh, np.float64))
+        rows["Th"].append(np.asarray(estimate.smpl.Th, np.float64))
+        rows["betas"].append(np.asarray(estimate.smpl.betas, np.float64))
+        rows["mask"].append(estimate.mask)
+        rows["confidence"].append(estimate.confidence)
+    seconds = time.perf_counter() - started
+    n = len(rows["poses"])
+    betas = np.tile(np.asarray(tracker.fitter.betas, np.float64), (n, 1))
+    poses_out.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(poses_out, poses=np.stack(rows["poses"]), Rh=np.stack(rows["Rh"]), Th=np.stack(rows["Th"]),
+             betas=betas)  # fmt: skip
+    names = sorted((data / "Camera_B1").glob("*.png"))[:n]
+    params = [load_npy(data / "new_params" / f"{int(p.stem)}.npy") for p in names]
+    true_poses = np.concatenate([p["poses"] for p in params]).reshape(n, 24, 3).astype(np.float64)
+    true_Rh = np.concatenate([p["Rh"] for p in params]).astype(np.float64)
+    true_Th = np.concatenate([p["Th"] for p in params]).astype(np.float64)
+    true_betas = np.concatenate([p["shapes"] for p in params]).astype(np.float64)
+    truth_body = load_body_model()
+    gt = joints_from_params(truth_body, true_poses, true_Rh, true_Th, true_betas) @ R.T + t
+    pred = joints_from_params(
+        body, np.stack(rows["poses"]), np.stack(rows["Rh"]), np.stack(rows["Th"]), betas
+    )
+    joint_err = rotation_angles_deg(np.stack(rows["poses"])[:, 1:], true_poses[:, 1:]).reshape(n, 23)
+    true_global = [cv2.Rodrigues(R @ cv2.Rodrigues(rh)[0] @ cv2.Rodrigues(p0)[0])[0].ravel()
+                   for rh, p0 in zip(true_Rh, true_poses[:, 0], strict=True)]  # fmt: skip
+    global_err = rotation_angles_deg(np.stack(rows["Rh"]), np.stack(true_global))
+
+    def in_mask(b, poses, Rh, Th, betas_, masks) -> np.ndarray:
+        import torch
+
+        out = []
+        with torch.no_grad():
+            for i in range(n):
+                posed = b(
+                    betas=torch.as_tensor(betas_[i : i + 1], dtype=torch.float32),
+                    poses=torch.as_tensor(poses[i].reshape(1, 72), dtype=torch.float32),
+                    Rh=torch.as_tensor(Rh[i : i + 1], dtype=torch.float32),
+                    Th=torch.as_tensor(Th[i : i + 1], dtype=torch.float32),
+                )
+                verts = posed.vertices[0].double().numpy()
+                if b is truth_body:
+                    verts = verts @ R.T + t
+                uv = verts @ K.T
+                out.append(inside_fraction(uv[:, :2] / uv[:, 2:], masks[i]))
+        return np.asarray(out)
+
+    true_masks = [read_mask(data / "mask" / "Camera_B1" / p.name) for p in names]
+    tracked_args = (body, np.stack(rows["poses"]), np.stack(rows["Rh"]), np.stack(rows["Th"]), betas)
+    own = in_mask(*tracked_args, rows["mask"])
+    on_truth = in_mask(*tracked_args, true_masks)
+    per_joint = joint_err.mean(axis=0)
+    return {
+        "frames": n,
+        "seconds_per_frame": seconds / n,
+        "mpjpe_mm": float(mpjpe(pred, gt).mean() * 1000),
+        "pa_mpjpe_mm": float(pa_mpjpe(pred, gt).mean() * 1000),
+        "joint_rotation_deg": {
+            "mean": float(joint_err.mean()),
+            "median": float(np.median(joint_err)),
+            **{g: float(per_joint[[j - 1 for j in js]].mean()) for g, js in JOINT_GROUPS.items()},
+        },  # fmt: skip
+        "global_orientation_deg": {
+            "mean": float(global_err.mean()),
+            "median": float(np.median(global_err)),
+            "max": float(global_err.max()),
+        },  # fmt: skip
+        "mesh_in_own_mask": {"mean": float(own.mean()), "min": float(own.min())},
+        "mesh_in_true_mask": {"mean": float(on_truth.mean()), "min": float(on_truth.min())},
+        "true_mesh_in_own_mask": float(
+            in_mask(truth_body, true_poses, true_Rh, true_Th, true_betas, rows["mask"]).mean()
+        ),
+        "mean_confidence": float(np.mean(rows["confidence"])),
+    }
+
+
+def fit(args) -> dict:
+    """Tracking accuracy with the fit's silhouette term off and on (interleaved per --repeats)."""
+    import dataclasses
+
+    from stg_node.tracking.fitting import FitConfig
+
+    data = subject(args.out, f"mixed_{args.size}", num_frames=args.frames, size=args.size)
+    off = dataclasses.replace(FitConfig(), silhouette_weight=0.0)
+    variants = {
+        "keypoints only": (off, True),
+        "silhouette": (FitConfig(), True),
+        "keypoints only, unsmoothed": (off, False),
+        "silhouette, unsmoothed": (FitConfig(), False),
+    }
+    wanted = args.runs.split(",") if args.runs else ["accuracy"]
+    rows = {}
+    for name, (config, smoothing) in variants.items():
+        if "accuracy" not in wanted:
+            break
+        slug = name.replace(", ", "_").replace(" ", "_")
+        rows[name] = track_accuracy(
+            data, config, args.out / "fit" / f"{slug}_{args.size}" / "poses.npz", smoothing
+        )
+        log.info("%s: %s", name, json.dumps(rows[name]))
+    trained = [w for w in wanted if w in ("truth", "silhouette", "keypoints", "unsmoothed")]
+    if trained:
+        rows["training"] = fit_training(args, data, trained)
+    return rows
+
+
+def fit_training(args, data: Path, wanted: list[str]) -> dict:
+    """Novel views of runs trained on the tracker's folder dataset (stg-train --format video's own
+    preparation: the default fit, silhouette on) and on the same folder with the poses of the
+    ``accuracy`` pass's keypoint-only fit (``keypoints``) and unsmoothed silhouette fit
+    (``unsmoothed``), same frames, beside ``--format synthetic``."""
+    import shutil
+
+    import numpy as np
+
+    from stg_node.avatar.video import prepare_video
+    from stg_node.safe_load import load_npz
+
+    out = args.out
+    video_data = out / "fit" / f"video_data_{args.size}"
+    if not (video_data / "poses.npz").is_file():
+        prepare_video(data / "Camera_B1", video_data, intrinsics=intrinsics_file(data), progress=False)
+    swapped = {}
+    for name, accuracy_pass in (("keypoints", "keypoints_only"), ("unsmoothed", "silhouette_unsmoothed")):
+        folder = swapped[name] = out / "fit" / f"{name}_data_{args.size}"
+        if (folder / "poses.npz").is_file():
+            continue
+        plain = np.load(out / "fit" / f"{accuracy_pass}_{args.size}" / "poses.npz")
+        rows = {k: np.asarray(v).copy() for k, v in load_npz(video_data / "poses.npz").items()}
+        index = rows["frames"].astype(int)
+        rows["poses"] = plain["poses"][index].reshape(len(index), -1).astype(rows["poses"].dtype)
+        rows["Rh"], rows["Th"] = plain["Rh"][index].astype(np.float32), plain["Th"][index].astype(np.float32)
+        rows["shapes"][:] = plain["betas"][0, : rows["shapes"].shape[1]]
+        folder.mkdir(parents=True, exist_ok=True)
+        for sub in ("images", "masks"):
+            if not (folder / sub).exists():
+                (folder / sub).symlink_to((video_data / sub).resolve())
+        shutil.copy(video_data / "cameras.json", folder / "cameras.json")
+        np.savez(folder / "poses.npz", **rows)
+    frames = ["--train-frames", f"0:{round(0.8 * args.frames)}", "--size", str(args.size)]
+    runs = {
+        "truth": ("--data", str(data), "--format", "synthetic", "--size", str(args.size)),
+        "silhouette": ("--data", str(video_data), "--format", "folder", *frames),
+        "keypoints": ("--data", str(swapped["keypoints"]), "--format", "folder", *frames),
+        "unsmoothed": ("--data", str(swapped["unsmoothed"]), "--format", "folder", *frames),
+    }
+    result = {}
+    for name in runs:
+        run = out / "runs" / f"fit_{name}_{args.size}"
+        if name in wanted:
+            train(out, run.name, args, *runs[name])
+        if (run / "summary.json").is_file() and json.loads((run / "summary.json").read_text()).get(
+            "finished"
+        ):
+            result[name] = score(run, data, "novel_view")
+    for name in result:
+        if "truth" in result:
+            result[name]["below_truth_db"] = result["truth"]["psnr"] - result[name]["psnr"]
+    return result
+
+
 EXPERIMENTS = {
     "gap": gap,
     "sources": sources,
@@ -390,6 +611,7 @@ EXPERIMENTS = {
     "size": size,
     "focal": focal,
     "framing": framing,
+    "fit": fit,
 }
 
 
@@ -411,7 +633,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--runs",
         default=None,
         help="gap: which of truth,tracked-before,tracked to train and score here (default: all; "
-        "processes running different ones share --out, the last one reports all)",
+        "processes running different ones share --out, the last one reports all); fit: any of "
+        "accuracy,truth,silhouette,keypoints,unsmoothed (default: accuracy; the trained ones need accuracy's "
+        "keypoint-only poses first)",
     )
     p.add_argument("--json", action="store_true", help="print the results as one JSON object")
     p.add_argument("--iters", type=int, default=None, help="override the iterations (smoke tests)")

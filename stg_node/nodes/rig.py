@@ -92,7 +92,10 @@ class RigTrackingEstimator:
             )
         self.threads = configure_threads()
         settings = asdict(self.params)
-        self.fit = FitConfig(max_temporal_gap_s=settings.pop("max_gap_s"))
+        # The rig's multi-view fit has no silhouette term (the parameter is the single camera's).
+        self.fit = FitConfig(
+            max_temporal_gap_s=settings.pop("max_gap_s"), silhouette_weight=settings.pop("silhouette_weight")
+        )
         self.options = TrackOptions(**settings)
         self.tracker = None
         self._key: tuple | None = None

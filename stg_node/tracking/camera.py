@@ -56,6 +56,13 @@ class Intrinsics:
         out = cv2.undistortPoints(xy.reshape(-1, 1, 2), self.K, self.dist, P=self.K)
         return out.reshape(-1, 2)
 
+    def undistort_mask(self, mask: np.ndarray) -> np.ndarray:
+        """An (H, W) mask of the distorted image resampled to the pinhole image under ``K`` (the
+        frame the fit projects into); the mask itself when there is no distortion."""
+        if self.dist is None or not np.any(self.dist):
+            return mask
+        return cv2.undistort(mask, self.K, self.dist, None, self.K)
+
     def to_json(self) -> dict:
         return {"K": self.K.tolist(), "dist": None if self.dist is None else self.dist.tolist()}
 

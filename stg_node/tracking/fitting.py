@@ -44,6 +44,7 @@ from stg_node.body import BodyModel, lbs
 from stg_node.tracking.body_points import BodyKeypoints
 from stg_node.tracking.layouts import KeypointLayout
 from stg_node.tracking.priors import limit_excess, prior_sigma
+from stg_node.tracking.silhouette import MaskTarget, MeshSamples, silhouette_residuals
 from stg_node.tracking.types import Keypoints
 
 log = logging.getLogger(__name__)
@@ -85,6 +86,16 @@ class FitConfig:
     rescue_units: float = 3.0  # a tracked fit worse than this (RMS, noise units) is redone from scratch
     rescue_cooldown_s: float = 0.5  # at most one rescue per this time (each costs ~10 frames' fitting)
     shape_sigma: float = 1.0
+    # The silhouette term (silhouette.py): after the keypoint fit, a few more LM steps that also ask
+    # the posed mesh to cover the person's mask and no more; 0 turns it off.
+    silhouette_weight: float = 50.0  # each chamfer half counts like this many keypoints
+    silhouette_iterations: int = 3
+    silhouette_samples: int = 400  # mesh vertices projected
+    silhouette_outline_points: int = 200  # points along the mask's outline
+    silhouette_robust_units: float = 10.0  # Cauchy scale of a silhouette distance, in 2D units
+    # Where the keypoint fit and the mask disagree (RMS silhouette distance, 2D units) the pose
+    # network's 3D bone directions lose weight: 1 / (1 + (disagreement / this)^2).
+    silhouette_trust_units: float = 3.0
     damping: float = 1e-2
     step_eps: float = 1e-6  # forward-difference step
 
@@ -93,7 +104,12 @@ class FitConfig:
             raise ValueError("fit iterations must be >= 1 (global_iterations >= 0)")
         if self.calibration_frames < 0:
             raise ValueError(f"calibration_frames must be >= 0, got {self.calibration_frames}")
-        for name in ("noise_fraction", "robust_scale", "world_sigma", "shape_sigma", "step_eps"):
+        if self.silhouette_weight < 0 or self.silhouette_iterations < 1:
+            raise ValueError("silhouette_weight must be >= 0 and silhouette_iterations >= 1")
+        if self.silhouette_samples < 1 or self.silhouette_outline_points < 1:
+            raise ValueError("silhouette_samples and silhouette_outline_points must be >= 1")
+        for name in ("noise_fraction", "robust_scale", "world_sigma", "shape_sigma", "step_eps",
+                     "silhouette_robust_units", "silhouette_trust_units"):  # fmt: skip
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
 
@@ -125,6 +141,14 @@ class _Observation:
     unit_px: float  # pixels per 2D residual unit
     world: torch.Tensor | None  # (N, 3) unit directions of the layout's bones, or None
     world_weight: torch.Tensor | None  # (N,) 0 where a bone end is unusable
+
+
+def project(camera: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
+    """(..., 2) pixel positions of (..., 3) camera-frame points (depth clamped at MIN_DEPTH_M)."""
+    depth = camera[..., 2].clamp(min=MIN_DEPTH_M)
+    return torch.stack(
+        [K[0, 0] * camera[..., 0] / depth + K[0, 2], K[1, 1] * camera[..., 1] / depth + K[1, 2]], dim=-1
+    )
 
 
 def _rotation_from_vector(vec: np.ndarray) -> np.ndarray:
@@ -178,6 +202,11 @@ class SmplFitter:
         sigma = torch.as_tensor(prior_sigma().reshape(-1), dtype=DTYPE)
         self._prior_scale = math.sqrt(self.config.prior_weight) / sigma
         self._root_rotation = torch.eye(3, dtype=DTYPE)[None, None]
+        self._mesh = (
+            MeshSamples(body, self.config.silhouette_samples) if self.config.silhouette_weight > 0 else None
+        )
+        self._last_fit: tuple[_Observation, dict, bool] | None = None
+        self._last_betas = np.zeros(self.num_betas)
         self._fixed_betas = betas is not None
         self.betas = np.zeros(self.num_betas) if betas is None else self._check_betas(betas)
         self.reset()
@@ -197,6 +226,7 @@ class SmplFitter:
         self._last_time: float | None = None
         self._last_rescue: float | None = None
         self._tracking = False
+        self._last_fit = None
         if not keep_shape and not self._fixed_betas:
             self.betas = np.zeros(self.num_betas)
             self._calibration: list[tuple[float, np.ndarray]] = []
@@ -212,6 +242,7 @@ class SmplFitter:
     def lose(self) -> None:
         """The person is gone: the next fit starts from scratch (shape is kept)."""
         self._tracking = False
+        self._last_fit = None
 
     # ---- observation --------------------------------------------------------------------------
     def observe(self, keypoints: Keypoints, xy_undistorted: np.ndarray | None = None) -> _Observation | None:
@@ -288,9 +319,83 @@ class SmplFitter:
             bones = rotated[:, self._bone_end] - rotated[:, self._bone_start]
             directions = bones / bones.norm(dim=-1, keepdim=True).clamp(min=1e-6)
             rel = (directions - obs.world) / cfg.world_sigma
-            parts.append((rel * (cfg.world_weight * obs.world_weight).sqrt()[:, None]).reshape(batch, -1))
+            world_weight = cfg.world_weight * ctx.get("world_scale", 1.0) * obs.world_weight
+            parts.append((rel * world_weight.sqrt()[:, None]).reshape(batch, -1))
+        if ctx.get("silhouette") is not None:
+            parts += self._silhouette_rows(thetas, ctx, betas, body_rotations, obs.unit_px)
         parts += self._prior_terms(thetas, pose, body_rotations, betas, ctx)
         return torch.cat(parts, dim=1), norms
+
+    def _silhouette_rows(
+        self, thetas, ctx: dict, betas, body_rotations, unit_px: float
+    ) -> list[torch.Tensor]:
+        """The two chamfer halves of silhouette.py for the sampled mesh posed by ``thetas``."""
+        cfg = self.config
+        batch = thetas.shape[0]
+        rotation = ctx["base_rotation"] @ lbs.axis_angle_to_matrix(thetas[:, :3])
+        all_rotations = torch.cat([self._root_rotation.expand(batch, 1, 3, 3), body_rotations], dim=1)
+        camera = self._mesh.local(betas, all_rotations) @ rotation.transpose(1, 2) + thetas[:, None, 3:6]
+        uv = project(camera, ctx["K"])
+        inside, reach = silhouette_residuals(
+            uv, ctx["silhouette"], unit_px, cfg.silhouette_weight, cfg.silhouette_robust_units
+        )
+        return [inside, reach]
+
+    def mesh_uv(self, result: FitResult) -> np.ndarray:
+        """(V, 2) undistorted pixel positions of the sampled mesh vertices posed by ``result``."""
+        if self._mesh is None:
+            raise ValueError("the fitter has no mesh samples (silhouette_weight is 0)")
+        with torch.no_grad():
+            rotations = lbs.axis_angle_to_matrix(torch.as_tensor(result.poses, dtype=DTYPE))[None]
+            local = self._mesh.local(torch.as_tensor(result.betas, dtype=DTYPE)[None], rotations)
+            rotation = torch.as_tensor(_rotation_from_vector(result.Rh), dtype=DTYPE)
+            camera = local @ rotation.T + torch.as_tensor(result.Th, dtype=DTYPE)
+            return project(camera, torch.as_tensor(self.K, dtype=DTYPE))[0].numpy()
+
+    @property
+    def uses_silhouette(self) -> bool:
+        return self._mesh is not None
+
+    def refine_with_mask(self, mask: np.ndarray, timestamp: float) -> FitResult | None:
+        """The last :meth:`fit` refined with the person's mask (undistorted, the image's size): a
+        few LM steps with the silhouette rows added, the pose network's 3D directions down-weighted
+        by how much the keypoint fit and the mask disagree (a body seen from the back or side,
+        where the network's depth cues are least reliable, is where they disagree most). Replaces
+        the tracked state and returns the refined result; None (state untouched) without a last
+        fit, a term, or a non-empty mask."""
+        cfg = self.config
+        if self._mesh is None or self._last_fit is None:
+            return None
+        target = MaskTarget.from_mask(mask, cfg.silhouette_outline_points)
+        if target is None:
+            return None
+        obs, ctx, reinitialised = self._last_fit
+        ctx = dict(ctx, base_rotation=torch.as_tensor(self._rotation, dtype=DTYPE), silhouette=target)
+        theta_np = np.concatenate([np.zeros(3), self._translation, self._pose])
+        calibrating = ctx["calibrating"]
+        if calibrating:
+            theta_np = np.concatenate([theta_np, self._last_betas])
+        theta = torch.as_tensor(theta_np, dtype=DTYPE)
+        ctx["world_scale"] = self.world_trust(self.silhouette_disagreement(theta, obs, ctx))
+        theta, _ = self._solve(theta, torch.arange(theta.numel()), obs, ctx, cfg.silhouette_iterations)
+        ctx = dict(ctx, silhouette=None, world_scale=1.0)
+        self._last_fit = None  # refined once
+        betas = self._keep_state(theta, ctx, timestamp)
+        return self._result(theta, obs, ctx, betas, reinitialised)
+
+    def silhouette_disagreement(self, theta: torch.Tensor, obs: _Observation, ctx: dict) -> float:
+        """RMS capped silhouette distance (2D units) of the solution ``theta`` against ``ctx``'s mask."""
+        with torch.no_grad():
+            betas = theta[None, GLOBAL_PARAMS + POSE_PARAMS :] if ctx["calibrating"] else ctx["betas"]
+            _, _, _, body_rotations = self._points(theta[None], ctx["base_rotation"], betas)
+            rows = torch.cat(
+                self._silhouette_rows(theta[None], ctx, betas, body_rotations, obs.unit_px), dim=1
+            )
+        return math.sqrt(float(rows.pow(2).sum()) / (2.0 * self.config.silhouette_weight))
+
+    def world_trust(self, disagreement: float) -> float:
+        """The weight factor of the network's 3D directions at a silhouette disagreement (units)."""
+        return 1.0 / (1.0 + (disagreement / self.config.silhouette_trust_units) ** 2)
 
     def _prior_terms(self, thetas, pose, body_rotations, betas, ctx: dict) -> list[torch.Tensor]:
         """The residual rows after the reprojection (every fitter's): pose prior, joint limits, the
@@ -443,6 +548,12 @@ class SmplFitter:
         }
         theta, ctx, _active, reinitialised = self._fit_frame(obs, ctx, timestamp, self._initialise)
         betas = self._keep_state(theta, ctx, timestamp)
+        self._last_fit = (obs, ctx, reinitialised)
+        self._last_betas = np.asarray(betas, dtype=np.float64).copy()
+        return self._result(theta, obs, ctx, betas, reinitialised)
+
+    def _result(self, theta, obs: _Observation, ctx: dict, betas, reinitialised: bool) -> FitResult:
+        """The held state as a FitResult, with the keypoint fit's error and cost at ``theta``."""
         rms_units, rms_px, used = self._reprojection_error(theta, obs, ctx)
         cost = self._cost(theta, obs, dict(ctx, previous=None, calibrating=False, betas=torch.as_tensor(
             np.asarray(betas, dtype=np.float64))[None]))  # fmt: skip

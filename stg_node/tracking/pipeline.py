@@ -112,6 +112,7 @@ def _options_digest(options: TrackOptions) -> str:
             described[key] = {"name": Path(value).name, "sha256": sha256_file(Path(value)).hexdigest()}
     described["stg_node"] = stg_node.__version__
     described["format"] = CACHE_FORMAT
+    described["fit"] = asdict(FitConfig())  # new fit defaults (a silhouette term) track afresh
     return hashlib.sha256(json.dumps(described, sort_keys=True, default=str).encode()).hexdigest()
 
 

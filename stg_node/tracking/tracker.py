@@ -239,13 +239,21 @@ class Tracker:
         if scale != 1.0:
             # Back to full-resolution pixel centres.
             keypoints = replace(keypoints, xy=((keypoints.xy + 0.5) / scale - 0.5).astype(np.float32))
-        estimate = self.fit_keypoints(keypoints, timestamp, frame.shape)
+        masks: list[np.ndarray] = []
+        silhouette = None
+        if self.fitter.uses_silhouette:
+            # The mask is made at the keypoint fit's distance, then refines that fit.
+            def silhouette(fit: FitResult) -> np.ndarray:
+                masks.append(self._mask(frame, small, scale, keypoints, float(fit.Th[2])))
+                return self.intrinsics.undistort_mask(masks[0])
+
+        estimate = self.fit_keypoints(keypoints, timestamp, frame.shape, silhouette=silhouette)
         t_fit = time.perf_counter()
         self.times.fit = t_fit - t_detect
         if "too_few_keypoints" in estimate.flags:
             self.times.total = time.perf_counter() - t_start
             return estimate
-        mask = self._mask(frame, small, scale, keypoints, float(estimate.smpl.Th[2]))
+        mask = masks[0] if masks else self._mask(frame, small, scale, keypoints, float(estimate.smpl.Th[2]))
         factor, image_flags = self.checks.check(small, mask, keypoints, self.layout)
         estimate = replace(
             estimate,
@@ -265,16 +273,22 @@ class Tracker:
         self.smoother.reset()
         return self._hold(frame_shape, timestamp, flags)
 
-    def fit_keypoints(self, keypoints: Keypoints, timestamp: float, frame_shape) -> TrackEstimate:
+    def fit_keypoints(
+        self, keypoints: Keypoints, timestamp: float, frame_shape, *, silhouette=None
+    ) -> TrackEstimate:
         """The fit, smoothing and keypoint-based confidence of one frame's (full-resolution) keypoints,
         with an empty mask: what :meth:`estimate` does after detection, and what a second pass over
-        stored keypoints (another camera model, stg_node.tracking.focal) runs alone."""
+        stored keypoints (another camera model, stg_node.tracking.focal) runs alone. ``silhouette``:
+        a function from the keypoint fit to the person's (undistorted) mask, which then refines the
+        fit (fitting.SmplFitter.refine_with_mask)."""
         xy = self.intrinsics.undistort_points(keypoints.xy)
         fit = self.fitter.fit(keypoints, timestamp, xy_undistorted=xy)
         if fit is None:
             self.fitter.lose()
             self.smoother.reset()
             return self._hold(frame_shape, timestamp, ("too_few_keypoints",), keypoints)
+        if silhouette is not None:
+            fit = self.fitter.refine_with_mask(silhouette(fit), timestamp) or fit
         confidence, flags = self._confidence(keypoints, fit)
         self.fitter.add_calibration(fit, confidence)
         self._last_raw_rh = fit.Rh

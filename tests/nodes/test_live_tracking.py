@@ -20,7 +20,7 @@ from tests.tracking.trackhelpers import needs_blazepose
 def test_options_are_the_track_options_a_live_camera_leaves_open():
     ours = {f.name for f in dataclasses.fields(LiveTrackingParams)}
     library = {f.name for f in dataclasses.fields(TrackOptions)}
-    assert ours - {"max_gap_s"} <= library  # same names, same meaning
+    assert ours - {"max_gap_s", "silhouette_weight"} <= library  # same names, same meaning
     assert not ours & {"intrinsics", "fov_deg", "fps"}  # the camera comes with every frame
     for options, words in (
         ({"max_side": 10}, "max_side"),
