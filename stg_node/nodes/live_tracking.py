@@ -77,6 +77,18 @@ class LiveTrackingParams:
         if self.detector == "onnx" and not self.pose_model:
             raise ValueError("detector onnx needs pose_model (the .onnx file)")
 
+    def tracking_settings(self):
+        """(FitConfig, TrackOptions) these parameters stand for: the fit's own settings (the gap
+        that restarts it, the silhouette term) and the library's track options (the rest)."""
+        from stg_node.tracking.fitting import FitConfig
+        from stg_node.tracking.pipeline import TrackOptions
+
+        settings = asdict(self)
+        fit = FitConfig(
+            max_temporal_gap_s=settings.pop("max_gap_s"), silhouette_weight=settings.pop("silhouette_weight")
+        )
+        return fit, TrackOptions(**settings)
+
 
 class TrackingEstimator:
     """A PoseEstimator for the tracker node: one :class:`stg_node.tracking.Tracker` per camera setup."""
@@ -84,15 +96,9 @@ class TrackingEstimator:
     def __init__(self, **options):
         self.params = parse_params(LiveTrackingParams, options, where="tracker estimator_params")
         from stg_node.threads import configure_threads
-        from stg_node.tracking.fitting import FitConfig
-        from stg_node.tracking.pipeline import TrackOptions
 
         self.threads = configure_threads()
-        settings = asdict(self.params)
-        self.fit = FitConfig(
-            max_temporal_gap_s=settings.pop("max_gap_s"), silhouette_weight=settings.pop("silhouette_weight")
-        )
-        self.options = TrackOptions(**settings)
+        self.fit, self.options = self.params.tracking_settings()
         self.tracker = None
         self._camera_key: tuple | None = None
         self._last_index: int | None = None

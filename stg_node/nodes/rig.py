@@ -25,7 +25,7 @@ estimator's (:class:`~stg_node.nodes.live_tracking.LiveTrackingParams`).
 from __future__ import annotations
 
 import logging
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -83,20 +83,14 @@ class RigTrackingEstimator:
 
         self.params = parse_params(LiveTrackingParams, options, where="tracker estimator_params")
         from stg_node.threads import configure_threads
-        from stg_node.tracking.fitting import FitConfig
-        from stg_node.tracking.pipeline import TrackOptions
 
         if self.params.mask in ("plate", "depth"):
             raise ValueError(
                 f"mask {self.params.mask!r} is not available for a rig (segmentation, mog2, knn, none)"
             )
         self.threads = configure_threads()
-        settings = asdict(self.params)
         # The rig's multi-view fit has no silhouette term (the parameter is the single camera's).
-        self.fit = FitConfig(
-            max_temporal_gap_s=settings.pop("max_gap_s"), silhouette_weight=settings.pop("silhouette_weight")
-        )
-        self.options = TrackOptions(**settings)
+        self.fit, self.options = self.params.tracking_settings()
         self.tracker = None
         self._key: tuple | None = None
         self._last_index: int | None = None
