@@ -3,6 +3,7 @@ caller's PYTHONPATH (a GPU machine's gsplat lived there and the children lost it
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -14,9 +15,9 @@ from baseline import child_env  # noqa: E402
 
 
 def test_the_tree_comes_first_and_the_callers_entries_stay(monkeypatch, tmp_path):
-    monkeypatch.setenv("PYTHONPATH", f"/opt/a{':'}/opt/b")
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(["/opt/a", "/opt/b"]))
     env = child_env(tmp_path, STG_THREADS="1")
-    assert env["PYTHONPATH"].split(":") == [str(tmp_path), "/opt/a", "/opt/b"]
+    assert env["PYTHONPATH"].split(os.pathsep) == [str(tmp_path), "/opt/a", "/opt/b"]
     assert env["STG_THREADS"] == "1"
     monkeypatch.delenv("PYTHONPATH")
     assert child_env(tmp_path)["PYTHONPATH"] == str(tmp_path)
