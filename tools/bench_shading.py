@@ -42,6 +42,7 @@ CONFIGS = {
     "no_isometry": {"loss.isometry": 0.0},
     "sphere_init": {"model.init_flatness": 1.0},
     "no_joint_shrink": {"model.joint_shrink": False},
+    "occlusion": {"model.occlusion": True},  # plus what the body casts on itself (occlusion.py)
 }
 
 

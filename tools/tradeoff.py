@@ -89,11 +89,13 @@ class Subject:
     test_yaw_deg: float | None = None
     held_out_factor: int = 1
     title: str = ""
+    self_shadow: bool = False  # the body occludes its own light (stg-synth --self-shadow)
 
     def synth_options(self) -> dict:
         return {
             "motion": self.motion,
             "shading": self.shading,
+            "self_shadow": self.self_shadow,
             "test_motion": self.test_motion,
             "train_yaw_deg": self.train_yaw_deg,
             "test_yaw_deg": self.test_yaw_deg,
@@ -148,6 +150,17 @@ SUBJECTS = {
         test_motion="reach",
         held_out_factor=4,
         title="flat light, full turn in training, held out: arms folded far overhead (reach)",
+    ),
+    # What the body casts on itself (issue 21's ambient-occlusion term): trained on a full turn
+    # (every side seen under the room's light), held out dancing and crouching, arms across and in
+    # front of the torso, in poses the turn never showed.
+    "room_self_shadow": Subject(
+        "turn",
+        "room",
+        test_motion="dance,crouch",
+        held_out_factor=2,
+        self_shadow=True,
+        title="room light with self-shadowing, full turn in training, held out: dance / crouch",
     ),
 }
 
@@ -357,6 +370,7 @@ CONDITIONS = (
     "room_facing",
     "room_new_motions",
     "flat_reach",
+    "room_self_shadow",
 )
 # The colour as it was before shading (issue 21): the light baked in, spherical initial Gaussians,
 # no cap on their scale ratio, no isometry term, no joint shrink.
@@ -396,6 +410,14 @@ NEEDLE_ABLATIONS = (
     ),
     ("room_turn_held_out", "no_joint_shrink", "no joint shrink", {"model.joint_shrink": False}),
 )
+# The body's ambient-occlusion term (occlusion.py) switched on, on the subject that casts shadows on
+# itself and on the conditions without self-shadowing (it must not cost there).
+OCCLUSION = {"model.occlusion": True}
+OCCLUSION_ABLATIONS = (
+    ("room_self_shadow", "occlusion", "with the ambient-occlusion term", OCCLUSION),
+    ("room_turn_held_out", "occlusion", "with the ambient-occlusion term", OCCLUSION),
+    ("flat_turn_held_out", "occlusion", "with the ambient-occlusion term", OCCLUSION),
+)
 
 
 def condition_rows(base: str) -> list[Configuration]:
@@ -426,17 +448,18 @@ def condition_rows(base: str) -> list[Configuration]:
                 changes,
             )
         )
-    for subject, suffix, label, changes in NEEDLE_ABLATIONS:
-        rows.append(
-            Configuration(
-                f"{subject}_{suffix}",
-                f"{SUBJECTS[subject].title}: {label}",
-                "needles",
-                subject,
-                base,
-                changes,
+    for group, ablations in (("needles", NEEDLE_ABLATIONS), ("occlusion", OCCLUSION_ABLATIONS)):
+        for subject, suffix, label, changes in ablations:
+            rows.append(
+                Configuration(
+                    f"{subject}_{suffix}",
+                    f"{SUBJECTS[subject].title}: {label}",
+                    group,
+                    subject,
+                    base,
+                    changes,
+                )
             )
-        )
     return rows
 
 
@@ -464,7 +487,15 @@ def ensure_subject(cache: Path, subject: str, scale: Scale, seed: int = 0, fresh
     out = subject_folder(cache, subject, scale, seed)
     try:
         meta = read_metadata(out)
-        wanted = (spec.motion, frames, [scale.size, scale.size], scale.view_every, seed, spec.shading)
+        wanted = (
+            spec.motion,
+            frames,
+            [scale.size, scale.size],
+            scale.view_every,
+            seed,
+            spec.shading,
+            spec.self_shadow,
+        )
         found = (
             meta["motion"],
             meta["num_frames"],
@@ -472,6 +503,7 @@ def ensure_subject(cache: Path, subject: str, scale: Scale, seed: int = 0, fresh
             meta["view_every"],
             meta["seed"],
             meta["shading"]["mode"],
+            "self_shadow" in meta["shading"],
         )
         held = meta.get("held_out") or {}
         same_held_out = (
@@ -509,6 +541,8 @@ def subject_text(name: str, scale: Scale) -> str:
     spec = SUBJECTS[name]
     frames, fraction = subject_frames(name, scale)
     options = [f"--motion {spec.motion}", f"--shading {spec.shading}", f"--frames {frames}"]
+    if spec.self_shadow:
+        options.append("--self-shadow")
     if fraction != 0.8:
         options.append(f"--train-fraction {fraction:g}")
     if spec.test_motion:

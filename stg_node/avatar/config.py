@@ -33,6 +33,7 @@ PREDATING_DEFAULTS = {
         "max_scale_ratio": 0.0,
         "motion_basis": 0,
         "joint_shrink": False,
+        "occlusion": False,
     },
     "loss": {"isometry": 0.0},
     "densify": {"flow_seed_missed": False, "motion_min_px": 0.0},
@@ -80,6 +81,9 @@ class ModelConfig:
     # A Gaussian between bones that bend apart shrinks as linear blend skinning squeezes the surface
     # there (rigid.joint_shrink), instead of keeping its size and sticking out of a folded joint.
     joint_shrink: bool = True
+    # What the body casts on itself (occlusion.py): with shading, the irradiance times the share of
+    # each Gaussian's sky the posed body (spheres fitted to it) leaves open, at a learned strength.
+    occlusion: bool = False
 
     def validate(self) -> None:
         if self.light_model not in LIGHT_MODELS:

@@ -165,7 +165,9 @@ class AvatarModel(nn.Module):
         self.skeleton = skeleton
         self.register_buffer("bounds", bounds.float().clone())  # (2, 3) canonical body box
         self.color_mlp = ColorMLP(config, bounds) if config.color == "mlp" else None
-        self.shading = Shading(config.light_model, config.light_count) if config.shading else None
+        self.shading = (
+            Shading(config.light_model, config.light_count, config.occlusion) if config.shading else None
+        )
         self.time_axis = time_axis or TimeAxis(unit_s=config.time_unit_s)
         self.pose_index = pose_index or PoseTimeIndex()
         self.motion_bases = (
@@ -388,7 +390,13 @@ class AvatarModel(nn.Module):
             root = None
             if light is not None and light.mode == "baked":
                 root = lbs.axis_angle_to_matrix(body.Rh[0]) @ lbs.axis_angle_to_matrix(body.poses[0, 0])
-            colors = self.shading(colors, normals, light, root)
+            visible = None
+            if self.shading.occlusion is not None:  # what the posed body casts on each Gaussian
+                bone = table["skin_weights"].detach().argmax(dim=1)
+                visible = self.shading.occlusion.visibility(
+                    means, normals, bone if index is None else bone[index], bones.transforms[0]
+                )
+            colors = self.shading(colors, normals, light, root, visible)
         return PosedGaussians(means, quats, scales, rows(opacity), colors, index, canonical)
 
     def _skin(self, canonical, bones: PosedBones, local_quats, camera_center, rows, blend_norms=False):

@@ -62,6 +62,7 @@ from torch import nn
 from stg_node.avatar import kernels
 from stg_node.avatar.color import SH_C0, sh_basis
 from stg_node.avatar.config import LIGHT_MODELS
+from stg_node.avatar.occlusion import BodyOcclusion
 
 SH_BANDS = 9  # second order: l = 0, 1, 2
 KERNEL = (math.pi,) + (2.0 * math.pi / 3.0,) * 3 + (math.pi / 4.0,) * 5  # clamped cosine, per coefficient
@@ -302,13 +303,15 @@ class DistantLights(nn.Module):
 
 class Shading(nn.Module):
     """The learned light (``light_model``: ``distant`` lights or ``sh``) and the mean training
-    orientation the ``baked`` mode carries it along from."""
+    orientation the ``baked`` mode carries it along from; with ``occlusion``, what the body casts
+    on itself (occlusion.BodyOcclusion: its spheres are fitted by the trainer)."""
 
-    def __init__(self, light_model: str = "distant", light_count: int = 2):
+    def __init__(self, light_model: str = "distant", light_count: int = 2, occlusion: bool = False):
         super().__init__()
         if light_model not in LIGHT_MODELS:
             raise ValueError(f"light_model must be one of {', '.join(LIGHT_MODELS)}, got {light_model!r}")
         self.light = DistantLights(light_count) if light_model == "distant" else SHLight()
+        self.occlusion = BodyOcclusion() if occlusion else None
         self.register_buffer("reference", torch.eye(3))  # mean training root orientation (world)
         self.register_buffer("orientation_sum", torch.zeros(3, 3))  # of the frames seen so far
 
@@ -332,14 +335,18 @@ class Shading(nn.Module):
         normals: torch.Tensor,
         light: LightSpec | None = None,
         root_rotation: torch.Tensor | None = None,
+        visible: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """Shaded colours (M, 3) of ``albedo`` (M, 3) with world ``normals`` (M, 3) under ``light``.
 
         ``root_rotation`` (3, 3): the body's world orientation this frame (the ``baked`` mode).
+        ``visible`` (M,): the share of each Gaussian's sky the body leaves open (occlusion.py).
         """
         mode = "learned" if light is None else light.mode
         if mode == "albedo":
             return albedo
+        if visible is not None and self.occlusion is not None:
+            albedo = albedo * self.occlusion.factor(visible)
         if mode == "given":
             return albedo * light.irradiance(normals)
         if mode == "baked":

@@ -203,6 +203,8 @@ class Trainer:
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(int(torch.randint(1 << 62, (1,), generator=gen)))
             model = AvatarModel(cfg, table, skeleton, bounds, axis)
+        if model.shading is not None and model.shading.occlusion is not None:
+            model.shading.occlusion.fit(vertices.cpu(), self.body.weights.cpu(), skeleton.parent_list)
         self.attach_model(model, betas)
         self._build_optimizer()
         self.densify_state = self.densifier.initialize_state(self.model)
@@ -251,6 +253,8 @@ class Trainer:
             dense["pose"] = ([self.pose_deltas], c.lr_pose)
         if self.model.shading is not None:
             dense["light"] = (list(self.model.shading.light.parameters()), c.lr_light)
+            if self.model.shading.occlusion is not None:  # its strength learns with the light
+                dense["light"][0].extend(self.model.shading.occlusion.parameters())
         self.optimizer = TableOptimizer(self.model.table, lrs, dense)
 
     def _cover_time(self, u: float) -> None:

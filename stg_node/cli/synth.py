@@ -1,7 +1,8 @@
 """``stg-synth``: generate the synthetic benchmark (ground truth images, masks, SMPL, vertices; ZJU layout).
 
     stg-synth --out DIR [--seed S --frames N --size PX --motion NAME --views C --view-every K ...]
-              [--shading lambert|none|room|environment] [--test-motion NAMES] [--train-yaw DEG --test-yaw DEG]
+              [--shading lambert|none|room|environment] [--self-shadow]
+              [--test-motion NAMES] [--train-yaw DEG --test-yaw DEG]
 
 See docs/SYNTH.md for what is rendered, the garment model, the cameras and splits, and the layout.
 Exit 2 for bad usage (an invalid option value, an --out that holds other files without
@@ -78,6 +79,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="lighting (default %(default)s: a light fixed in the body frame, turning with it; "
         "none: albedo only; room: a light fixed in the world; environment: several coloured lights "
         "fixed in the world)",
+    )
+    parser.add_argument(
+        "--self-shadow",
+        action="store_true",
+        help="the body occludes its own light: ambient occlusion from the posed body on the ambient "
+        "light, shadows of the distant lights (about 1.3 s per frame more; docs/SYNTH.md)",
     )
     parser.add_argument(
         "--test-motion",
@@ -163,6 +170,7 @@ def run(args: argparse.Namespace) -> int:
         train_fraction=args.train_fraction,
         supersample=args.supersample,
         shading=args.shading,
+        self_shadow=args.self_shadow,
         test_motion=args.test_motion,
         train_yaw_deg=args.train_yaw,
         test_yaw_deg=args.test_yaw,

@@ -28,6 +28,7 @@ from stg_node.data.synth.garment import GarmentParams, garment_regions, simulate
 from stg_node.data.synth.lighting import AMBIENT, DIFFUSE, LIGHT_DIRECTION_BODY, SHADING_MODES, lighting
 from stg_node.data.synth.mesh_raster import TexturedMesh, render_mesh
 from stg_node.data.synth.motions import DEFAULT_MOTION, MOTIONS, held_out_motions, make_motion
+from stg_node.data.synth.occlusion import DEFAULT_DIRECTIONS, DEFAULT_TEXEL_M
 from stg_node.data.synth.split_distances import held_out_distances, summarise
 from stg_node.progress import progress as progress_bar
 
@@ -53,6 +54,7 @@ class SynthConfig:
     train_fraction: float = 0.8  # the first frames train; the rest are held-out (novel) poses
     supersample: int = 2
     shading: str = "lambert"  # lighting.SHADING_MODES: lambert (turns with the body), none, room, environment
+    self_shadow: bool = False  # the body occludes its own light (ambient occlusion, shadows: occlusion.py)
     # Held-out poses and orientations (motions.make_motion): the held-out frames' motion(s), e.g.
     # "crouch,arms_up" (None: a fresh draw of the training motion); the training frames' window of
     # orientations in degrees (None: at least one full turn); the held-out frames' turn from it.
@@ -199,17 +201,24 @@ def _clips(num_frames: int, cuts: tuple[int, ...]) -> list[tuple[int, int]]:
     return [(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True) if b > a]
 
 
-def _shading_record(light) -> dict:
+def _shading_record(light, self_shadow: bool = False) -> dict:
     """synth.json's ``shading``: the mode and its lights (the keys earlier versions wrote for
-    ``lambert`` and ``none`` are kept as they were)."""
+    ``lambert`` and ``none`` are kept as they were); ``self_shadow`` only where it is on."""
     if light.mode in ("lambert", "none"):
-        return {
+        record = {
             "mode": light.mode,
             "light_direction_body": LIGHT_DIRECTION_BODY.tolist(),
             "ambient": AMBIENT,
             "diffuse": DIFFUSE,
         }
-    return light.to_dict()
+    else:
+        record = light.to_dict()
+    if self_shadow and light.lit:
+        record["self_shadow"] = {
+            "ambient_occlusion_directions": DEFAULT_DIRECTIONS,
+            "texel_m": DEFAULT_TEXEL_M,
+        }
+    return record
 
 
 def _held_out_record(config: SynthConfig, motion, n_train: int) -> dict:
@@ -328,7 +337,7 @@ def generate(config: SynthConfig, body=None, progress: bool = True) -> SynthResu
                 pending.append(pool.submit(writer.write_frame_vertices, out, frame, gt_vertices[frame]))
                 t0 = time.perf_counter()
                 verts = torch.from_numpy(gt_vertices[frame])
-                shade = light.vertex_shade(verts, mesh.faces, motion.Rh[frame])
+                shade = light.vertex_shade(verts, mesh.faces, motion.Rh[frame], config.self_shadow)
                 for k in cams:
                     result = render_mesh(
                         mesh,
@@ -367,7 +376,7 @@ def generate(config: SynthConfig, body=None, progress: bool = True) -> SynthResu
         "size": [int(config.size), int(config.size)],
         "image_format": "png",
         "supersample": int(config.supersample),
-        "shading": _shading_record(light),
+        "shading": _shading_record(light, config.self_shadow),
         "held_out": _held_out_record(config, motion, n_train),
         "world": {"up": [0.0, 0.0, 1.0], "floor_z": 0.0, "units": "metres"},
         "body": {

@@ -19,7 +19,10 @@ the lights are:
   ambient that is brighter on surfaces facing up: a lit room rather than one lamp.
 
 Lights are distant (directional): the same at every point of the body, as the low-order
-spherical-harmonic lighting the avatar learns assumes. The body does not shadow itself.
+spherical-harmonic lighting the avatar learns assumes. By default the body does not shadow
+itself; with ``self_shadow`` (``stg-synth --self-shadow``, :mod:`occlusion`) the ambient term and
+the sky are multiplied by each vertex's ambient occlusion from the posed body and every light's
+term by whether the body is in its way.
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ import numpy as np
 import torch
 
 from stg_node.data.synth.mesh_raster import vertex_normals
+from stg_node.data.synth.occlusion import ambient_occlusion, visibility
 from stg_node.data.synth.rotations import axis_angle_to_matrix
 
 SHADING_MODES = ("lambert", "none", "room", "environment")
@@ -91,9 +95,12 @@ class Lighting:
         ]
 
     def vertex_shade(
-        self, vertices: torch.Tensor, faces: torch.Tensor, Rh: np.ndarray
+        self, vertices: torch.Tensor, faces: torch.Tensor, Rh: np.ndarray, self_shadow: bool = False
     ) -> torch.Tensor | None:
-        """Per-vertex shade (V,) or (V, 3) of the deformed surface ``vertices`` (V, 3); None when unlit."""
+        """Per-vertex shade (V,) or (V, 3) of the deformed surface ``vertices`` (V, 3); None when unlit.
+
+        ``self_shadow``: the body occludes itself (ambient occlusion on the ambient term and the
+        sky, a shadow on each light: :mod:`occlusion`)."""
         if not self.lit:
             return None
         normals = vertex_normals(vertices, faces)
@@ -102,8 +109,12 @@ class Lighting:
         shade += torch.as_tensor(self.ambient[:channels], dtype=torch.float32)
         if self.sky:
             shade += self.sky * normals[:, 2:3]
+        if self_shadow:
+            shade *= ambient_occlusion(vertices, normals, vertices, faces)[:, None]
         for light, direction in zip(self.lights, self.world_directions(Rh), strict=True):
             cosine = (normals @ torch.as_tensor(direction, dtype=torch.float32)).clamp(min=0.0)
+            if self_shadow:
+                cosine = cosine * visibility(vertices, normals, vertices, faces, direction)
             shade += cosine[:, None] * torch.as_tensor(light.color[:channels], dtype=torch.float32)
         return shade[:, 0] if channels == 1 else shade
 
