@@ -37,17 +37,40 @@ def test_directions_cover_the_sphere_evenly():
     assert (dirs[:, 2] > 0).mean() == pytest.approx(0.5, abs=0.01)
 
 
+def _polygon_form_factor(point, normal, corners) -> float:
+    """Lambert's closed form: the share of a differential area's cosine-weighted hemisphere that a
+    planar polygon above its horizon covers, ``(1 / 2 pi) sum_i g_i n . (R_i x R_i+1) / |R_i x R_i+1|``
+    with ``R_i`` the vectors to the corners and ``g_i`` the angle between consecutive ones."""
+    rays = np.asarray(corners, np.float64) - np.asarray(point, np.float64)
+    total = 0.0
+    for a, b in zip(rays, np.roll(rays, -1, axis=0), strict=True):
+        cross = np.cross(a, b)
+        angle = math.atan2(np.linalg.norm(cross), a @ b)
+        total += angle * (np.asarray(normal) @ cross) / np.linalg.norm(cross)
+    return abs(total) / (2.0 * math.pi)
+
+
 @pytest.mark.parametrize("distance, height", [(0.5, 1.0), (0.2, 1.0), (1.0, 0.5), (0.3, 3.0)])
-def test_floor_point_beside_a_long_wall_sees_the_closed_form_sky(distance, height):
-    """A point on the floor (normal up) at ``distance`` from a wall of ``height``, long in both
-    directions: the wall's form factor is ``(1 - a / sqrt(a^2 + H^2)) / 2`` (an infinitely long
-    strip seen from a plane element: ``(sin phi2 - sin phi1) / 2``), the rest of the sky is open."""
-    wall, faces = _box(distance, distance + 0.1, -8.0, 8.0, -0.05, height)
+def test_floor_point_beside_a_wall_sees_the_closed_form_sky(distance, height):
+    """A point on the floor (normal up) at ``distance`` from a wall 3 m long and ``height`` high:
+    the wall covers its polygon form factor (Lambert's formula), the rest of the sky is open."""
+    corners = [(distance, -1.5, 0.0), (distance, 1.5, 0.0), (distance, 1.5, height), (distance, -1.5, height)]
+    wall = torch.tensor(corners, dtype=torch.float64)
+    faces = torch.tensor([[0, 1, 2], [0, 2, 3]])
     point = torch.zeros(1, 3, dtype=torch.float64)
     up = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)
-    expected = 1.0 - 0.5 * (1.0 - distance / math.hypot(distance, height))
-    got = float(ambient_occlusion(point, up, wall, faces, directions=300, texel_m=0.03)[0])
+    expected = 1.0 - _polygon_form_factor((0, 0, 0), (0, 0, 1), corners)
+    got = float(ambient_occlusion(point, up, wall, faces, directions=400, texel_m=0.02)[0])
     assert got == pytest.approx(expected, abs=0.03)
+
+
+def test_the_polygon_form_factor_of_a_long_wall_is_the_infinite_strips():
+    """The closed form of the test above against the one of an infinitely long wall,
+    ``(1 - a / sqrt(a^2 + H^2)) / 2``: a 200 m wall is the same to 1e-4."""
+    corners = [(0.5, -100, 0), (0.5, 100, 0), (0.5, 100, 1.0), (0.5, -100, 1.0)]
+    assert _polygon_form_factor((0, 0, 0), (0, 0, 1), corners) == pytest.approx(
+        0.5 * (1 - 0.5 / math.hypot(0.5, 1.0)), abs=1e-4
+    )
 
 
 def test_a_convex_body_does_not_occlude_itself_and_a_cavity_does():
