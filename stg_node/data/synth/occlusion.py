@@ -61,6 +61,66 @@ def _frame(direction: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return d, u, np.cross(d, u)
 
 
+def visibility_many(
+    points: torch.Tensor,
+    normals: torch.Tensor,
+    vertices: torch.Tensor,
+    faces: torch.Tensor,
+    directions,
+    texel_m: float = DEFAULT_TEXEL_M,
+) -> torch.Tensor:
+    """(K, P) bool: whether a distant light in each of ``directions`` (K, 3; towards the light)
+    reaches each of ``points`` (P, 3) with unit ``normals`` (P, 3), past the mesh ``vertices``
+    (V, 3) / ``faces`` (F, 3). Points whose normal faces away from a light are not lit by it.
+
+    The K depth maps are tiles of one atlas, rasterized in one call (one call per direction
+    spent most of its time in per-call overhead)."""
+    dirs = np.asarray(directions, np.float64).reshape(-1, 3)
+    verts = vertices.to(torch.float64)
+    pts = points.to(torch.float64)
+    nrm = normals.to(torch.float64)
+    both = torch.cat([verts, pts])
+    frames = [_frame(w) for w in dirs]
+    d = torch.as_tensor(np.stack([f[0] for f in frames]))  # (K, 3)
+    u = torch.as_tensor(np.stack([f[1] for f in frames]))
+    v = torch.as_tensor(np.stack([f[2] for f in frames]))
+    bu, bv, bd = both @ u.T, both @ v.T, both @ d.T  # (V + P, K)
+    lo_u, lo_v = bu.min(dim=0).values, bv.min(dim=0).values
+    span = torch.maximum(bu.max(dim=0).values - lo_u, bv.max(dim=0).values - lo_v)
+    texel = torch.clamp(span / (MAX_GRID - 4), min=texel_m)  # (K,)
+    tile = int(math.ceil(float((span / texel).max()))) + 3  # square tiles, side by side in x
+    top = bd.max(dim=0).values + _DEPTH_OFFSET
+    k = torch.arange(dirs.shape[0], dtype=torch.float64)
+
+    def screen(x):  # (N, 3) -> (K, N, 2) atlas coordinates, (K, N) depths
+        col = (x @ u.T - lo_u) / texel + 1.0 + k * tile
+        row = (x @ v.T - lo_v) / texel + 1.0
+        return torch.stack([col.T, row.T], dim=2), (top - x @ d.T).T
+
+    xy, depth_v = screen(verts)
+    count, nv = dirs.shape[0], verts.shape[0]
+    all_faces = (faces.long()[None] + nv * torch.arange(count)[:, None, None]).reshape(-1, 3)
+    width = count * tile
+    frags = rasterize(xy.reshape(-1, 2), depth_v.reshape(-1), all_faces, tile, width)
+    # orthographic depth is affine in the image: from the perspective-correct barycentrics b_i of
+    # the nearest triangle, the screen-space ones are b_i z_i / sum b_j z_j, so z = sum b z^2 / sum b z
+    z = depth_v.reshape(-1)[all_faces[frags.triangle]]
+    b = frags.bary.to(torch.float64)
+    zbuffer = torch.full((tile * width,), math.inf, dtype=torch.float64)
+    zbuffer[frags.samples] = (b * z * z).sum(1) / (b * z).sum(1)
+    # each point moved off its surface by a texel, compared with a slope-scaled bias
+    cosine = (nrm @ d.T).T  # (K, P)
+    moved = pts[None] + nrm[None] * texel[:, None, None]  # (K, P, 3)
+    col = ((moved * u[:, None]).sum(2) - lo_u[:, None]) / texel[:, None] + 1.0
+    row = ((moved * v[:, None]).sum(2) - lo_v[:, None]) / texel[:, None] + 1.0
+    col = col.round().long().clamp(0, tile - 1) + (k.long() * tile)[:, None]
+    row = row.round().long().clamp(0, tile - 1)
+    depth = top[:, None] - (moved * d[:, None]).sum(2)
+    slope = torch.sqrt((1.0 - cosine.square()).clamp_min(0.0)) / cosine.clamp_min(1e-3)
+    bias = texel[:, None] * (1.0 + slope).clamp(max=_MAX_BIAS_TEXELS)
+    return (depth <= zbuffer[row * width + col] + bias) & (cosine > 0)
+
+
 def visibility(
     points: torch.Tensor,
     normals: torch.Tensor,
@@ -69,42 +129,8 @@ def visibility(
     direction,
     texel_m: float = DEFAULT_TEXEL_M,
 ) -> torch.Tensor:
-    """(P,) bool: whether a distant light in ``direction`` (towards the light) reaches each of
-    ``points`` (P, 3) with unit ``normals`` (P, 3), past the mesh ``vertices`` (V, 3) / ``faces``
-    (F, 3). Points whose normal faces away from the light are not lit (False)."""
-    d, u, v = (torch.as_tensor(a, dtype=torch.float64) for a in _frame(direction))
-    verts = vertices.to(torch.float64)
-    pts = points.to(torch.float64)
-    nrm = normals.to(torch.float64)
-    cosine = nrm @ d
-    both = torch.cat([verts, pts])
-    lo_u, hi_u = float((both @ u).min()), float((both @ u).max())
-    lo_v, hi_v = float((both @ v).min()), float((both @ v).max())
-    texel = max(texel_m, (hi_u - lo_u) / (MAX_GRID - 4), (hi_v - lo_v) / (MAX_GRID - 4))
-    width = int(math.ceil((hi_u - lo_u) / texel)) + 3
-    height = int(math.ceil((hi_v - lo_v) / texel)) + 3
-    top = float((both @ d).max()) + _DEPTH_OFFSET
-
-    def screen(x):
-        return torch.stack([(x @ u - lo_u) / texel + 1.0, (x @ v - lo_v) / texel + 1.0], dim=1)
-
-    depth_v = top - verts @ d
-    frags = rasterize(screen(verts), depth_v, faces, height, width)
-    # orthographic depth is affine in the image: from the perspective-correct barycentrics b_i of
-    # the nearest triangle, the screen-space ones are b_i z_i / sum b_j z_j, so z = sum b z^2 / sum b z
-    z = depth_v[faces.long()[frags.triangle]]
-    b = frags.bary.to(torch.float64)
-    zbuffer = torch.full((height * width,), math.inf, dtype=torch.float64)
-    zbuffer[frags.samples] = (b * z * z).sum(1) / (b * z).sum(1)
-    # the point moved off its surface by a texel, compared with a slope-scaled bias
-    moved = pts + nrm * texel
-    xy = screen(moved).round().long()
-    col = xy[:, 0].clamp(0, width - 1)
-    row = xy[:, 1].clamp(0, height - 1)
-    depth = top - moved @ d
-    slope = torch.sqrt((1.0 - cosine.square()).clamp_min(0.0)) / cosine.clamp_min(1e-3)
-    bias = texel * (1.0 + slope).clamp(max=_MAX_BIAS_TEXELS)
-    return (depth <= zbuffer[row * width + col] + bias) & (cosine > 0)
+    """(P,) bool: :func:`visibility_many` for one direction."""
+    return visibility_many(points, normals, vertices, faces, [direction], texel_m)[0]
 
 
 def ambient_occlusion(
@@ -114,21 +140,21 @@ def ambient_occlusion(
     faces: torch.Tensor,
     directions: int | np.ndarray = DEFAULT_DIRECTIONS,
     texel_m: float = DEFAULT_TEXEL_M,
+    batch: int = 8,
 ) -> torch.Tensor:
     """(P,) float32 in [0, 1]: the cosine-weighted fraction of each point's hemisphere from which
     the mesh is not seen (1: nothing in the way; module doc). ``directions``: how many (a
-    Fibonacci set) or the (K, 3) unit directions themselves."""
+    Fibonacci set) or the (K, 3) unit directions themselves; ``batch`` depth maps per atlas."""
     dirs = (
         sphere_directions(directions) if isinstance(directions, int) else np.asarray(directions, np.float64)
     )
     nrm = normals.to(torch.float64)
     lit = torch.zeros(points.shape[0], dtype=torch.float64)
     total = torch.zeros(points.shape[0], dtype=torch.float64)
-    for w in dirs:
-        weight = (nrm @ torch.as_tensor(w, dtype=torch.float64)).clamp_min(0.0)
-        if not bool((weight > 0).any()):
-            continue
-        seen = visibility(points, normals, vertices, faces, w, texel_m)
-        lit += weight * seen
-        total += weight
+    for lo in range(0, dirs.shape[0], batch):
+        chunk = dirs[lo : lo + batch]
+        weight = (nrm @ torch.as_tensor(chunk, dtype=torch.float64).T).clamp_min(0.0)  # (P, k)
+        seen = visibility_many(points, normals, vertices, faces, chunk, texel_m)  # (k, P)
+        lit += (weight * seen.T).sum(1)
+        total += weight.sum(1)
     return torch.where(total > 0, lit / total.clamp_min(1e-12), torch.ones_like(total)).to(torch.float32)
