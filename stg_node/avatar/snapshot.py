@@ -7,7 +7,8 @@ The trainer node publishes exactly what ``stg-train`` saves: a GaussianSnapshot 
 - ``mlp.<name>``: the colour MLP's weights (colour mode "mlp");
 - ``shading.<name>``: the learned light (``shading.light.*``: an ambient term and distant lights,
   or SH coefficients) and the mean training orientation (``shading.reference``,
-  ``shading.orientation_sum``), shading mode "sh";
+  ``shading.orientation_sum``), shading mode "sh"; with ``model.occlusion`` the body's occluder
+  spheres and the term's strength (``shading.occlusion.*``: occlusion.py);
 - ``motion.bases`` (B, K, 3, 4): the shared affine motion bases at their K knots (``model.motion_basis``
   > 0; motion_basis.py), ``motion.knot_ids`` (K,): each knot's grid index less the first one's,
   which ``meta["motion.first_knot"]`` holds (a bounded trainer drops knots no held frame needs;
