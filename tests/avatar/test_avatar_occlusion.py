@@ -161,3 +161,31 @@ def test_a_trained_model_with_occlusion_renders_the_same_after_a_snapshot(tiny_f
         bright = model.pose(body, 0.0, camera.center).colors
         model.shading.occlusion = model_off
     assert bool((dark <= bright + 1e-6).all()) and float((bright - dark).max()) > 0.05
+
+
+def test_the_spheres_agree_with_the_bodys_own_ambient_occlusion():
+    """A second implementation: the sphere proxy's visible share at the open body's vertices against
+    the mesh's ambient occlusion by depth maps (stg_node.data.synth.occlusion), arms lowered so that
+    they stand beside the torso."""
+    from stg_node.body import load_body_model
+    from stg_node.data.synth.mesh_raster import vertex_normals
+    from stg_node.data.synth.occlusion import ambient_occlusion
+
+    body = load_body_model()
+    poses = torch.zeros(1, 72)
+    poses[0, 16 * 3 + 2] = -1.2  # left shoulder down
+    poses[0, 17 * 3 + 2] = 1.2  # right shoulder down
+    with torch.no_grad():
+        posed = body(betas=torch.zeros(1, 10), poses=poses, Rh=torch.zeros(1, 3), Th=torch.zeros(1, 3))
+        rest = body(
+            betas=torch.zeros(1, 10), poses=torch.zeros(1, 72), Rh=torch.zeros(1, 3), Th=torch.zeros(1, 3)
+        )
+    faces = torch.as_tensor(np.asarray(body.faces)).long()
+    vertices = posed.vertices[0].float()
+    normals = vertex_normals(vertices, faces)
+    occ = BodyOcclusion()
+    occ.fit(rest.vertices[0], body.weights, [int(p) for p in body.parents])
+    # fitted to the rest mesh, posed by the bones' rest -> world transforms
+    visible = occ.visibility(vertices, normals, body.weights.argmax(dim=1), posed.bone_transforms[0].float())
+    truth = ambient_occlusion(vertices, normals, vertices, faces, directions=32)
+    assert np.corrcoef(truth.numpy(), visible.numpy())[0, 1] > 0.5
