@@ -278,7 +278,45 @@ def _device_args(device: str, trainer: bool = True) -> dict:
     return {"device": device, "backend": "cuda"} if trainer else {"backend": "cuda"}
 
 
-WORKERS = {"step": worker_step, "render": worker_render}
+def worker_quality(spec: dict) -> dict:
+    """The same result: a fast-preset model trained at the mid scale of tools/tradeoff.py (256 px,
+    iterations / 3, Gaussian budgets / 2) on the benchmark's training frames, seed 0, scored on its
+    held-out views; ``changes``: config keys set on top (only the ones this tree knows)."""
+    import dataclasses
+
+    from tradeoff import SCALES, scaled
+
+    from stg_node.avatar import Trainer, preset
+    from stg_node.avatar.data_spec import DataSpec
+    from stg_node.avatar.evaluate import evaluate_trainer
+
+    scale = SCALES[spec["scale"]]
+    config = scaled(preset("fast"), scale)
+    known = {}
+    for key, value in spec.get("changes", {}).items():
+        group, _, name = key.rpartition(".")
+        fields = {f.name for f in dataclasses.fields(getattr(config, group) if group else config)}
+        if name in fields:
+            known[key] = value
+    config = config.replace(**known)
+    trainer = Trainer(config, seed=0)
+    trainer.add_frames(DataSpec(spec["data"], "synthetic", size=scale.size).open("train"))
+    started = time.thread_time()
+    for _ in range(config.iterations):
+        trainer.step()
+    train_s = time.thread_time() - started
+    scores = evaluate_trainer(trainer, spec["data"], split="novel_view", lpips_net=None)
+    return {
+        "psnr": scores["psnr"],
+        "ssim": scores["ssim"],
+        "train_cpu_s": train_s,
+        "iterations": config.iterations,
+        "gaussians": trainer.model.table.num,
+        "applied": known,
+    }
+
+
+WORKERS = {"step": worker_step, "render": worker_render, "quality": worker_quality}
 
 
 def run_worker(spec_text: str, root: str) -> None:
