@@ -37,7 +37,7 @@ except (OSError, AttributeError):  # pragma: no cover - not glibc
     _prctl = None
 
 
-def _die_with_parent(launcher_pid: int, nice: int = 0) -> None:
+def _prepare_child(launcher_pid: int, nice: int = 0) -> None:
     """preexec_fn (in the child, between fork and exec): SIGTERM when the launcher dies, and exit
     now if it already has (then the death signal would never come). ``nice``: lower the child's CPU
     priority before exec, so every thread it starts inherits it (Linux keeps a niceness per thread:
@@ -129,7 +129,7 @@ class ChildProcess:
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             start_new_session=True,
-            preexec_fn=functools.partial(_die_with_parent, os.getpid(), self.nice),
+            preexec_fn=functools.partial(_prepare_child, os.getpid(), self.nice),
         )
         self.runs.append(RunRecord(self.popen.pid, time.monotonic()))
         if self.guard is not None:

@@ -93,8 +93,7 @@ class NodeEntry:
         min=0,
         max=19,
         doc="CPU niceness added to the process and every thread it starts (0: as the launcher; "
-        "19: runs only on time the others leave): background work such as a trainer beside a live "
-        "renderer",
+        "19: the smallest share of a busy CPU): background work, e.g. a trainer beside a live renderer",
     )
     cwd: str | None = param(None, doc="working folder (default: where stg-launch runs)")
     if_: bool = param(True, doc="(written `if:`) start the node only if true")
