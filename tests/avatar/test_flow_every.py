@@ -4,8 +4,10 @@ with the flow term on every step."""
 
 from __future__ import annotations
 
+import pytest
 from avatar_helpers import held_out_psnr, small_config
 
+from stg_node.avatar.config import TrainConfig
 from stg_node.avatar.trainer import Trainer
 
 
@@ -14,7 +16,12 @@ def test_the_flow_term_comes_every_kth_step_and_on_every_flow_round(tiny_frames)
     steps 0, 3, 6, ... and on 20, 27, 34, ..., on no other; at k times the configured weight."""
     config = small_config(
         iterations=60,
-        **{"loss.flow_every": 3, "loss.adaptive": False, "densify.start_iter": 20, "densify.flow_interval": 7},
+        **{
+            "loss.flow_every": 3,
+            "loss.adaptive": False,
+            "densify.start_iter": 20,
+            "densify.flow_interval": 7,
+        },
     )
     trainer = Trainer(config, seed=0)
     trainer.add_frames(tiny_frames)
@@ -45,3 +52,12 @@ def test_training_with_the_flow_term_every_4th_step_scores_like_every_step(tiny_
         scores[every] = held_out_psnr(trainer, tiny_synth)
     assert scores[1] > 18.0
     assert abs(scores[4] - scores[1]) <= 0.1, scores
+
+
+def test_a_config_stored_before_the_setting_reads_it_as_every_step_and_bad_values_are_refused():
+    stored = TrainConfig().to_dict()
+    assert stored["loss"]["flow_every"] == 4  # today's default
+    del stored["loss"]["flow_every"]
+    assert TrainConfig.from_dict(stored).loss.flow_every == 1  # what that run trained with
+    with pytest.raises(ValueError, match="loss.flow_every must be >= 1"):
+        small_config(**{"loss.flow_every": 0}).validate()
