@@ -1,7 +1,7 @@
 """Speed of the avatar's training step and posed render, against an older revision in the same run.
 
     python tools/bench_avatar.py [--data DIR] [--baseline REV | --no-baseline] [--rounds 3]
-                                 [--gaussians 20000 50000] [--only step render extremes ssim skip]
+                                 [--gaussians 20000 50000] [--only step render extremes ssim skip quality]
                                  [--device cuda]
 
 Every timed case runs in a child process (``--worker``), once on this tree and once on the
@@ -33,6 +33,10 @@ The 1-minute load average is printed with every row.
 6. streams: what a colour stream costs in the image: a fast-preset model trained 300 steps,
    30 consecutive frames rendered with colours recomputed every 2nd, 3rd, 4th frame against
    the exact renders (PSNR of the 8-bit images, largest difference in grey levels; this tree).
+7. quality (only with ``--only quality``): the same result. A fast-preset model trained at the
+   mid scale of tools/tradeoff.py (256 px, iterations / 3, Gaussian budgets / 2; seed 0) in each
+   tree, scored on the benchmark's held-out views (PSNR, SSIM) with its training CPU time.
+   Target (issue 24): within 0.1 dB of the baseline. ``--quality-scale quick`` for a smoke run.
 
 With ``--device cuda`` the step and render cases run on the GPU (cuda splatting backend, gsplat),
 this tree only: the figures are wall times with the device synchronised around each timed call,
@@ -202,6 +206,7 @@ def worker_step(spec: dict) -> dict:
         "gaussians": trainer.model.table.num,
         "step_wall_ms": 1e3 * statistics.median(wall),
         "step_cpu_ms": 1e3 * statistics.median(cpu),
+        "step_cpu_mean_ms": 1e3 * statistics.mean(cpu),  # with terms on every k-th step only, the mean
         "phases_cpu_ms": phases,
         "raster_wall_ms": alone["wall_ms"],
         "raster_cpu_ms": alone["cpu_ms"],
@@ -278,7 +283,45 @@ def _device_args(device: str, trainer: bool = True) -> dict:
     return {"device": device, "backend": "cuda"} if trainer else {"backend": "cuda"}
 
 
-WORKERS = {"step": worker_step, "render": worker_render}
+def worker_quality(spec: dict) -> dict:
+    """The same result: a fast-preset model trained at the mid scale of tools/tradeoff.py (256 px,
+    iterations / 3, Gaussian budgets / 2) on the benchmark's training frames, seed 0, scored on its
+    held-out views; ``changes``: config keys set on top (only the ones this tree knows)."""
+    import dataclasses
+
+    from tradeoff import SCALES, scaled
+
+    from stg_node.avatar import Trainer, preset
+    from stg_node.avatar.data_spec import DataSpec
+    from stg_node.avatar.evaluate import evaluate_trainer
+
+    scale = SCALES[spec["scale"]]
+    config = scaled(preset("fast"), scale)
+    known = {}
+    for key, value in spec.get("changes", {}).items():
+        group, _, name = key.rpartition(".")
+        fields = {f.name for f in dataclasses.fields(getattr(config, group) if group else config)}
+        if name in fields:
+            known[key] = value
+    config = config.replace(**known)
+    trainer = Trainer(config, seed=0)
+    trainer.add_frames(DataSpec(spec["data"], "synthetic", size=scale.size).open("train"))
+    started = time.thread_time()
+    for _ in range(config.iterations):
+        trainer.step()
+    train_s = time.thread_time() - started
+    scores = evaluate_trainer(trainer, spec["data"], split="novel_view", lpips_net=None)
+    return {
+        "psnr": scores["psnr"],
+        "ssim": scores["ssim"],
+        "train_cpu_s": train_s,
+        "iterations": config.iterations,
+        "gaussians": trainer.model.table.num,
+        "applied": known,
+    }
+
+
+WORKERS = {"step": worker_step, "render": worker_render, "quality": worker_quality}
 
 
 def run_worker(spec_text: str, root: str) -> None:
@@ -350,12 +393,14 @@ def section_step(args, trees) -> list[dict]:
         for name in trees:
             r = res[name]
             r["ratio_cpu"] = r["step_cpu_ms"] / r["raster_cpu_ms"]
+            mean = r.get("step_cpu_mean_ms")
+            mean_text = "" if mean is None else f", mean {mean:.1f} ms ({mean / r['raster_cpu_ms']:.2f}x)"
             r["ratio"] = r[f"step_{clock}_ms"] / r[f"raster_{clock}_ms"]
             ok = "OK" if r["ratio"] <= STEP_TARGET else "MISSED"
             phases = ", ".join(f"{k} {v:.1f}" for k, v in r["phases_cpu_ms"].items())
             print(
                 f"step {n} Gaussians [{name}{_on(args)}]: {r['step_cpu_ms']:.1f} ms CPU "
-                f"({r['step_wall_ms']:.1f} ms wall); "
+                f"({r['step_wall_ms']:.1f} ms wall{mean_text}); "
                 f"rasterizer fwd+bwd alone {r[f'raster_{clock}_ms']:.1f} ms {unit}; step / rasterizer = "
                 f"{r['ratio']:.2f}x {unit} (target <= {STEP_TARGET:g}x: {ok}); "
                 f"with the step's two flow channels {r['raster_flow_cpu_ms']:.1f} ms CPU "
@@ -372,6 +417,30 @@ def section_step(args, trees) -> list[dict]:
             )
         rows.append({"gaussians": n, **res})
     return rows
+
+
+def section_quality(args, trees) -> dict:
+    spec = {"case": "quality", "data": str(args.data), "scale": args.quality_scale}
+    res = interleaved(spec, trees, 1)  # training is deterministic: one run per tree
+    for name in trees:
+        r = res[name]
+        print(
+            f"quality [{name}]: fast preset, {args.quality_scale} scale ({r['iterations']} steps, "
+            f"{r['gaussians']} Gaussians at the end): novel views PSNR {r['psnr']:.3f} dB, SSIM "
+            f"{r['ssim']:.5f}; training {r['train_cpu_s']:.1f} s CPU; "
+            f"load {res['load'][0]:.1f}-{res['load'][1]:.1f}",
+            flush=True,
+        )
+    if "baseline" in trees:
+        new, old = res["new"], res["baseline"]
+        delta = new["psnr"] - old["psnr"]
+        ok = "OK" if abs(delta) <= 0.1 else "MISSED"
+        print(
+            f"quality: this tree {delta:+.3f} dB against the baseline (target within 0.1 dB: {ok}); "
+            f"training CPU time {_ratio(new['train_cpu_s'], old['train_cpu_s'])} faster",
+            flush=True,
+        )
+    return res
 
 
 def section_render(args, trees) -> list[dict]:
@@ -586,7 +655,10 @@ def main(argv=None) -> int:
     parser.add_argument("--repeats", type=int, default=20, help="ssim and skip repetitions")
     parser.add_argument("--gaussians", type=int, nargs="+", default=[20000, 50000])
     parser.add_argument(
-        "--only", nargs="*", choices=("step", "render", "extremes", "ssim", "skip", "streams")
+        "--only", nargs="*", choices=("step", "render", "extremes", "ssim", "skip", "streams", "quality")
+    )
+    parser.add_argument(
+        "--quality-scale", default="mid", choices=("mid", "quick"), help="quality: tradeoff.py's scale"
     )
     parser.add_argument(
         "--no-million", action="store_true", help="extremes: leave out the 1M-Gaussian render"
@@ -624,6 +696,8 @@ def main(argv=None) -> int:
         results["step"] = section_step(args, trees)
     if "render" in sections:
         results["render"] = section_render(args, trees)
+    if "quality" in sections:
+        results["quality"] = section_quality(args, trees)
     if "extremes" in sections:
         results["extremes"] = section_extremes(args, trees)
     if "ssim" in sections:

@@ -21,8 +21,11 @@ watches from outside over the bus.
    snapshots, and the renderer renders a standing view (the data's camera at --live-size) for
    every pose, beside the trainer. Over --live-s seconds once the first image arrived: images
    rendered per second, poses per second, and frame age (a pose's source stamp to the receipt of
-   its image) p50/p95. With --baseline REV the same run is repeated on that git revision
-   (tools/baseline.py), alternating, in the same invocation.
+   its image) p50/p95. The trainer runs at niceness --trainer-nice (10, as the live launch
+   files set it: the live path first on a shared CPU; 0: as the other nodes); the niceness read
+   back from the trainer's process is reported. With --baseline REV the same run is repeated on
+   that git revision (tools/baseline.py), alternating, in the same invocation; a revision whose
+   launcher has no ``nice`` key runs its trainer as the other nodes (the comparison then shows it).
 5. soak (only with ``--only soak``; --soak-s, 30 minutes by default): the live pipeline in real
    time from a video at 30 fps: ingest (the subject's training camera as a looped MP4), tracker
    (live: BlazePose + SMPL fit), online trainer, renderer, and a recorder (zstd) of the whole
@@ -49,6 +52,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import json
 import os
 import platform
@@ -357,6 +361,7 @@ def bench_live(args, workdir: Path) -> dict:
 
     first = next(iter(DatasetSource(args.data, size=args.live_size).frames()))
     camera = resized_camera(first.camera, args.live_size)
+    nice = trainer_nice_key(args.trainer_nice)
     nodes = f"""
     - name: tracker
       kind: tracker
@@ -364,7 +369,7 @@ def bench_live(args, workdir: Path) -> dict:
     - name: trainer
       kind: trainer
       params: {{avatar: {args.avatar}, device: {args.device}, preset: fast,
-                 max_frames: 64, snapshot_every_s: 5}}
+                 max_frames: 64, snapshot_every_s: 5}}{nice}
     - name: renderer
       kind: renderer
       params: {{avatar: {args.avatar}, device: {args.device}, default_view: none, idle_rate_hz: 0}}
@@ -377,6 +382,7 @@ def bench_live(args, workdir: Path) -> dict:
     ages, render_ms, arrivals, poses = [], [], [], []
     try:
         wait_ready(url, {"ingest", "tracker", "trainer", "renderer"})
+        trainer_nice = process_nice(launcher, "trainer")
         with (
             Bus(url, node="bench", heartbeat_s=0) as bus,
             Subscriber(BusConfig(url=url), ["avatar/image", "body/pose"]) as sub,
@@ -422,7 +428,29 @@ def bench_live(args, workdir: Path) -> dict:
         "age_ms_p95": percentile(ages, 95),
         "render_ms_p50": percentile(render_ms, 50),
         "render_ms_p95": percentile(render_ms, 95),
+        "trainer_nice": trainer_nice,
     }
+
+
+def trainer_nice_key(nice: int) -> str:
+    """The trainer's ``nice:`` launch key (indented for a node block), or nothing where this tree's
+    launcher has none (an older revision timed with --baseline) or ``nice`` is 0."""
+    from stg_node.launch.spec import NodeEntry
+
+    if nice == 0 or "nice" not in {f.name for f in dataclasses.fields(NodeEntry)}:
+        return ""
+    return f"\n      nice: {nice}"
+
+
+def process_nice(launcher: Launcher, name: str) -> int | None:
+    """The niceness of a launched node's process, read back from the system (None: not running)."""
+    for state in launcher.states:
+        if state.spec.name == name and state.proc is not None and state.proc.popen is not None:
+            try:
+                return os.getpriority(os.PRIO_PROCESS, state.proc.popen.pid)
+            except OSError:
+                return None
+    return None
 
 
 def live_with_baseline(args) -> dict:
@@ -447,6 +475,7 @@ def live_with_baseline(args) -> dict:
             ]
             cmd += ["--live-s", str(args.live_s), "--live-rate", str(args.live_rate)]
             cmd += ["--live-size", str(args.live_size), "--live-warmup-s", str(args.live_warmup_s)]
+            cmd += ["--trainer-nice", str(args.trainer_nice)]
             env = child_env(trees[name])
             done = subprocess.run(cmd, env=env, cwd=trees[name], capture_output=True, text=True)
             if done.returncode != 0:
@@ -509,6 +538,7 @@ def soak_launch(args, workdir: Path, video: Path, calibration: Path) -> Path:
                 params: {{avatar: {args.avatar}, preset: fast, device: {args.device}, snapshot_every_s: 5,
                           checkpoint_dir: {workdir}/checkpoint, out: {workdir}/out}}
                 sigint_timeout: 60
+                nice: {args.trainer_nice}
               - name: renderer
                 kind: renderer
                 params: {{avatar: {args.avatar}, device: {args.device}}}
@@ -733,6 +763,12 @@ def main() -> int:
         "--baseline", help="live run: also time this git revision, alternating (tools/baseline.py)"
     )
     parser.add_argument("--rounds", type=int, default=1, help="live run with --baseline: runs per tree")
+    parser.add_argument(
+        "--trainer-nice",
+        type=int,
+        default=10,
+        help="live and soak: the trainer's CPU niceness (the live launch files' 10; 0: as the other nodes)",
+    )
     parser.add_argument("--root", help=argparse.SUPPRESS)
     parser.add_argument("--live-child", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument(
@@ -822,7 +858,7 @@ def _print_live(results: dict) -> None:
                 f"live [{name}] {r['size'][0]}x{r['size'][1]}, camera {r['camera_hz']:g} Hz, trainer beside: "
                 f"{r['images_per_s']:.1f} images/s for {r['poses_per_s']:.1f} poses/s; frame age p50 "
                 f"{r['age_ms_p50']:.0f} ms, p95 {r['age_ms_p95']:.0f} ms; "
-                f"render p50 {r['render_ms_p50']:.1f} ms"
+                f"render p50 {r['render_ms_p50']:.1f} ms; trainer niceness {r.get('trainer_nice')}"
             )
 
 

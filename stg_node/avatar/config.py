@@ -35,7 +35,7 @@ PREDATING_DEFAULTS = {
         "joint_shrink": False,
         "occlusion": False,
     },
-    "loss": {"isometry": 0.0},
+    "loss": {"isometry": 0.0, "flow_every": 1},
     "densify": {"flow_seed_missed": False, "motion_min_px": 0.0},
     "nonrigid": "on",  # runs stored before the trial kept their non-rigid part
     "lr_exposure": 0.0,  # no exposure correction before real footage had one
@@ -141,6 +141,10 @@ class LossConfig:
     ssim: float = 0.2  # L = (1 - w) L1 + w (1 - SSIM), as 3DGS
     mask: float = 0.1  # |alpha - mask|
     flow: float = 0.05  # rendered Gaussian motion vs optical flow (pixels, on valid flow only)
+    # The flow term on every k-th step only, at k x its weight (issue 24): the other steps skip the
+    # next frame's skinning and the two flow channels of the splat. Densification's flow rounds
+    # always get it. 1: every step (as before).
+    flow_every: int = 4
     temporal: float = 0.1  # offsets (cm) and temporal opacities at consecutive frames agree
     rigidity: float = 0.05  # neighbouring Gaussians move together (cm; rigidity.py)
     line_of_sight: float = 0.0  # motion along the training camera's rays (cm; motion_priors.py)
@@ -273,6 +277,10 @@ class TrainConfig:
         for f in dataclasses.fields(self):
             if f.name.startswith("lr_") and getattr(self, f.name) < 0:
                 raise ValueError(f"{f.name} must be >= 0, got {getattr(self, f.name)}")
+        if self.loss.flow_every < 1:
+            raise ValueError(
+                f"loss.flow_every must be >= 1 (1: the flow term every step), got {self.loss.flow_every}"
+            )
         if self.nonrigid not in NONRIGID_MODES:
             raise ValueError(f"nonrigid must be one of {NONRIGID_MODES}, got {self.nonrigid!r}")
 

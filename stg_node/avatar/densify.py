@@ -158,6 +158,11 @@ class DensifyStrategy:
         c = self.config
         return c.enabled and c.start_iter <= iteration < int(c.stop_fraction * self.total)
 
+    def flow_round(self, iteration: int) -> bool:
+        """Whether this step may add Gaussians along the flow (it then needs the rendered motion)."""
+        c = self.config
+        return c.flow_guided and self.active(iteration) and (iteration - c.start_iter) % c.flow_interval == 0
+
     def step_post_backward(
         self, model, optimizer, state: dict[str, torch.Tensor], inputs: DensifyInputs
     ) -> dict[str, int]:
@@ -179,12 +184,7 @@ class DensifyStrategy:
                 report.update(self._gate_round(model, optimizer, state, inputs))
                 self._tally(state, report)
             return report
-        if (
-            c.flow_guided
-            and inputs.grow_in_time
-            and inputs.flow is not None
-            and (it - c.start_iter) % c.flow_interval == 0
-        ):
+        if c.flow_guided and inputs.grow_in_time and inputs.flow is not None and self.flow_round(it):
             report["flow_added"] = self._flow_guided(model, optimizer, state, inputs)
         if (it - c.start_iter) % c.interval == 0 and it > c.start_iter:
             report.update(self._adaptive_density(model, optimizer, state, inputs))

@@ -366,7 +366,7 @@ class Trainer:
         terms: dict[str, torch.Tensor] = {}
         extra = None
         flow_pair = stored.flow if stored.next_smpl is not None else None
-        use_flow = flow_pair is not None and c.loss.flow > 0
+        use_flow = flow_pair is not None and c.loss.flow > 0 and self._flow_step(it)
         table = self.model.table
         want_temporal = c.loss.temporal > 0 and "t_center" in table and stored.next_time is not None
         # The next frame's spacetime terms (at its time + the same jitter, on the moving rows): one
@@ -414,7 +414,7 @@ class Trainer:
             terms["exposure"] = gauge
         weights = {
             "mask": c.loss.mask,
-            "flow": c.loss.flow,
+            "flow": c.loss.flow * max(c.loss.flow_every, 1),  # present on every k-th step only
             "temporal": c.loss.temporal,
             "rigidity": c.loss.rigidity,
             "line_of_sight": c.loss.line_of_sight,
@@ -624,6 +624,12 @@ class Trainer:
     def densify_counts(self) -> dict[str, int]:
         """What densification did so far (cloned, split, pruned, flow_added, ...)."""
         return counts(self.densify_state)
+
+    def _flow_step(self, it: int) -> bool:
+        """Whether step ``it`` renders the Gaussians' motion for the flow term (``loss.flow_every``)
+        and densification (its flow rounds, which seed on the motion the model misses)."""
+        every = max(self.config.loss.flow_every, 1)
+        return it % every == 0 or self.densifier.flow_round(it)
 
     def _frame_bones(self, stored: StoredFrame, body: BodyState, which: str):
         """A frame's bones and pose code; cached on the frame unless its pose is being refined."""

@@ -37,13 +37,17 @@ except (OSError, AttributeError):  # pragma: no cover - not glibc
     _prctl = None
 
 
-def _die_with_parent(launcher_pid: int) -> None:
+def _prepare_child(launcher_pid: int, nice: int = 0) -> None:
     """preexec_fn (in the child, between fork and exec): SIGTERM when the launcher dies, and exit
-    now if it already has (then the death signal would never come)."""
+    now if it already has (then the death signal would never come). ``nice``: lower the child's CPU
+    priority before exec, so every thread it starts inherits it (Linux keeps a niceness per thread:
+    setpriority on the pid from outside would miss threads already started)."""
     if _prctl is not None:
         _prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
     if os.getppid() != launcher_pid:
         os._exit(1)
+    if nice:
+        os.nice(nice)
 
 
 _COLORS = (36, 33, 32, 35, 34, 91, 92, 93, 94, 95, 96)
@@ -111,6 +115,7 @@ class ChildProcess:
     guard: Guard | None = None  # told of each run's process group (stops it if the launcher dies)
     grace_s: float = 5.0  # for the guard: SIGTERM to SIGKILL
     standby: bool = False  # a standby copy: stdin is a pipe it waits on for "go" (stg_node.cli.node)
+    nice: int = 0  # CPU niceness added in the child (NodeSpec.nice)
     popen: subprocess.Popen | None = None
     runs: list[RunRecord] = field(default_factory=list)
     _pumps: list[threading.Thread] = field(default_factory=list)
@@ -124,7 +129,7 @@ class ChildProcess:
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             start_new_session=True,
-            preexec_fn=functools.partial(_die_with_parent, os.getpid()),
+            preexec_fn=functools.partial(_prepare_child, os.getpid(), self.nice),
         )
         self.runs.append(RunRecord(self.popen.pid, time.monotonic()))
         if self.guard is not None:

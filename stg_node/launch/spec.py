@@ -88,6 +88,13 @@ class NodeEntry:
         doc="kind nodes, lockstep: publish an Ack on node/ack for each message taken from these "
         "topics (as the node subscribes them; '*': all) once handled, for stg-bag play --lockstep",
     )
+    nice: int = param(
+        0,
+        min=0,
+        max=19,
+        doc="CPU niceness added to the process and every thread it starts (0: as the launcher; "
+        "19: the smallest share of a busy CPU): background work, e.g. a trainer beside a live renderer",
+    )
     cwd: str | None = param(None, doc="working folder (default: where stg-launch runs)")
     if_: bool = param(True, doc="(written `if:`) start the node only if true")
     unless: bool = param(False, doc="skip the node if true")

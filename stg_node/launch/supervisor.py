@@ -210,6 +210,7 @@ class Launcher:
                 guard=self._guard,
                 grace_s=spec.sigint_timeout + spec.sigterm_timeout,
                 standby=True,
+                nice=spec.nice,
             )
             try:
                 pid = spare.start()
@@ -271,6 +272,7 @@ class Launcher:
                 self.sink,
                 guard=self._guard,
                 grace_s=spec.sigint_timeout + spec.sigterm_timeout,
+                nice=spec.nice,
             )
         state.proc.env[ENV_RESPAWN] = str(state.respawns)
         pid = self._take_over(state) if state.respawns else None

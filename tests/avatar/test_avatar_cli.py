@@ -80,9 +80,7 @@ def test_eval_json_is_the_last_line_with_the_contract_keys(run_dir, capsys, tiny
 
 
 def test_eval_both_splits_reports_the_gap_body_parts_and_the_condition(run_dir, capsys):
-    assert (
-        eval_cli.main([str(run_dir), "--split", "both", "--json", "--no-progress", "--lpips", "none"]) == 0
-    )
+    assert eval_cli.main([str(run_dir), "--split", "both", "--json", "--no-progress", "--lpips", "none"]) == 0
     result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     nv, np_ = result["novel_view"], result["novel_pose"]
     assert result["gap_db"] == pytest.approx(nv["psnr"] - np_["psnr"])

@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from avatar_helpers import small_config
+from avatar_helpers import held_out_psnr, small_config
 
 from stg_node.avatar import kernels
 from stg_node.avatar.color_cache import ColorCache
@@ -152,23 +152,6 @@ def test_renderer_streams_are_exact_at_refresh_one_and_close_otherwise(trained, 
         AvatarRenderer(trained.model, color_refresh_every=0)
 
 
-def _psnr(a: np.ndarray, b: np.ndarray) -> float:
-    mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)) / 255.0**2
-    return -10 * math.log10(max(mse, 1e-12))
-
-
-def _held_out_psnr(trainer, tiny_synth) -> float:
-    from stg_node.avatar.data_spec import DataSpec
-
-    views = DataSpec(str(tiny_synth), "synthetic", size=128).open("novel_view")
-    renderer = AvatarRenderer(trainer.model)
-    scores = []
-    for sample in views:
-        truth = np.where(sample.mask[..., None] > 127, sample.image, 0).astype(np.uint8)
-        scores.append(_psnr(renderer.render(sample.camera, sample.smpl, sample.time).image, truth))
-    return float(np.mean(scores))
-
-
 def test_training_with_the_kernels_scores_like_the_torch_path(tiny_frames, tiny_synth):
     """Same seed and schedule (200 steps, densification, flow, pose refinement): the model trained
     with the fused kernels scores within 0.1 dB of the one trained with torch on held-out views."""
@@ -181,11 +164,11 @@ def test_training_with_the_kernels_scores_like_the_torch_path(tiny_frames, tiny_
             with kernels.reference():
                 for _ in range(config.iterations):
                     assert not trainer.step().skipped
-                scores[name] = _held_out_psnr(trainer, tiny_synth)
+                scores[name] = held_out_psnr(trainer, tiny_synth)
         else:
             for _ in range(config.iterations):
                 assert not trainer.step().skipped
-            scores[name] = _held_out_psnr(trainer, tiny_synth)
+            scores[name] = held_out_psnr(trainer, tiny_synth)
     assert scores["torch"] > 18.0
     assert abs(scores["kernels"] - scores["torch"]) <= 0.1, scores
 

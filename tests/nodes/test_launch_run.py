@@ -251,3 +251,76 @@ def test_standby_is_for_kind_nodes_that_respawn(tmp_path):
             assert "standby is for kind nodes with respawn: true" in str(exc), why
         else:
             raise AssertionError(f"standby accepted for a node with {why}")
+
+
+def _thread_nices(pid: int) -> dict[int, int]:
+    """The niceness of every thread of ``pid``, as the kernel reports it (/proc/PID/task/TID/stat)."""
+    nices = {}
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        fields = (task / "stat").read_text().rsplit(")", 1)[1].split()
+        nices[int(task.name)] = int(fields[16])  # field 19 of stat; fields[0] is field 3 (state)
+    return nices
+
+
+def test_nice_reaches_the_process_and_the_threads_it_starts(tmp_path):
+    """A node's ``nice:`` is the niceness the kernel reports for its process and for threads the
+    program starts later (a kind node and a program); a node without it runs as the launcher."""
+    base = os.nice(0)
+    expected = min(base + 7, 19)
+    program = (
+        "import threading, time; threading.Thread(target=time.sleep, args=(300,)).start(); "
+        "print('up', flush=True); time.sleep(300)"
+    )
+    path = launch_file(
+        tmp_path,
+        f"""
+        nodes:
+          - {{name: background, cmd: [{PY}, -c, "{program}"], nice: 7}}
+          - {{name: kindnode, kind: {ECHO}, nice: 7}}
+          - {{name: plain, cmd: [sleep, "300"]}}
+        """,
+    )
+    out = io.StringIO()
+    launcher = Launcher(read_launch(path), sink=OutputSink(out, color=False))
+    runner = threading.Thread(target=launcher.run, daemon=True)
+    runner.start()
+    try:
+        states = {s.name: s for s in launcher.states}
+
+        def started() -> bool:
+            return "[background] up" in out.getvalue() and all(s.ready for s in states.values())
+
+        assert wait_until(started, timeout=60), out.getvalue()
+        background = states["background"].proc.popen.pid
+        assert wait_until(lambda: len(_thread_nices(background)) >= 2, timeout=30)
+        assert set(_thread_nices(background).values()) == {expected}
+        kind_pid = states["kindnode"].proc.popen.pid
+        assert os.getpriority(os.PRIO_PROCESS, kind_pid) == expected
+        assert set(_thread_nices(kind_pid).values()) == {expected}  # the bus's threads too
+        assert os.getpriority(os.PRIO_PROCESS, states["plain"].proc.popen.pid) == base
+    finally:
+        launcher.request_stop("test done")
+        runner.join(timeout=60)
+    assert not runner.is_alive()
+
+
+def test_nice_outside_0_to_19_is_refused_with_the_line(tmp_path):
+    for value in (-5, 20):
+        try:
+            read_launch(launch_file(tmp_path, f"nodes:\n  - {{name: n, cmd: [sleep, '1'], nice: {value}}}\n"))
+        except LaunchFileError as exc:
+            assert re.search(r"\.yaml:\d+: node 'n': nice: must be [<>]= (0|19)", str(exc)), str(exc)
+        else:
+            raise AssertionError(f"nice: {value} accepted")
+
+
+def test_the_live_launch_files_run_the_trainer_below_the_live_path():
+    root = Path(__file__).resolve().parents[2]
+    rig = {"calibration": "rig.json", "videos": "a.mp4"}
+    for name, extra in (("live_v4l2", {}), ("live_oak", {}), ("rig_v4l2", rig)):
+        path = root / "launch" / f"{name}.yaml"
+        nodes = {n.name: n for n in read_launch(path, extra).nodes}
+        assert nodes["trainer"].nice == 10, name
+        assert all(n.nice == 0 for k, n in nodes.items() if k != "trainer"), name
+        nodes = {n.name: n for n in read_launch(path, {**extra, "trainer_nice": "0"}).nodes}
+        assert nodes["trainer"].nice == 0, name
