@@ -335,7 +335,7 @@ def learnt_gains(run: Path, data: Path) -> dict:
     meta = json.loads((data / "synth.json").read_text())
     gains = (meta.get("filming") or {}).get("exposure_gains")
     n = int(meta["num_train_frames"])
-    truth = {i: np.asarray(g) for i, g in enumerate(gains[:n])} if gains else {i: np.ones(3) for i in range(n)}
+    truth = {i: np.asarray(gains[i]) if gains else np.ones(3) for i in range(n)}
     state = checkpoint.load(run / "checkpoint.stgsnap").exposure
     learnt = {f: np.ones(3) for f in truth}
     if "frames" in state:

@@ -37,7 +37,8 @@ def test_one_draw_finds_the_gains_ratio_and_keeps_black_black():
     gains = correction.gains_of()
     # The gauge: the applied gains are the true ones over their geometric mean (frames 3 and 4 seen).
     mean = np.sqrt(truth_a * truth_b)
-    assert np.allclose(gains[3], truth_a / mean, rtol=5e-3) and np.allclose(gains[4], truth_b / mean, rtol=5e-3)
+    assert np.allclose(gains[3], truth_a / mean, rtol=5e-3)
+    assert np.allclose(gains[4], truth_b / mean, rtol=5e-3)
     assert np.allclose(gains[5], 1.0)  # never drawn: no correction
     assert np.allclose(gains[3] / gains[4], truth_a / truth_b, rtol=5e-3)
     assert out_a[:4].abs().max() == 0.0  # black stays black
