@@ -36,7 +36,12 @@ to ``--out/results/EXPERIMENT.json``; a run folder that is already finished is n
   synthetic``). True poses through the tracker's pipeline score what the pipeline costs; the
   steps between say what the pose errors cost. Scored with both alignments.
 - ``exposure``: the mixed subject steady, and with ``--exposure-jitter 0.15`` trained with and
-  without the per-frame colour correction (``lr_exposure=0``).
+  without the per-frame colour correction (``lr_exposure=0``); ``--runs`` any of
+  steady,jitter,nocorr,steady-nocorr (default all). Beside each score: how well the learnt
+  per-frame gains found the subject's true ones (RMS log-gain error, slope on the truth). The
+  held-out cameras are rendered without jitter at the subject's true colour, and the jitter's
+  log-gains average zero over the training frames, so the avatar is scored as rendered, with no
+  colour fitted to a held-out image.
 - ``size``: the turning subject filmed by a 55 degree camera from 1.9 m (the person fills the
   frame) and from 5.0 m (a third of its height), the close one with the preset's budget and with
   the budget scaled (budget.py); novel views on the ``bbox`` protocol (the person's box, so a
@@ -285,37 +290,69 @@ def sources(args) -> dict:
     return rows
 
 
+EXPOSURE_RUNS = {  # name -> (subject, stg-train settings); --runs picks by the short name
+    "steady": ("steady", "steady", []),
+    "jitter": ("jitter, corrected", "jitter", []),
+    "nocorr": ("jitter, not corrected", "jitter", ["--set", "lr_exposure=0"]),
+    "steady-nocorr": ("steady, not corrected", "steady", ["--set", "lr_exposure=0"]),
+}
+
+
 def exposure(args) -> dict:
     out = args.out
-    steady = subject(out, f"mixed_{args.size}", num_frames=args.frames, size=args.size)
-    jitter = subject(
-        out, f"mixed_jitter_{args.size}", num_frames=args.frames, size=args.size, exposure_jitter=0.15
-    )
-    common = ["--format", "synthetic", "--size", str(args.size)]
-    runs = {
-        "steady": (train(out, f"exp_steady_{args.size}", args, "--data", str(steady), *common), steady),
-        "jitter, corrected": (
-            train(out, f"exp_jitter_{args.size}", args, "--data", str(jitter), *common),
-            jitter,
-        ),
-        "jitter, not corrected": (
-            train(
-                out,
-                f"exp_jitter_nocorr_{args.size}",
-                args,
-                "--data",
-                str(jitter),
-                *common,
-                "--set",
-                "lr_exposure=0",
-            ),
-            jitter,
+    subjects = {
+        "steady": subject(out, f"mixed_{args.size}", num_frames=args.frames, size=args.size),
+        "jitter": subject(
+            out, f"mixed_jitter_{args.size}", num_frames=args.frames, size=args.size, exposure_jitter=0.15
         ),
     }
-    rows = {name: score(run, data, "novel_view", parts=False) for name, (run, data) in runs.items()}
-    for name in ("jitter, corrected", "jitter, not corrected"):
-        rows[name]["below_steady_db"] = rows["steady"]["psnr"] - rows[name]["psnr"]
+    common = ["--format", "synthetic", "--size", str(args.size)]
+    wanted = args.runs.split(",") if args.runs else list(EXPOSURE_RUNS)
+    unknown = sorted(set(wanted) - set(EXPOSURE_RUNS))
+    if unknown:
+        raise ValueError(f"exposure --runs: unknown {unknown}; known {sorted(EXPOSURE_RUNS)}")
+    rows = {}
+    for key in wanted:
+        name, which, extra = EXPOSURE_RUNS[key]
+        folder = f"exp_{key.replace('-', '_')}_{args.size}"
+        run = train(out, folder, args, "--data", str(subjects[which]), *common, *extra)
+        rows[name] = score(run, subjects[which], "novel_view", parts=False)
+        rows[name]["gains"] = learnt_gains(run, subjects[which])
+    if "steady" in rows:
+        for name in rows:
+            rows[name]["below_steady_db"] = rows["steady"]["psnr"] - rows[name]["psnr"]
     return rows
+
+
+def learnt_gains(run: Path, data: Path) -> dict:
+    """How well the run's per-frame gains found the subject's true ones: the RMS error of the log-gains
+    (each side's mean removed), beside that of no correction, and the slope of learnt on true."""
+    import numpy as np
+
+    from stg_node.avatar import checkpoint
+    from stg_node.avatar.exposure import log_gain_error
+
+    meta = json.loads((data / "synth.json").read_text())
+    gains = (meta.get("filming") or {}).get("exposure_gains")
+    n = int(meta["num_train_frames"])
+    truth = {i: np.asarray(gains[i]) if gains else np.ones(3) for i in range(n)}
+    state = checkpoint.load(run / "checkpoint.stgsnap").exposure
+    learnt = {f: np.ones(3) for f in truth}
+    if "frames" in state:
+        logs = np.asarray(state["gains"], np.float64).reshape(-1, 3)
+        seen = np.asarray(state["steps"]) > 0
+        logs = np.where(seen[:, None], logs - logs[seen].mean(axis=0), 0.0) if seen.any() else logs * 0
+        learnt.update({int(f): np.exp(logs[i]) for i, f in enumerate(np.asarray(state["frames"]))})
+    frames = sorted(truth)
+    a = np.log(np.stack([learnt[f] for f in frames]))
+    b = np.log(np.stack([truth[f] for f in frames]))
+    b_centred = b - b.mean(axis=0)
+    slope = float((a - a.mean(axis=0)).ravel() @ b_centred.ravel() / max(float((b_centred**2).sum()), 1e-12))
+    return {
+        "log_gain_rms": log_gain_error(learnt, truth),
+        "log_gain_rms_uncorrected": log_gain_error({f: np.ones(3) for f in frames}, truth),
+        "slope_on_truth": slope,
+    }
 
 
 def size(args) -> dict:
@@ -635,7 +672,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="gap: which of truth,tracked-before,tracked to train and score here (default: all; "
         "processes running different ones share --out, the last one reports all); fit: any of "
         "accuracy,truth,silhouette,keypoints,unsmoothed (default: accuracy; the trained ones need accuracy's "
-        "keypoint-only poses first)",
+        "keypoint-only poses first); exposure: any of steady,jitter,nocorr,steady-nocorr (default: all)",
     )
     p.add_argument("--json", action="store_true", help="print the results as one JSON object")
     p.add_argument("--iters", type=int, default=None, help="override the iterations (smoke tests)")

@@ -161,7 +161,6 @@ class LossConfig:
     isometry: float = 0.05  # posed distances between canonical neighbours stay as in canonical space (cm)
     # Real footage (pose_refine.py, exposure.py).
     pose_smooth: float = 0.0  # refined poses smooth in time (pose_refine.py; on for tracked poses)
-    exposure: float = 1e-3  # keeps the per-frame colour correction's log-gains near 0 (exposure.py)
     adaptive: bool = True  # balance the auxiliary terms against the photometric term (see losses.py)
     warmup_iters: int = 300  # auxiliary terms ramp in over these iterations
 
@@ -248,7 +247,10 @@ class TrainConfig:
     lr_light: float = 3e-2
     # Real footage (pose_refine.py, exposure.py).
     pose_refine_joints: bool = True  # False: refine each frame's alignment only (root rotation, Th)
-    lr_exposure: float = 1e-2  # per-frame exposure / white-balance log-gains (0 = off; exposure.py)
+    # Per-frame exposure / white-balance gains (exposure.py): the share of each draw's least-squares
+    # gains taken (0 = off, 1 = the draw's estimate as is), from step exposure_start on.
+    lr_exposure: float = 0.5
+    exposure_start: int = 100
     lr_schedule_final: float = 0.1  # every rate but the means' decays to this fraction (cosine)
     crop_margin_px: int = 16  # render the mask's bounding box plus this margin, not the whole frame
     full_frame_every: int = 0  # every K-th step renders the whole frame (0 = never)

@@ -149,7 +149,7 @@ class Trainer:
         self.pose_slots: dict[int, int] = {}
         self.pose_track = PoseTrack()  # the tracked poses, for the refined poses' smoothness
         self.exposure = ExposureCorrection(  # per-frame colour correction, training only
-            config.lr_exposure, config.loss.exposure, config.loss.warmup_iters, self.device
+            config.lr_exposure, config.exposure_start, self.device
         )
         self.neighbours = NeighbourGraph()  # local rigidity of the non-rigid motion
         self.isometry = IsometryGraph()  # canonical neighbours keep their distances when posed
@@ -387,7 +387,10 @@ class Trainer:
 
         image, alpha, info = render(posed, camera, background=0.0, backend=self.backend, extra_channels=extra)
         timer.mark("render")
-        rgb = self.exposure.apply(image[..., :3], stored.frame.index, it)
+        region = alpha[..., 0].detach() > 0.95  # where the person is rendered and seen: the gains' evidence
+        if mask is not None:
+            region = region & mask
+        rgb = self.exposure.apply(image[..., :3], stored.frame.index, it, target, region)
         l1, dssim = L.photometric(rgb, target, c.loss.ssim)
         terms["photo"] = (1 - c.loss.ssim) * l1 + c.loss.ssim * dssim
         if mask is not None and c.loss.mask > 0:
@@ -409,9 +412,6 @@ class Trainer:
             smooth = self.pose_track.smoothness(self.pose_deltas, self.pose_slots, stored.frame.index)
             if smooth is not None:
                 terms["pose_smooth"] = smooth
-        gauge = self.exposure.penalty()
-        if gauge is not None:
-            terms["exposure"] = gauge
         weights = {
             "mask": c.loss.mask,
             "flow": c.loss.flow * max(c.loss.flow_every, 1),  # present on every k-th step only
@@ -427,7 +427,6 @@ class Trainer:
             "isometry": c.loss.isometry,
             "light": c.loss.light,
             "pose_smooth": c.loss.pose_smooth,
-            "exposure": c.loss.exposure,
         }
         total, applied = self.weights.combine(terms, weights, it)
         timer.mark("loss")
@@ -445,7 +444,6 @@ class Trainer:
                 "step %d: non-finite loss or gradients (frame %d); step skipped", it, stored.frame.index
             )
             self.optimizer.zero_grad()
-            self.exposure.discard()
         else:
             gate = self.model.table.motion_gate()
             if gate is not None:  # static Gaussians keep exactly zero motion terms
@@ -458,7 +456,6 @@ class Trainer:
             self.optimizer.step()
             if restore_unseen is not None:
                 restore_unseen()
-            self.exposure.step()
             for name in ("motion", "rot_motion"):  # a basis coefficient's sparsity is its row's gate
                 self.optimizer.soft_threshold(name, c.loss.motion_sparsity)
             timer.mark("update")

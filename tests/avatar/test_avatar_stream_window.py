@@ -226,7 +226,7 @@ def test_pose_corrections_of_held_frames_survive_and_stay_as_many_as_the_store(t
 
 
 def test_exposure_gains_and_tracked_poses_follow_the_held_frames(tiny_frames):
-    trainer = Trainer(small_config(max_frames=4, lr_exposure=1e-2, **{"loss.pose_smooth": 1e-3}), seed=0)
+    trainer = Trainer(small_config(max_frames=4, lr_exposure=0.5, **{"loss.pose_smooth": 1e-3}), seed=0)
     assert trainer.exposure.enabled
     gains_seen: dict[int, torch.Tensor] = {}
     for frame in _stream(tiny_frames, 120):
@@ -237,20 +237,19 @@ def test_exposure_gains_and_tracked_poses_follow_the_held_frames(tiny_frames):
             continue
         row = exposure.slots[frame.index]
         exposure.gains[row] = 0.01 * (frame.index % 7 + 1)  # a gain to recognise each frame by
-        exposure.exp_avg[row] = 0.001 * frame.index
-        gains_seen[frame.index] = (exposure.gains[row].clone(), exposure.exp_avg[row].clone())
+        exposure.steps[row] = frame.index + 1  # and a draw count
+        gains_seen[frame.index] = (exposure.gains[row].clone(), int(exposure.steps[row]))
         held = {s.frame.index for s in trainer.store.frames}
         assert held <= set(exposure.slots) and len(exposure.slots) <= 2 * 4 + 1
-        for f, r in exposure.slots.items():  # every row (gains and moments) still belongs to its frame
-            assert torch.equal(exposure.gains[r], gains_seen[f][0]) and torch.equal(
-                exposure.exp_avg[r], gains_seen[f][1]
-            )
+        for f, r in exposure.slots.items():  # every row (gains and draw count) still belongs to its frame
+            assert torch.equal(exposure.gains[r], gains_seen[f][0])
+            assert int(exposure.steps[r]) == gains_seen[f][1]
         track = trainer.pose_track.raw
         assert len(track) <= 4 * 4 + 3
         assert all(f in track for f in held)
         assert all(f - 1 in track for f in held if f > 0)  # the neighbours a second difference needs
-    exposure.step()  # consistent shapes after the cuts
-    trainer.step()
+    trainer.step()  # consistent shapes after the cuts
+    assert len(exposure.gains) == len(exposure.steps) == len(exposure.slots)
 
 
 def test_growing_the_pose_slots_keeps_every_dense_moment(tiny_frames):
