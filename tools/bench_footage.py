@@ -35,8 +35,9 @@ to ``--out/results/EXPERIMENT.json``; a run folder that is already finished is n
   ``true, light refinement``, the one for given poses; beside ``truth`` (``--format
   synthetic``). True poses through the tracker's pipeline score what the pipeline costs; the
   steps between say what the pose errors cost. Scored with both alignments.
-- ``exposure``: the mixed subject steady, and with ``--exposure-jitter 0.15`` trained with and
-  without the per-frame colour correction (``lr_exposure=0``); ``--runs`` any of
+- ``exposure``: the mixed subject steady, and with ``--exposure-jitter 0.15`` trained with the
+  per-frame colour correction as ``--format video`` trains (``lr_exposure`` 0.5) and without it
+  (``lr_exposure=0``, the synthetic format's default); ``--runs`` any of
   steady,jitter,nocorr,steady-nocorr (default all). Beside each score: how well the learnt
   per-frame gains found the subject's true ones (RMS log-gain error, slope on the truth). The
   held-out cameras are rendered without jitter at the subject's true colour, and the jitter's
@@ -78,6 +79,8 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+
+from stg_node.avatar.exposure import FOOTAGE_RATE  # noqa: E402
 
 log = logging.getLogger("bench_footage")
 
@@ -290,11 +293,12 @@ def sources(args) -> dict:
     return rows
 
 
+CORRECTED = ["--set", f"lr_exposure={FOOTAGE_RATE}"]  # as --format video trains (for_footage)
 EXPOSURE_RUNS = {  # name -> (subject, stg-train settings); --runs picks by the short name
-    "steady": ("steady", "steady", []),
-    "jitter": ("jitter, corrected", "jitter", []),
+    "steady": ("steady, corrected", "steady", CORRECTED),
+    "jitter": ("jitter, corrected", "jitter", CORRECTED),
     "nocorr": ("jitter, not corrected", "jitter", ["--set", "lr_exposure=0"]),
-    "steady-nocorr": ("steady, not corrected", "steady", ["--set", "lr_exposure=0"]),
+    "steady-nocorr": ("steady, not corrected (the default)", "steady", ["--set", "lr_exposure=0"]),
 }
 
 

@@ -248,8 +248,10 @@ class TrainConfig:
     # Real footage (pose_refine.py, exposure.py).
     pose_refine_joints: bool = True  # False: refine each frame's alignment only (root rotation, Th)
     # Per-frame exposure / white-balance gains (exposure.py): the share of each draw's least-squares
-    # gains taken (0 = off, 1 = the draw's estimate as is), from step exposure_start on.
-    lr_exposure: float = 0.5
+    # gains taken (0 = off, 1 = the draw's estimate as is), from step exposure_start on. Off for data
+    # filmed at a fixed exposure (datasets, stg-synth); footage (--format video, live cameras) turns
+    # it on with exposure.for_footage.
+    lr_exposure: float = 0.0
     exposure_start: int = 100
     lr_schedule_final: float = 0.1  # every rate but the means' decays to this fraction (cosine)
     crop_margin_px: int = 16  # render the mask's bounding box plus this margin, not the whole frame

@@ -26,6 +26,12 @@ crop of one frame it also fits the avatar's own errors (an offset lifts the blac
   it learns: a render too dark by ``c`` raises every estimate by ``c`` and the mean takes it away.
 - **Saturation**: the corrected render is clipped at 1 as the camera clips, so a frame exposed
   brighter does not teach the avatar a darker colour where the image saturated.
+- **Where it is on**: footage from cameras that set their own exposure (``stg-train --format
+  video``, the trainer node on a live camera; :func:`for_footage`). Off by default for datasets
+  filmed at a fixed exposure (ZJU-MoCap, stg-synth, the folder format): there the gains can only
+  take what they cannot tell from exposure, a body turning its lit side away, which cost a steady
+  synthetic subject 0.27 dB (docs/BENCHMARKS.md, "Real footage"). ``--set lr_exposure=`` decides
+  either way.
 - **Only in training**: renders (stg-render, the renderer node, stg-eval) show the avatar's own
   colour; the gains stay in the checkpoint.
 - Starts after ``exposure_start`` steps (the avatar's colour must form first, or the estimates
@@ -40,6 +46,7 @@ import math
 import numpy as np
 import torch
 
+FOOTAGE_RATE = 0.5  # lr_exposure for footage from cameras that set their own exposure
 MAX_LOG_GAIN = 1.0  # e^1: far beyond any auto-exposure step; keeps a bad estimate from running away
 SATURATED = 254.5 / 255.0  # an image value at or above this clipped in the camera
 MIN_PIXELS = 64  # a draw where fewer pixels show the person (per channel) estimates nothing
@@ -163,3 +170,11 @@ def log_gain_error(learnt: dict[int, np.ndarray], truth: dict[int, np.ndarray]) 
     a -= a.mean(axis=0)
     b -= b.mean(axis=0)
     return float(np.sqrt(((a - b) ** 2).mean()))
+
+
+def for_footage(config):
+    """``config`` with the colour correction on, as footage from a self-exposing camera needs it;
+    a rate the config already sets (a user's ``--set lr_exposure=``, a preset) is kept."""
+    if getattr(config, "lr_exposure", None) != 0.0:
+        return config
+    return config.replace(lr_exposure=FOOTAGE_RATE)

@@ -162,9 +162,10 @@ def run(args: argparse.Namespace) -> int:
 
     base = preset(args.preset)
     if args.format == "video":  # a tracker's poses: refined harder, kept smooth (avatar/pose_refine.py)
+        from stg_node.avatar.exposure import for_footage
         from stg_node.avatar.pose_refine import refinement_for
 
-        base = refinement_for(base, "tracked")
+        base = for_footage(refinement_for(base, "tracked"))  # a phone's exposure drifts
     try:
         args.config = apply_settings(base, args.set)
     except ValueError as exc:

@@ -68,11 +68,16 @@ class TrainerAdapter:
         backend: str = "auto",
         seed: int = 0,
         max_frames: int = 64,
+        footage: bool = False,
     ) -> TrainerAdapter:
+        """``footage``: frames from a camera that sets its own exposure (the avatar's ``for_footage``
+        settings, where the avatar package has them)."""
         avatar = avatar_module(module)
         # The frame store's bound lives in the config, the one thing a checkpoint keeps: a trainer
         # resumed from one is bounded as the one that wrote it.
         config = dataclasses.replace(avatar.preset(preset), max_frames=int(max_frames))
+        if footage and hasattr(avatar, "for_footage"):
+            config = avatar.for_footage(config)
         trainer = avatar.Trainer(config, body_model=body_model, device=device, backend=backend, seed=seed)
         return cls(trainer, avatar)
 

@@ -57,6 +57,11 @@ class TrainerParams:
     device: str = param("cpu", doc="torch device")
     backend: str = param("auto", doc="rasterizer backend: auto, cpu, cuda, torch")
     seed: int = param(0, doc="random seed")
+    exposure_correction: bool = param(
+        False,
+        doc="learn a per-frame exposure/white-balance correction: on for a live camera that sets "
+        "its own exposure, off for data filmed at a fixed one (avatar/exposure.py)",
+    )
     iters: int = param(0, min=0, doc="stop after this many iterations (0: train until stopped)")
     max_frames: int = param(
         64, min=1, doc="frames the trainer keeps (a reservoir sample: old and new frames stay)"
@@ -184,6 +189,7 @@ class TrainerNode(Node):
                 backend=p.backend,
                 seed=p.seed,
                 max_frames=p.max_frames,
+                footage=p.exposure_correction,
             )
             self.iteration = 0
         self.pairs = FramePairs(p.pending)  # a rig: replaced below, keyed by camera too

@@ -10,7 +10,7 @@ import torch
 from avatar_helpers import small_config
 
 from stg_node.avatar.data_spec import DataSpec
-from stg_node.avatar.exposure import ExposureCorrection, log_gain_error
+from stg_node.avatar.exposure import FOOTAGE_RATE, ExposureCorrection, for_footage, log_gain_error
 from stg_node.avatar.frames import TrainFrame
 from stg_node.avatar.trainer import Trainer
 
@@ -96,12 +96,26 @@ def test_a_configuration_written_before_the_correction_existed_loads_without_it(
     from stg_node.avatar.config import TrainConfig
     from stg_node.avatar.presets import preset
 
-    today = preset("fast")
+    today = for_footage(preset("fast"))
     assert today.lr_exposure > 0
     older = today.to_dict()
     del older["lr_exposure"]
     assert TrainConfig.from_dict(older).lr_exposure == 0.0  # as it trained: no colour correction
     assert TrainConfig.from_dict(today.to_dict()) == today
+
+
+def test_the_correction_is_on_for_footage_and_off_for_fixed_exposure_data():
+    from stg_node.avatar.presets import preset
+    from stg_node.nodes.avatar_adapter import TrainerAdapter
+
+    for name in ("fast", "balanced", "quality"):
+        assert preset(name).lr_exposure == 0.0  # datasets filmed at a fixed exposure
+        assert for_footage(preset(name)).lr_exposure == FOOTAGE_RATE
+    chosen = preset("fast").replace(lr_exposure=0.2)  # a user's --set is kept
+    assert for_footage(chosen).lr_exposure == 0.2
+    # the trainer node on a live camera (launch/live_*.yaml: exposure_correction: true)
+    assert TrainerAdapter.create(footage=True)._trainer.config.lr_exposure == FOOTAGE_RATE
+    assert TrainerAdapter.create(footage=False)._trainer.config.lr_exposure == 0.0
 
 
 def test_state_round_trips():
@@ -144,7 +158,7 @@ def test_training_finds_the_jitter_it_was_given(jittered):
         i: np.asarray(g) for i, g in enumerate(meta["filming"]["exposure_gains"][: meta["num_train_frames"]])
     }
     frames = [TrainFrame.from_sample(s) for s in DataSpec(str(jittered), "synthetic", size=96).open("train")]
-    config = small_config(iterations=300, exposure_start=30)
+    config = small_config(iterations=300, exposure_start=30, lr_exposure=FOOTAGE_RATE)
     trainer = Trainer(config, seed=0)
     trainer.add_frames(frames)
     for _ in range(config.iterations):
