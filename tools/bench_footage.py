@@ -394,6 +394,107 @@ def framing(args) -> dict:
     return rows
 
 
+# refine: the variants of the pose refinement trained on the tracked folder dataset, as --set flags
+# on top of today's refinement for tracked poses (pose_refine.REFINEMENTS["tracked"]).
+REFINE_VARIANTS = {
+    "tracked": (),
+    "no refinement": ("lr_pose=0",),
+    "warm-up x10": ("pose_warmup_boost=10",),
+    "warm-up x10, mask x3": ("pose_warmup_boost=10", "loss.mask=0.3"),
+    "smooth x10": ("loss.pose_smooth=0.01",),
+}
+
+
+def refine(args) -> dict:
+    """The tracked-pose gap and what each pose-refinement variant buys: ``stg-train --format
+    video``'s own preparation of the training camera (the ``gap`` experiment's tracked run, tracked
+    once) trained as a folder dataset with each variant of ``REFINE_VARIANTS`` (``--runs`` picks),
+    beside ``truth``; novel views (training frames, held-out cameras, the refined training poses)
+    and novel poses (held-out frames, the tracker's poses as tracked), per body part, and how far
+    the refined training poses are from the truth against the tracked ones."""
+    from stg_node.avatar.pose_refine import REFINEMENTS
+    from stg_node.avatar.video import prepare_video
+
+    out = args.out
+    data = subject(out, f"mixed_{args.size}", num_frames=args.frames, size=args.size)
+    video_data = out / "refine" / f"video_data_{args.size}"
+    if not (video_data / "poses.npz").is_file():
+        prepare_video(data / "Camera_B1", video_data, intrinsics=intrinsics_file(data), progress=False)
+    r = REFINEMENTS["tracked"]
+    tracked = [f"lr_pose={r.lr_pose}", f"loss.pose_refine={r.pose_refine}", f"loss.pose_smooth={r.pose_smooth}"]
+    frames = ["--train-frames", f"0:{round(0.8 * args.frames)}", "--size", str(args.size)]
+    wanted = args.runs.split(",") if args.runs else ["truth", *REFINE_VARIANTS]
+    unknown = sorted(set(wanted) - {"truth", *REFINE_VARIANTS})
+    if unknown:
+        raise ValueError(f"--runs: unknown {unknown}; choose from truth, {', '.join(REFINE_VARIANTS)}")
+    rows = {}
+    for name in wanted:
+        slug = name.replace(" ", "_").replace("-", "_").replace(",", "")
+        if name == "truth":
+            flags = ("--data", str(data), "--format", "synthetic", "--size", str(args.size))
+        else:
+            sets = [x for kv in (*tracked, *REFINE_VARIANTS[name]) for x in ("--set", kv)]
+            flags = ("--data", str(video_data), "--format", "folder", *frames, *sets)
+        run = train(out, f"refine_{slug}_{args.size}_s{args.seed}", args, *flags)
+        rows[name] = {split: score(run, data, split) for split in ("novel_view", "novel_pose")}
+        if name != "truth":
+            rows[name]["poses"] = refined_pose_accuracy(run, video_data, data)
+        cached = out / "results" / f"refine_{slug}_{args.size}_s{args.seed}.json"
+        cached.parent.mkdir(parents=True, exist_ok=True)
+        cached.write_text(json.dumps(rows[name], default=float) + "\n")
+    for name in ("truth", *REFINE_VARIANTS):  # rows another process scored
+        slug = name.replace(" ", "_").replace("-", "_").replace(",", "")
+        cached = out / "results" / f"refine_{slug}_{args.size}_s{args.seed}.json"
+        if name not in rows and cached.is_file():
+            rows[name] = json.loads(cached.read_text())
+    if "truth" in rows:
+        for name, row in rows.items():
+            row["gap_db"] = {s: rows["truth"][s]["psnr"] - row[s]["psnr"] for s in ("novel_view", "novel_pose")}
+    return rows
+
+
+def refined_pose_accuracy(run: Path, video_data: Path, data: Path) -> dict:
+    """The training frames' poses, as tracked and as refined by ``run``, against the truth in the
+    training camera's frame: each joint's rotation error (mean, and per group) and the global
+    orientation's."""
+    import cv2
+    import numpy as np
+
+    from stg_node.avatar.loading import corrected, load_run_renderer
+    from stg_node.body.motion import load_smpl_params
+    from stg_node.safe_load import load_npy, load_npz
+
+    _, _, corrections, _ = load_run_renderer(run)
+    frames = np.asarray(load_npz(video_data / "poses.npz")["frames"]).astype(int)
+    sequence = load_smpl_params(video_data / "poses.npz")
+    R1 = np.asarray(load_npy(data / "annots.npy")["cams"]["R"][0], np.float64)
+    rows = {"tracked": ([], []), "refined": ([], []), "truth": ([], [])}
+    for i, frame in enumerate(frames):
+        if int(frame) not in corrections:
+            continue  # a held-out frame
+        true = load_npy(data / "new_params" / f"{int(frame)}.npy")
+        true_poses = np.asarray(true["poses"], np.float64).reshape(24, 3)
+        rotation = R1 @ cv2.Rodrigues(np.asarray(true["Rh"], np.float64).reshape(3))[0]
+        rows["truth"][0].append(true_poses[1:])
+        rows["truth"][1].append(cv2.Rodrigues(rotation @ cv2.Rodrigues(true_poses[0])[0])[0].ravel())
+        for name, smpl in (("tracked", sequence[i]), ("refined", corrected(sequence[i], corrections[int(frame)]))):
+            poses = np.asarray(smpl.poses, np.float64).reshape(24, 3)
+            rh = cv2.Rodrigues(np.asarray(smpl.Rh, np.float64).reshape(3))[0]
+            rows[name][0].append(poses[1:])
+            rows[name][1].append(cv2.Rodrigues(rh @ cv2.Rodrigues(poses[0])[0])[0].ravel())
+    true_joints, true_global = (np.stack(v) for v in rows["truth"])
+    result = {"frames": len(true_global)}
+    for name in ("tracked", "refined"):
+        joints, global_ = (np.stack(v) for v in rows[name])
+        err = rotation_angles_deg(joints, true_joints).reshape(len(joints), 23).mean(axis=0)
+        result[name] = {
+            "joint_rotation_deg": float(err.mean()),
+            **{g: float(err[[j - 1 for j in js]].mean()) for g, js in JOINT_GROUPS.items()},
+            "global_orientation_deg": float(rotation_angles_deg(global_, true_global).mean()),
+        }
+    return result
+
+
 JOINT_GROUPS = {  # SMPL joint indices
     "shoulders": (16, 17),
     "elbows": (18, 19),
@@ -612,6 +713,7 @@ EXPERIMENTS = {
     "focal": focal,
     "framing": framing,
     "fit": fit,
+    "refine": refine,
 }
 
 

@@ -240,6 +240,11 @@ class TrainConfig:
     lr_light: float = 3e-2
     # Real footage (pose_refine.py, exposure.py).
     pose_refine_joints: bool = True  # False: refine each frame's alignment only (root rotation, Th)
+    # Poses first (pose_refine.py, pose_warmup_factor): for the first pose_warmup fraction of the
+    # iterations the pose corrections learn at pose_warmup_boost x lr_pose, easing back to 1 x over
+    # the next pose_warmup fraction (1.0 = off).
+    pose_warmup: float = 0.25
+    pose_warmup_boost: float = 1.0
     lr_exposure: float = 1e-2  # per-frame exposure / white-balance log-gains (0 = off; exposure.py)
     lr_schedule_final: float = 0.1  # every rate but the means' decays to this fraction (cosine)
     crop_margin_px: int = 16  # render the mask's bounding box plus this margin, not the whole frame
