@@ -421,7 +421,11 @@ def refine(args) -> dict:
     if not (video_data / "poses.npz").is_file():
         prepare_video(data / "Camera_B1", video_data, intrinsics=intrinsics_file(data), progress=False)
     r = REFINEMENTS["tracked"]
-    tracked = [f"lr_pose={r.lr_pose}", f"loss.pose_refine={r.pose_refine}", f"loss.pose_smooth={r.pose_smooth}"]
+    tracked = [
+        f"lr_pose={r.lr_pose}",
+        f"loss.pose_refine={r.pose_refine}",
+        f"loss.pose_smooth={r.pose_smooth}",
+    ]
     frames = ["--train-frames", f"0:{round(0.8 * args.frames)}", "--size", str(args.size)]
     wanted = args.runs.split(",") if args.runs else ["truth", *REFINE_VARIANTS]
     unknown = sorted(set(wanted) - {"truth", *REFINE_VARIANTS})
@@ -448,8 +452,9 @@ def refine(args) -> dict:
         if name not in rows and cached.is_file():
             rows[name] = json.loads(cached.read_text())
     if "truth" in rows:
-        for name, row in rows.items():
-            row["gap_db"] = {s: rows["truth"][s]["psnr"] - row[s]["psnr"] for s in ("novel_view", "novel_pose")}
+        for row in rows.values():
+            truth = rows["truth"]
+            row["gap_db"] = {s: truth[s]["psnr"] - row[s]["psnr"] for s in ("novel_view", "novel_pose")}
     return rows
 
 
@@ -477,7 +482,8 @@ def refined_pose_accuracy(run: Path, video_data: Path, data: Path) -> dict:
         rotation = R1 @ cv2.Rodrigues(np.asarray(true["Rh"], np.float64).reshape(3))[0]
         rows["truth"][0].append(true_poses[1:])
         rows["truth"][1].append(cv2.Rodrigues(rotation @ cv2.Rodrigues(true_poses[0])[0])[0].ravel())
-        for name, smpl in (("tracked", sequence[i]), ("refined", corrected(sequence[i], corrections[int(frame)]))):
+        refined = corrected(sequence[i], corrections[int(frame)])
+        for name, smpl in (("tracked", sequence[i]), ("refined", refined)):
             poses = np.asarray(smpl.poses, np.float64).reshape(24, 3)
             rh = cv2.Rodrigues(np.asarray(smpl.Rh, np.float64).reshape(3))[0]
             rows[name][0].append(poses[1:])
