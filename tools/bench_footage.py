@@ -402,6 +402,7 @@ REFINE_VARIANTS = {
     "warm-up x10": ("pose_warmup_boost=10",),
     "warm-up x10, mask x3": ("pose_warmup_boost=10", "loss.mask=0.3"),
     "smooth x10": ("loss.pose_smooth=0.01",),
+    "non-rigid on": ("nonrigid=on",),
 }
 
 
