@@ -400,7 +400,7 @@ REFINE_VARIANTS = {
     "tracked": (),
     "no refinement": ("lr_pose=0",),
     "warm-up x10": ("pose_warmup_boost=10",),
-    "warm-up x10, mask x3": ("pose_warmup_boost=10", "loss.mask=0.3"),
+    "mask x3": ("loss.mask=0.3",),
     "smooth x10": ("loss.pose_smooth=0.01",),
     "non-rigid on": ("nonrigid=on",),
 }
@@ -500,6 +500,66 @@ def refined_pose_accuracy(run: Path, video_data: Path, data: Path) -> dict:
             "global_orientation_deg": float(rotation_angles_deg(global_, true_global).mean()),
         }
     return result
+
+
+TORSO_JOINTS = (3, 6, 9, 12, 13, 14, 15)  # spine, neck, collars, head (the root is Rh, Th)
+LIMB_JOINTS = (1, 2, 4, 5, 7, 8, 10, 11, 16, 17, 18, 19, 20, 21, 22, 23)  # legs, arms, hands, feet
+
+
+def chains(args) -> dict:
+    """Which body chain the tracked-pose gap sits in: the ``refine`` experiment's tracked folder
+    trained with the true torso (global orientation, position, shape, spine, neck, collars,
+    head) and the tracked limbs (``true torso``), and with the tracked torso and the true limbs
+    (``true limbs``) (each in the
+    training camera's frame, as ``sources`` builds them), the refinement for tracked poses."""
+    import shutil
+
+    import numpy as np
+
+    from stg_node.avatar.pose_refine import REFINEMENTS
+
+    out = args.out
+    data = subject(out, f"mixed_{args.size}", num_frames=args.frames, size=args.size)
+    video_data = out / "refine" / f"video_data_{args.size}"
+    if not (video_data / "poses.npz").is_file():
+        raise FileNotFoundError(f"{video_data}: run the refine experiment first (it tracks the video)")
+    variants = pose_variants(video_data, data, out / "chains" / f"data_{args.size}")
+    tracked = {k: np.asarray(v) for k, v in np.load(variants["tracked"] / "poses.npz").items()}
+    true = {k: np.asarray(v) for k, v in np.load(variants["true"] / "poses.npz").items()}
+    mixes = {"true torso": (true, tracked, LIMB_JOINTS),
+             "true limbs": (tracked, true, LIMB_JOINTS)}  # fmt: skip
+    r = REFINEMENTS["tracked"]
+    settings = (
+        f"lr_pose={r.lr_pose}",
+        f"loss.pose_refine={r.pose_refine}",
+        f"loss.pose_smooth={r.pose_smooth}",
+    )
+    sets = [x for kv in settings for x in ("--set", kv)]
+    frames = ["--train-frames", f"0:{round(0.8 * args.frames)}", "--size", str(args.size), *sets]
+    wanted = args.runs.split(",") if args.runs else list(mixes)
+    rows = {}
+    for name in wanted:
+        base, donor, joints = mixes[name]
+        rows_ = {k: v.copy() for k, v in base.items()}
+        poses = rows_["poses"].reshape(len(rows_["poses"]), 24, 3)
+        poses[:, list(joints)] = donor["poses"].reshape(len(poses), 24, 3)[:, list(joints)]
+        rows_["poses"] = poses.reshape(len(poses), 72)
+        slug = name.replace(" ", "_")
+        folder = out / "chains" / f"{slug}_{args.size}"
+        folder.mkdir(parents=True, exist_ok=True)
+        for sub in ("images", "masks"):
+            if not (folder / sub).exists():
+                (folder / sub).symlink_to((video_data / sub).resolve())
+        shutil.copy(video_data / "cameras.json", folder / "cameras.json")
+        np.savez(folder / "poses.npz", **rows_)
+        run = train(
+            out, f"chains_{slug}_{args.size}", args, "--data", str(folder), "--format", "folder", *frames
+        )
+        rows[name] = {split: score(run, data, split) for split in ("novel_view", "novel_pose")}
+        cached = out / "results" / f"chains_{slug}_{args.size}.json"
+        cached.parent.mkdir(parents=True, exist_ok=True)
+        cached.write_text(json.dumps(rows[name], default=float) + "\n")
+    return rows
 
 
 JOINT_GROUPS = {  # SMPL joint indices
@@ -721,6 +781,7 @@ EXPERIMENTS = {
     "framing": framing,
     "fit": fit,
     "refine": refine,
+    "chains": chains,
 }
 
 
