@@ -402,7 +402,7 @@ REFINE_VARIANTS = {
     "warm-up x10": ("pose_warmup_boost=10",),
     "mask x3": ("loss.mask=0.3",),
     "smooth x10": ("loss.pose_smooth=0.01",),
-    "non-rigid on": ("nonrigid=on",),
+    "non-rigid on": ('nonrigid="on"',),
 }
 
 
@@ -504,13 +504,40 @@ def refined_pose_accuracy(run: Path, video_data: Path, data: Path) -> dict:
 
 TORSO_JOINTS = (3, 6, 9, 12, 13, 14, 15)  # spine, neck, collars, head (the root is Rh, Th)
 LIMB_JOINTS = (1, 2, 4, 5, 7, 8, 10, 11, 16, 17, 18, 19, 20, 21, 22, 23)  # legs, arms, hands, feet
+LIMB_ROOTS = {1: 0, 2: 0, 16: 13, 17: 14}  # the first joint of each limb: its parent
+
+
+def limb_roots_in_world(base: dict, donor: dict):
+    """(n, 4, 3) local rotations of the limbs' first joints (hips, shoulders) that give ``base``'s
+    torso the world orientation of ``donor``'s limbs: a limb's pose relative to a wrong torso
+    says little; its orientation in the camera's frame is what the tracker saw."""
+    import cv2
+    import numpy as np
+
+    from stg_node.body import load_body_model
+
+    parents = load_body_model().parents.tolist()
+
+    def world(rows, i):
+        poses = rows["poses"][i].reshape(24, 3).astype(np.float64)
+        G = [cv2.Rodrigues(np.asarray(rows["Rh"][i], np.float64))[0] @ cv2.Rodrigues(poses[0])[0]]
+        for j in range(1, 24):
+            G.append(G[parents[j]] @ cv2.Rodrigues(poses[j])[0])
+        return G
+
+    out = []
+    for i in range(len(base["poses"])):
+        mine, theirs = world(base, i), world(donor, i)
+        out.append([cv2.Rodrigues(mine[p].T @ theirs[j])[0].ravel() for j, p in LIMB_ROOTS.items()])
+    return np.asarray(out)
 
 
 def chains(args) -> dict:
     """Which body chain the tracked-pose gap sits in: the ``refine`` experiment's tracked folder
     trained with the true torso (global orientation, position, shape, spine, neck, collars,
     head) and the tracked limbs (``true torso``), and with the tracked torso and the true limbs
-    (``true limbs``) (each in the
+    (``true limbs``); ``true torso world limbs``: the true torso with the tracked limbs turned to
+    keep their orientation in the camera's frame (each in the
     training camera's frame, as ``sources`` builds them), the refinement for tracked poses."""
     import shutil
 
@@ -527,7 +554,8 @@ def chains(args) -> dict:
     tracked = {k: np.asarray(v) for k, v in np.load(variants["tracked"] / "poses.npz").items()}
     true = {k: np.asarray(v) for k, v in np.load(variants["true"] / "poses.npz").items()}
     mixes = {"true torso": (true, tracked, LIMB_JOINTS),
-             "true limbs": (tracked, true, LIMB_JOINTS)}  # fmt: skip
+             "true limbs": (tracked, true, LIMB_JOINTS),
+             "true torso world limbs": (true, tracked, LIMB_JOINTS)}  # fmt: skip
     r = REFINEMENTS["tracked"]
     settings = (
         f"lr_pose={r.lr_pose}",
@@ -543,6 +571,8 @@ def chains(args) -> dict:
         rows_ = {k: v.copy() for k, v in base.items()}
         poses = rows_["poses"].reshape(len(rows_["poses"]), 24, 3)
         poses[:, list(joints)] = donor["poses"].reshape(len(poses), 24, 3)[:, list(joints)]
+        if name == "true torso world limbs":  # the limbs keep the tracked orientation in the world
+            poses[:, list(LIMB_ROOTS)] = limb_roots_in_world(base, donor)
         rows_["poses"] = poses.reshape(len(poses), 72)
         slug = name.replace(" ", "_")
         folder = out / "chains" / f"{slug}_{args.size}"
