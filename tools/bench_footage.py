@@ -592,6 +592,105 @@ def chains(args) -> dict:
     return rows
 
 
+BONES = {  # joint -> its child: the bone whose orientation in the camera's frame is compared
+    "left upper arm": (16, 18),
+    "right upper arm": (17, 19),
+    "left forearm": (18, 20),
+    "right forearm": (19, 21),
+    "left thigh": (1, 4),
+    "right thigh": (2, 5),
+    "spine (chest)": (9, 12),
+    "neck": (12, 15),
+}
+
+
+def errors(args) -> dict:
+    """What the tracked poses' errors are: each bone's orientation in the camera's frame against
+    the truth, split into the twist about the bone and the rest, the global orientation; and the
+    per-joint error after a zero-lag Gaussian smoothing of the tracked trajectory in time (sigma
+    in frames), which says whether the errors are jitter or slow biases. The ``refine``
+    experiment's tracked folder, every tracked frame."""
+    import cv2
+    import numpy as np
+    import torch
+
+    from stg_node.body import load_body_model
+    from stg_node.data.synth.rotations import axis_angle_to_matrix
+    from stg_node.safe_load import load_npy, load_npz
+
+    out = args.out
+    data = subject(out, f"mixed_{args.size}", num_frames=args.frames, size=args.size)
+    video_data = out / "refine" / f"video_data_{args.size}"
+    if not (video_data / "poses.npz").is_file():
+        raise FileNotFoundError(f"{video_data}: run the refine experiment first (it tracks the video)")
+    tracked = {k: np.asarray(v) for k, v in load_npz(video_data / "poses.npz").items()}
+    frames = tracked["frames"].astype(int)
+    R1 = np.asarray(load_npy(data / "annots.npy")["cams"]["R"][0], np.float64)
+    true_local, true_global = [], []
+    for f in frames:
+        true = load_npy(data / "new_params" / f"{int(f)}.npy")
+        poses = np.asarray(true["poses"], np.float64).reshape(24, 3)
+        rotation = R1 @ cv2.Rodrigues(np.asarray(true["Rh"], np.float64).reshape(3))[0]
+        true_local.append(poses[1:])
+        true_global.append(cv2.Rodrigues(rotation @ cv2.Rodrigues(poses[0])[0])[0].ravel())
+    true_local, true_global = np.stack(true_local), np.stack(true_global)
+    poses = tracked["poses"].reshape(-1, 24, 3).astype(np.float64)
+    global_ = np.stack(
+        [cv2.Rodrigues(cv2.Rodrigues(rh.astype(np.float64))[0] @ cv2.Rodrigues(p0)[0])[0].ravel()
+         for rh, p0 in zip(tracked["Rh"], poses[:, 0], strict=True)]
+    )  # fmt: skip
+    body = load_body_model()
+    parents = body.parents.tolist()
+    zeros = torch.zeros(1, 3)
+    rest = body(betas=torch.zeros(1, 10), poses=torch.zeros(1, 72), Rh=zeros, Th=zeros).joints[0].numpy()
+
+    def world(root, local):
+        n = len(root)
+        L = axis_angle_to_matrix(local.reshape(-1, 3)).reshape(n, 23, 3, 3)
+        G = [axis_angle_to_matrix(root)]
+        for j in range(1, 24):
+            G.append(G[parents[j]] @ L[:, j - 1])
+        return np.stack(G, axis=1)
+
+    G_true, G_tracked = world(true_global, true_local), world(global_, poses[:, 1:])
+    bones = {}
+    for name, (j, child) in BONES.items():
+        axis = rest[child] - rest[j]
+        axis /= np.linalg.norm(axis)
+        D = np.einsum("nba,nbc->nac", G_true[:, j], G_tracked[:, j])  # the error in the bone's frame
+        vec = np.stack([cv2.Rodrigues(d)[0].ravel() for d in D])
+        angle = np.linalg.norm(vec, axis=1)
+        half = np.sin(angle / 2)[:, None] * vec / np.maximum(angle, 1e-12)[:, None]
+        twist = np.abs(np.degrees(2 * np.arctan2(half @ axis, np.cos(angle / 2))))
+        bones[name] = {"error_deg": float(np.degrees(angle).mean()), "twist_deg": float(twist.mean())}
+
+    def smoothed(aa, sigma):
+        n, J = aa.shape[:2]
+        M = axis_angle_to_matrix(aa.reshape(-1, 3)).reshape(n, J, 3, 3)
+        result = np.empty_like(aa)
+        for i in range(n):
+            gap = frames - frames[i]
+            w = np.exp(-0.5 * (gap / sigma) ** 2) * (np.abs(gap) <= 3 * sigma + 0.5)
+            S = np.einsum("n,njab->jab", w / w.sum(), M)
+            for j in range(J):
+                U, _, Vt = np.linalg.svd(S[j])  # the nearest rotation to the weighted mean
+                U[:, -1] *= np.sign(np.linalg.det(U @ Vt))
+                result[i, j] = cv2.Rodrigues(U @ Vt)[0].ravel()
+        return result
+
+    smoothing = {}
+    for sigma in (0.0, 1.0, 2.0, 3.0):
+        local = smoothed(poses[:, 1:], sigma) if sigma else poses[:, 1:]
+        root = smoothed(global_[:, None], sigma)[:, 0] if sigma else global_
+        err = rotation_angles_deg(local, true_local).reshape(len(frames), 23)
+        smoothing[f"sigma {sigma:g} frames"] = {
+            "joint_rotation_deg": float(err.mean()),
+            **{g: float(err.mean(axis=0)[[j - 1 for j in js]].mean()) for g, js in JOINT_GROUPS.items()},
+            "global_orientation_deg": float(rotation_angles_deg(root, true_global).mean()),
+        }
+    return {"frames": len(frames), "bones": bones, "smoothing": smoothing}
+
+
 JOINT_GROUPS = {  # SMPL joint indices
     "shoulders": (16, 17),
     "elbows": (18, 19),
@@ -812,6 +911,7 @@ EXPERIMENTS = {
     "fit": fit,
     "refine": refine,
     "chains": chains,
+    "errors": errors,
 }
 
 
