@@ -9,6 +9,9 @@ size in the frame and an unknown camera cost, and what each remedy buys back.
     python tools/bench_footage.py focal     [...]                         # focal estimate vs truth, 30-90 deg
     python tools/bench_footage.py fit       [--size 256] [--frames 60]    # tracking, silhouette off/on
     python tools/bench_footage.py framing RUN_DIR [...]                   # how stg-render frames a run
+    python tools/bench_footage.py refine    [--size 256] [--runs ...]     # the pose refinement's variants
+    python tools/bench_footage.py chains    [--size 256] [--runs ...]     # the gap: torso chain vs limbs
+    python tools/bench_footage.py errors    [--size 256]                  # what the tracked poses' errors are
     common: --out DIR (default runs/bench_footage) --preset fast --seed 0 --json
 
 Every experiment generates its subjects with ``stg-synth``'s generator into ``--out/data``
@@ -54,6 +57,17 @@ to ``--out/results/EXPERIMENT.json``; a run folder that is already finished is n
   runs (``truth``; ``silhouette``: stg-train --format video's own preparation; ``keypoints`` and
   ``unsmoothed``: that folder with the keypoint-only or unsmoothed silhouette poses), scored on
   novel views.
+- ``refine``: the tracked-pose gap and each pose-refinement variant (``REFINE_VARIANTS``: the
+  settings for tracked poses plus a ``--set``; poses first, a stronger silhouette, more
+  smoothness, the non-rigid part forced on) trained on the training camera's tracked folder,
+  beside ``truth``; novel views (training frames, held-out cameras, each run's refined training
+  poses), novel poses (held-out frames, the tracker's poses as tracked) per body part, and the
+  refined training poses' error against the truth beside the tracked ones'.
+- ``chains``: the same folder with the true torso chain (orientation, position, shape, spine,
+  neck, collars, head) or the true limbs swapped in, the limbs' local rotations kept or their
+  orientation in the camera's frame: which part of the body the gap sits in (a diagnostic).
+- ``errors``: the tracked poses' bones against the truth in the camera's frame, the twist about
+  each bone, and what a zero-lag smoothing in time would change.
 - ``framing``: renders RUN_DIR's default orbit (and follow camera) and reports the share of
   frames with the avatar whole and at least 30 % of the image tall.
 
@@ -935,7 +949,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="gap: which of truth,tracked-before,tracked to train and score here (default: all; "
         "processes running different ones share --out, the last one reports all); fit: any of "
         "accuracy,truth,silhouette,keypoints,unsmoothed (default: accuracy; the trained ones need accuracy's "
-        "keypoint-only poses first)",
+        "keypoint-only poses first); refine: truth and any of REFINE_VARIANTS; chains: true torso, "
+        "true limbs, true torso world limbs (names without commas)",
     )
     p.add_argument("--json", action="store_true", help="print the results as one JSON object")
     p.add_argument("--iters", type=int, default=None, help="override the iterations (smoke tests)")
