@@ -276,6 +276,12 @@ class TrainConfig:
                 raise ValueError(f"{f.name} must be >= 0, got {getattr(self, f.name)}")
         if self.nonrigid not in NONRIGID_MODES:
             raise ValueError(f"nonrigid must be one of {NONRIGID_MODES}, got {self.nonrigid!r}")
+        if not 0.0 <= self.pose_warmup <= 0.5:
+            raise ValueError(
+                f"pose_warmup must be in [0, 0.5] (a fraction of the run), got {self.pose_warmup}"
+            )
+        if self.pose_warmup_boost <= 0:
+            raise ValueError(f"pose_warmup_boost must be > 0, got {self.pose_warmup_boost}")
 
     def replace(self, **changes) -> TrainConfig:
         """A copy with top-level fields or dotted sub-fields changed: replace(**{"model.color": "sh"})."""

@@ -101,6 +101,9 @@ def test_pose_warmup_factor_boosts_then_eases_back_to_one():
     values = [pose_warmup_factor(p / 100, 0.25, 10.0) for p in range(101)]
     assert all(a >= b for a, b in zip(values, values[1:], strict=False))  # never rises again
     assert pose_warmup_factor(0.1, 0.25, 1.0) == 1.0 == pose_warmup_factor(0.1, 0.0, 10.0)  # off
+    for bad in ({"pose_warmup": 0.7}, {"pose_warmup_boost": 0.0}):
+        with pytest.raises(ValueError, match="pose_warmup"):
+            preset("fast").replace(**bad).validate()
 
 
 def test_the_schedule_boosts_only_the_named_group():
