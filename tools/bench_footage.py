@@ -9,6 +9,9 @@ size in the frame and an unknown camera cost, and what each remedy buys back.
     python tools/bench_footage.py focal     [...]                         # focal estimate vs truth, 30-90 deg
     python tools/bench_footage.py fit       [--size 256] [--frames 60]    # tracking, silhouette off/on
     python tools/bench_footage.py framing RUN_DIR [...]                   # how stg-render frames a run
+    python tools/bench_footage.py refine    [--size 256] [--runs ...]     # the pose refinement's variants
+    python tools/bench_footage.py chains    [--size 256] [--runs ...]     # the gap: torso chain vs limbs
+    python tools/bench_footage.py errors    [--size 256]                  # what the tracked poses' errors are
     common: --out DIR (default runs/bench_footage) --preset fast --seed 0 --json
 
 Every experiment generates its subjects with ``stg-synth``'s generator into ``--out/data``
@@ -60,6 +63,17 @@ to ``--out/results/EXPERIMENT.json``; a run folder that is already finished is n
   runs (``truth``; ``silhouette``: stg-train --format video's own preparation; ``keypoints`` and
   ``unsmoothed``: that folder with the keypoint-only or unsmoothed silhouette poses), scored on
   novel views.
+- ``refine``: the tracked-pose gap and each pose-refinement variant (``REFINE_VARIANTS``: the
+  settings for tracked poses plus a ``--set``; poses first, a stronger silhouette, more
+  smoothness, the non-rigid part forced on) trained on the training camera's tracked folder,
+  beside ``truth``; novel views (training frames, held-out cameras, each run's refined training
+  poses), novel poses (held-out frames, the tracker's poses as tracked) per body part, and the
+  refined training poses' error against the truth beside the tracked ones'.
+- ``chains``: the same folder with the true torso chain (orientation, position, shape, spine,
+  neck, collars, head) or the true limbs swapped in, the limbs' local rotations kept or their
+  orientation in the camera's frame: which part of the body the gap sits in (a diagnostic).
+- ``errors``: the tracked poses' bones against the truth in the camera's frame, the twist about
+  each bone, and what a zero-lag smoothing in time would change.
 - ``framing``: renders RUN_DIR's default orbit (and follow camera) and reports the share of
   frames with the avatar whole and at least 30 % of the image tall.
 
@@ -435,6 +449,303 @@ def framing(args) -> dict:
     return rows
 
 
+# refine: the variants of the pose refinement trained on the tracked folder dataset, as --set flags
+# on top of today's refinement for tracked poses (pose_refine.REFINEMENTS["tracked"]).
+REFINE_VARIANTS = {
+    "tracked": (),
+    "no refinement": ("lr_pose=0",),
+    "warm-up x10": ("pose_warmup_boost=10",),
+    "mask x3": ("loss.mask=0.3",),
+    "smooth x10": ("loss.pose_smooth=0.01",),
+    "non-rigid on": ('nonrigid="on"',),
+}
+
+
+def refine(args) -> dict:
+    """The tracked-pose gap and what each pose-refinement variant buys: ``stg-train --format
+    video``'s own preparation of the training camera (the ``gap`` experiment's tracked run, tracked
+    once) trained as a folder dataset with each variant of ``REFINE_VARIANTS`` (``--runs`` picks),
+    beside ``truth``; novel views (training frames, held-out cameras, the refined training poses)
+    and novel poses (held-out frames, the tracker's poses as tracked), per body part, and how far
+    the refined training poses are from the truth against the tracked ones."""
+    from stg_node.avatar.pose_refine import REFINEMENTS
+    from stg_node.avatar.video import prepare_video
+
+    out = args.out
+    data = subject(out, f"mixed_{args.size}", num_frames=args.frames, size=args.size)
+    video_data = out / "refine" / f"video_data_{args.size}"
+    if not (video_data / "poses.npz").is_file():
+        prepare_video(data / "Camera_B1", video_data, intrinsics=intrinsics_file(data), progress=False)
+    r = REFINEMENTS["tracked"]
+    tracked = [
+        f"lr_pose={r.lr_pose}",
+        f"loss.pose_refine={r.pose_refine}",
+        f"loss.pose_smooth={r.pose_smooth}",
+    ]
+    frames = ["--train-frames", f"0:{round(0.8 * args.frames)}", "--size", str(args.size)]
+    wanted = args.runs.split(",") if args.runs else ["truth", *REFINE_VARIANTS]
+    unknown = sorted(set(wanted) - {"truth", *REFINE_VARIANTS})
+    if unknown:
+        raise ValueError(f"--runs: unknown {unknown}; choose from truth, {', '.join(REFINE_VARIANTS)}")
+    rows = {}
+    for name in wanted:
+        slug = name.replace(" ", "_").replace("-", "_").replace(",", "")
+        if name == "truth":
+            flags = ("--data", str(data), "--format", "synthetic", "--size", str(args.size))
+        else:
+            sets = [x for kv in (*tracked, *REFINE_VARIANTS[name]) for x in ("--set", kv)]
+            flags = ("--data", str(video_data), "--format", "folder", *frames, *sets)
+        run = train(out, f"refine_{slug}_{args.size}_s{args.seed}", args, *flags)
+        rows[name] = {split: score(run, data, split) for split in ("novel_view", "novel_pose")}
+        if name != "truth":
+            rows[name]["poses"] = refined_pose_accuracy(run, video_data, data)
+        cached = out / "results" / f"refine_{slug}_{args.size}_s{args.seed}.json"
+        cached.parent.mkdir(parents=True, exist_ok=True)
+        cached.write_text(json.dumps(rows[name], default=float) + "\n")
+    for name in ("truth", *REFINE_VARIANTS):  # rows another process scored
+        slug = name.replace(" ", "_").replace("-", "_").replace(",", "")
+        cached = out / "results" / f"refine_{slug}_{args.size}_s{args.seed}.json"
+        if name not in rows and cached.is_file():
+            rows[name] = json.loads(cached.read_text())
+    if "truth" in rows:
+        for row in rows.values():
+            truth = rows["truth"]
+            row["gap_db"] = {s: truth[s]["psnr"] - row[s]["psnr"] for s in ("novel_view", "novel_pose")}
+    return rows
+
+
+def refined_pose_accuracy(run: Path, video_data: Path, data: Path) -> dict:
+    """The training frames' poses, as tracked and as refined by ``run``, against the truth in the
+    training camera's frame: each joint's rotation error (mean, and per group) and the global
+    orientation's."""
+    import cv2
+    import numpy as np
+
+    from stg_node.avatar.loading import corrected, load_run_renderer
+    from stg_node.body.motion import load_smpl_params
+    from stg_node.safe_load import load_npy, load_npz
+
+    _, _, corrections, _ = load_run_renderer(run)
+    frames = np.asarray(load_npz(video_data / "poses.npz")["frames"]).astype(int)
+    sequence = load_smpl_params(video_data / "poses.npz")
+    R1 = np.asarray(load_npy(data / "annots.npy")["cams"]["R"][0], np.float64)
+    rows = {"tracked": ([], []), "refined": ([], []), "truth": ([], [])}
+    for i, frame in enumerate(frames):
+        if int(frame) not in corrections:
+            continue  # a held-out frame
+        true = load_npy(data / "new_params" / f"{int(frame)}.npy")
+        true_poses = np.asarray(true["poses"], np.float64).reshape(24, 3)
+        rotation = R1 @ cv2.Rodrigues(np.asarray(true["Rh"], np.float64).reshape(3))[0]
+        rows["truth"][0].append(true_poses[1:])
+        rows["truth"][1].append(cv2.Rodrigues(rotation @ cv2.Rodrigues(true_poses[0])[0])[0].ravel())
+        refined = corrected(sequence[i], corrections[int(frame)])
+        for name, smpl in (("tracked", sequence[i]), ("refined", refined)):
+            poses = np.asarray(smpl.poses, np.float64).reshape(24, 3)
+            rh = cv2.Rodrigues(np.asarray(smpl.Rh, np.float64).reshape(3))[0]
+            rows[name][0].append(poses[1:])
+            rows[name][1].append(cv2.Rodrigues(rh @ cv2.Rodrigues(poses[0])[0])[0].ravel())
+    true_joints, true_global = (np.stack(v) for v in rows["truth"])
+    result = {"frames": len(true_global)}
+    for name in ("tracked", "refined"):
+        joints, global_ = (np.stack(v) for v in rows[name])
+        err = rotation_angles_deg(joints, true_joints).reshape(len(joints), 23).mean(axis=0)
+        result[name] = {
+            "joint_rotation_deg": float(err.mean()),
+            **{g: float(err[[j - 1 for j in js]].mean()) for g, js in JOINT_GROUPS.items()},
+            "global_orientation_deg": float(rotation_angles_deg(global_, true_global).mean()),
+        }
+    return result
+
+
+TORSO_JOINTS = (3, 6, 9, 12, 13, 14, 15)  # spine, neck, collars, head (the root is Rh, Th)
+LIMB_JOINTS = (1, 2, 4, 5, 7, 8, 10, 11, 16, 17, 18, 19, 20, 21, 22, 23)  # legs, arms, hands, feet
+LIMB_ROOTS = {1: 0, 2: 0, 16: 13, 17: 14}  # the first joint of each limb: its parent
+
+
+def limb_roots_in_world(base: dict, donor: dict):
+    """(n, 4, 3) local rotations of the limbs' first joints (hips, shoulders) that give ``base``'s
+    torso the world orientation of ``donor``'s limbs: a limb's pose relative to a wrong torso
+    says little; its orientation in the camera's frame is what the tracker saw."""
+    import cv2
+    import numpy as np
+
+    from stg_node.body import load_body_model
+
+    parents = load_body_model().parents.tolist()
+
+    def world(rows, i):
+        poses = rows["poses"][i].reshape(24, 3).astype(np.float64)
+        G = [cv2.Rodrigues(np.asarray(rows["Rh"][i], np.float64))[0] @ cv2.Rodrigues(poses[0])[0]]
+        for j in range(1, 24):
+            G.append(G[parents[j]] @ cv2.Rodrigues(poses[j])[0])
+        return G
+
+    out = []
+    for i in range(len(base["poses"])):
+        mine, theirs = world(base, i), world(donor, i)
+        out.append([cv2.Rodrigues(mine[p].T @ theirs[j])[0].ravel() for j, p in LIMB_ROOTS.items()])
+    return np.asarray(out)
+
+
+def chains(args) -> dict:
+    """Which body chain the tracked-pose gap sits in: the ``refine`` experiment's tracked folder
+    trained with the true torso (global orientation, position, shape, spine, neck, collars,
+    head) and the tracked limbs (``true torso``), and with the tracked torso and the true limbs
+    (``true limbs``); ``true torso world limbs``: the true torso with the tracked limbs turned to
+    keep their orientation in the camera's frame (each in the
+    training camera's frame, as ``sources`` builds them), the refinement for tracked poses."""
+    import shutil
+
+    import numpy as np
+
+    from stg_node.avatar.pose_refine import REFINEMENTS
+
+    out = args.out
+    data = subject(out, f"mixed_{args.size}", num_frames=args.frames, size=args.size)
+    video_data = out / "refine" / f"video_data_{args.size}"
+    if not (video_data / "poses.npz").is_file():
+        raise FileNotFoundError(f"{video_data}: run the refine experiment first (it tracks the video)")
+    variants = pose_variants(video_data, data, out / "chains" / f"data_{args.size}")
+    tracked = {k: np.asarray(v) for k, v in np.load(variants["tracked"] / "poses.npz").items()}
+    true = {k: np.asarray(v) for k, v in np.load(variants["true"] / "poses.npz").items()}
+    mixes = {"true torso": (true, tracked, LIMB_JOINTS),
+             "true limbs": (tracked, true, LIMB_JOINTS),
+             "true torso world limbs": (true, tracked, LIMB_JOINTS)}  # fmt: skip
+    r = REFINEMENTS["tracked"]
+    settings = (
+        f"lr_pose={r.lr_pose}",
+        f"loss.pose_refine={r.pose_refine}",
+        f"loss.pose_smooth={r.pose_smooth}",
+    )
+    sets = [x for kv in settings for x in ("--set", kv)]
+    frames = ["--train-frames", f"0:{round(0.8 * args.frames)}", "--size", str(args.size), *sets]
+    wanted = args.runs.split(",") if args.runs else list(mixes)
+    rows = {}
+    for name in wanted:
+        base, donor, joints = mixes[name]
+        rows_ = {k: v.copy() for k, v in base.items()}
+        poses = rows_["poses"].reshape(len(rows_["poses"]), 24, 3)
+        poses[:, list(joints)] = donor["poses"].reshape(len(poses), 24, 3)[:, list(joints)]
+        if name == "true torso world limbs":  # the limbs keep the tracked orientation in the world
+            poses[:, list(LIMB_ROOTS)] = limb_roots_in_world(base, donor)
+        rows_["poses"] = poses.reshape(len(poses), 72)
+        slug = name.replace(" ", "_")
+        folder = out / "chains" / f"{slug}_{args.size}"
+        folder.mkdir(parents=True, exist_ok=True)
+        for sub in ("images", "masks"):
+            if not (folder / sub).exists():
+                (folder / sub).symlink_to((video_data / sub).resolve())
+        shutil.copy(video_data / "cameras.json", folder / "cameras.json")
+        np.savez(folder / "poses.npz", **rows_)
+        run = train(
+            out, f"chains_{slug}_{args.size}", args, "--data", str(folder), "--format", "folder", *frames
+        )
+        rows[name] = {split: score(run, data, split) for split in ("novel_view", "novel_pose")}
+        cached = out / "results" / f"chains_{slug}_{args.size}.json"
+        cached.parent.mkdir(parents=True, exist_ok=True)
+        cached.write_text(json.dumps(rows[name], default=float) + "\n")
+    return rows
+
+
+BONES = {  # joint -> its child: the bone whose orientation in the camera's frame is compared
+    "left upper arm": (16, 18),
+    "right upper arm": (17, 19),
+    "left forearm": (18, 20),
+    "right forearm": (19, 21),
+    "left thigh": (1, 4),
+    "right thigh": (2, 5),
+    "spine (chest)": (9, 12),
+    "neck": (12, 15),
+}
+
+
+def errors(args) -> dict:
+    """What the tracked poses' errors are: each bone's orientation in the camera's frame against
+    the truth, split into the twist about the bone and the rest, the global orientation; and the
+    per-joint error after a zero-lag Gaussian smoothing of the tracked trajectory in time (sigma
+    in frames), which says whether the errors are jitter or slow biases. The ``refine``
+    experiment's tracked folder, every tracked frame."""
+    import cv2
+    import numpy as np
+    import torch
+
+    from stg_node.body import load_body_model
+    from stg_node.data.synth.rotations import axis_angle_to_matrix
+    from stg_node.safe_load import load_npy, load_npz
+
+    out = args.out
+    data = subject(out, f"mixed_{args.size}", num_frames=args.frames, size=args.size)
+    video_data = out / "refine" / f"video_data_{args.size}"
+    if not (video_data / "poses.npz").is_file():
+        raise FileNotFoundError(f"{video_data}: run the refine experiment first (it tracks the video)")
+    tracked = {k: np.asarray(v) for k, v in load_npz(video_data / "poses.npz").items()}
+    frames = tracked["frames"].astype(int)
+    R1 = np.asarray(load_npy(data / "annots.npy")["cams"]["R"][0], np.float64)
+    true_local, true_global = [], []
+    for f in frames:
+        true = load_npy(data / "new_params" / f"{int(f)}.npy")
+        poses = np.asarray(true["poses"], np.float64).reshape(24, 3)
+        rotation = R1 @ cv2.Rodrigues(np.asarray(true["Rh"], np.float64).reshape(3))[0]
+        true_local.append(poses[1:])
+        true_global.append(cv2.Rodrigues(rotation @ cv2.Rodrigues(poses[0])[0])[0].ravel())
+    true_local, true_global = np.stack(true_local), np.stack(true_global)
+    poses = tracked["poses"].reshape(-1, 24, 3).astype(np.float64)
+    global_ = np.stack(
+        [cv2.Rodrigues(cv2.Rodrigues(rh.astype(np.float64))[0] @ cv2.Rodrigues(p0)[0])[0].ravel()
+         for rh, p0 in zip(tracked["Rh"], poses[:, 0], strict=True)]
+    )  # fmt: skip
+    body = load_body_model()
+    parents = body.parents.tolist()
+    zeros = torch.zeros(1, 3)
+    rest = body(betas=torch.zeros(1, 10), poses=torch.zeros(1, 72), Rh=zeros, Th=zeros).joints[0].numpy()
+
+    def world(root, local):
+        n = len(root)
+        L = axis_angle_to_matrix(local.reshape(-1, 3)).reshape(n, 23, 3, 3)
+        G = [axis_angle_to_matrix(root)]
+        for j in range(1, 24):
+            G.append(G[parents[j]] @ L[:, j - 1])
+        return np.stack(G, axis=1)
+
+    G_true, G_tracked = world(true_global, true_local), world(global_, poses[:, 1:])
+    bones = {}
+    for name, (j, child) in BONES.items():
+        axis = rest[child] - rest[j]
+        axis /= np.linalg.norm(axis)
+        D = np.einsum("nba,nbc->nac", G_true[:, j], G_tracked[:, j])  # the error in the bone's frame
+        vec = np.stack([cv2.Rodrigues(d)[0].ravel() for d in D])
+        angle = np.linalg.norm(vec, axis=1)
+        half = np.sin(angle / 2)[:, None] * vec / np.maximum(angle, 1e-12)[:, None]
+        twist = np.abs(np.degrees(2 * np.arctan2(half @ axis, np.cos(angle / 2))))
+        bones[name] = {"error_deg": float(np.degrees(angle).mean()), "twist_deg": float(twist.mean())}
+
+    def smoothed(aa, sigma):
+        n, J = aa.shape[:2]
+        M = axis_angle_to_matrix(aa.reshape(-1, 3)).reshape(n, J, 3, 3)
+        result = np.empty_like(aa)
+        for i in range(n):
+            gap = frames - frames[i]
+            w = np.exp(-0.5 * (gap / sigma) ** 2) * (np.abs(gap) <= 3 * sigma + 0.5)
+            S = np.einsum("n,njab->jab", w / w.sum(), M)
+            for j in range(J):
+                U, _, Vt = np.linalg.svd(S[j])  # the nearest rotation to the weighted mean
+                U[:, -1] *= np.sign(np.linalg.det(U @ Vt))
+                result[i, j] = cv2.Rodrigues(U @ Vt)[0].ravel()
+        return result
+
+    smoothing = {}
+    for sigma in (0.0, 1.0, 2.0, 3.0):
+        local = smoothed(poses[:, 1:], sigma) if sigma else poses[:, 1:]
+        root = smoothed(global_[:, None], sigma)[:, 0] if sigma else global_
+        err = rotation_angles_deg(local, true_local).reshape(len(frames), 23)
+        smoothing[f"sigma {sigma:g} frames"] = {
+            "joint_rotation_deg": float(err.mean()),
+            **{g: float(err.mean(axis=0)[[j - 1 for j in js]].mean()) for g, js in JOINT_GROUPS.items()},
+            "global_orientation_deg": float(rotation_angles_deg(root, true_global).mean()),
+        }
+    return {"frames": len(frames), "bones": bones, "smoothing": smoothing}
+
+
 JOINT_GROUPS = {  # SMPL joint indices
     "shoulders": (16, 17),
     "elbows": (18, 19),
@@ -653,6 +964,9 @@ EXPERIMENTS = {
     "focal": focal,
     "framing": framing,
     "fit": fit,
+    "refine": refine,
+    "chains": chains,
+    "errors": errors,
 }
 
 
@@ -676,7 +990,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="gap: which of truth,tracked-before,tracked to train and score here (default: all; "
         "processes running different ones share --out, the last one reports all); fit: any of "
         "accuracy,truth,silhouette,keypoints,unsmoothed (default: accuracy; the trained ones need accuracy's "
-        "keypoint-only poses first); exposure: any of steady,jitter,nocorr,steady-nocorr (default: all)",
+        "keypoint-only poses first); exposure: any of steady,jitter,nocorr,steady-nocorr (default: all); "
+        "refine: truth and any of REFINE_VARIANTS; chains: true torso, true limbs, true torso world limbs "
+        "(names without commas)",
     )
     p.add_argument("--json", action="store_true", help="print the results as one JSON object")
     p.add_argument("--iters", type=int, default=None, help="override the iterations (smoke tests)")

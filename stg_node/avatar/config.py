@@ -247,6 +247,11 @@ class TrainConfig:
     lr_light: float = 3e-2
     # Real footage (pose_refine.py, exposure.py).
     pose_refine_joints: bool = True  # False: refine each frame's alignment only (root rotation, Th)
+    # Poses first (pose_refine.py, pose_warmup_factor): for the first pose_warmup fraction of the
+    # iterations the pose corrections learn at pose_warmup_boost x lr_pose, easing back to 1 x over
+    # the next pose_warmup fraction (1.0 = off).
+    pose_warmup: float = 0.25
+    pose_warmup_boost: float = 1.0
     # Per-frame exposure / white-balance gains (exposure.py): the share of each draw's least-squares
     # gains taken (0 = off, 1 = the draw's estimate as is), from step exposure_start on. Off for data
     # filmed at a fixed exposure (datasets, stg-synth); footage (--format video, live cameras) turns
@@ -287,6 +292,12 @@ class TrainConfig:
             )
         if self.nonrigid not in NONRIGID_MODES:
             raise ValueError(f"nonrigid must be one of {NONRIGID_MODES}, got {self.nonrigid!r}")
+        if not 0.0 <= self.pose_warmup <= 0.5:
+            raise ValueError(
+                f"pose_warmup must be in [0, 0.5] (a fraction of the run), got {self.pose_warmup}"
+            )
+        if self.pose_warmup_boost <= 0:
+            raise ValueError(f"pose_warmup_boost must be > 0, got {self.pose_warmup_boost}")
 
     def replace(self, **changes) -> TrainConfig:
         """A copy with top-level fields or dotted sub-fields changed: replace(**{"model.color": "sh"})."""

@@ -60,15 +60,18 @@ class TableOptimizer:
         if self.dense is not None:
             self.dense.step()
 
-    def set_schedule(self, progress: float, means_final: float, others_final: float) -> None:
+    def set_schedule(
+        self, progress: float, means_final: float, others_final: float, boost: dict[str, float] | None = None
+    ) -> None:
         """Exponential decay of the means' rate to ``means_final`` x; cosine of the rest to
-        ``others_final`` x."""
+        ``others_final`` x; a group named in ``boost`` gets that factor on top."""
         p = min(max(progress, 0.0), 1.0)
         cosine = others_final + (1 - others_final) * 0.5 * (1 + math.cos(math.pi * p))
+        boost = boost or {}
         for group in self.groups():
             base = self.base_lrs.get(group["name"], 0.0)
             factor = means_final**p if group["name"] == "means" else cosine
-            group["lr"] = base * factor
+            group["lr"] = base * factor * boost.get(group["name"], 1.0)
 
     def lr(self, name: str) -> float:
         for group in self.groups():

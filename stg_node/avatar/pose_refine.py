@@ -32,6 +32,7 @@ Held-out frames are never refined: a novel pose is rendered with the pose it is 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -106,6 +107,19 @@ def refinement_for(config, source: str):
     return config.replace(
         **{"lr_pose": r.lr_pose, "loss.pose_refine": r.pose_refine, "loss.pose_smooth": r.pose_smooth}
     )
+
+
+def pose_warmup_factor(progress: float, warmup: float, boost: float) -> float:
+    """The pose corrections' learning-rate factor at ``progress`` (0..1 of the run): ``boost`` for
+    the first ``warmup`` fraction, easing back to 1 (cosine) over the next ``warmup`` fraction.
+    Poses first, while the avatar is still coarse: the mask and the blurred appearance then say
+    where a limb is, and a pose settled early is one the avatar's detail is learnt on."""
+    if boost == 1.0 or warmup <= 0.0 or progress >= 2.0 * warmup:
+        return 1.0
+    if progress <= warmup:
+        return boost
+    ease = 0.5 * (1.0 + math.cos(math.pi * (progress - warmup) / warmup))  # 1 -> 0
+    return 1.0 + (boost - 1.0) * ease
 
 
 def touched_slots(slots: dict[int, int], index: int, smoothed: bool) -> list[int]:

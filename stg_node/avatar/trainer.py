@@ -34,7 +34,7 @@ from stg_node.avatar.isometry import IsometryGraph
 from stg_node.avatar.model import AvatarModel, BodyState, Camera3, render
 from stg_node.avatar.motion_priors import line_of_sight, world_offsets
 from stg_node.avatar.optim import TableOptimizer
-from stg_node.avatar.pose_refine import PoseTrack, hold_unseen_rows, touched_slots
+from stg_node.avatar.pose_refine import PoseTrack, hold_unseen_rows, pose_warmup_factor, touched_slots
 from stg_node.avatar.rigid import Skeleton, skin
 from stg_node.avatar.rigidity import NeighbourGraph
 from stg_node.avatar.spacetime import TimeAxis
@@ -338,7 +338,8 @@ class Trainer:
         frames = self._training_frames()
         stored = frames[int(torch.randint(len(frames), (1,), generator=gen))]
         progress = it / max(c.iterations, 1)
-        self.optimizer.set_schedule(progress, 0.01, c.lr_schedule_final)
+        boost = {"pose": pose_warmup_factor(progress, c.pose_warmup, c.pose_warmup_boost)}
+        self.optimizer.set_schedule(progress, 0.01, c.lr_schedule_final, boost)
         sh_degree = min(c.model.sh_degree, it // max(c.sh_increase_every, 1))
 
         full = c.full_frame_every > 0 and it % c.full_frame_every == 0

@@ -89,3 +89,62 @@ def test_a_step_moves_only_the_corrections_of_the_frames_it_saw(tiny_frames, smo
         assert set(torch.nonzero(changed).flatten().tolist()) <= allowed, result.frame
         moved_neighbours += int(changed[list(neighbours)].any()) if neighbours else 0
     assert (moved_neighbours > 0) == (smooth > 0)
+
+
+def test_pose_warmup_factor_boosts_then_eases_back_to_one():
+    from stg_node.avatar.pose_refine import pose_warmup_factor
+
+    assert pose_warmup_factor(0.0, 0.25, 10.0) == 10.0 == pose_warmup_factor(0.25, 0.25, 10.0)
+    assert pose_warmup_factor(0.375, 0.25, 10.0) == pytest.approx(5.5)  # half-way down the cosine
+    assert pose_warmup_factor(0.5, 0.25, 10.0) == pytest.approx(1.0)
+    assert pose_warmup_factor(0.9, 0.25, 10.0) == 1.0
+    values = [pose_warmup_factor(p / 100, 0.25, 10.0) for p in range(101)]
+    assert all(a >= b for a, b in zip(values, values[1:], strict=False))  # never rises again
+    assert pose_warmup_factor(0.1, 0.25, 1.0) == 1.0 == pose_warmup_factor(0.1, 0.0, 10.0)  # off
+    for bad in ({"pose_warmup": 0.7}, {"pose_warmup_boost": 0.0}):
+        with pytest.raises(ValueError, match="pose_warmup"):
+            preset("fast").replace(**bad).validate()
+
+
+def test_the_schedule_boosts_only_the_named_group():
+    from stg_node.avatar.gaussians import GaussianTable
+    from stg_node.avatar.optim import TableOptimizer
+
+    table = GaussianTable({"means": torch.zeros(4, 3)})
+    deltas = torch.nn.Parameter(torch.zeros(3, 75))
+    optimizer = TableOptimizer(table, {"means": 1.0}, {"pose": ([deltas], 2e-3)})
+    optimizer.set_schedule(0.0, 0.01, 0.1, {"pose": 10.0})
+    assert optimizer.lr("pose") == pytest.approx(2e-2) and optimizer.lr("means") == pytest.approx(1.0)
+    optimizer.set_schedule(1.0, 0.01, 0.1)
+    assert optimizer.lr("pose") == pytest.approx(2e-4) and optimizer.lr("means") == pytest.approx(0.01)
+
+
+def _shifted_frame_recovery(tiny_frames, *, lr_pose: float, boost: float, steps: int) -> float:
+    """Train one frame whose body was moved 4 cm sideways (in the camera's image plane) off the
+    person in its image; the share of the shift its learned correction takes back."""
+    import dataclasses
+
+    from avatar_helpers import small_config
+
+    from stg_node.avatar.trainer import Trainer
+
+    frame = tiny_frames[len(tiny_frames) // 2]
+    right = np.asarray(frame.camera.R, np.float64)[0]  # the camera's x axis in the world
+    shift = (0.04 * right).astype(np.float32)
+    moved = dataclasses.replace(frame, smpl=dataclasses.replace(frame.smpl, Th=frame.smpl.Th + shift))
+    config = small_config(iterations=steps, lr_pose=lr_pose, pose_warmup=0.5, pose_warmup_boost=boost)
+    trainer = Trainer(config.replace(**{"loss.pose_refine": 1e-4}), seed=0)
+    trainer.add_frames([moved])
+    for _ in range(steps):
+        assert not trainer.step().skipped
+    correction = trainer.pose_deltas.detach()[trainer.pose_slots[frame.index], 72:75].double().numpy()
+    return float(-correction @ shift / (shift @ shift))
+
+
+def test_refinement_takes_back_a_known_shift_of_the_body(tiny_frames):
+    """The masks and images pull a misplaced body back, and the pose-first warm-up (10x the rate
+    for the first half of the steps, easing back over the second) takes back much more of a 4 cm
+    shift in 40 steps than the plain schedule at the same rate (measured: 0.44 against 0.11)."""
+    plain = _shifted_frame_recovery(tiny_frames, lr_pose=2e-4, boost=1.0, steps=40)
+    warm = _shifted_frame_recovery(tiny_frames, lr_pose=2e-4, boost=10.0, steps=40)
+    assert warm > 0.3 and warm > plain + 0.2
