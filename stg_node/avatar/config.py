@@ -208,9 +208,11 @@ class DensifyConfig:
     motion_min_px: float = 6.0
     # Clone and split where the image is still wrong (issue 22): each step's screen gradient counts in
     # proportion to its region's error over error_threshold (tau, capped at 1). Under L1 the gradient's
-    # size does not fall as the fit improves, so without it fine texture that is already reproduced
-    # keeps cloning: a still subject grew almost as much as a dancing one (densify.py, _error_weight).
-    clone_on_error: bool = True
+    # size does not fall as the fit improves, so fine texture that is already reproduced keeps cloning.
+    # Off by default: on the medium study it cut clones 3-4x and raised whole novel views (+0.6 dB
+    # dance, +0.9 dB still) but cost the dance's garment 0.16 dB and turned the still subject's trial
+    # on (its motion gates then absorb the fit; docs/BENCHMARKS.md, "The non-rigid part", round 5).
+    clone_on_error: bool = False
     new_time_scale: float = 0.25  # temporal scale (units) of Gaussians added along the flow
     resample_fraction: float = 0.3  # re-sample body parts whose density fell below this x initial
     # Temporal split: a dynamic Gaussian that the image still pulls on is replaced by copies on
