@@ -153,7 +153,10 @@ def test_the_rigid_part_keeps_each_moving_rows_mean_offset_over_the_knots(tiny_f
         table["motion_coef"][4:] = 0.0
     means = table["means"].detach()
     knot_times = [int(k) * bases.knot_units for k in bases.knot_ids]
-    offsets = [MotionBases.apply(bases.at(u).detach(), table["motion_coef"].detach()[:4], means[:4]) for u in knot_times]
+    offsets = [
+        MotionBases.apply(bases.at(u).detach(), table["motion_coef"].detach()[:4], means[:4])
+        for u in knot_times
+    ]
     expected = means.clone()
     expected[:4] += torch.stack(offsets).mean(dim=0)
     rigid, keep = nonrigid.rigid_part(model)
