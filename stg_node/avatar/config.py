@@ -213,6 +213,13 @@ class DensifyConfig:
     # on held-out views at 6 (docs/BENCHMARKS.md, "The non-rigid part").
     flow_seed_missed: bool = True
     motion_min_px: float = 6.0
+    # Clone and split where the image is still wrong (issue 22): each step's screen gradient counts in
+    # proportion to its region's error over error_threshold (tau, capped at 1). Under L1 the gradient's
+    # size does not fall as the fit improves, so fine texture that is already reproduced keeps cloning.
+    # Off by default: at 256 px it cut clones 3-5x and raised every held-out figure, at 512 px it shrank
+    # the models by ~40 % with whole images within 0.1 dB but cost the still subject's garment pixels
+    # 0.41 dB (docs/BENCHMARKS.md, "The non-rigid part", round 5).
+    clone_on_error: bool = False
     new_time_scale: float = 0.25  # temporal scale (units) of Gaussians added along the flow
     resample_fraction: float = 0.3  # re-sample body parts whose density fell below this x initial
     # Temporal split: a dynamic Gaussian that the image still pulls on is replaced by copies on

@@ -221,7 +221,10 @@ class DensifyStrategy:
             return
         pixels = float(inputs.crop[2] * inputs.crop[3])
         vis_count = state["vis_count"]
-        state["grad_sum"].index_add_(0, table_rows, grad[rows].norm(dim=-1) * pixels)
+        pull = grad[rows].norm(dim=-1) * pixels
+        if self.config.clone_on_error:
+            pull = pull * self._error_weight(inputs, means2d.detach()[rows])
+        state["grad_sum"].index_add_(0, table_rows, pull)
         vis_count.index_add_(0, table_rows, torch.ones_like(table_rows, dtype=vis_count.dtype))
         state["steps_seen"] += 1
         depths = info.get("depths")
@@ -248,6 +251,29 @@ class DensifyStrategy:
             missed = (seen_flow - inputs.rendered_flow[py, px]).norm(dim=-1)
             resid_w = state["resid_w"]
             resid_w[sel] = W_DECAY * resid_w[sel] + (1 - W_DECAY) * missed[ok]
+
+    def _error_weight(self, inputs: DensifyInputs, xy: torch.Tensor) -> torch.Tensor:
+        """(len(xy),) in [0, 1]: how badly the region under each projected centre is explained,
+        its tile's mean ``|render - gt|`` over ``error_threshold`` (tau), capped at 1.
+
+        Under an L1 loss the screen gradient's size does not shrink as the fit improves (each
+        pixel pulls with the residual's sign), so AbsGS's summed ``|dL/dmeans2d|`` stays high on
+        fine texture that is already reproduced: a still subject kept cloning as much as a moving
+        one. Weighted by the remaining error, the clone signal follows what the image still gets
+        wrong (motion the model misses, unresolved detail), as tau already says for the seeds.
+        """
+        tiles = self._tile_errors(inputs)
+        r = self.config.region_px
+        h, w = inputs.render.shape[:2]
+        px = xy[:, 0].round().long().clamp(0, w - 1)
+        py = xy[:, 1].round().long().clamp(0, h - 1)
+        return (tiles[py // r, px // r] / self.config.error_threshold).clamp(max=1.0)
+
+    def _tile_errors(self, inputs: DensifyInputs) -> torch.Tensor:
+        """Mean ``|render - gt|`` per ``region_px`` square tile of the step's crop (ceil-divided)."""
+        err = (inputs.render - inputs.target).abs().mean(-1)  # (h, w)
+        r = self.config.region_px
+        return F.avg_pool2d(err[None, None], r, r, ceil_mode=True)[0, 0]
 
     @torch.no_grad()
     def _accumulate_help(self, model, state: dict, inputs: DensifyInputs) -> None:
@@ -285,9 +311,8 @@ class DensifyStrategy:
         if room <= 0:
             return 0
         x0, y0, w, h = inputs.crop
-        err = (inputs.render - inputs.target).abs().mean(-1)  # (h, w)
         r = c.region_px
-        tiles = F.avg_pool2d(err[None, None], r, r, ceil_mode=True)[0, 0]  # mean error per region
+        tiles = self._tile_errors(inputs)  # mean error per region
         info = inputs.info
         radii = info["radii"]
         visible = (radii > 0).all(dim=-1) if radii.dim() == 2 else radii > 0

@@ -78,6 +78,7 @@ def rigid_part(model: AvatarModel) -> tuple[AvatarModel, torch.Tensor]:
         if not bool(keep.any()):
             keep[:] = True  # nothing persistent at all: keep everything rather than nothing
     columns = {name: table[name].detach()[keep] for name in table.names() if name not in NONRIGID_COLUMNS}
+    columns["means"] = _mean_placed(model)[keep]
     config = dataclasses.replace(model.config, spacetime=False)
     rigid = AvatarModel(
         config, GaussianTable(columns), model.skeleton, model.bounds, model.time_axis, model.pose_index
@@ -87,6 +88,21 @@ def rigid_part(model: AvatarModel) -> tuple[AvatarModel, torch.Tensor]:
     if model.shading is not None:  # the same learned light and mean training orientation
         rigid.shading.load_state_dict(model.shading.state_dict())
     return rigid, keep
+
+
+def _mean_placed(model: AvatarModel) -> torch.Tensor:
+    """(N, 3) canonical centres with each moving row's mean offset over the knots (shared bases) added:
+    a constant offset is a displaced centre, not motion (as when a gate settles, densify.py), so the
+    rigid part keeps where the motion held a Gaussian on average rather than snapping it back."""
+    table, bases = model.table, model.motion_bases
+    means = table["means"].detach()
+    gate = table.motion_gate()
+    if bases is None or gate is None or "motion_coef" not in table:
+        return means
+    rows = gate.nonzero().squeeze(1)
+    with torch.no_grad():
+        _, mean = bases.variation(table["motion_coef"].detach()[rows], means[rows])
+    return means.index_add(0, rows, mean)
 
 
 @torch.no_grad()

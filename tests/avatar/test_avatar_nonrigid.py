@@ -136,6 +136,36 @@ def test_the_rigid_part_renders_like_the_model_with_its_terms_at_zero(tiny_frame
     assert keep.tolist()[:6] == [False] * 5 + [True] and int(keep.sum()) == model.table.num - 5
 
 
+def test_the_rigid_part_keeps_each_moving_rows_mean_offset_over_the_knots(tiny_frames):
+    """A moving row's offset averaged over the knot times (MotionBases.apply at each knot, the offset the
+    model poses with) goes into its rigid centre; static rows keep theirs exactly."""
+    from stg_node.avatar.motion_basis import MotionBases
+
+    trainer, _ = _trainer(tiny_frames, _trial_config(nonrigid="on"), 2)
+    model = trainer.model
+    table, bases = model.table, model.motion_bases
+    g = torch.Generator().manual_seed(3)
+    with torch.no_grad():
+        bases.values.copy_(0.01 * torch.randn(bases.values.shape, generator=g))
+        table["motion_gate"].zero_()
+        table["motion_gate"][:4] = 1.0
+        table["motion_coef"][:4] = torch.rand(4, bases.count, generator=g)
+        table["motion_coef"][4:] = 0.0
+    means = table["means"].detach()
+    knot_times = [int(k) * bases.knot_units for k in bases.knot_ids]
+    offsets = [
+        MotionBases.apply(bases.at(u).detach(), table["motion_coef"].detach()[:4], means[:4])
+        for u in knot_times
+    ]
+    expected = means.clone()
+    expected[:4] += torch.stack(offsets).mean(dim=0)
+    rigid, keep = nonrigid.rigid_part(model)
+    assert bool(keep.all())
+    assert torch.allclose(rigid.table["means"], expected, atol=1e-6)
+    assert torch.equal(rigid.table["means"][4:], means[4:])
+    assert float((expected[:4] - means[:4]).norm(dim=1).min()) > 1e-4  # the fold moved every moving row
+
+
 def test_runs_stored_before_the_trial_and_the_bases_resume_as_they_were():
     """A config or snapshot written before these settings existed keeps the polynomial motion, no
     trial, no settling and raw-flow seeds (what those runs did), not today's defaults."""
@@ -254,7 +284,7 @@ def test_a_pixel_spans_depth_over_focal_at_each_gaussian_running_mean():
     def step(depths, radii):
         info = {"radii": torch.tensor(radii), "means2d": means2d, "depths": torch.tensor(depths)}
         inputs = SimpleNamespace(info=info, index=None, crop=(0, 0, 100, 100), flow=None, camera=camera)
-        DensifyStrategy(DensifyConfig(), 100)._accumulate(state, inputs)
+        DensifyStrategy(DensifyConfig(clone_on_error=False), 100)._accumulate(state, inputs)
 
     step([2.0, 3.0, 4.0], [1, 1, 0])
     assert torch.allclose(state["m_per_px"], torch.tensor([2.0 / 500, 3.0 / 500, 0.0]))
@@ -282,3 +312,34 @@ def test_flow_guided_seeds_sit_on_motion_the_model_misses_not_on_motion_it_follo
     assert DensifyStrategy(config, 100)._seed_motion(state, rows, unrendered).tolist() == [True, False, False]
     raw = DensifyStrategy(dataclasses.replace(config, flow_seed_missed=False), 100)
     assert raw._seed_motion(state, rows, rendered).tolist() == [True, False, False]
+
+
+@pytest.mark.parametrize("on_error", [True, False])
+def test_the_clone_signal_counts_each_step_in_proportion_to_its_regions_error(on_error):
+    """Three Gaussians seen in three 8 px tiles of a 16x16 crop whose mean |render - gt| is half of tau,
+    twice tau and zero: their screen gradients (|g| x crop pixels, AbsGS) count x0.5, x1 (capped) and
+    x0 into the clone statistic; with clone_on_error off every one counts in full (3DGS / AbsGS)."""
+    from types import SimpleNamespace
+
+    from stg_node.avatar.config import DensifyConfig
+    from stg_node.avatar.densify import DensifyStrategy
+
+    tau = 0.08
+    target = torch.zeros(16, 16, 3)
+    render = torch.zeros(16, 16, 3)
+    render[:8, :8] = 0.5 * tau  # tile (0, 0): every pixel off by tau / 2 in every channel
+    render[:8, 8:, 0] = 6 * tau  # tile (0, 1): one channel off by 6 tau, so the mean over RGB is 2 tau
+    n = 3
+    state = {k: torch.zeros(n) for k in ("grad_sum", "vis_count", "flow_w", "resid_w", "m_per_px")}
+    state["steps_seen"] = torch.zeros(1)
+    means2d = torch.tensor([[3.0, 4.0], [12.0, 2.0], [5.0, 13.0]], requires_grad=True)  # (x, y)
+    means2d.absgrad = torch.tensor([[3.0, 4.0], [0.6, 0.8], [1.0, 0.0]])  # |g| = 5, 1, 1
+    info = {"radii": torch.ones(n, dtype=torch.int32), "means2d": means2d}
+    inputs = SimpleNamespace(
+        info=info, index=None, crop=(0, 0, 16, 16), flow=None, render=render, target=target
+    )
+    config = DensifyConfig(region_px=8, error_threshold=tau, clone_on_error=on_error)
+    DensifyStrategy(config, 100)._accumulate(state, inputs)
+    weights = torch.tensor([0.5, 1.0, 0.0]) if on_error else torch.ones(3)
+    assert torch.allclose(state["grad_sum"], torch.tensor([5.0, 1.0, 1.0]) * 256 * weights)
+    assert state["vis_count"].tolist() == [1.0, 1.0, 1.0]
