@@ -41,6 +41,7 @@ STG-Avatar's flow-guided densification, on top:
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 
 import torch
@@ -87,12 +88,22 @@ class DensifyInputs:
     time_range: tuple[float, float]  # normalised times of the first and last training frame
     surface: CanonicalSurface
     rendered_flow: torch.Tensor | None = None  # (h, w, 2) per-pixel Gaussian motion, detached
+    # (h, w) camera depth of the surface each pixel sees (inf where nothing is), detached: a Gaussian
+    # behind it reads the flow of what hides it, not its own (occlusion-aware flow statistics)
+    rendered_depth: torch.Tensor | None = None
     grow_in_time: bool = True  # temporal copies and flow-guided additions (off while the trainer decides)
 
 
 # Per-Gaussian entries of the state (resized with the table's rows).
 ROW_STATE = ("grad_sum", "vis_count", "flow_w", "resid_w", "help_dot", "help_norm", "was_dynamic", "m_per_px")
 COUNT_PREFIX = "count."
+
+
+def surface_depth(depth: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+    """(h, w) depth of the surface each pixel sees: the render's expected depth (h, w, 1), inf where
+    the pixel is under half covered (nothing there to hide a Gaussian)."""
+    covered = alpha[..., 0].detach() > 0.5
+    return torch.where(covered, depth[..., 0].detach(), torch.full_like(depth[..., 0], math.inf))
 
 
 def motion_threshold(config: DensifyConfig, flow_magnitudes) -> float:
@@ -238,7 +249,7 @@ class DensifyStrategy:
         py = xy[:, 1].round().long().clamp(0, h - 1)
         fwd = torch.from_numpy(inputs.flow.forward[y0 : y0 + h, x0 : x0 + w]).to(xy.device)
         valid = torch.from_numpy(inputs.flow.valid_forward[y0 : y0 + h, x0 : x0 + w]).to(xy.device)
-        ok = valid[py, px]
+        ok = valid[py, px] & self._in_front(info, rows, px, py, inputs)
         seen_flow = fwd[py, px]
         mag = seen_flow.norm(dim=-1)
         sel = table_rows[ok]
@@ -307,7 +318,7 @@ class DensifyStrategy:
             return 0
         fwd = torch.from_numpy(inputs.flow.forward[y0 : y0 + h, x0 : x0 + w]).to(xy.device)
         valid = torch.from_numpy(inputs.flow.valid_forward[y0 : y0 + h, x0 : x0 + w]).to(xy.device)
-        seeds &= valid[py, px]
+        seeds &= valid[py, px] & self._in_front(info, rows, px, py, inputs)
         idx = seeds.nonzero().squeeze(1)
         if idx.numel() == 0:
             return 0
@@ -368,6 +379,20 @@ class DensifyStrategy:
             )
         self._append(optimizer, state, rows_new)
         return int(keep.numel())
+
+    def _in_front(self, info: dict, rows: torch.Tensor, px, py, inputs: DensifyInputs) -> torch.Tensor:
+        """(len(rows),) bool: rendered Gaussians ``rows`` that are (part of) the surface seen at their
+        pixel, not hidden behind it by more than ``occlusion_m``; all of them without a depth render.
+
+        The flow under a hidden Gaussian's centre is its occluder's. With one camera the hidden side
+        is never seen, so a wrong reading there costs little; with several, every camera's hidden
+        side is another's visible one, and the occluder's motion would open its gate and seed
+        Gaussians behind the surface that the other cameras then see.
+        """
+        if inputs.rendered_depth is None or info.get("depths") is None or self.config.occlusion_m <= 0:
+            return torch.ones(rows.shape[0], dtype=torch.bool, device=rows.device)
+        depth = info["depths"].detach()[rows].reshape(-1)
+        return depth <= inputs.rendered_depth[py, px] + self.config.occlusion_m
 
     def _seed_motion(self, state: dict, rows: torch.Tensor, inputs: DensifyInputs) -> torch.Tensor:
         """(len(rows),) bool: rows on motion a flow-guided seed needs: flow the model's own rendered

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 from avatar_helpers import small_config
@@ -282,3 +283,58 @@ def test_flow_guided_seeds_sit_on_motion_the_model_misses_not_on_motion_it_follo
     assert DensifyStrategy(config, 100)._seed_motion(state, rows, unrendered).tolist() == [True, False, False]
     raw = DensifyStrategy(dataclasses.replace(config, flow_seed_missed=False), 100)
     assert raw._seed_motion(state, rows, rendered).tolist() == [True, False, False]
+
+
+@pytest.mark.parametrize("occlusion_m, back_reads_flow", [(0.04, False), (0.0, True)])
+def test_a_gaussian_hidden_behind_the_surface_does_not_read_its_occluders_flow(occlusion_m, back_reads_flow):
+    """Two opaque Gaussians on one line of sight, 2.0 m and 2.6 m from the camera (rendered by the real
+    rasterizer, with its depth): the flow under both centres is the front one's (3 px). Only the front
+    one accumulates it; the hidden one keeps zero, unless the occlusion test is off (occlusion_m=0, the
+    behaviour before: every Gaussian under the pixel reads it). The surface depth is the front one's."""
+    from types import SimpleNamespace
+
+    from stg_node.avatar.config import DensifyConfig
+    from stg_node.avatar.densify import DensifyStrategy, surface_depth
+    from stg_node.data.flow import FlowPair
+    from stg_node.splat.api import rasterize
+
+    size = 64
+    means = torch.tensor([[0.0, 0.0, 2.0], [0.0, 0.0, 2.6]], requires_grad=True)
+    K = torch.tensor([[100.0, 0, size / 2], [0, 100.0, size / 2], [0, 0, 1]])
+    image, alpha, info = rasterize(
+        means,
+        torch.tensor([[1.0, 0, 0, 0]] * 2),
+        torch.full((2, 3), 0.1),
+        torch.tensor([0.99, 0.99]),
+        torch.rand(2, 3),
+        torch.eye(4),
+        K,
+        size,
+        size,
+        render_depth=True,
+    )
+    info["means2d"].retain_grad()
+    image.sum().backward()
+    depth = surface_depth(info["depth"], alpha)
+    assert abs(float(depth[size // 2, size // 2]) - 2.0) < 0.05
+    assert torch.isinf(depth[0, 0])  # nothing there
+
+    flow = np.zeros((size, size, 2), np.float32)
+    flow[..., 0] = 3.0
+    valid = np.ones((size, size), bool)
+    pair = FlowPair(forward=flow, backward=-flow, valid_forward=valid, valid_backward=valid)
+    state = {k: torch.zeros(2) for k in ("grad_sum", "vis_count", "flow_w", "resid_w", "m_per_px")}
+    state["steps_seen"] = torch.zeros(1)
+    inputs = SimpleNamespace(
+        info=info,
+        index=None,
+        crop=(0, 0, size, size),
+        flow=pair,
+        camera=SimpleNamespace(K=K),
+        rendered_flow=torch.zeros(size, size, 2),
+        rendered_depth=depth,
+    )
+    DensifyStrategy(DensifyConfig(occlusion_m=occlusion_m), 100)._accumulate(state, inputs)
+    assert float(state["resid_w"][0]) > 0 and float(state["flow_w"][0]) > 0
+    assert (float(state["resid_w"][1]) > 0) == back_reads_flow
+    assert (float(state["flow_w"][1]) > 0) == back_reads_flow
