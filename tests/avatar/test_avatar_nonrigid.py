@@ -246,7 +246,9 @@ def test_a_pixel_spans_depth_over_focal_at_each_gaussian_running_mean():
     from stg_node.avatar.densify import W_DECAY, DensifyStrategy
 
     n = 3
-    state = {k: torch.zeros(n) for k in ("grad_sum", "vis_count", "flow_w", "resid_w", "m_per_px")}
+    state = {
+        k: torch.zeros(n) for k in ("grad_sum", "vis_count", "front_count", "flow_w", "resid_w", "m_per_px")
+    }
     state["steps_seen"] = torch.zeros(1)
     means2d = torch.zeros(n, 2, requires_grad=True)
     means2d.grad = torch.ones(n, 2)
@@ -254,7 +256,9 @@ def test_a_pixel_spans_depth_over_focal_at_each_gaussian_running_mean():
 
     def step(depths, radii):
         info = {"radii": torch.tensor(radii), "means2d": means2d, "depths": torch.tensor(depths)}
-        inputs = SimpleNamespace(info=info, index=None, crop=(0, 0, 100, 100), flow=None, camera=camera)
+        inputs = SimpleNamespace(
+            info=info, index=None, crop=(0, 0, 100, 100), flow=None, camera=camera, rendered_depth=None
+        )
         DensifyStrategy(DensifyConfig(), 100)._accumulate(state, inputs)
 
     step([2.0, 3.0, 4.0], [1, 1, 0])
@@ -323,7 +327,9 @@ def test_a_gaussian_hidden_behind_the_surface_does_not_read_its_occluders_flow(o
     flow[..., 0] = 3.0
     valid = np.ones((size, size), bool)
     pair = FlowPair(forward=flow, backward=-flow, valid_forward=valid, valid_backward=valid)
-    state = {k: torch.zeros(2) for k in ("grad_sum", "vis_count", "flow_w", "resid_w", "m_per_px")}
+    state = {
+        k: torch.zeros(2) for k in ("grad_sum", "vis_count", "front_count", "flow_w", "resid_w", "m_per_px")
+    }
     state["steps_seen"] = torch.zeros(1)
     inputs = SimpleNamespace(
         info=info,
@@ -338,3 +344,6 @@ def test_a_gaussian_hidden_behind_the_surface_does_not_read_its_occluders_flow(o
     assert float(state["resid_w"][0]) > 0 and float(state["flow_w"][0]) > 0
     assert (float(state["resid_w"][1]) > 0) == back_reads_flow
     assert (float(state["flow_w"][1]) > 0) == back_reads_flow
+    # Both were rasterized; only the front one counts as seen (the motion gate's mean pull).
+    assert state["vis_count"].tolist() == [1.0, 1.0]
+    assert state["front_count"].tolist() == ([1.0, 1.0] if back_reads_flow else [1.0, 0.0])
