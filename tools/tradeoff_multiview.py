@@ -18,6 +18,9 @@ scored with ``stg-eval``'s protocol (:func:`stg_node.avatar.evaluate.evaluate_sp
   same views for every row, so the rows compare;
 - **novel poses**: every camera, every 10th frame after the training range.
 
+Both splits also report the PSNR over the garment's pixels (where the generator's true garment
+surface is seen, :mod:`stg_node.data.synth.garment_truth`): the non-rigid part's target.
+
 Results are kept per configuration in ``--out/results/NAME.json`` with a fingerprint of the
 settings and the data (a re-run skips what is measured; ``--fresh`` measures again). The report
 goes between marker comments in ``--docs`` (a re-run replaces it), with a plot ``--plot``.
