@@ -36,7 +36,7 @@ PREDATING_DEFAULTS = {
         "occlusion": False,
     },
     "loss": {"isometry": 0.0, "flow_every": 1},
-    "densify": {"flow_seed_missed": False, "motion_min_px": 0.0},
+    "densify": {"flow_seed_missed": False, "motion_min_px": 0.0, "occlusion_m": 0.0},
     "nonrigid": "on",  # runs stored before the trial kept their non-rigid part
     "lr_exposure": 0.0,  # no exposure correction before real footage had one
 }
@@ -220,6 +220,10 @@ class DensifyConfig:
     # the models by ~40 % with whole images within 0.1 dB but cost the still subject's garment pixels
     # 0.41 dB (docs/BENCHMARKS.md, "The non-rigid part", round 5).
     clone_on_error: bool = False
+    # Flow statistics and flow-guided seeds count a Gaussian only where it is the surface its pixel
+    # sees: at most this far (m) behind the rendered depth there (densify._in_front; issue 25); 0: every
+    # Gaussian under the pixel counts (the behaviour before).
+    occlusion_m: float = 0.04
     new_time_scale: float = 0.25  # temporal scale (units) of Gaussians added along the flow
     resample_fraction: float = 0.3  # re-sample body parts whose density fell below this x initial
     # Temporal split: a dynamic Gaussian that the image still pulls on is replaced by copies on

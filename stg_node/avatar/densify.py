@@ -41,6 +41,7 @@ STG-Avatar's flow-guided densification, on top:
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 
 import torch
@@ -87,12 +88,32 @@ class DensifyInputs:
     time_range: tuple[float, float]  # normalised times of the first and last training frame
     surface: CanonicalSurface
     rendered_flow: torch.Tensor | None = None  # (h, w, 2) per-pixel Gaussian motion, detached
+    # (h, w) camera depth of the surface each pixel sees (inf where nothing is), detached: a Gaussian
+    # behind it reads the flow of what hides it, not its own (occlusion-aware flow statistics)
+    rendered_depth: torch.Tensor | None = None
     grow_in_time: bool = True  # temporal copies and flow-guided additions (off while the trainer decides)
 
 
 # Per-Gaussian entries of the state (resized with the table's rows).
-ROW_STATE = ("grad_sum", "vis_count", "flow_w", "resid_w", "help_dot", "help_norm", "was_dynamic", "m_per_px")
+ROW_STATE = (
+    "grad_sum",
+    "vis_count",
+    "front_count",
+    "flow_w",
+    "resid_w",
+    "help_dot",
+    "help_norm",
+    "was_dynamic",
+    "m_per_px",
+)
 COUNT_PREFIX = "count."
+
+
+def surface_depth(depth: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+    """(h, w) depth of the surface each pixel sees: the render's expected depth (h, w, 1), inf where
+    the pixel is under half covered (nothing there to hide a Gaussian)."""
+    covered = alpha[..., 0].detach() > 0.5
+    return torch.where(covered, depth[..., 0].detach(), torch.full_like(depth[..., 0], math.inf))
 
 
 def motion_threshold(config: DensifyConfig, flow_magnitudes) -> float:
@@ -121,6 +142,7 @@ class DensifyStrategy:
         return {
             "grad_sum": torch.zeros(n, device=dev),
             "vis_count": torch.zeros(n, device=dev),
+            "front_count": torch.zeros(n, device=dev),  # of those, steps it was the surface seen (_in_front)
             "flow_w": torch.zeros(n, device=dev),  # W_i, px per frame
             "resid_w": torch.zeros(n, device=dev),  # R_i: flow the model's own motion misses, px per frame
             "help_dot": torch.zeros(n, device=dev),  # sum of <dL/dx_i, m_i(t)>: would moving help (< 0)
@@ -173,6 +195,8 @@ class DensifyStrategy:
             return {}
         if "m_per_px" not in state:  # a state saved before it was kept
             state["m_per_px"] = torch.zeros_like(state["vis_count"])
+        if "front_count" not in state:  # likewise: every sighting counted as seen
+            state["front_count"] = state["vis_count"].clone()
         self._accumulate(state, inputs)
         self._accumulate_help(model, state, inputs)
         report: dict[str, int] = {}
@@ -198,7 +222,9 @@ class DensifyStrategy:
             self._count(state, k, v)
 
     def _gate_round(self, model, optimizer, state: dict, inputs: DensifyInputs) -> dict[str, int]:
-        grads = state["grad_sum"] / state["vis_count"].clamp_min(1)
+        # The image's pull on a Gaussian while it is seen: hidden, it gets no gradient, and with
+        # several cameras around it is hidden from about half of them, which would halve its mean.
+        grads = state["grad_sum"] / state["front_count"].clamp_min(1)
         c = self.config
         last = inputs.iteration + c.interval >= int(c.stop_fraction * self.total)  # no round follows
         out = self._gate_motion(model, optimizer, state, inputs, grads, last_round=last)
@@ -227,6 +253,14 @@ class DensifyStrategy:
         state["grad_sum"].index_add_(0, table_rows, pull)
         vis_count.index_add_(0, table_rows, torch.ones_like(table_rows, dtype=vis_count.dtype))
         state["steps_seen"] += 1
+        x0, y0, w, h = inputs.crop
+        xy = means2d.detach()[rows]
+        px = xy[:, 0].round().long().clamp(0, w - 1)
+        py = xy[:, 1].round().long().clamp(0, h - 1)
+        front = self._in_front(info, rows, px, py, inputs)
+        state["front_count"].index_add_(
+            0, table_rows[front], torch.ones_like(table_rows[front], dtype=vis_count.dtype)
+        )
         depths = info.get("depths")
         if depths is not None:  # what a pixel spans at the Gaussian: depth / focal length
             span = depths.detach()[rows].reshape(-1) / float(inputs.camera.K[0, 0])
@@ -235,13 +269,9 @@ class DensifyStrategy:
             m_per_px[table_rows] = torch.where(old > 0, W_DECAY * old + (1 - W_DECAY) * span, span)
         if inputs.flow is None:
             return
-        x0, y0, w, h = inputs.crop
-        xy = means2d.detach()[rows]
-        px = xy[:, 0].round().long().clamp(0, w - 1)
-        py = xy[:, 1].round().long().clamp(0, h - 1)
         fwd = torch.from_numpy(inputs.flow.forward[y0 : y0 + h, x0 : x0 + w]).to(xy.device)
         valid = torch.from_numpy(inputs.flow.valid_forward[y0 : y0 + h, x0 : x0 + w]).to(xy.device)
-        ok = valid[py, px]
+        ok = valid[py, px] & front
         seen_flow = fwd[py, px]
         mag = seen_flow.norm(dim=-1)
         sel = table_rows[ok]
@@ -332,7 +362,7 @@ class DensifyStrategy:
             return 0
         fwd = torch.from_numpy(inputs.flow.forward[y0 : y0 + h, x0 : x0 + w]).to(xy.device)
         valid = torch.from_numpy(inputs.flow.valid_forward[y0 : y0 + h, x0 : x0 + w]).to(xy.device)
-        seeds &= valid[py, px]
+        seeds &= valid[py, px] & self._in_front(info, rows, px, py, inputs)
         idx = seeds.nonzero().squeeze(1)
         if idx.numel() == 0:
             return 0
@@ -393,6 +423,20 @@ class DensifyStrategy:
             )
         self._append(optimizer, state, rows_new)
         return int(keep.numel())
+
+    def _in_front(self, info: dict, rows: torch.Tensor, px, py, inputs: DensifyInputs) -> torch.Tensor:
+        """(len(rows),) bool: rendered Gaussians ``rows`` that are (part of) the surface seen at their
+        pixel, not hidden behind it by more than ``occlusion_m``; all of them without a depth render.
+
+        The flow under a hidden Gaussian's centre is its occluder's. With one camera the hidden side
+        is never seen, so a wrong reading there costs little; with several, every camera's hidden
+        side is another's visible one, and the occluder's motion would open its gate and seed
+        Gaussians behind the surface that the other cameras then see.
+        """
+        if inputs.rendered_depth is None or info.get("depths") is None or self.config.occlusion_m <= 0:
+            return torch.ones(rows.shape[0], dtype=torch.bool, device=rows.device)
+        depth = info["depths"].detach()[rows].reshape(-1)
+        return depth <= inputs.rendered_depth[py, px] + self.config.occlusion_m
 
     def _seed_motion(self, state: dict, rows: torch.Tensor, inputs: DensifyInputs) -> torch.Tensor:
         """(len(rows),) bool: rows on motion a flow-guided seed needs: flow the model's own rendered
@@ -473,6 +517,7 @@ class DensifyStrategy:
         report["resampled"] = self._resample(model, optimizer, state, inputs)
         state["grad_sum"].zero_()
         state["vis_count"].zero_()
+        state["front_count"].zero_()
         state["steps_seen"].zero_()
         return report
 

@@ -26,7 +26,14 @@ import torch
 from stg_node.avatar import checkpoint, nonrigid, spacetime
 from stg_node.avatar import losses as L
 from stg_node.avatar.config import LBS_ONLY, TrainConfig
-from stg_node.avatar.densify import CanonicalSurface, DensifyInputs, DensifyStrategy, counts, motion_threshold
+from stg_node.avatar.densify import (
+    CanonicalSurface,
+    DensifyInputs,
+    DensifyStrategy,
+    counts,
+    motion_threshold,
+    surface_depth,
+)
 from stg_node.avatar.exposure import ExposureCorrection
 from stg_node.avatar.frames import FrameStore, StoredFrame, TrainFrame
 from stg_node.avatar.gaussians import MOTION_COLUMNS, init_table, scale_ratio_percentile
@@ -386,7 +393,10 @@ class Trainer:
             extra = camera.project(means_next) - camera.project(posed.means)
         timer.mark("flow_target")
 
-        image, alpha, info = render(posed, camera, background=0.0, backend=self.backend, extra_channels=extra)
+        want_depth = use_flow and c.densify.occlusion_m > 0  # the surface each pixel sees (densify._in_front)
+        image, alpha, info = render(
+            posed, camera, background=0.0, backend=self.backend, extra_channels=extra, render_depth=want_depth
+        )
         timer.mark("render")
         region = alpha[..., 0].detach() > 0.95  # where the person is rendered and seen: the gains' evidence
         if mask is not None:
@@ -477,6 +487,7 @@ class Trainer:
                 time_range=self.time_range(),
                 surface=self.surface,
                 rendered_flow=(image[..., 3:5] / alpha.clamp_min(0.5)).detach() if use_flow else None,
+                rendered_depth=surface_depth(info["depth"], alpha) if want_depth else None,
                 grow_in_time=not self._deciding(),
             )
             report = self.densifier.step_post_backward(self.model, self.optimizer, self.densify_state, inputs)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 from avatar_helpers import small_config
@@ -275,7 +276,9 @@ def test_a_pixel_spans_depth_over_focal_at_each_gaussian_running_mean():
     from stg_node.avatar.densify import W_DECAY, DensifyStrategy
 
     n = 3
-    state = {k: torch.zeros(n) for k in ("grad_sum", "vis_count", "flow_w", "resid_w", "m_per_px")}
+    state = {
+        k: torch.zeros(n) for k in ("grad_sum", "vis_count", "front_count", "flow_w", "resid_w", "m_per_px")
+    }
     state["steps_seen"] = torch.zeros(1)
     means2d = torch.zeros(n, 2, requires_grad=True)
     means2d.grad = torch.ones(n, 2)
@@ -283,7 +286,9 @@ def test_a_pixel_spans_depth_over_focal_at_each_gaussian_running_mean():
 
     def step(depths, radii):
         info = {"radii": torch.tensor(radii), "means2d": means2d, "depths": torch.tensor(depths)}
-        inputs = SimpleNamespace(info=info, index=None, crop=(0, 0, 100, 100), flow=None, camera=camera)
+        inputs = SimpleNamespace(
+            info=info, index=None, crop=(0, 0, 100, 100), flow=None, camera=camera, rendered_depth=None
+        )
         DensifyStrategy(DensifyConfig(clone_on_error=False), 100)._accumulate(state, inputs)
 
     step([2.0, 3.0, 4.0], [1, 1, 0])
@@ -330,16 +335,83 @@ def test_the_clone_signal_counts_each_step_in_proportion_to_its_regions_error(on
     render[:8, :8] = 0.5 * tau  # tile (0, 0): every pixel off by tau / 2 in every channel
     render[:8, 8:, 0] = 6 * tau  # tile (0, 1): one channel off by 6 tau, so the mean over RGB is 2 tau
     n = 3
-    state = {k: torch.zeros(n) for k in ("grad_sum", "vis_count", "flow_w", "resid_w", "m_per_px")}
+    names = ("grad_sum", "vis_count", "front_count", "flow_w", "resid_w", "m_per_px")
+    state = {k: torch.zeros(n) for k in names}
     state["steps_seen"] = torch.zeros(1)
     means2d = torch.tensor([[3.0, 4.0], [12.0, 2.0], [5.0, 13.0]], requires_grad=True)  # (x, y)
     means2d.absgrad = torch.tensor([[3.0, 4.0], [0.6, 0.8], [1.0, 0.0]])  # |g| = 5, 1, 1
     info = {"radii": torch.ones(n, dtype=torch.int32), "means2d": means2d}
     inputs = SimpleNamespace(
-        info=info, index=None, crop=(0, 0, 16, 16), flow=None, render=render, target=target
+        info=info,
+        index=None,
+        crop=(0, 0, 16, 16),
+        flow=None,
+        render=render,
+        target=target,
+        rendered_depth=None,
     )
     config = DensifyConfig(region_px=8, error_threshold=tau, clone_on_error=on_error)
     DensifyStrategy(config, 100)._accumulate(state, inputs)
     weights = torch.tensor([0.5, 1.0, 0.0]) if on_error else torch.ones(3)
     assert torch.allclose(state["grad_sum"], torch.tensor([5.0, 1.0, 1.0]) * 256 * weights)
     assert state["vis_count"].tolist() == [1.0, 1.0, 1.0]
+
+
+@pytest.mark.parametrize("occlusion_m, back_reads_flow", [(0.04, False), (0.0, True)])
+def test_a_gaussian_hidden_behind_the_surface_does_not_read_its_occluders_flow(occlusion_m, back_reads_flow):
+    """Two opaque Gaussians on one line of sight, 2.0 m and 2.6 m from the camera (rendered by the real
+    rasterizer, with its depth): the flow under both centres is the front one's (3 px). Only the front
+    one accumulates it; the hidden one keeps zero, unless the occlusion test is off (occlusion_m=0, the
+    behaviour before: every Gaussian under the pixel reads it). The surface depth is the front one's."""
+    from types import SimpleNamespace
+
+    from stg_node.avatar.config import DensifyConfig
+    from stg_node.avatar.densify import DensifyStrategy, surface_depth
+    from stg_node.data.flow import FlowPair
+    from stg_node.splat.api import rasterize
+
+    size = 64
+    means = torch.tensor([[0.0, 0.0, 2.0], [0.0, 0.0, 2.6]], requires_grad=True)
+    K = torch.tensor([[100.0, 0, size / 2], [0, 100.0, size / 2], [0, 0, 1]])
+    image, alpha, info = rasterize(
+        means,
+        torch.tensor([[1.0, 0, 0, 0]] * 2),
+        torch.full((2, 3), 0.1),
+        torch.tensor([0.99, 0.99]),
+        torch.rand(2, 3),
+        torch.eye(4),
+        K,
+        size,
+        size,
+        render_depth=True,
+    )
+    info["means2d"].retain_grad()
+    image.sum().backward()
+    depth = surface_depth(info["depth"], alpha)
+    assert abs(float(depth[size // 2, size // 2]) - 2.0) < 0.05
+    assert torch.isinf(depth[0, 0])  # nothing there
+
+    flow = np.zeros((size, size, 2), np.float32)
+    flow[..., 0] = 3.0
+    valid = np.ones((size, size), bool)
+    pair = FlowPair(forward=flow, backward=-flow, valid_forward=valid, valid_backward=valid)
+    state = {
+        k: torch.zeros(2) for k in ("grad_sum", "vis_count", "front_count", "flow_w", "resid_w", "m_per_px")
+    }
+    state["steps_seen"] = torch.zeros(1)
+    inputs = SimpleNamespace(
+        info=info,
+        index=None,
+        crop=(0, 0, size, size),
+        flow=pair,
+        camera=SimpleNamespace(K=K),
+        rendered_flow=torch.zeros(size, size, 2),
+        rendered_depth=depth,
+    )
+    DensifyStrategy(DensifyConfig(occlusion_m=occlusion_m), 100)._accumulate(state, inputs)
+    assert float(state["resid_w"][0]) > 0 and float(state["flow_w"][0]) > 0
+    assert (float(state["resid_w"][1]) > 0) == back_reads_flow
+    assert (float(state["flow_w"][1]) > 0) == back_reads_flow
+    # Both were rasterized; only the front one counts as seen (the motion gate's mean pull).
+    assert state["vis_count"].tolist() == [1.0, 1.0]
+    assert state["front_count"].tolist() == ([1.0, 1.0] if back_reads_flow else [1.0, 0.0])
