@@ -207,8 +207,9 @@ def estimate_focal(
             ),
         )
     else:
-        sure, reason = True, (
-            f"the interval spans +-{100 * relative:.0f} %, the fit cost rises {100 * rise:.1f} % at +-20 %"
+        sure, reason = (
+            True,
+            (f"the interval spans +-{100 * relative:.0f} %, the fit cost rises {100 * rise:.1f} % at +-20 %"),
         )
     return FocalEstimate(
         focal_px=f_best,
