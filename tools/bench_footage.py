@@ -430,6 +430,7 @@ def focal(args) -> dict:
             "error_percent": 100
             * (math.tan(math.radians(fov) / 2) / math.tan(math.radians(camera["fov_deg"]) / 2) - 1),
             "sure": camera["sure"],
+            "rise_percent": 100 * camera.get("rise", 0.0),  # the profile's depth (focal.MIN_RISE)
             "reason": camera["reason"],
             "used": camera["used"],
             "seconds": time.perf_counter() - t0,
