@@ -11,7 +11,8 @@
   stg_node/avatar/color_cache.py); one-shot renders are exact.
 - With no standing view, the default views (``default_view``): the training camera (from
   camera/frame) and/or an orbit around the body, alternating when both.
-- Renders at most ``max_rate_hz`` (on a new pose), at least ``idle_rate_hz`` (last pose again).
+- Renders at most ``max_rate_hz`` on average (on a new pose; a token bucket, pacing.py, so poses
+  arriving at that rate with some jitter are all rendered), at least ``idle_rate_hz`` (last pose again).
 - Each RenderedImage carries the pose's / request's seq and stamp, the snapshot version,
   ``render_ms`` and ``latency_ms`` (source stamp to publication).
 - ``record_dir``: default-view images are written there; an MP4 and a contact sheet at the end.
@@ -37,6 +38,7 @@ from stg_node.bus import BodyPose, Frame, GaussianSnapshot, RenderedImage, ViewR
 from stg_node.data.types import Camera, SmplParams
 from stg_node.nodes.avatar_adapter import DEFAULT_MODULE, RendererAdapter, avatar_module
 from stg_node.nodes.convert import frame_camera, request_camera, request_smpl, resized_camera
+from stg_node.nodes.pacing import Pacer
 from stg_node.nodes.params import param
 from stg_node.nodes.runtime import Node
 from stg_node.nodes.views import FramedOrbit, default_camera, orbit_camera
@@ -176,6 +178,7 @@ class RendererNode(Node):
         self.standing: dict[str, StandingView] = {}
         self.oneshots: deque[ViewRequest] = deque()
         self.last_render = 0.0
+        self.pacer = Pacer(p.max_rate_hz, now=time.monotonic())  # the cap on new poses (pacing.py)
         self.default_turn = 0
         self.framed_orbit = FramedOrbit()
         self.started = time.monotonic()
@@ -371,10 +374,9 @@ class RendererNode(Node):
 
     def _due(self, now: float) -> bool:
         p = self.params
-        since = now - self.last_render
-        if self.new_pose and since >= 1.0 / p.max_rate_hz:
+        if self.new_pose and self.pacer.ready(now):
             return True
-        return p.idle_rate_hz > 0 and since >= 1.0 / p.idle_rate_hz
+        return p.idle_rate_hz > 0 and now - self.last_render >= 1.0 / p.idle_rate_hz
 
     def _round(self) -> bool:
         """One round: input, swap, renders due. True if anything was rendered."""
@@ -393,6 +395,8 @@ class RendererNode(Node):
             rendered = True
         now = time.monotonic()
         if self.pose is not None and self._due(now):
+            if self.new_pose:
+                self.pacer.take(now)
             self._render_live()
             self.new_pose = False
             self.last_render = now
@@ -402,7 +406,10 @@ class RendererNode(Node):
     def run(self) -> None:
         while not self.stopping:
             if not self._round():
-                self.wait_for_messages(0.01 if self.loader.busy else 0.05)
+                wait = 0.01 if self.loader.busy else 0.05
+                if self.new_pose and self.current is not None:  # a pose waits for the rate cap: no longer
+                    wait = min(wait, self.pacer.wait_s(time.monotonic()))
+                self.wait_for_messages(wait)
 
     def teardown(self) -> None:
         loader = getattr(self, "loader", None)
