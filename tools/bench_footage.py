@@ -162,6 +162,16 @@ def score(run: Path, data: Path, split: str = "novel_view", **kw) -> dict:
     return result
 
 
+def wanted_runs(runs: str | None, known, experiment: str) -> list[str]:
+    """The runs ``--runs`` names (all of ``known`` without it); an unknown name is an error listing them."""
+    known = list(known)
+    wanted = runs.split(",") if runs else known
+    unknown = sorted(set(wanted) - set(known))
+    if unknown:
+        raise ValueError(f"{experiment} --runs: unknown {unknown}; choose from {', '.join(known)}")
+    return wanted
+
+
 # --- experiments ---------------------------------------------------------------------------------
 def gap(args) -> dict:
     out = args.out
@@ -182,10 +192,7 @@ def gap(args) -> dict:
         "tracked-before": (*video, *before),
         "tracked": video,
     }
-    wanted = args.runs.split(",") if args.runs else list(flags)
-    unknown = sorted(set(wanted) - set(flags))
-    if unknown:
-        raise ValueError(f"--runs: unknown {unknown}; choose from {', '.join(flags)}")
+    wanted = wanted_runs(args.runs, flags, "gap")
     rows = {}
     for name in wanted:
         run = train(out, f"gap_{name.replace('-', '_')}_{args.size}", args, *flags[name])
@@ -325,10 +332,7 @@ def exposure(args) -> dict:
         ),
     }
     common = ["--format", "synthetic", "--size", str(args.size)]
-    wanted = args.runs.split(",") if args.runs else list(EXPOSURE_RUNS)
-    unknown = sorted(set(wanted) - set(EXPOSURE_RUNS))
-    if unknown:
-        raise ValueError(f"exposure --runs: unknown {unknown}; known {sorted(EXPOSURE_RUNS)}")
+    wanted = wanted_runs(args.runs, EXPOSURE_RUNS, "exposure")
     rows = {}
     for key in wanted:
         name, which, extra = EXPOSURE_RUNS[key]
@@ -484,10 +488,7 @@ def refine(args) -> dict:
         f"loss.pose_smooth={r.pose_smooth}",
     ]
     frames = ["--train-frames", f"0:{round(0.8 * args.frames)}", "--size", str(args.size)]
-    wanted = args.runs.split(",") if args.runs else ["truth", *REFINE_VARIANTS]
-    unknown = sorted(set(wanted) - {"truth", *REFINE_VARIANTS})
-    if unknown:
-        raise ValueError(f"--runs: unknown {unknown}; choose from truth, {', '.join(REFINE_VARIANTS)}")
+    wanted = wanted_runs(args.runs, ["truth", *REFINE_VARIANTS], "refine")
     rows = {}
     for name in wanted:
         slug = name.replace(" ", "_").replace("-", "_").replace(",", "")
