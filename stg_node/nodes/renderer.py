@@ -59,7 +59,12 @@ class RendererParams:
         "both", doc="what to render when nobody asks"
     )
     orbit_period_s: float = param(8.0, min=0.1, unit="s", doc="one turn of the orbit view")
-    max_rate_hz: float = param(30.0, min=0.1, unit="Hz", doc="renders per second at most (standing views)")
+    max_rate_hz: float = param(
+        30.0,
+        min=0.1,
+        unit="Hz",
+        doc="renders per second at most, on average (standing views; 2 at once absorb jitter)",
+    )
     idle_rate_hz: float = param(
         2.0, min=0.0, unit="Hz", doc="re-render the last pose this often (0: only on new poses)"
     )
