@@ -207,3 +207,23 @@ def test_evaluator_with_lpips_reports_means(tmp_path):
     assert report.lpips["alex"] == pytest.approx(expected, abs=2e-6)
     assert report.views == 2 and "LPIPS v0.1 (alex)" in report.protocol
     assert io.StringIO(str(report)).read().startswith("PSNR")
+
+
+def test_a_thin_box_is_grown_to_32_px_for_lpips_only(tmp_path):
+    """A far person seen from the side: a 12 px wide box. LPIPS scores the box grown about its centre
+    to 32 px (the same number as LPIPS on that crop by hand); PSNR keeps the exact box."""
+    from stg_node.data.metrics.report import grown_box
+
+    assert grown_box((40, 10, 10, 50), 32, 64, 64) == (29, 10, 32, 50)
+    assert grown_box((2, 60, 10, 4), 32, 64, 64) == (0, 32, 32, 32)  # kept inside the image
+    _installed("alex")
+    rng = np.random.default_rng(3)
+    gt = rng.random((64, 64, 3))
+    pred = np.clip(gt + rng.normal(0, 0.1, gt.shape), 0, 1)
+    mask = np.zeros((64, 64), np.uint8)
+    mask[10:60, 40:52] = 255
+    ev = Evaluator("bbox", lpips_nets=("alex",))
+    view = ev.add(pred, gt, mask)
+    assert view.psnr == pytest.approx(psnr(pred[10:60, 40:52], gt[10:60, 40:52]), abs=1e-12)
+    crop = (slice(10, 60), slice(30, 62))
+    assert view.lpips["alex"] == pytest.approx(lpips_distance(pred[crop], gt[crop], "alex"), abs=1e-5)

@@ -46,10 +46,16 @@ to ``--out/results/EXPERIMENT.json``; a run folder that is already finished is n
   held-out cameras are rendered without jitter at the subject's true colour, and the jitter's
   log-gains average zero over the training frames, so the avatar is scored as rendered, with no
   colour fitted to a held-out image.
-- ``size``: the turning subject filmed by a 55 degree camera from 1.9 m (the person fills the
-  frame) and from 5.0 m (a third of its height), the close one with the preset's budget and with
-  the budget scaled (budget.py); novel views on the ``bbox`` protocol (the person's box, so a
-  small person's black surround does not inflate the score) and ``full``.
+- ``size``: the turning subject (same body, texture, motion and held-out cameras) filmed by a
+  55 degree camera from ``--close-m`` 1.9 m (the person fills the frame) and from ``--far-m`` 5.0
+  m (a third of its height), ground-truth poses. The close one three ways: with the preset's
+  budget (every setting budget.py scales held at the preset's value with ``--set``), with only
+  the Gaussians and steps scaled (the pixel settings held), and with the whole scaled budget;
+  ``--runs`` any of those rows (default all). Novel views on the ``bbox`` protocol (the person's
+  box, at each subject's own resolution, so a small person's black surround does not inflate
+  the score), ``bbox_at_far_size`` (render, truth and mask shrunk, area-averaged, by the ratio of
+  the far to the close person's median height: both people scored at the same resolution of the
+  person) and ``full``.
 - ``focal``: the ``approach`` motion (walks 2 m towards the camera and back) filmed at 30, 50,
   70 and 90 degrees (from 6, 4, 3 and 2.5 m), and the ``still`` motion at 60 degrees; stg-track's
   estimate against the truth and its verdict.
@@ -378,31 +384,61 @@ def learnt_gains(run: Path, data: Path) -> dict:
 
 
 def size(args) -> dict:
+    """The same turning subject filmed close and from afar (module docstring)."""
+    from stg_node.avatar import preset
+    from stg_node.avatar.budget import SCALED, _get
+
     out = args.out
-    common = dict(num_frames=args.frames, size=args.size, fov_deg=55.0)
-    close = subject(out, f"close_{args.size}", camera_distance=1.9, motion="turn", **common)
-    far = subject(out, f"far_{args.size}", camera_distance=5.0, motion="turn", **common)
+    common = dict(num_frames=args.frames, size=args.size, fov_deg=55.0, motion="turn")
+    close = subject(out, f"close_{args.size}_{args.close_m:g}m", camera_distance=args.close_m, **common)
+    far = subject(out, f"far_{args.size}_{args.far_m:g}m", camera_distance=args.far_m, **common)
     flags = ["--format", "synthetic", "--size", str(args.size)]
-    keep = ["--set", "model.num_gaussians=12000", "--set", "model.max_gaussians=30000", "--set",
-            "densify.flow_max_new=300", "--set", "iterations=1500"]  # fmt: skip  # the fast preset as it is
-    runs = {
-        "far": (train(out, f"size_far_{args.size}", args, "--data", str(far), *flags), far),
-        "close, preset budget": (
-            train(out, f"size_close_fixed_{args.size}", args, "--data", str(close), *flags, *keep),
-            close,
-        ),
-        "close, scaled budget": (
-            train(out, f"size_close_{args.size}", args, "--data", str(close), *flags),
-            close,
-        ),
+    base = preset(args.preset)
+
+    def kept(keys) -> list[str]:  # --set each of ``keys`` to the preset's own value
+        return [item for key in keys for item in ("--set", f"{key}={_get(base, key)}")]
+
+    pixel_keys = [key for key in SCALED if key not in SIZE_BUDGET_KEYS]
+    plans = {  # row -> (run folder, subject, extra flags)
+        "far": ("far", far, []),
+        "close, preset budget": ("close_fixed", close, kept(SCALED)),
+        "close, Gaussians and steps scaled": ("close_gs", close, kept(pixel_keys)),
+        "close, scaled budget": ("close", close, []),
     }
+    wanted = wanted_runs(args.runs, plans, "size")
+    runs = {}
+    for name in wanted:
+        slug, data, extra = plans[name]
+        folder = f"size_{slug}_{args.size}_{args.close_m:g}m_{args.far_m:g}m"
+        runs[name] = (train(out, folder, args, "--data", str(data), *flags, *extra), data)
+    far_height = _person_height(far, args.size)
     rows = {}
     for name, (run, data) in runs.items():
+        height = _person_height(data, args.size)
+        factor = min(1.0, far_height / height)
         rows[name] = {
+            "person_height_px": height,
             "bbox": score(run, data, "novel_view", protocol="bbox", parts=False),
+            # the person's box at the far subject's resolution of the person (area-averaged)
+            "bbox_at_far_size": score(
+                run, data, "novel_view", protocol="bbox", parts=False, resample=factor
+            ),
             "full": score(run, data, "novel_view", parts=False),
         }
     return rows
+
+
+SIZE_BUDGET_KEYS = ("model.num_gaussians", "model.max_gaussians", "densify.flow_max_new", "iterations")
+
+
+def _person_height(data: Path, size: int) -> float:
+    """The median person height (px) in the held-out views of an stg-synth subject."""
+    from stg_node.avatar.budget import person_size
+    from stg_node.avatar.data_spec import DataSpec
+
+    views = DataSpec(str(data.resolve()), "synthetic", None, None, size).open("novel_view")
+    step = max(1, len(views) // 40)
+    return person_size(views[i].mask for i in range(0, len(views), step))[1]
 
 
 def focal(args) -> dict:
@@ -984,6 +1020,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--train-size", type=int, default=None, help="sources: training image size (default: --size)"
     )
+    p.add_argument("--close-m", type=float, default=1.9, help="size: the close camera's distance (m)")
+    p.add_argument("--far-m", type=float, default=5.0, help="size: the far camera's distance (m)")
     p.add_argument("--preset", default="fast")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument(
@@ -993,7 +1031,7 @@ def build_parser() -> argparse.ArgumentParser:
         "processes running different ones share --out, the last one reports all); fit: any of "
         "accuracy,truth,silhouette,keypoints,unsmoothed (default: accuracy; the trained ones need accuracy's "
         "keypoint-only poses first); exposure: any of steady,jitter,nocorr,steady-nocorr (default: all); "
-        "refine: truth and any of REFINE_VARIANTS; chains: true torso, true limbs, true torso world limbs "
+        "refine: truth and any of REFINE_VARIANTS; size: far, close, preset budget, ...; chains: true torso, true limbs, true torso world limbs "
         "(names without commas)",
     )
     p.add_argument("--json", action="store_true", help="print the results as one JSON object")

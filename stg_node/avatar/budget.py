@@ -10,7 +10,18 @@ person's median mask area in the training frames to the reference:
 - Gaussians (``num_gaussians``, ``max_gaussians``) and new Gaussians per flow-guided round in
   proportion to the area ratio (Gaussians per person pixel kept);
 - iterations by its square root (more Gaussians converge in fewer visits each than the ratio
-  would say, since each step still renders all of them), at most twice the preset's.
+  would say, since each step still renders all of them), at most twice the preset's;
+- every setting that measures the body's motion or extent in pixels (``PIXEL_SETTINGS``: the
+  motion thresholds of densification and of the motion gates, the crop's margin) by the linear
+  size ratio (the square root of the area ratio), so that they keep meaning the same motion of the
+  body in metres, and the flow term's weight (its residual is in pixels) by its inverse.
+
+Left in pixels on purpose: what judges the image itself, pixel by pixel: the clone/split gradient
+threshold (``grad_threshold``: a Gaussian's summed pull over the pixels it covers, which for the
+same blur in pixels is the same at any size), the error regions (``region_px``: with the new
+Gaussians per round scaled by the area the same share of them is seeded per bad region) and the
+loss's SSIM window (11 px, 3DGS's: a larger person should be sharp at the pixels it has, not at the
+reference's). The world-unit settings (scales, pruning, learning rates of the means) need nothing.
 
 The ratio is clamped to [1, ``MAX_SCALE``]: a person smaller than the reference keeps the preset
 (fewer Gaussians would save time but never quality, and the tuned presets are the tested ones),
@@ -27,7 +38,23 @@ import numpy as np
 
 REFERENCE_AREA_PX = 20_000.0  # median person mask area of the benchmark's training frames at 512 px
 MAX_SCALE = 4.0
-SCALED = ("model.num_gaussians", "model.max_gaussians", "densify.flow_max_new", "iterations")
+# Settings in pixels (at the reference size) that measure the body's motion or extent: x the linear ratio.
+PIXEL_SETTINGS = (
+    "densify.motion_floor_px",
+    "densify.flow_consistency_px",
+    "densify.residual_motion_px",
+    "densify.motion_min_px",
+    "crop_margin_px",
+)
+INVERSE_PIXEL_SETTINGS = ("loss.flow",)  # weights of residuals in pixels: / the linear ratio
+SCALED = (
+    "model.num_gaussians",
+    "model.max_gaussians",
+    "densify.flow_max_new",
+    "iterations",
+    *PIXEL_SETTINGS,
+    *INVERSE_PIXEL_SETTINGS,
+)
 
 
 @dataclass(frozen=True)
@@ -36,6 +63,7 @@ class Budget:
     person_height_px: float  # median mask height
     scale: float  # the Gaussian budget's factor (the area ratio, clamped)
     steps_scale: float
+    pixel_scale: float  # the pixel settings' factor (the linear size ratio, clamped)
     changes: dict  # setting -> new value (those the user did not set)
 
     def as_dict(self) -> dict:
@@ -45,6 +73,7 @@ class Budget:
             "reference_area_px": REFERENCE_AREA_PX,
             "gaussian_scale": self.scale,
             "steps_scale": self.steps_scale,
+            "pixel_scale": self.pixel_scale,
             "changes": self.changes,
         }
 
@@ -85,20 +114,30 @@ def scale_budget(config, masks, *, fixed: tuple[str, ...] = ()) -> tuple[object,
     in ``fixed`` (what the user set) are left alone. Returns the config and what was decided."""
     area, height = person_size(masks)
     if not math.isfinite(area):
-        return config, Budget(area, height, 1.0, 1.0, {})
+        return config, Budget(area, height, 1.0, 1.0, 1.0, {})
     scale = min(max(area / REFERENCE_AREA_PX, 1.0), MAX_SCALE)
     steps = min(math.sqrt(scale), 2.0)
+    linear = math.sqrt(scale)
+    current = {key: _get(config, key) for key in SCALED}
     wanted = {
-        "model.num_gaussians": round(config.model.num_gaussians * scale),
-        "model.max_gaussians": round(config.model.max_gaussians * scale),
-        "densify.flow_max_new": round(config.densify.flow_max_new * scale),
-        "iterations": round(config.iterations * steps),
+        "model.num_gaussians": round(current["model.num_gaussians"] * scale),
+        "model.max_gaussians": round(current["model.max_gaussians"] * scale),
+        "densify.flow_max_new": round(current["densify.flow_max_new"] * scale),
+        "iterations": round(current["iterations"] * steps),
     }
-    current = {
-        "model.num_gaussians": config.model.num_gaussians,
-        "model.max_gaussians": config.model.max_gaussians,
-        "densify.flow_max_new": config.densify.flow_max_new,
-        "iterations": config.iterations,
-    }
+    for key in PIXEL_SETTINGS:
+        value = current[key] * linear
+        wanted[key] = round(value) if isinstance(current[key], int) else value
+    for key in INVERSE_PIXEL_SETTINGS:
+        wanted[key] = current[key] / linear
     changes = {k: v for k, v in wanted.items() if k not in fixed and v != current[k]}
-    return (config.replace(**changes) if changes else config), Budget(area, height, scale, steps, changes)
+    budget = Budget(area, height, scale, steps, linear, changes)
+    return (config.replace(**changes) if changes else config), budget
+
+
+def _get(config, key: str):
+    """The value of a dotted setting (``densify.region_px``) of ``config``."""
+    value = config
+    for name in key.split("."):
+        value = getattr(value, name)
+    return value

@@ -167,13 +167,16 @@ def evaluate_on_synth(
     device="cpu",
     backend="auto",
     show_progress: bool = True,
+    resample: float = 1.0,
 ) -> dict:
     """A run scored on an stg-synth subject's ``split`` (module docstring): PSNR / SSIM / LPIPS under
     ``protocol`` (``full``: the whole image, as stg-eval; ``bbox``: the person's box), PSNR per body
     part, the alignment used and the views that had no pose (a frame the tracker was unsure of).
     ``root``: ``tracked`` (the score) or ``true`` (the diagnostic of the module docstring).
     ``align`` (a tracked run): ``camera`` (the training camera's extrinsics and the depth-ratio
-    scale) or ``similarity`` (:func:`similarity_alignment`)."""
+    scale) or ``similarity`` (:func:`similarity_alignment`). ``resample`` < 1: render, truth and mask
+    shrunk by this factor (area average) before scoring, to score people filmed at different sizes
+    at the same resolution of the person (tools/bench_footage.py size)."""
     from stg_node.avatar.data_spec import DataSpec
     from stg_node.avatar.loading import corrected, load_run_renderer
     from stg_node.body import load_body_model
@@ -187,6 +190,10 @@ def evaluate_on_synth(
         raise ValueError(f"root must be tracked or true, got {root!r}")
     if align not in ("camera", "similarity"):
         raise ValueError(f"align must be camera or similarity, got {align!r}")
+    if not 0.0 < resample <= 1.0:
+        raise ValueError(f"resample must be in (0, 1], got {resample}")
+    if resample != 1.0 and parts:
+        raise ValueError("resample needs parts=False (the part labels are at the images' own size)")
     synth_dir = Path(synth_dir)
     run, renderer, corrections, summary = load_run_renderer(Path(run_dir), device=device, backend=backend)
     spec = run.data_spec()
@@ -228,7 +235,10 @@ def evaluate_on_synth(
         time_s = sample.time if split == "novel_view" else None
         out = renderer.render(alignment.camera(sample.camera), smpl, time_s)
         target = np.where(sample.mask[..., None] > 127, sample.image, 0).astype(np.uint8)
-        evaluator.add(out.image, target, sample.mask)
+        if resample != 1.0:
+            evaluator.add(*_shrunk(resample, out.image, target, sample.mask))
+        else:
+            evaluator.add(out.image, target, sample.mask)
         if labeller is not None:
             part_scores.add(out.image, target, labeller.regions(sample.index, sample.camera))
     report = evaluator.report().as_dict()
@@ -238,6 +248,7 @@ def evaluate_on_synth(
         "root": root,
         "align": align if tracked else "identity",
         "protocol": protocol,
+        "resample": resample,
         "format": spec.format,
         "psnr": report["psnr"],
         "ssim": report["ssim"],
@@ -249,3 +260,19 @@ def evaluate_on_synth(
         "train_seconds": summary.get("train_seconds", math.nan),
         "gaussians": summary.get("gaussians"),
     }
+
+
+def _shrunk(factor: float, image, target, mask):
+    """``image``, ``target`` (H, W, 3) and ``mask`` (H, W) shrunk by ``factor`` (area average; the
+    mask thresholded at half coverage)."""
+    import cv2
+
+    h, w = mask.shape[:2]
+    size = (max(1, round(w * factor)), max(1, round(h * factor)))
+
+    def shrink(a):
+        a = np.asarray(a)
+        a = a.astype(np.float32) / 255.0 if a.dtype == np.uint8 else a.astype(np.float32)
+        return cv2.resize(a, size, interpolation=cv2.INTER_AREA)
+
+    return shrink(image), shrink(target), (shrink(mask) >= 0.5).astype(np.uint8) * 255

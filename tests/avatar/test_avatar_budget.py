@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from stg_node.avatar.budget import MAX_SCALE, REFERENCE_AREA_PX, person_size, scale_budget
+from stg_node.avatar.budget import MAX_SCALE, REFERENCE_AREA_PX, SCALED, person_size, scale_budget
 from stg_node.avatar.presets import preset
 
 
@@ -22,21 +22,28 @@ def test_person_size_is_the_median_over_frames_and_ignores_empty_masks():
     assert person_size(masks) == (200 * 50, 200)
 
 
-def test_a_person_twice_the_reference_area_gets_twice_the_gaussians_and_sqrt2_the_steps():
+def test_a_person_twice_the_reference_area_gets_the_hand_computed_budget():
+    # 400 x 100 px = 40,000 px = 2 x the reference: Gaussians x 2, steps and pixel settings x sqrt(2),
+    # the flow weight / sqrt(2); the values written out by hand from the fast preset.
     fast = preset("fast")
-    height = 400
-    width = round(2 * REFERENCE_AREA_PX / height)
-    config, budget = scale_budget(fast, [person(height, width)])
-    assert budget.scale == pytest.approx(2.0, rel=0.01)
-    assert config.model.num_gaussians == pytest.approx(2 * fast.model.num_gaussians, rel=0.01)
-    assert config.model.max_gaussians == pytest.approx(2 * fast.model.max_gaussians, rel=0.01)
-    assert config.iterations == pytest.approx(math.sqrt(2) * fast.iterations, rel=0.01)
-    assert set(budget.changes) == {
-        "model.num_gaussians",
-        "model.max_gaussians",
-        "densify.flow_max_new",
-        "iterations",
-    }
+    assert REFERENCE_AREA_PX == 20_000
+    config, budget = scale_budget(fast, [person(400, 100)] * 3)
+    assert (budget.scale, budget.person_area_px, budget.person_height_px) == (2.0, 40_000, 400)
+    assert budget.steps_scale == budget.pixel_scale == pytest.approx(1.414214, abs=1e-6)
+    assert (config.model.num_gaussians, config.model.max_gaussians) == (24_000, 60_000)
+    assert (config.densify.flow_max_new, config.iterations) == (600, 2121)  # 1500 x 1.41421 = 2121.3
+    assert config.densify.motion_floor_px == pytest.approx(1.414214, abs=1e-6)
+    assert config.densify.flow_consistency_px == pytest.approx(2.121320, abs=1e-6)
+    assert config.densify.residual_motion_px == pytest.approx(2.121320, abs=1e-6)
+    assert config.densify.motion_min_px == pytest.approx(8.485281, abs=1e-6)
+    assert config.crop_margin_px == 23  # 16 x 1.41421 = 22.6
+    assert config.loss.flow == pytest.approx(0.035355, abs=1e-6)
+    # what judges the image pixel by pixel stays (the module docstring says why)
+    assert config.densify.grad_threshold == fast.densify.grad_threshold
+    assert config.densify.region_px == fast.densify.region_px
+    assert config.loss.ssim == fast.loss.ssim
+    assert set(budget.changes) == set(SCALED)
+    config.validate()
 
 
 def test_small_people_keep_the_preset_and_huge_ones_are_capped():
@@ -45,6 +52,8 @@ def test_small_people_keep_the_preset_and_huge_ones_are_capped():
     assert config == fast and budget.changes == {} and budget.scale == 1.0
     config, budget = scale_budget(fast, [person(590, 580)])
     assert budget.scale == MAX_SCALE and config.iterations == 2 * fast.iterations
+    assert config.model.max_gaussians == 4 * fast.model.max_gaussians and budget.pixel_scale == 2.0
+    assert config.densify.motion_min_px == 2 * fast.densify.motion_min_px
 
 
 def test_what_the_user_set_is_kept():
@@ -53,6 +62,9 @@ def test_what_the_user_set_is_kept():
     assert config.iterations == 777 and config.model.max_gaussians == fast.model.max_gaussians
     assert config.model.num_gaussians > fast.model.num_gaussians
     assert "iterations" not in budget.changes
+    config, budget = scale_budget(fast, [person(400, 200)], fixed=("densify.motion_min_px", "loss.flow"))
+    assert config.densify.motion_min_px == fast.densify.motion_min_px and config.loss.flow == fast.loss.flow
+    assert config.densify.residual_motion_px > fast.densify.residual_motion_px
 
 
 def test_no_masks_no_change():

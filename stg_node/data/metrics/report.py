@@ -11,6 +11,8 @@ Protocols (the mask is the ground-truth person mask):
   scores (``render.py`` calls its evaluator without a mask).
 - ``bbox``: both images cropped to the mask's bounding box (``cv2.boundingRect``), as the
   optional ``valid_mask`` path of 3DGS-Avatar's evaluator and Neural Body-style evaluations.
+  LPIPS needs 32 px each way: a thinner box (a small person seen from the side) is grown about
+  its centre to 32 px for LPIPS only (PSNR and SSIM keep the box).
 - ``masked``: PSNR over mask pixels, SSIM averaged over mask pixels, LPIPS on the bounding box
   with both images black outside the mask.
 
@@ -77,6 +79,21 @@ def mask_bbox(mask: np.ndarray) -> tuple[int, int, int, int]:
     return cv2.boundingRect(m)
 
 
+LPIPS_MIN_PX = 32
+
+
+def grown_box(box, least: int, width: int, height: int) -> tuple[int, int, int, int]:
+    """``box`` (x, y, w, h) grown about its centre to at least ``least`` px each way, kept inside a
+    ``width`` x ``height`` image (LPIPS on a thin person's box: a side view far away)."""
+    x, y, w, h = box
+    out = []
+    for start, size, limit in ((x, w, width), (y, h, height)):
+        grown = min(max(size, least), limit)
+        start = min(max(start - (grown - size) // 2, 0), limit - grown)
+        out += [start, grown]
+    return out[0], out[2], out[1], out[3]
+
+
 def _as_float_image(image) -> np.ndarray:
     return to_tensor(image).permute(1, 2, 0).numpy()
 
@@ -112,6 +129,7 @@ class Evaluator:
         self._size = (a.shape[1], a.shape[0])
         if self.protocol_name == "full":
             crop_a, crop_b, m = a, b, None
+            lpips_a, lpips_b = a, b
         else:
             if mask is None:
                 raise ValueError(f"protocol {self.protocol_name!r} needs the ground-truth mask")
@@ -122,12 +140,19 @@ class Evaluator:
                 m = np.asarray(mask)[y : y + h, x : x + w] > 0
                 crop_a = crop_a * m[..., None]
                 crop_b = crop_b * m[..., None]
+            lpips_a, lpips_b = crop_a, crop_b
+            if min(w, h) < LPIPS_MIN_PX <= min(a.shape[:2]):  # LPIPS's five poolings need 32 px
+                lx, ly, lw, lh = grown_box((x, y, w, h), LPIPS_MIN_PX, a.shape[1], a.shape[0])
+                lpips_a, lpips_b = a[ly : ly + lh, lx : lx + lw], b[ly : ly + lh, lx : lx + lw]
+                if self.protocol_name == "masked":
+                    lm = np.asarray(mask)[ly : ly + lh, lx : lx + lw, None] > 0
+                    lpips_a, lpips_b = lpips_a * lm, lpips_b * lm
         view_psnr = psnr(crop_a, crop_b, mask=m)
         view_ssim = ssim(crop_a, crop_b, mask=m, window=self.ssim_window)
         scores = {}
         if self.lpips_models:
-            ta = torch.from_numpy(np.ascontiguousarray(crop_a.transpose(2, 0, 1))).float()[None]
-            tb = torch.from_numpy(np.ascontiguousarray(crop_b.transpose(2, 0, 1))).float()[None]
+            ta = torch.from_numpy(np.ascontiguousarray(lpips_a.transpose(2, 0, 1))).float()[None]
+            tb = torch.from_numpy(np.ascontiguousarray(lpips_b.transpose(2, 0, 1))).float()[None]
             with torch.no_grad():
                 for net, model in self.lpips_models.items():
                     scores[net] = float(model(ta, tb)[0])
