@@ -420,9 +420,7 @@ def size(args) -> dict:
             "person_height_px": height,
             "bbox": score(run, data, "novel_view", protocol="bbox", parts=False),
             # the person's box at the far subject's resolution of the person (area-averaged)
-            "bbox_at_far_size": score(
-                run, data, "novel_view", protocol="bbox", parts=False, resample=factor
-            ),
+            "bbox_at_far_size": score(run, data, "novel_view", protocol="bbox", parts=False, resample=factor),
             "full": score(run, data, "novel_view", parts=False),
         }
     return rows
@@ -1031,7 +1029,8 @@ def build_parser() -> argparse.ArgumentParser:
         "processes running different ones share --out, the last one reports all); fit: any of "
         "accuracy,truth,silhouette,keypoints,unsmoothed (default: accuracy; the trained ones need accuracy's "
         "keypoint-only poses first); exposure: any of steady,jitter,nocorr,steady-nocorr (default: all); "
-        "refine: truth and any of REFINE_VARIANTS; size: far, close, preset budget, ...; chains: true torso, true limbs, true torso world limbs "
+        "refine: truth and any of REFINE_VARIANTS; size: far, close, preset budget, ...; "
+        "chains: true torso, true limbs, true torso world limbs "
         "(names without commas)",
     )
     p.add_argument("--json", action="store_true", help="print the results as one JSON object")
