@@ -51,11 +51,12 @@ to ``--out/results/EXPERIMENT.json``; a run folder that is already finished is n
   m (a third of its height), ground-truth poses. The close one three ways: with the preset's
   budget (every setting budget.py scales held at the preset's value with ``--set``), with only
   the Gaussians and steps scaled (the pixel settings held), and with the whole scaled budget;
-  ``--runs`` any of those rows (default all). Novel views on the ``bbox`` protocol (the person's
-  box, at each subject's own resolution, so a small person's black surround does not inflate
-  the score), ``bbox_at_far_size`` (render, truth and mask shrunk, area-averaged, by the ratio of
-  the far to the close person's median height: both people scored at the same resolution of the
-  person) and ``full``.
+  ``--runs`` any of far,close-fixed,close-gs,close (default all; each row is kept in
+  ``results/size_rows`` so processes running different ones share ``--out``). Novel views on
+  the ``bbox`` protocol (the person's box, at each subject's own resolution, so a small
+  person's black surround does not inflate the score), ``bbox_at_far_size`` (render, truth and
+  mask shrunk, area-averaged, by the ratio of the far to the close person's median height: both
+  people scored at the same resolution of the person) and ``full``.
 - ``focal``: the ``approach`` motion (walks 2 m towards the camera and back) filmed at 30, 50,
   70 and 90 degrees (from 6, 4, 3 and 2.5 m), and the ``still`` motion at 60 degrees; stg-track's
   estimate against the truth and its verdict.
@@ -399,30 +400,36 @@ def size(args) -> dict:
         return [item for key in keys for item in ("--set", f"{key}={_get(base, key)}")]
 
     pixel_keys = [key for key in SCALED if key not in SIZE_BUDGET_KEYS]
-    plans = {  # row -> (run folder, subject, extra flags)
-        "far": ("far", far, []),
-        "close, preset budget": ("close_fixed", close, kept(SCALED)),
-        "close, Gaussians and steps scaled": ("close_gs", close, kept(pixel_keys)),
-        "close, scaled budget": ("close", close, []),
+    plans = {  # --runs name -> (subject, extra flags)
+        "far": (far, []),
+        "close-fixed": (close, kept(SCALED)),  # the preset's budget
+        "close-gs": (close, kept(pixel_keys)),  # the Gaussians and steps scaled, pixel settings held
+        "close": (close, []),  # the scaled budget
     }
     wanted = wanted_runs(args.runs, plans, "size")
-    runs = {}
-    for name in wanted:
-        slug, data, extra = plans[name]
-        folder = f"size_{slug}_{args.size}_{args.close_m:g}m_{args.far_m:g}m"
-        runs[name] = (train(out, folder, args, "--data", str(data), *flags, *extra), data)
     far_height = _person_height(far, args.size)
-    rows = {}
-    for name, (run, data) in runs.items():
+    results = out / "results" / "size_rows"
+    results.mkdir(parents=True, exist_ok=True)
+    for name in wanted:
+        data, extra = plans[name]
+        folder = f"size_{name.replace('-', '_')}_{args.size}_{args.close_m:g}m_{args.far_m:g}m"
+        run = train(out, folder, args, "--data", str(data), *flags, *extra)
         height = _person_height(data, args.size)
-        factor = min(1.0, far_height / height)
-        rows[name] = {
+        row = {
             "person_height_px": height,
             "bbox": score(run, data, "novel_view", protocol="bbox", parts=False),
             # the person's box at the far subject's resolution of the person (area-averaged)
-            "bbox_at_far_size": score(run, data, "novel_view", protocol="bbox", parts=False, resample=factor),
+            "bbox_at_far_size": score(
+                run, data, "novel_view", protocol="bbox", parts=False, resample=min(1.0, far_height / height)
+            ),
             "full": score(run, data, "novel_view", parts=False),
         }
+        (results / f"{folder}.json").write_text(json.dumps(row, default=float) + "\n")
+    rows = {}  # every row scored so far (other processes may have run other --runs)
+    for name in plans:
+        cached = results / f"size_{name.replace('-', '_')}_{args.size}_{args.close_m:g}m_{args.far_m:g}m.json"
+        if cached.is_file():
+            rows[name] = json.loads(cached.read_text())
     return rows
 
 
@@ -1029,7 +1036,7 @@ def build_parser() -> argparse.ArgumentParser:
         "processes running different ones share --out, the last one reports all); fit: any of "
         "accuracy,truth,silhouette,keypoints,unsmoothed (default: accuracy; the trained ones need accuracy's "
         "keypoint-only poses first); exposure: any of steady,jitter,nocorr,steady-nocorr (default: all); "
-        "refine: truth and any of REFINE_VARIANTS; size: far, close, preset budget, ...; "
+        "refine: truth and any of REFINE_VARIANTS; size: far,close-fixed,close-gs,close; "
         "chains: true torso, true limbs, true torso world limbs "
         "(names without commas)",
     )
