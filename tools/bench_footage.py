@@ -387,7 +387,7 @@ def learnt_gains(run: Path, data: Path) -> dict:
 def size(args) -> dict:
     """The same turning subject filmed close and from afar (module docstring)."""
     from stg_node.avatar import preset
-    from stg_node.avatar.budget import SCALED, _get
+    from stg_node.avatar.budget import SCALED, setting_value
 
     out = args.out
     common = dict(num_frames=args.frames, size=args.size, fov_deg=55.0, motion="turn")
@@ -397,7 +397,7 @@ def size(args) -> dict:
     base = preset(args.preset)
 
     def kept(keys) -> list[str]:  # --set each of ``keys`` to the preset's own value
-        return [item for key in keys for item in ("--set", f"{key}={_get(base, key)}")]
+        return [item for key in keys for item in ("--set", f"{key}={setting_value(base, key)}")]
 
     pixel_keys = [key for key in SCALED if key not in SIZE_BUDGET_KEYS]
     plans = {  # --runs name -> (subject, extra flags)

@@ -118,7 +118,7 @@ def scale_budget(config, masks, *, fixed: tuple[str, ...] = ()) -> tuple[object,
     scale = min(max(area / REFERENCE_AREA_PX, 1.0), MAX_SCALE)
     steps = min(math.sqrt(scale), 2.0)
     linear = math.sqrt(scale)
-    current = {key: _get(config, key) for key in SCALED}
+    current = {key: setting_value(config, key) for key in SCALED}
     wanted = {
         "model.num_gaussians": round(current["model.num_gaussians"] * scale),
         "model.max_gaussians": round(current["model.max_gaussians"] * scale),
@@ -135,7 +135,7 @@ def scale_budget(config, masks, *, fixed: tuple[str, ...] = ()) -> tuple[object,
     return (config.replace(**changes) if changes else config), budget
 
 
-def _get(config, key: str):
+def setting_value(config, key: str):
     """The value of a dotted setting (``densify.region_px``) of ``config``."""
     value = config
     for name in key.split("."):
