@@ -110,3 +110,23 @@ def test_the_similarity_alignment_of_a_camera_frame_world_agrees_with_the_extrin
     assert fitted.scale == pytest.approx(extrinsic.scale, abs=1e-9)
     np.testing.assert_allclose(fitted.R, extrinsic.R, atol=1e-9)
     np.testing.assert_allclose(fitted.t, extrinsic.t, atol=1e-9)
+
+
+def test_shrinking_for_the_far_subjects_resolution_averages_pixel_blocks():
+    """resample=0.5 (bench_footage size): each output pixel is the mean of a 2 x 2 block (by hand);
+    the mask keeps the blocks at least half covered."""
+    from stg_node.avatar.synth_eval import _shrunk
+
+    rng = np.random.default_rng(0)
+    image = rng.integers(0, 256, (8, 6, 3)).astype(np.uint8)
+    target = rng.random((8, 6, 3)).astype(np.float32)
+    mask = np.zeros((8, 6), np.uint8)
+    mask[0:2, 0:1] = 255  # half of the first block: kept
+    mask[2:3, 2:3] = 255  # a quarter of another: dropped
+    small_image, small_target, small_mask = _shrunk(0.5, image, target, mask)
+    blocks = image.astype(np.float32).reshape(4, 2, 3, 2, 3).mean(axis=(1, 3)) / 255.0
+    assert small_image.shape == (4, 3, 3) and np.allclose(small_image, blocks, atol=1e-6)
+    assert np.allclose(small_target, target.reshape(4, 2, 3, 2, 3).mean(axis=(1, 3)), atol=1e-6)
+    expected = np.zeros((4, 3), np.uint8)
+    expected[0, 0] = 255
+    assert np.array_equal(small_mask, expected)
