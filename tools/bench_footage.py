@@ -426,11 +426,57 @@ def size(args) -> dict:
         }
         (results / f"{folder}.json").write_text(json.dumps(row, default=float) + "\n")
     rows = {}  # every row scored so far (other processes may have run other --runs)
+    finished = {}
     for name in plans:
-        cached = results / f"size_{name.replace('-', '_')}_{args.size}_{args.close_m:g}m_{args.far_m:g}m.json"
+        folder = f"size_{name.replace('-', '_')}_{args.size}_{args.close_m:g}m_{args.far_m:g}m"
+        cached = results / f"{folder}.json"
         if cached.is_file():
             rows[name] = json.loads(cached.read_text())
+            finished[name] = (out / "runs" / folder, plans[name][0])
+    if args.figure is not None:
+        size_figure(finished, args.figure, args.size)
     return rows
+
+
+def size_figure(runs: dict, path: Path, size: int, view: int | None = None) -> None:
+    """One held-out view of every run in ``runs`` (name -> (run folder, subject)), each person's box
+    beside the truth, all scaled to the same height (area-averaged down, linear up) and labelled."""
+    import cv2
+    import numpy as np
+
+    from stg_node.avatar.data_spec import DataSpec
+    from stg_node.avatar.loading import corrected, load_run_renderer
+    from stg_node.data.metrics.report import mask_bbox
+
+    height = 360
+    tiles = {}
+    for name, (run, data) in runs.items():
+        views = DataSpec(str(data.resolve()), "synthetic", None, None, size).open("novel_view")
+        sample = views[view if view is not None else len(views) // 2]
+        _, renderer, corrections, _ = load_run_renderer(run)
+        smpl = corrected(sample.smpl, corrections.get(sample.index))
+        image = renderer.render(sample.camera, smpl, sample.time).image.astype(np.float32) / 255.0  # uint8
+        truth = np.where(sample.mask[..., None] > 127, sample.image, 0).astype(np.float32) / 255.0
+        x, y, w, h = mask_bbox(sample.mask)
+        pad = max(4, h // 20)
+        x0, y0 = max(0, x - pad), max(0, y - pad)
+        pair = [a[y0 : y + h + pad, x0 : x + w + pad] for a in (truth, image)]
+        scale = height / pair[0].shape[0]
+        shape = (max(1, round(pair[0].shape[1] * scale)), height)
+        how = cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR
+        if "far" not in tiles and name == "far":
+            tiles["truth, far"] = cv2.resize(pair[0], shape, interpolation=how)
+        elif name != "far" and "truth, close" not in tiles:
+            tiles["truth, close"] = cv2.resize(pair[0], shape, interpolation=how)
+        tiles[name] = cv2.resize(pair[1], shape, interpolation=how)
+    columns = []
+    for label, tile in tiles.items():
+        tile = np.ascontiguousarray((np.clip(tile, 0, 1) * 255).astype(np.uint8)[..., ::-1])
+        cv2.putText(tile, label, (4, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA)
+        columns += [tile, np.full((height, 4, 3), 255, np.uint8)]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), np.concatenate(columns[:-1], axis=1))
+    log.info("wrote %s", path)
 
 
 SIZE_BUDGET_KEYS = ("model.num_gaussians", "model.max_gaussians", "densify.flow_max_new", "iterations")
@@ -1027,6 +1073,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--close-m", type=float, default=1.9, help="size: the close camera's distance (m)")
     p.add_argument("--far-m", type=float, default=5.0, help="size: the far camera's distance (m)")
+    p.add_argument("--figure", type=Path, default=None, help="size: a PNG of one held-out view of every row")
     p.add_argument("--preset", default="fast")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument(
