@@ -81,7 +81,9 @@ class Budget:
         size = f"person {self.person_height_px:.0f} px tall, {self.person_area_px:.0f} px"
         if not self.changes:
             return f"{size}: the preset's budget"
-        changed = ", ".join(f"{k}={v}" for k, v in self.changes.items())
+        changed = ", ".join(
+            f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in self.changes.items()
+        )
         return f"{size} ({self.scale:.2f}x the presets' reference): budget scaled: {changed}"
 
 
