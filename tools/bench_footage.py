@@ -5,7 +5,7 @@ size in the frame and an unknown camera cost, and what each remedy buys back.
     python tools/bench_footage.py gap       [--size 512] [--frames 125] [--runs truth,...]  # tracked vs truth
     python tools/bench_footage.py sources   [--train-size 256] [...]      # where the gap comes from
     python tools/bench_footage.py exposure  [...]                         # steady vs exposure/WB jitter
-    python tools/bench_footage.py size      [...]                         # filmed close vs from afar
+    python tools/bench_footage.py size      [--close-m 1.9] [--far-m 5] [--figure PNG]  # close vs afar
     python tools/bench_footage.py focal     [...]                         # focal estimate vs truth, 30-90 deg
     python tools/bench_footage.py fit       [--size 256] [--frames 60]    # tracking, silhouette off/on
     python tools/bench_footage.py framing RUN_DIR [...]                   # how stg-render frames a run
