@@ -56,7 +56,9 @@ to ``--out/results/EXPERIMENT.json``; a run folder that is already finished is n
   the ``bbox`` protocol (the person's box, at each subject's own resolution, so a small
   person's black surround does not inflate the score), ``bbox_at_far_size`` (render, truth and
   mask shrunk, area-averaged, by the ratio of the far to the close person's median height: both
-  people scored at the same resolution of the person) and ``full``.
+  people scored at the same resolution of the person) and ``full``. The scaling engages from
+  about ``--size`` 420 (below it the close person covers fewer pixels than the presets'
+  reference and every close row trains alike); the issue's figures are at 512.
 - ``focal``: the ``approach`` motion (walks 2 m towards the camera and back) filmed at 30, 50,
   70 and 90 degrees (from 6, 4, 3 and 2.5 m), and the ``still`` motion at 60 degrees; stg-track's
   estimate against the truth and its verdict.
