@@ -7,10 +7,12 @@
 #include <ATen/ATen.h>
 #include <torch/library.h>
 
+#include <algorithm>
 #include <string>
 #include <tuple>
 #include <vector>
 
+#include "edge_loss.h"
 #include "image_filter.h"
 #include "skinning.h"
 #include "small_mlp.h"
@@ -344,6 +346,44 @@ at::Tensor ssim_bwd(const at::Tensor& a, const at::Tensor& b, c10::ArrayRef<doub
     return grad_a;
 }
 
+// ---- the edge-length loss (edge_loss.h) ----
+void check_edges(const at::Tensor& x, const at::Tensor& c, const at::Tensor& a, const at::Tensor& b) {
+    check_cpu_float(x, "x", x.size(0), 3);
+    check_cpu_float(c, "c", x.size(0), 3);
+    for (const at::Tensor* t : {&a, &b}) {
+        TORCH_CHECK(t->device().is_cpu() && t->scalar_type() == at::kLong && t->dim() == 1 && t->is_contiguous(),
+                    "edge ends must be contiguous 1-D int64 CPU tensors, got ", t->scalar_type(), " ", t->sizes());
+    }
+    TORCH_CHECK(a.size(0) == b.size(0), "edge ends must have one length, got ", a.size(0), " and ", b.size(0));
+    const int64_t m = x.size(0);
+    if (a.numel() > 0) {
+        const int64_t lo = std::min(a.min().item<int64_t>(), b.min().item<int64_t>());
+        const int64_t hi = std::max(a.max().item<int64_t>(), b.max().item<int64_t>());
+        TORCH_CHECK(lo >= 0 && hi < m, "edge ends must index the ", m, " points, got [", lo, ", ", hi, "]");
+    }
+}
+
+// The mean edge-length residual as a float64 scalar.
+at::Tensor edge_length_fwd(const at::Tensor& x, const at::Tensor& c, const at::Tensor& a, const at::Tensor& b) {
+    check_edges(x, c, a, b);
+    at::Tensor value = at::empty({}, x.options().dtype(at::kDouble));
+    *value.data_ptr<double>() = stg_edge::edge_length_forward(x.data_ptr<float>(), c.data_ptr<float>(),
+                                                              a.data_ptr<int64_t>(), b.data_ptr<int64_t>(), a.size(0));
+    return value;
+}
+
+// (grad_x, grad_c) of grad * mean; an unwanted one comes back empty.
+std::tuple<at::Tensor, at::Tensor> edge_length_bwd(const at::Tensor& x, const at::Tensor& c, const at::Tensor& a,
+                                                   const at::Tensor& b, double grad, bool want_x, bool want_c) {
+    check_edges(x, c, a, b);
+    at::Tensor gx = want_x ? at::zeros_like(x) : at::empty({0}, x.options());
+    at::Tensor gc = want_c ? at::zeros_like(c) : at::empty({0}, c.options());
+    stg_edge::edge_length_backward(x.data_ptr<float>(), c.data_ptr<float>(), a.data_ptr<int64_t>(),
+                                   b.data_ptr<int64_t>(), a.size(0), grad, want_x ? gx.data_ptr<float>() : nullptr,
+                                   want_c ? gc.data_ptr<float>() : nullptr);
+    return {gx, gc};
+}
+
 // ---- skinning (skinning.h); an absent optional tensor is passed as an empty one ----
 bool given(const at::Tensor& t) { return t.defined() && t.numel() > 0; }
 
@@ -536,6 +576,10 @@ TORCH_LIBRARY(STG_SPLAT_NS, m) {
     m.def("ssim_bwd(Tensor a, Tensor b, float[] taps, Tensor d_mu, Tensor d_var, Tensor d_cov, float grad, "
           "int threads) -> Tensor",
           &ssim_bwd);
+    m.def("edge_length_fwd(Tensor x, Tensor c, Tensor a, Tensor b) -> Tensor", &edge_length_fwd);
+    m.def("edge_length_bwd(Tensor x, Tensor c, Tensor a, Tensor b, float grad, bool want_x, bool want_c) -> "
+          "(Tensor, Tensor)",
+          &edge_length_bwd);
     m.def("count_intersections(Tensor bbox, Tensor visible, int width, int height, int max_per_chunk) -> Tensor",
           &count_isect);
     m.def(
