@@ -78,11 +78,35 @@ def ssim_torch(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 
 def photometric(render: torch.Tensor, target: torch.Tensor, ssim_weight: float) -> tuple[torch.Tensor, ...]:
-    """``(l1, 1 - ssim)`` for ``(H, W, 3)`` images in [0, 1] (at least 11 px each way for SSIM)."""
-    l1 = (render - target).abs().mean()
+    """``(l1, 1 - ssim)`` for ``(H, W, 3)`` images in [0, 1] (at least 11 px each way for SSIM).
+    Both from one C++ kernel pass each way where it applies (image_ops.l1_ssim), else torch."""
     if ssim_weight <= 0 or min(render.shape[0], render.shape[1]) < 11:
-        return l1, render.new_zeros(())
-    return l1, 1.0 - ssim(render, target)
+        return (render - target).abs().mean(), render.new_zeros(())
+    if image_ops.ssim_kernel_applies(render, target):
+        l1, value = image_ops.l1_ssim(render, target)
+        return l1, 1.0 - value
+    return (render - target).abs().mean(), 1.0 - ssim_torch(render, target)
+
+
+class _MeanSquare(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x):
+        ctx.save_for_backward(x)
+        flat = x.detach().reshape(-1)
+        return torch.dot(flat, flat) / flat.numel()
+
+    @staticmethod
+    def backward(ctx, grad):
+        (x,) = ctx.saved_tensors
+        return x * (2.0 * grad / x.numel())
+
+
+def mean_square(x: torch.Tensor) -> torch.Tensor:
+    """``x.pow(2).mean()`` in one pass each way (a dot product; the backward one scaled copy, where
+    autograd through pow takes three passes): the regularisers of whole table columns."""
+    if x.numel() == 0:
+        return x.pow(2).mean()
+    return _MeanSquare.apply(x)
 
 
 def flow_loss(rendered: torch.Tensor, alpha: torch.Tensor, flow: torch.Tensor, valid: torch.Tensor):

@@ -710,7 +710,7 @@ class Trainer:
             o = table.opacities()
             out["opacity"] = (-(o * (o + 1e-6).log() + (1 - o) * (1 - o + 1e-6).log())).mean()
         if "skin_delta" in table and c.skin > 0:
-            out["skin"] = table["skin_delta"].pow(2).mean()
+            out["skin"] = L.mean_square(table["skin_delta"])
         if self.pose_deltas is not None and c.pose_refine > 0:
             out["pose"] = self.pose_deltas.pow(2).sum(1).mean()
         if self.model.shading is not None and c.light > 0:

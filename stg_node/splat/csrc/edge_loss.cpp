@@ -44,17 +44,18 @@ void edge_length_backward(const float* x, const float* c, const int64_t* a, cons
         const int64_t i = a[e], j = b[e];
         const Edge d = edge_at(x, c, i, j);
         const float r = d.lx - d.lc;
-        if (r == 0.0f) continue;  // d|r|/dr = 0 there (torch's sign(0))
-        const float s = r > 0.0f ? scale : -scale;
-        if (grad_x != nullptr && d.lx > 0.0f) {
-            const float f = s / d.lx;
+        // d|r|/dr = sign(r), 0 at r = 0 (torch's sign); d|v|/dv = v / |v|, 0 at v = 0: selects,
+        // not branches (the signs of the residuals are unpredictable).
+        const float s = r > 0.0f ? scale : (r < 0.0f ? -scale : 0.0f);
+        if (grad_x != nullptr) {
+            const float f = d.lx > 0.0f ? s / d.lx : 0.0f;
             for (int k = 0; k < 3; ++k) {
                 grad_x[3 * i + k] += f * d.dx[k];
                 grad_x[3 * j + k] -= f * d.dx[k];
             }
         }
-        if (grad_c != nullptr && d.lc > 0.0f) {
-            const float f = s / d.lc;
+        if (grad_c != nullptr) {
+            const float f = d.lc > 0.0f ? s / d.lc : 0.0f;
             for (int k = 0; k < 3; ++k) {
                 grad_c[3 * i + k] -= f * d.dc[k];
                 grad_c[3 * j + k] += f * d.dc[k];

@@ -134,7 +134,7 @@ void vertical_transposed(const float* const* rm, const float* const* rv, const f
 void horizontal_transposed_grad(const float* __restrict pm, const float* __restrict pv,
                                 const float* __restrict pc, const float* __restrict a,
                                 const float* __restrict b, int64_t n, int64_t c, const Taps& taps, float g,
-                                float* __restrict out) {
+                                float l1_grad, float* __restrict out) {
     const float* k = taps.k;
 #pragma omp simd
     for (int64_t j = 0; j < n; ++j) {
@@ -146,11 +146,26 @@ void horizontal_transposed_grad(const float* __restrict pm, const float* __restr
             tv = STG_IMG_MADD(k[t], pv[at], tv);
             tc = STG_IMG_MADD(k[t], pc[at], tc);
         }
-        out[j] = g * (tm + 2.0f * a[j] * tv + b[j] * tc);
+        // + the L1 term's l1_grad * sign(a - b), 0 where they are equal (torch's abs backward)
+        const float sign = static_cast<float>(a[j] > b[j]) - static_cast<float>(a[j] < b[j]);
+        out[j] = STG_IMG_MADD(l1_grad, sign, g * (tm + 2.0f * a[j] * tv + b[j] * tc));
     }
 }
 
 }  // namespace
+
+double abs_diff_sum(const float* a, const float* b, int64_t count) {
+    double total = 0.0;
+    constexpr int64_t kBlock = 4096;  // float sums of short blocks, added in double: exact enough, vectorised
+    for (int64_t start = 0; start < count; start += kBlock) {
+        const int64_t end = start + kBlock < count ? start + kBlock : count;
+        float block = 0.0f;
+#pragma omp simd reduction(+ : block)
+        for (int64_t j = start; j < end; ++j) block += a[j] > b[j] ? a[j] - b[j] : b[j] - a[j];
+        total += static_cast<double>(block);
+    }
+    return total;
+}
 
 void ssim_forward(const float* a, const float* b, int64_t height, int64_t width, int64_t channels,
                   const float* taps, float c1, float c2, float scale, int threads, double* row_sums,
@@ -184,7 +199,7 @@ void ssim_forward(const float* a, const float* b, int64_t height, int64_t width,
 
 void ssim_backward(const float* a, const float* b, int64_t height, int64_t width, int64_t channels,
                    const float* taps, const float* d_mu, const float* d_var, const float* d_cov, float g,
-                   int threads, float* grad_a) {
+                   float l1_grad, int threads, float* grad_a) {
     const Taps k(taps);
     const int64_t n = width * channels;
     const int64_t out_rows = height - kHalo;
@@ -211,7 +226,8 @@ void ssim_backward(const float* a, const float* b, int64_t height, int64_t width
                 rows_c[t] = inside ? d_cov + q * m : zeros.data();
             }
             vertical_transposed(rows_m, rows_v, rows_c, m, k, pm + pad, pv + pad, pc + pad);
-            horizontal_transposed_grad(pm, pv, pc, a + i * n, b + i * n, n, channels, k, g, grad_a + i * n);
+            horizontal_transposed_grad(pm, pv, pc, a + i * n, b + i * n, n, channels, k, g, l1_grad,
+                                       grad_a + i * n);
         }
     }
 }

@@ -29,10 +29,15 @@ void ssim_forward(const float* a, const float* b, int64_t height, int64_t width,
                   const float* taps, float c1, float c2, float scale, int threads, double* row_sums,
                   float* d_mu, float* d_var, float* d_cov);
 
-// grad_a (H, W*C) = g * (T(d_mu) + 2 a T(d_var) + b T(d_cov)), with T the 'full' (transposed
-// 'valid') separable filter of the (Ho, Wo*C) maps that ssim_forward wrote.
+// grad_a (H, W*C) = g * (T(d_mu) + 2 a T(d_var) + b T(d_cov)) + l1_grad * sign(a - b), with T the
+// 'full' (transposed 'valid') separable filter of the (Ho, Wo*C) maps that ssim_forward wrote: the
+// gradient of g * SSIM plus that of an L1 term whose derivative per pixel is l1_grad |a - b|' (the
+// photometric loss's two terms in one pass; sign(0) = 0, torch's abs backward).
 void ssim_backward(const float* a, const float* b, int64_t height, int64_t width, int64_t channels,
                    const float* taps, const float* d_mu, const float* d_var, const float* d_cov, float g,
-                   int threads, float* grad_a);
+                   float l1_grad, int threads, float* grad_a);
+
+// sum_j |a_j - b_j| over count floats (float sums of blocks, added in double).
+double abs_diff_sum(const float* a, const float* b, int64_t count);
 
 }  // namespace stg_image

@@ -327,8 +327,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> ssim_fwd(const at::Te
     return {value, d_mu, d_var, d_cov};
 }
 
+// grad * d(SSIM)/da + l1_grad * sign(a - b) (image_filter.h).
 at::Tensor ssim_bwd(const at::Tensor& a, const at::Tensor& b, c10::ArrayRef<double> taps, const at::Tensor& d_mu,
-                    const at::Tensor& d_var, const at::Tensor& d_cov, double grad, int64_t threads) {
+                    const at::Tensor& d_var, const at::Tensor& d_cov, double grad, double l1_grad, int64_t threads) {
     check_ssim_images(a, b);
     TORCH_CHECK(threads >= 1, "threads must be >= 1");
     const std::vector<float> k = window_taps(taps);
@@ -342,8 +343,19 @@ at::Tensor ssim_bwd(const at::Tensor& a, const at::Tensor& b, c10::ArrayRef<doub
     at::Tensor grad_a = at::empty_like(a);
     stg_image::ssim_backward(a.data_ptr<float>(), b.data_ptr<float>(), H, W, C, k.data(),
                              d_mu.data_ptr<float>(), d_var.data_ptr<float>(), d_cov.data_ptr<float>(),
-                             static_cast<float>(grad), static_cast<int>(threads), grad_a.data_ptr<float>());
+                             static_cast<float>(grad), static_cast<float>(l1_grad), static_cast<int>(threads),
+                             grad_a.data_ptr<float>());
     return grad_a;
+}
+
+// sum |a - b| of two same-shaped contiguous float32 CPU tensors, as a float64 scalar.
+at::Tensor abs_diff_sum(const at::Tensor& a, const at::Tensor& b) {
+    check_image(a, "a");
+    check_image(b, "b");
+    TORCH_CHECK(a.sizes() == b.sizes(), "a and b must have the same shape, got ", a.sizes(), " and ", b.sizes());
+    at::Tensor value = at::empty({}, a.options().dtype(at::kDouble));
+    *value.data_ptr<double>() = stg_image::abs_diff_sum(a.data_ptr<float>(), b.data_ptr<float>(), a.numel());
+    return value;
 }
 
 // ---- the edge-length loss (edge_loss.h) ----
@@ -574,8 +586,9 @@ TORCH_LIBRARY(STG_SPLAT_NS, m) {
           "(Tensor, Tensor, Tensor, Tensor)",
           &ssim_fwd);
     m.def("ssim_bwd(Tensor a, Tensor b, float[] taps, Tensor d_mu, Tensor d_var, Tensor d_cov, float grad, "
-          "int threads) -> Tensor",
+          "float l1_grad, int threads) -> Tensor",
           &ssim_bwd);
+    m.def("abs_diff_sum(Tensor a, Tensor b) -> Tensor", &abs_diff_sum);
     m.def("edge_length_fwd(Tensor x, Tensor c, Tensor a, Tensor b) -> Tensor", &edge_length_fwd);
     m.def("edge_length_bwd(Tensor x, Tensor c, Tensor a, Tensor b, float grad, bool want_x, bool want_c) -> "
           "(Tensor, Tensor)",
