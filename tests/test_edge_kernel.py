@@ -74,7 +74,9 @@ def test_a_rigid_motion_costs_nothing_and_a_stretch_costs_its_length():
     assert edge_ops.edge_length_loss(moved.float(), c.float(), a, b).item() == pytest.approx(0.0, abs=1e-6)
     s = 1.5
     expected = ((s - 1.0) * (c[a] - c[b]).norm(dim=1)).mean().item()
-    assert edge_ops.edge_length_loss((s * c).float(), c.float(), a, b).item() == pytest.approx(expected, rel=1e-5)
+    assert edge_ops.edge_length_loss((s * c).float(), c.float(), a, b).item() == pytest.approx(
+        expected, rel=1e-5
+    )
     # one edge: d/dx_a = (x_a - x_b) / |x_a - x_b| when stretched, the opposite for x_b
     two = torch.tensor([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0]], requires_grad=True)
     canon = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
@@ -85,8 +87,12 @@ def test_a_rigid_motion_costs_nothing_and_a_stretch_costs_its_length():
 def test_zero_lengths_and_ties_have_torchs_zero_gradient():
     """Coincident points (a zero length) and edges whose lengths agree exactly: gradient 0 there,
     as autograd through norm and abs gives."""
-    x = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 3.0, 0.0]], dtype=torch.float64)
-    c = torch.tensor([[0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 1.0, 0.0], [0.0, 3.0, 0.0]], dtype=torch.float64)
+    x = torch.tensor(
+        [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 3.0, 0.0]], dtype=torch.float64
+    )
+    c = torch.tensor(
+        [[0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 1.0, 0.0], [0.0, 3.0, 0.0]], dtype=torch.float64
+    )
     a, b = torch.tensor([0, 0, 2, 3]), torch.tensor([1, 2, 0, 3])
     value, gx, gc = kernel_value_and_grads(x, c, a, b)
     ref_value, ref_gx, ref_gc = oracle_value_and_grads(x, c, a, b)

@@ -322,4 +322,6 @@ def test_photometric_takes_the_fused_kernel_and_matches_the_torch_path():
     assert float(l1.detach()) == pytest.approx(float(ref_l1), rel=1e-6)
     assert float((leaf.grad.double() - ref_grad).norm() / ref_grad.norm()) < 1e-4
     torch64 = losses.photometric(a, b, 0.2)  # float64: the torch path
-    assert float(torch64[0]) == pytest.approx(float(ref_l1)) and float(torch64[1]) == pytest.approx(1 - float(ref_value))
+    assert float(torch64[0]) == pytest.approx(float(ref_l1)) and float(torch64[1]) == pytest.approx(
+        1 - float(ref_value)
+    )

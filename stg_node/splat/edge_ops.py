@@ -21,7 +21,9 @@ from .build import load_kernels
 from .types import BackendUnavailable
 
 
-def edge_length_loss_torch(x: torch.Tensor, c: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+def edge_length_loss_torch(
+    x: torch.Tensor, c: torch.Tensor, a: torch.Tensor, b: torch.Tensor
+) -> torch.Tensor:
     """``edge_length_loss`` in torch (autograd): the reference, for any device and dtype."""
     both = torch.cat([x, c.to(x.dtype)], dim=1)  # one gather per end of every edge
     d = both.index_select(0, a) - both.index_select(0, b)
@@ -61,9 +63,13 @@ def edge_length_loss(x: torch.Tensor, c: torch.Tensor, a: torch.Tensor, b: torch
     ``x`` and ``c`` (M, 3) points, ``a`` and ``b`` (E,) row indices. The C++ kernel for float32 CPU
     tensors, else the torch reference; 0 without edges."""
     if x.dim() != 2 or x.shape[1] != 3 or c.shape != x.shape:
-        raise ValueError(f"edge_length_loss takes two (M, 3) point sets, got {tuple(x.shape)} and {tuple(c.shape)}")
+        raise ValueError(
+            f"edge_length_loss takes two (M, 3) point sets, got {tuple(x.shape)} and {tuple(c.shape)}"
+        )
     if a.shape != b.shape or a.dim() != 1:
-        raise ValueError(f"edge ends must be two (E,) index tensors, got {tuple(a.shape)} and {tuple(b.shape)}")
+        raise ValueError(
+            f"edge ends must be two (E,) index tensors, got {tuple(a.shape)} and {tuple(b.shape)}"
+        )
     if a.numel() == 0:
         return x.new_zeros(()) + 0.0 * c.sum()
     if edge_kernel_applies(x, c):

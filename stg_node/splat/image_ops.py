@@ -69,17 +69,23 @@ def check_ssim_images(a: torch.Tensor, b: torch.Tensor) -> None:
 def ssim_kernel_applies(a: torch.Tensor, b: torch.Tensor) -> bool:
     """Whether ``ssim`` can take this pair: float32 CPU tensors, no gradient wanted for ``b``, and
     the C++ kernels available (built on the first call; a failure is logged once)."""
-    global _unavailable_logged
     if a.device.type != "cpu" or b.device.type != "cpu":
         return False
     if a.dtype != torch.float32 or b.dtype != torch.float32 or b.requires_grad:
         return False
+    return kernels_available()
+
+
+def kernels_available() -> bool:
+    """Whether the C++ kernels load here (built on the first call; a failure is logged once: the
+    image losses fall back to torch)."""
+    global _unavailable_logged
     try:
         load_kernels()
     except BackendUnavailable as exc:
         if not _unavailable_logged:
             _unavailable_logged = True
-            log.warning("SSIM falls back to torch: the CPU kernels are unavailable (%s)", exc)
+            log.warning("the image losses fall back to torch: the CPU kernels are unavailable (%s)", exc)
         return False
     return True
 

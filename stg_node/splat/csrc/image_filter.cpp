@@ -18,6 +18,7 @@
 // fused explicitly where the target has FMA.
 #include "image_filter.h"
 
+#include <cmath>
 #include <cstddef>
 #include <vector>
 
@@ -164,6 +165,37 @@ double abs_diff_sum(const float* a, const float* b, int64_t count) {
         for (int64_t j = start; j < end; ++j) block += a[j] > b[j] ? a[j] - b[j] : b[j] - a[j];
         total += static_cast<double>(block);
     }
+    return total;
+}
+
+double charbonnier_flow(const float* r, const float* alpha, const float* o, const bool* valid, int64_t n,
+                        float alpha_min, float eps, float scale, int64_t* count, float* g_r, float* g_alpha) {
+    double total = 0.0;
+    int64_t used = 0;
+    const float eps2 = eps * eps;
+    for (int64_t p = 0; p < n; ++p) {
+        const float a = alpha[p];
+        if (!valid[p] || !(a > alpha_min)) {  // also skips a NaN alpha, as alpha > alpha_min does
+            if (g_r != nullptr) {
+                g_r[2 * p] = g_r[2 * p + 1] = 0.0f;
+                g_alpha[p] = 0.0f;
+            }
+            continue;
+        }
+        const float inv = 1.0f / a;
+        const float dx = r[2 * p] * inv - o[2 * p];
+        const float dy = r[2 * p + 1] * inv - o[2 * p + 1];
+        const float d = std::sqrt(dx * dx + dy * dy + eps2);
+        total += static_cast<double>(d);
+        ++used;
+        if (g_r != nullptr) {
+            const float ux = scale * dx / d, uy = scale * dy / d;  // d(scale d) / d(r / alpha)
+            g_r[2 * p] = ux * inv;
+            g_r[2 * p + 1] = uy * inv;
+            g_alpha[p] = -(ux * r[2 * p] + uy * r[2 * p + 1]) * inv * inv;
+        }
+    }
+    *count = used;
     return total;
 }
 

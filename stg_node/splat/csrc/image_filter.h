@@ -40,4 +40,12 @@ void ssim_backward(const float* a, const float* b, int64_t height, int64_t width
 // sum_j |a_j - b_j| over count floats (float sums of blocks, added in double).
 double abs_diff_sum(const float* a, const float* b, int64_t count);
 
+// Charbonnier distance between a rendered motion field and an observed one, over n pixels: where
+// valid[p] and alpha[p] > alpha_min, d_p = sqrt(|r_p / alpha_p - o_p|^2 + eps^2) (r, o: 2 floats a
+// pixel). Returns the sum of d_p (in double) and writes the number of pixels used to *count. With
+// g_r not null (then g_alpha too), writes the gradients of scale * sum d_p with respect to r
+// (n x 2) and alpha (n), 0 at the pixels not used.
+double charbonnier_flow(const float* r, const float* alpha, const float* o, const bool* valid, int64_t n,
+                        float alpha_min, float eps, float scale, int64_t* count, float* g_r, float* g_alpha);
+
 }  // namespace stg_image

@@ -358,6 +358,36 @@ at::Tensor abs_diff_sum(const at::Tensor& a, const at::Tensor& b) {
     return value;
 }
 
+// (sum of the Charbonnier distances as float64, pixels used as int64, grad r, grad alpha): r and o
+// (H, W, 2), alpha (H, W, 1), valid (H, W) bool; the gradients of scale * sum, empty unless want_grad.
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> charbonnier_flow(
+    const at::Tensor& r, const at::Tensor& alpha, const at::Tensor& o, const at::Tensor& valid, double alpha_min,
+    double eps, double scale, bool want_grad) {
+    check_image(r, "rendered flow");
+    check_image(alpha, "alpha");
+    check_image(o, "observed flow");
+    TORCH_CHECK(r.size(2) == 2 && o.sizes() == r.sizes(), "flows must be (H, W, 2) of one shape, got ", r.sizes(),
+                " and ", o.sizes());
+    TORCH_CHECK(alpha.size(0) == r.size(0) && alpha.size(1) == r.size(1) && alpha.size(2) == 1,
+                "alpha must be (H, W, 1) of the flow's size, got ", alpha.sizes());
+    TORCH_CHECK(valid.device().is_cpu() && valid.scalar_type() == at::kBool && valid.is_contiguous() &&
+                    valid.dim() == 2 && valid.size(0) == r.size(0) && valid.size(1) == r.size(1),
+                "valid must be a contiguous (H, W) bool CPU tensor, got ", valid.scalar_type(), " ", valid.sizes());
+    const int64_t n = r.size(0) * r.size(1);
+    at::Tensor g_r = want_grad ? at::empty_like(r) : at::empty({0}, r.options());
+    at::Tensor g_alpha = want_grad ? at::empty_like(alpha) : at::empty({0}, alpha.options());
+    int64_t count = 0;
+    const double total = stg_image::charbonnier_flow(
+        r.data_ptr<float>(), alpha.data_ptr<float>(), o.data_ptr<float>(), valid.data_ptr<bool>(), n,
+        static_cast<float>(alpha_min), static_cast<float>(eps), static_cast<float>(scale), &count,
+        want_grad ? g_r.data_ptr<float>() : nullptr, want_grad ? g_alpha.data_ptr<float>() : nullptr);
+    at::Tensor value = at::empty({}, r.options().dtype(at::kDouble));
+    *value.data_ptr<double>() = total;
+    at::Tensor used = at::empty({}, r.options().dtype(at::kLong));
+    *used.data_ptr<int64_t>() = count;
+    return {value, used, g_r, g_alpha};
+}
+
 // ---- the edge-length loss (edge_loss.h) ----
 void check_edges(const at::Tensor& x, const at::Tensor& c, const at::Tensor& a, const at::Tensor& b) {
     check_cpu_float(x, "x", x.size(0), 3);
@@ -589,6 +619,9 @@ TORCH_LIBRARY(STG_SPLAT_NS, m) {
           "float l1_grad, int threads) -> Tensor",
           &ssim_bwd);
     m.def("abs_diff_sum(Tensor a, Tensor b) -> Tensor", &abs_diff_sum);
+    m.def("charbonnier_flow(Tensor r, Tensor alpha, Tensor o, Tensor valid, float alpha_min, float eps, float scale, "
+          "bool want_grad) -> (Tensor, Tensor, Tensor, Tensor)",
+          &charbonnier_flow);
     m.def("edge_length_fwd(Tensor x, Tensor c, Tensor a, Tensor b) -> Tensor", &edge_length_fwd);
     m.def("edge_length_bwd(Tensor x, Tensor c, Tensor a, Tensor b, float grad, bool want_x, bool want_c) -> "
           "(Tensor, Tensor)",
