@@ -119,3 +119,34 @@ def test_no_edges_is_zero_and_bad_input_is_refused():
         edge_ops.edge_length_loss(x.float(), c.float(), a, b[:-1])
     with pytest.raises(RuntimeError, match="must index the 50 points"):
         edge_ops.edge_length_loss(x.float(), c.float(), a, b + 50)
+
+
+def test_the_isometry_term_takes_the_kernel_and_matches_its_torch_path():
+    """IsometryGraph.loss on a table: the kernel (auto) and the reference (kernels.reference())
+    give the same value and gradients, posed rows a subset of the table (an index) included."""
+    from stg_node.avatar import kernels
+    from stg_node.avatar.isometry import IsometryGraph
+
+    x, c, _, _ = graph_case(300)
+
+    class Table:  # what IsometryGraph reads of a GaussianTable
+        num, version = 300, 0
+
+        def __getitem__(self, name):
+            return c.float()
+
+    table, graph = Table(), IsometryGraph()
+    index = torch.arange(0, 300, 2)
+    results = []
+    for reference in (False, True):
+        xl = x[index].float().requires_grad_(True)
+        cl = c[index].float().requires_grad_(True)
+        with kernels.reference() if reference else torch.enable_grad():
+            loss = graph.loss(table, xl, cl, index)
+        loss.backward()
+        assert ("EdgeLength" in type(loss.grad_fn.next_functions[0][0]).__name__) != reference
+        results.append((loss.detach(), xl.grad, cl.grad))
+    (v1, gx1, gc1), (v2, gx2, gc2) = results
+    assert v1.item() == pytest.approx(v2.item(), rel=1e-5) and v1.item() > 0
+    torch.testing.assert_close(gx1, gx2, rtol=1e-4, atol=1e-6 * gx2.abs().max().item())
+    torch.testing.assert_close(gc1, gc2, rtol=1e-4, atol=1e-6 * gc2.abs().max().item())

@@ -30,7 +30,8 @@ import weakref
 
 import torch
 
-from stg_node.splat.edge_ops import edge_length_loss
+from stg_node.avatar import kernels
+from stg_node.splat.edge_ops import edge_length_loss, edge_length_loss_torch
 
 K_NEIGHBOURS = 8
 WINDOW = 16  # candidates on each side along each curve
@@ -136,8 +137,10 @@ class IsometryGraph:
                 if not bool(valid.any()):
                     return means.new_zeros(())
                 a, b = a[valid], b[valid]
-        # One pass over the edges each way (the C++ kernel; torch for other devices and dtypes).
-        return 100.0 * edge_length_loss(means, canonical.to(means.dtype), a, b)
+        canonical = canonical.to(means.dtype)
+        if not kernels.use_kernels(means, canonical):  # other devices, float64, or switched off
+            return 100.0 * edge_length_loss_torch(means, canonical, a, b)
+        return 100.0 * edge_length_loss(means, canonical, a, b)  # one pass over the edges each way
 
     def edges(self) -> tuple[torch.Tensor, torch.Tensor]:
         """The graph's undirected edges as table rows (a, b), a < b, each pair once (two points that

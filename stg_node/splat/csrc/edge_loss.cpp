@@ -1,10 +1,12 @@
-// CPU edge-length loss (see edge_loss.h for the contract). One pass over the edges each way: the
-// two differences, their lengths and the sign of the residual are recomputed in the backward pass
-// rather than stored (cheaper than writing and reading E x 8 floats), and the gradients are
+// CPU edge-length loss (see edge_loss.h for the contract). Forward: one pass over the edges.
+// Backward: the lengths are recomputed rather than stored by the forward pass (no gradient may
+// come), turned into the two differences' factors in a vectorised pass, and the gradients are
 // scattered into the two ends of every edge in edge order, so the result is the same every run.
 #include "edge_loss.h"
 
 #include <cmath>
+#include <cstddef>
+#include <vector>
 
 namespace stg_edge {
 namespace {
@@ -40,25 +42,37 @@ void edge_length_backward(const float* x, const float* c, const int64_t* a, cons
                           double g, float* grad_x, float* grad_c) {
     if (edges <= 0) return;
     const float scale = static_cast<float>(g / static_cast<double>(edges));
+    // Three passes: the two lengths of every edge (gathers), the factors of the two differences
+    // (independent elements: the divisions vectorise, where one edge at a time they cost five
+    // times the gathers), then the scatter into both ends in edge order (the same sums every run).
+    std::vector<float> buffer(static_cast<std::size_t>(2 * edges));
+    float* __restrict fx = buffer.data();
+    float* __restrict fc = fx + edges;
     for (int64_t e = 0; e < edges; ++e) {
-        const int64_t i = a[e], j = b[e];
-        const Edge d = edge_at(x, c, i, j);
-        const float r = d.lx - d.lc;
-        // d|r|/dr = sign(r), 0 at r = 0 (torch's sign); d|v|/dv = v / |v|, 0 at v = 0: selects,
-        // not branches (the signs of the residuals are unpredictable).
-        const float s = r > 0.0f ? scale : (r < 0.0f ? -scale : 0.0f);
-        if (grad_x != nullptr) {
-            const float f = d.lx > 0.0f ? s / d.lx : 0.0f;
+        const Edge d = edge_at(x, c, a[e], b[e]);
+        fx[e] = d.lx;
+        fc[e] = d.lc;
+    }
+#pragma omp simd
+    for (int64_t e = 0; e < edges; ++e) {
+        const float lx = fx[e], lc = fc[e];
+        // d|r|/dr = sign(r), 0 at r = 0 (torch's sign); d|v|/dv = v / |v|, 0 at v = 0
+        const float r = lx - lc;
+        const float s = scale * (static_cast<float>(r > 0.0f) - static_cast<float>(r < 0.0f));
+        fx[e] = lx > 0.0f ? s / lx : 0.0f;
+        fc[e] = lc > 0.0f ? -s / lc : 0.0f;
+    }
+    for (int pass = 0; pass < 2; ++pass) {
+        float* out = pass == 0 ? grad_x : grad_c;
+        if (out == nullptr) continue;
+        const float* p = pass == 0 ? x : c;
+        const float* f = pass == 0 ? fx : fc;
+        for (int64_t e = 0; e < edges; ++e) {
+            const int64_t i = a[e], j = b[e];
             for (int k = 0; k < 3; ++k) {
-                grad_x[3 * i + k] += f * d.dx[k];
-                grad_x[3 * j + k] -= f * d.dx[k];
-            }
-        }
-        if (grad_c != nullptr) {
-            const float f = d.lc > 0.0f ? s / d.lc : 0.0f;
-            for (int k = 0; k < 3; ++k) {
-                grad_c[3 * i + k] -= f * d.dc[k];
-                grad_c[3 * j + k] += f * d.dc[k];
+                const float v = f[e] * (p[3 * i + k] - p[3 * j + k]);
+                out[3 * i + k] += v;
+                out[3 * j + k] -= v;
             }
         }
     }

@@ -398,11 +398,15 @@ void check_edges(const at::Tensor& x, const at::Tensor& c, const at::Tensor& a, 
     }
     TORCH_CHECK(a.size(0) == b.size(0), "edge ends must have one length, got ", a.size(0), " and ", b.size(0));
     const int64_t m = x.size(0);
-    if (a.numel() > 0) {
-        const int64_t lo = std::min(a.min().item<int64_t>(), b.min().item<int64_t>());
-        const int64_t hi = std::max(a.max().item<int64_t>(), b.max().item<int64_t>());
-        TORCH_CHECK(lo >= 0 && hi < m, "edge ends must index the ", m, " points, got [", lo, ", ", hi, "]");
+    const int64_t* pa = a.data_ptr<int64_t>();
+    const int64_t* pb = b.data_ptr<int64_t>();
+    int64_t lo = 0, hi = 0;  // one pass over both ends (four reductions in torch cost 4x)
+    for (int64_t e = 0; e < a.size(0); ++e) {
+        lo = std::min(lo, std::min(pa[e], pb[e]));
+        hi = std::max(hi, std::max(pa[e], pb[e]));
     }
+    TORCH_CHECK(lo >= 0 && (a.size(0) == 0 || hi < m), "edge ends must index the ", m, " points, got [", lo, ", ",
+                hi, "]");
 }
 
 // The mean edge-length residual as a float64 scalar.
