@@ -55,16 +55,9 @@ WORLD_BONES = (
     ("right_hip", "right_shoulder"),
     ("left_ankle", "left_toe"),
     ("right_ankle", "right_toe"),
-    # The palm (wrist to knuckles, across the knuckles) and the sole (heel to toe): the twist of the
-    # forearm and of the leg about their own axes, which the joints' directions cannot say.
-    ("left_wrist", "left_index"),
-    ("left_wrist", "left_pinky"),
-    ("left_index", "left_pinky"),
-    ("right_wrist", "right_index"),
-    ("right_wrist", "right_pinky"),
-    ("right_index", "right_pinky"),
-    ("left_heel", "left_toe"),
-    ("right_heel", "right_toe"),
+    # Not the palm (wrist to knuckles, knuckle to knuckle) nor the sole (heel to toe): BlazePose's
+    # metric points get them wrong by 44-58 and 33-36 degrees (median, the benchmark's mixed
+    # motion at 256 px), and as directions they made the tracked twists worse (docs/TRACKING.md).
     ("left_ear", "right_ear"),
 )
 _FACE_WEIGHT = 0.3

@@ -131,10 +131,11 @@ def test_hand_landmarks_sit_on_the_knuckles_and_the_thumb(body):
 
 @pytest.mark.parametrize("with_world", [False, True])
 def test_the_palms_points_recover_an_upper_arms_twist(body, with_world):
-    # How much of the twist may stay wrong, upper arm / hand: the pose prior pulls a twist towards
-    # rest and the knuckles are 4-5 cm from the bone, so 2D points alone recover about half of it
-    # (measured 0.36-0.48 / 0.23-0.37 when written), the network's metric points three quarters.
-    arm_share, hand_share = (0.4, 0.25) if with_world else (0.6, 0.5)
+    # How much of the twist may stay wrong: the pose prior pulls a twist towards rest and the
+    # knuckles are 4-5 cm from the bone, so the 2D points recover about half of it (the upper
+    # arm's error 0.36-0.48 of the twist, the hand's 0.23-0.37 when written). The network's
+    # metric points add nothing here: the palm is not among the 3D directions the fit uses.
+    arm_share, hand_share = 0.6, 0.5
     for left, right in ((60.0, -40.0), (-45.0, 50.0)):
         pose = arms_out_twisted(left, right)
         truth = np.abs([left, right, left, right])
@@ -142,6 +143,6 @@ def test_the_palms_points_recover_an_upper_arms_twist(body, with_world):
         seeing = np.array(fitted_twist_errors(body, get_layout("blazepose33"), pose, with_world))
         # The one averaged hand point cannot see the twist: the fit keeps most of it wrong.
         assert np.all(blind > 0.6 * truth), blind
-        # The palm's points recover most of it, the hand's own orientation best.
+        # The palm's points recover much of it, the hand's own orientation best.
         assert np.all(seeing[:2] < arm_share * truth[:2]), seeing
         assert np.all(seeing[2:] < hand_share * truth[2:]), seeing
