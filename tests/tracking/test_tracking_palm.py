@@ -146,3 +146,29 @@ def test_the_palms_points_recover_an_upper_arms_twist(body, with_world):
         # The palm's points recover much of it, the hand's own orientation best.
         assert np.all(seeing[:2] < arm_share * truth[:2]), seeing
         assert np.all(seeing[2:] < hand_share * truth[2:]), seeing
+
+
+def test_the_benchmarks_twist_split_on_closed_form_rotations():
+    """bench_footage's bone_errors: an error that is a pure turn about the bone is all twist, one
+    about a perpendicular axis has none, and their composition splits back into the two."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tools"))
+    import bench_footage
+
+    rest = np.zeros((24, 3))
+    rest[:, 1] = -np.arange(24)  # every bone along -y
+    truth = np.tile(np.eye(3), (1, 24, 1, 1))
+
+    def rotation(axis, deg):
+        return cv2.Rodrigues(np.asarray(axis, np.float64) * np.radians(deg))[0]
+
+    for twist_deg, swing_deg in ((30.0, 0.0), (0.0, 25.0), (40.0, 20.0)):
+        error = rotation([0, 1, 0], twist_deg) @ rotation([1, 0, 0], swing_deg)  # twist after swing
+        tracked = np.tile(error, (1, 24, 1, 1))
+        bones = bench_footage.bone_errors(truth, tracked, rest)
+        total = np.degrees(np.linalg.norm(cv2.Rodrigues(error)[0]))
+        for values in bones.values():
+            assert values["error_deg"] == pytest.approx(total, abs=1e-6)
+            assert values["twist_deg"] == pytest.approx(twist_deg, abs=1e-6)
