@@ -355,7 +355,8 @@ class AvatarModel(nn.Module):
             scales = scales * squeeze_of_blend(blend_norm2)[:, None]
         elif cfg.joint_shrink:
             weights = self._render_skin_weights()
-            weights = rows(self.skin_weights() if weights is None else weights)
+            with torch.no_grad():  # the squeeze takes no gradient: no graph over (N, 24) weights
+                weights = rows(self.skin_weights() if weights is None else weights)
             scales = scales * joint_shrink(weights, bones)[:, None]
         if camera is not None:  # what the camera cannot see needs no colour
             seen = may_be_visible(means, scales, camera.viewmat, camera.K, camera.width, camera.height)

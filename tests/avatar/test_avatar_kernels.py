@@ -322,7 +322,7 @@ def test_colour_input_encoding_gradients_match_autograd_in_float64():
     g = torch.randn(out.shape, generator=gen, dtype=torch.float64)
     got = torch.autograd.grad(out, (x, feat), g)
     ref = torch.autograd.grad(want, (x, feat), g)
-    for a, b in zip(got, ref):
+    for a, b in zip(got, ref, strict=True):
         torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
     x6, f6 = x[:6].detach().requires_grad_(True), feat[:6].detach().requires_grad_(True)
     assert torch.autograd.gradcheck(lambda a, f: encoded_inputs(a, 3, f, basis[:6]), (x6, f6))

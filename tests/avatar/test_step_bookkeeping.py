@@ -32,7 +32,8 @@ def test_initial_coefficients_sum_each_bases_bones():
 def _help_truth(model, grad, static, u):
     """help_dot, help_norm of one step, row by row in float64 from the definitions."""
     table = model.table
-    w = (table["skin_weights"].detach().double() + SKIN_WEIGHT_EPS) * table["skin_delta"].detach().double().exp()
+    delta = table["skin_delta"].detach().double()
+    w = (table["skin_weights"].detach().double() + SKIN_WEIGHT_EPS) * delta.exp()
     w = w / w.sum(1, keepdim=True)
     count = model.motion_bases.count
     motions = model.motion_bases.at(u).detach().double()  # (B, 3, 4)
