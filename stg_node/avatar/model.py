@@ -344,9 +344,9 @@ class AvatarModel(nn.Module):
 
         canonical = table["means"] if st.offsets is None else table["means"] + st.offsets
         canonical = rows(canonical)
-        # a renderer's frame takes the joint squeeze from the skinning kernel's blend (training keeps
-        # the torch factor: its result does not move by a rounding)
-        squeeze_from_kernel = cfg.joint_shrink and not torch.is_grad_enabled()
+        # the joint squeeze from the skinning kernel's blend where the kernel runs (training too: the
+        # torch factor re-blended every row's 24 weights, ~5 % of a step, to agree to float rounding)
+        squeeze_from_kernel = cfg.joint_shrink
         means, quats, view_canonical, blend_norm2 = self._skin(
             canonical, bones, rows(st.quats), camera_center, rows, blend_norms=squeeze_from_kernel
         )
