@@ -442,7 +442,8 @@ def render(
         if posed.index is not None and extra_channels.shape[0] != colors.shape[0]:
             extra_channels = extra_channels[posed.index]
         colors = torch.cat([colors, extra_channels], dim=1)
-    if background is not None and extra_channels is not None:
+    black = isinstance(background, (int, float)) and background == 0  # rasterize skips its blend
+    if background is not None and extra_channels is not None and not black:
         bg = torch.as_tensor(background, dtype=colors.dtype, device=colors.device).reshape(-1)
         if bg.numel() == 1:
             bg = bg.expand(3)
