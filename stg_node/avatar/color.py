@@ -98,7 +98,7 @@ def encoded_inputs(x: torch.Tensor, freqs: int, *rest: torch.Tensor) -> torch.Te
 class _EncodedInputs(torch.autograd.Function):
     """:func:`encoded_inputs` (the same forward ops, so the same values) with a backward that
     reuses the forward's sines and cosines, where autograd's computes both again on every
-    (rows x 3 freqs) angle, and hands each input its slice of the gradient in a few ops:
+    (rows x 3 x freqs) angle, and hands each input its slice of the gradient in a few ops:
     ``dL/dx = g_x + sum_k s_k (g_sin_k cos_k - g_cos_k sin_k)``."""
 
     @staticmethod
