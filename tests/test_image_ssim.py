@@ -235,7 +235,7 @@ def test_operator_checks_its_inputs():
         ops.ssim_fwd(a.double(), a.double(), image_ops.gaussian_taps(), 1e-4, 9e-4, False, 1)
     with pytest.raises(RuntimeError, match="derivative maps must be"):
         d = torch.zeros(9, 10, 3)
-        ops.ssim_bwd(a, a, image_ops.gaussian_taps(), d, d, d, 1.0, 1)
+        ops.ssim_bwd(a, a, image_ops.gaussian_taps(), d, d, d, 1.0, 0.0, 1)
 
 
 def test_loss_dispatch_and_fallback(monkeypatch):
@@ -280,3 +280,48 @@ def test_cuda_tensors_take_the_torch_path():
     cpu_value, cpu_grad = kernel_value_and_grad(a, b)
     assert abs(float(value.detach()) - float(cpu_value)) < 1e-5
     assert float((leaf.grad.cpu() - cpu_grad).norm() / cpu_grad.norm()) < 1e-4
+
+
+def l1_ssim_oracle(a, b, w_l1, w_ssim):
+    leaf = a.detach().to(torch.float64).requires_grad_(True)
+    l1 = (leaf - b.to(torch.float64)).abs().mean()
+    value = losses.ssim_torch(leaf, b.to(torch.float64))
+    (w_l1 * l1 + w_ssim * (1.0 - value)).backward()
+    return l1.detach(), value.detach(), leaf.grad
+
+
+@pytest.mark.parametrize("weights", [(0.8, 0.2), (1.0, 0.0), (0.0, 1.0)], ids=["both", "l1", "ssim"])
+@pytest.mark.parametrize("name,a,b", PRECISE_PAIRS[:4], ids=[p[0] for p in PRECISE_PAIRS[:4]])
+def test_l1_ssim_matches_torch_in_values_and_gradients(name, a, b, weights):
+    """The fused photometric pair (image_ops.l1_ssim) against autograd in float64 through the
+    torch L1 and SSIM, for the step's weighting and each term alone (an unused output's
+    gradient arrives as None); ties (a == b at a pixel) get abs's zero gradient."""
+    a = a.clone()
+    a[3, :7] = b[3, :7]  # exact ties
+    w_l1, w_ssim = weights
+    leaf = a.detach().float().requires_grad_(True)
+    l1, value = image_ops.l1_ssim(leaf, b.float())
+    loss = (w_l1 * l1 if w_l1 else 0.0) + (w_ssim * (1.0 - value) if w_ssim else 0.0)
+    loss.backward()
+    ref_l1, ref_value, ref_grad = l1_ssim_oracle(a, b, w_l1, w_ssim)
+    assert float(l1.detach()) == pytest.approx(float(ref_l1), rel=1e-6)
+    assert float(value.detach()) == pytest.approx(float(ref_value), abs=1e-5)
+    assert float((leaf.grad.double() - ref_grad).norm() / ref_grad.norm()) < 1e-4
+    if w_l1 and not w_ssim:
+        assert torch.all(leaf.grad[3, :7] == 0)
+
+
+def test_photometric_takes_the_fused_kernel_and_matches_the_torch_path():
+    a, b = natural_pair(64, 48)
+    leaf = a.float().requires_grad_(True)
+    l1, dssim = losses.photometric(leaf, b.float(), 0.2)
+    (0.8 * l1 + 0.2 * dssim).backward()
+    assert "L1Ssim" in type(l1.grad_fn).__name__
+    ref_l1, ref_value, ref_grad = l1_ssim_oracle(a, b, 0.8, 0.2)
+    assert float(dssim.detach()) == pytest.approx(1.0 - float(ref_value), abs=1e-5)
+    assert float(l1.detach()) == pytest.approx(float(ref_l1), rel=1e-6)
+    assert float((leaf.grad.double() - ref_grad).norm() / ref_grad.norm()) < 1e-4
+    torch64 = losses.photometric(a, b, 0.2)  # float64: the torch path
+    assert float(torch64[0]) == pytest.approx(float(ref_l1)) and float(torch64[1]) == pytest.approx(
+        1 - float(ref_value)
+    )

@@ -12,6 +12,7 @@ size in the frame and an unknown camera cost, and what each remedy buys back.
     python tools/bench_footage.py refine    [--size 256] [--runs ...]     # the pose refinement's variants
     python tools/bench_footage.py chains    [--size 256] [--runs ...]     # the gap: torso chain vs limbs
     python tools/bench_footage.py errors    [--size 256]                  # what the tracked poses' errors are
+    python tools/bench_footage.py twist     [--size 256] [--runs mixed,...] # tracker per bone, motions
     common: --out DIR (default runs/bench_footage) --preset fast --seed 0 --json
 
 Every experiment generates its subjects with ``stg-synth``'s generator into ``--out/data``
@@ -74,6 +75,10 @@ to ``--out/results/EXPERIMENT.json``; a run folder that is already finished is n
   orientation in the camera's frame: which part of the body the gap sits in (a diagnostic).
 - ``errors``: the tracked poses' bones against the truth in the camera's frame, the twist about
   each bone, and what a zero-lag smoothing in time would change.
+- ``twist``: the tracker alone on several motions (``--runs``: ``stg-synth`` motions, default
+  mixed, dance, wave, reach, walk), tracked as ``stg-train --format video`` tracks: MPJPE /
+  PA-MPJPE, the global orientation's error, and each bone's (upper arms, forearms, hands,
+  thighs, shins, feet, chest, neck) orientation error in the camera's frame with its twist.
 - ``framing``: renders RUN_DIR's default orbit (and follow camera) and reports the share of
   frames with the avatar whole and at least 30 % of the image tall.
 
@@ -658,7 +663,48 @@ BONES = {  # joint -> its child: the bone whose orientation in the camera's fram
     "right thigh": (2, 5),
     "spine (chest)": (9, 12),
     "neck": (12, 15),
+    "left hand": (20, 22),
+    "right hand": (21, 23),
+    "left shin": (4, 7),
+    "right shin": (5, 8),
+    "left foot": (7, 10),
+    "right foot": (8, 11),
 }
+
+
+def camera_frame_rotations(global_aa, local_aa, parents):
+    """(n, 24, 3, 3) each joint's rotation in the camera's frame from (n, 3) global and (n, 23, 3)
+    local axis-angle rotations."""
+    import numpy as np
+
+    from stg_node.data.synth.rotations import axis_angle_to_matrix
+
+    n = len(global_aa)
+    L = axis_angle_to_matrix(np.asarray(local_aa, np.float64).reshape(-1, 3)).reshape(n, 23, 3, 3)
+    G = [axis_angle_to_matrix(np.asarray(global_aa, np.float64))]
+    for j in range(1, 24):
+        G.append(G[parents[j]] @ L[:, j - 1])
+    return np.stack(G, axis=1)
+
+
+def bone_errors(G_true, G_tracked, rest_joints) -> dict:
+    """Per bone of :data:`BONES`: the mean angle (degrees) between its true and tracked orientation
+    in the camera's frame, and the part of it that is a twist about the bone (swing-twist split of
+    the error rotation, in the bone's own frame)."""
+    import cv2
+    import numpy as np
+
+    bones = {}
+    for name, (j, child) in BONES.items():
+        axis = rest_joints[child] - rest_joints[j]
+        axis /= np.linalg.norm(axis)
+        D = np.einsum("nba,nbc->nac", G_true[:, j], G_tracked[:, j])  # the error in the bone's frame
+        vec = np.stack([cv2.Rodrigues(d)[0].ravel() for d in D])
+        angle = np.linalg.norm(vec, axis=1)
+        half = np.sin(angle / 2)[:, None] * vec / np.maximum(angle, 1e-12)[:, None]
+        twist = np.abs(np.degrees(2 * np.arctan2(half @ axis, np.cos(angle / 2))))
+        bones[name] = {"error_deg": float(np.degrees(angle).mean()), "twist_deg": float(twist.mean())}
+    return bones
 
 
 def errors(args) -> dict:
@@ -701,25 +747,9 @@ def errors(args) -> dict:
     zeros = torch.zeros(1, 3)
     rest = body(betas=torch.zeros(1, 10), poses=torch.zeros(1, 72), Rh=zeros, Th=zeros).joints[0].numpy()
 
-    def world(root, local):
-        n = len(root)
-        L = axis_angle_to_matrix(local.reshape(-1, 3)).reshape(n, 23, 3, 3)
-        G = [axis_angle_to_matrix(root)]
-        for j in range(1, 24):
-            G.append(G[parents[j]] @ L[:, j - 1])
-        return np.stack(G, axis=1)
-
-    G_true, G_tracked = world(true_global, true_local), world(global_, poses[:, 1:])
-    bones = {}
-    for name, (j, child) in BONES.items():
-        axis = rest[child] - rest[j]
-        axis /= np.linalg.norm(axis)
-        D = np.einsum("nba,nbc->nac", G_true[:, j], G_tracked[:, j])  # the error in the bone's frame
-        vec = np.stack([cv2.Rodrigues(d)[0].ravel() for d in D])
-        angle = np.linalg.norm(vec, axis=1)
-        half = np.sin(angle / 2)[:, None] * vec / np.maximum(angle, 1e-12)[:, None]
-        twist = np.abs(np.degrees(2 * np.arctan2(half @ axis, np.cos(angle / 2))))
-        bones[name] = {"error_deg": float(np.degrees(angle).mean()), "twist_deg": float(twist.mean())}
+    G_true = camera_frame_rotations(true_global, true_local, parents)
+    G_tracked = camera_frame_rotations(global_, poses[:, 1:], parents)
+    bones = bone_errors(G_true, G_tracked, rest)
 
     def smoothed(aa, sigma):
         n, J = aa.shape[:2]
@@ -958,6 +988,75 @@ def fit_training(args, data: Path, wanted: list[str]) -> dict:
     return result
 
 
+TWIST_MOTIONS = ("mixed", "dance", "wave", "reach", "walk")
+
+
+def twist(args) -> dict:
+    """The tracker's accuracy on several motions (``--runs``: any of ``stg-synth``'s, default
+    :data:`TWIST_MOTIONS`), as ``stg-train --format video`` tracks (the fit's silhouette term on,
+    unsmoothed, the training camera's intrinsics): MPJPE / PA-MPJPE, the global orientation, and
+    each bone's orientation in the camera's frame against the truth with its twist about the bone
+    (:func:`bone_errors`); the mean over the motions beside them."""
+    import cv2
+    import numpy as np
+    import torch
+
+    from stg_node.body import load_body_model
+    from stg_node.safe_load import load_npy
+    from stg_node.tracking.fitting import FitConfig
+
+    motions = args.runs.split(",") if args.runs else list(TWIST_MOTIONS)
+    body = load_body_model()
+    parents = body.parents.tolist()
+    zeros = torch.zeros(1, 3)
+    rest = body(betas=torch.zeros(1, 10), poses=torch.zeros(1, 72), Rh=zeros, Th=zeros).joints[0].numpy()
+
+    def rodrigues(m):
+        return cv2.Rodrigues(m)[0]
+
+    rows = {}
+    for motion in motions:
+        data = subject(
+            args.out, f"{motion}_{args.size}", motion=motion, num_frames=args.frames, size=args.size
+        )
+        poses_out = args.out / "twist" / f"{motion}_{args.size}" / "poses.npz"
+        accuracy = track_accuracy(data, FitConfig(), poses_out, smoothing=False)
+        tracked = np.load(poses_out)
+        n = len(tracked["poses"])
+        R = np.asarray(load_npy(data / "annots.npy")["cams"]["R"][0], np.float64)
+        names = sorted((data / "Camera_B1").glob("*.png"))[:n]
+        params = [load_npy(data / "new_params" / f"{int(p.stem)}.npy") for p in names]
+        true_poses = np.stack([np.asarray(p["poses"], np.float64).reshape(24, 3) for p in params])
+        true_global = np.stack([
+            rodrigues(R @ rodrigues(np.asarray(p["Rh"], np.float64).reshape(3)) @ rodrigues(q[0])).ravel()
+            for p, q in zip(params, true_poses, strict=True)
+        ])  # fmt: skip
+        poses = np.asarray(tracked["poses"], np.float64).reshape(n, 24, 3)
+        tracked_global = np.stack([
+            rodrigues(rodrigues(np.asarray(rh, np.float64)) @ rodrigues(q[0])).ravel()
+            for rh, q in zip(tracked["Rh"], poses, strict=True)
+        ])  # fmt: skip
+        G_true = camera_frame_rotations(true_global, true_poses[:, 1:], parents)
+        G_tracked = camera_frame_rotations(tracked_global, poses[:, 1:], parents)
+        rows[motion] = {**accuracy, "bones": bone_errors(G_true, G_tracked, rest)}
+        log.info("%s: %s", motion, json.dumps(rows[motion], default=float))
+    keys = ("mpjpe_mm", "pa_mpjpe_mm")
+    mean = {k: float(np.mean([rows[m][k] for m in motions])) for k in keys}
+    mean["global_orientation_deg"] = float(
+        np.mean([rows[m]["global_orientation_deg"]["mean"] for m in motions])
+    )
+    mean["joint_rotation_deg"] = float(np.mean([rows[m]["joint_rotation_deg"]["mean"] for m in motions]))
+    mean["bones"] = {
+        bone: {
+            k: float(np.mean([rows[m]["bones"][bone][k] for m in motions]))
+            for k in ("error_deg", "twist_deg")
+        }
+        for bone in BONES
+    }
+    rows["mean"] = mean
+    return rows
+
+
 EXPERIMENTS = {
     "gap": gap,
     "sources": sources,
@@ -969,6 +1068,7 @@ EXPERIMENTS = {
     "refine": refine,
     "chains": chains,
     "errors": errors,
+    "twist": twist,
 }
 
 

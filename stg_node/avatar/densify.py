@@ -330,10 +330,24 @@ class DensifyStrategy:
         grad = table["means"].grad
         if bases is None or gate is None or grad is None:
             return
-        rows = (~gate & (grad.abs().sum(dim=1) > 0)).nonzero().squeeze(1)
+        static = ~gate
+        table_delta = table.get("skin_delta")
+        if 2 * int(static.sum()) > table.num:
+            # Most rows static (the usual case; the regularisers give every centre a gradient): every
+            # row at once, the moving ones masked to zero, no gathers and scatters. A static row
+            # without gradient adds exactly zero, as if it were left out.
+            weights = blend_weights(
+                table["skin_weights"].detach(), None if table_delta is None else table_delta.detach()
+            )
+            coef = initial_coefficients(weights, bases.count)
+            would = MotionBases.apply(bases.at(inputs.u).detach(), coef, table["means"].detach())
+            zero = grad.new_zeros(())
+            state["help_dot"].add_(torch.where(static, (grad * would).sum(dim=1), zero))
+            state["help_norm"].add_(torch.where(static, grad.norm(dim=1) * would.norm(dim=1), zero))
+            return
+        rows = (static & (grad.abs().sum(dim=1) > 0)).nonzero().squeeze(1)
         if rows.numel() == 0:
             return
-        table_delta = table.get("skin_delta")
         weights = blend_weights(  # of these rows only: the blend is row by row
             table["skin_weights"].detach()[rows], None if table_delta is None else table_delta.detach()[rows]
         )

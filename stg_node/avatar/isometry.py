@@ -30,6 +30,9 @@ import weakref
 
 import torch
 
+from stg_node.avatar import kernels
+from stg_node.splat.edge_ops import edge_length_loss, edge_length_loss_torch
+
 K_NEIGHBOURS = 8
 WINDOW = 16  # candidates on each side along each curve
 GRID_BITS = 10  # Morton grid of 2^10 cells per axis over the points' box
@@ -134,10 +137,10 @@ class IsometryGraph:
                 if not bool(valid.any()):
                     return means.new_zeros(())
                 a, b = a[valid], b[valid]
-        # Posed and canonical centres side by side: one gather per end of every edge.
-        both = torch.cat([means, canonical.to(means.dtype)], dim=1)
-        d = both.index_select(0, a) - both.index_select(0, b)
-        return 100.0 * (d[:, :3].norm(dim=1) - d[:, 3:].norm(dim=1)).abs().mean()
+        canonical = canonical.to(means.dtype)
+        if not kernels.use_kernels(means, canonical):  # other devices, float64, or switched off
+            return 100.0 * edge_length_loss_torch(means, canonical, a, b)
+        return 100.0 * edge_length_loss(means, canonical, a, b)  # one pass over the edges each way
 
     def edges(self) -> tuple[torch.Tensor, torch.Tensor]:
         """The graph's undirected edges as table rows (a, b), a < b, each pair once (two points that

@@ -1,7 +1,8 @@
 """Which implementation the avatar's per-Gaussian stages run: the fused C++ kernels or torch.
 
-Skinning (:mod:`rigid`) and the colour MLP (:mod:`color`) each have a fused CPU kernel with a
-hand-written backward (``stg_node.splat.skin_ops``, ``stg_node.splat.mlp_ops``) and a torch
+Skinning (:mod:`rigid`), the colour MLP (:mod:`color`) and the isometry term (:mod:`isometry`)
+each have a fused CPU kernel with a hand-written backward (``stg_node.splat.skin_ops``,
+``stg_node.splat.mlp_ops``, ``stg_node.splat.edge_ops``) and a torch
 implementation, which is the reference the kernels are tested against and what runs on other
 devices, in float64, or without a C++ compiler. The kernels are used wherever they apply (float32
 CPU tensors, kernels built) unless switched off:

@@ -34,6 +34,7 @@ import torch.nn.functional as F
 
 from stg_node.avatar.config import LossConfig
 from stg_node.splat import image_ops
+from stg_node.splat.build import load_kernels
 from stg_node.splat.image_ops import SSIM_C1, SSIM_C2
 
 AUX_SHARE_MAX = 0.5
@@ -78,23 +79,96 @@ def ssim_torch(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 
 def photometric(render: torch.Tensor, target: torch.Tensor, ssim_weight: float) -> tuple[torch.Tensor, ...]:
-    """``(l1, 1 - ssim)`` for ``(H, W, 3)`` images in [0, 1] (at least 11 px each way for SSIM)."""
-    l1 = (render - target).abs().mean()
+    """``(l1, 1 - ssim)`` for ``(H, W, 3)`` images in [0, 1] (at least 11 px each way for SSIM).
+    Both from one C++ kernel pass each way where it applies (image_ops.l1_ssim), else torch."""
     if ssim_weight <= 0 or min(render.shape[0], render.shape[1]) < 11:
-        return l1, render.new_zeros(())
-    return l1, 1.0 - ssim(render, target)
+        return (render - target).abs().mean(), render.new_zeros(())
+    if image_ops.ssim_kernel_applies(render, target):
+        l1, value = image_ops.l1_ssim(render, target)
+        return l1, 1.0 - value
+    return (render - target).abs().mean(), 1.0 - ssim_torch(render, target)
+
+
+class _MeanSquare(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x):
+        ctx.save_for_backward(x)
+        flat = x.detach().reshape(-1)
+        return torch.dot(flat, flat) / flat.numel()
+
+    @staticmethod
+    def backward(ctx, grad):
+        (x,) = ctx.saved_tensors
+        return x * (2.0 * grad / x.numel())
+
+
+def mean_square(x: torch.Tensor) -> torch.Tensor:
+    """``x.pow(2).mean()`` in one pass each way (a dot product; the backward one scaled copy, where
+    autograd through pow takes three passes): the regularisers of whole table columns."""
+    if x.numel() == 0:
+        return x.pow(2).mean()
+    return _MeanSquare.apply(x)
+
+
+FLOW_ALPHA_MIN = 0.5  # the flow term counts pixels at least this opaque
+
+
+class _FlowLoss(torch.autograd.Function):
+    """``flow_loss`` by the C++ kernel (csrc/image_filter.cpp): one pass forward, one backward."""
+
+    @staticmethod
+    def forward(ctx, rendered, alpha, flow, valid):
+        ops = load_kernels().ops
+        r, a = _f32(rendered), _f32(alpha)
+        o, v = _f32(flow), valid.contiguous()
+        total, count, _, _ = ops.charbonnier_flow(r, a, o, v, FLOW_ALPHA_MIN, CHARBONNIER_EPS, 1.0, False)
+        count = int(count)
+        ctx.save_for_backward(r, a, o, v)
+        ctx.count = count
+        if count == 0:
+            return rendered.new_zeros(())
+        return (total / count - CHARBONNIER_EPS).to(rendered.dtype)
+
+    @staticmethod
+    def backward(ctx, grad):
+        if ctx.count == 0:
+            return None, None, None, None
+        r, a, o, v = ctx.saved_tensors
+        scale = float(grad) / ctx.count
+        _, _, g_r, g_a = load_kernels().ops.charbonnier_flow(
+            r, a, o, v, FLOW_ALPHA_MIN, CHARBONNIER_EPS, scale, True
+        )
+        return g_r, g_a, None, None
+
+
+def _f32(t: torch.Tensor) -> torch.Tensor:
+    return t.detach().to(torch.float32).contiguous()
 
 
 def flow_loss(rendered: torch.Tensor, alpha: torch.Tensor, flow: torch.Tensor, valid: torch.Tensor):
-    """Charbonnier distance (px) between rendered (H, W, 2) and observed flow where ``valid`` (H, W)."""
-    use = valid & (alpha[..., 0].detach() > 0.5)
+    """Charbonnier distance (px) between rendered (H, W, 2) and observed flow where ``valid`` (H, W)
+    and ``alpha`` (H, W, 1) > 0.5. The C++ kernel for float32 CPU tensors (a gradient for the
+    rendered flow and alpha only), else ``flow_loss_torch``."""
+    if (
+        all(t.device.type == "cpu" and t.dtype == torch.float32 for t in (rendered, alpha, flow))
+        and valid.dtype == torch.bool
+        and not flow.requires_grad
+        and image_ops.kernels_available()
+    ):
+        return _FlowLoss.apply(rendered, alpha, flow, valid)
+    return flow_loss_torch(rendered, alpha, flow, valid)
+
+
+def flow_loss_torch(rendered: torch.Tensor, alpha: torch.Tensor, flow: torch.Tensor, valid: torch.Tensor):
+    """``flow_loss`` in torch (autograd): any device and dtype, and the kernel's test oracle."""
+    use = valid & (alpha[..., 0].detach() > FLOW_ALPHA_MIN)
     count = int(use.sum())
     if count == 0:
         return rendered.new_zeros(())
     # Dense over the image, the unused pixels weighted out (their target zeroed, so a NaN where the
     # flow is invalid cannot reach a gradient): no boolean gathers forward or scatters backward.
     observed = torch.where(use[..., None], flow, 0.0)
-    diff = rendered / alpha.clamp_min(0.5) - observed
+    diff = rendered / alpha.clamp_min(FLOW_ALPHA_MIN) - observed
     distance = (diff.pow(2).sum(-1) + CHARBONNIER_EPS**2).sqrt()
     return torch.where(use, distance, 0.0).sum() / count - CHARBONNIER_EPS
 

@@ -344,9 +344,9 @@ class AvatarModel(nn.Module):
 
         canonical = table["means"] if st.offsets is None else table["means"] + st.offsets
         canonical = rows(canonical)
-        # a renderer's frame takes the joint squeeze from the skinning kernel's blend (training keeps
-        # the torch factor: its result does not move by a rounding)
-        squeeze_from_kernel = cfg.joint_shrink and not torch.is_grad_enabled()
+        # the joint squeeze from the skinning kernel's blend where the kernel runs (training too: the
+        # torch factor re-blended every row's 24 weights, ~5 % of a step, to agree to float rounding)
+        squeeze_from_kernel = cfg.joint_shrink
         means, quats, view_canonical, blend_norm2 = self._skin(
             canonical, bones, rows(st.quats), camera_center, rows, blend_norms=squeeze_from_kernel
         )
@@ -355,7 +355,8 @@ class AvatarModel(nn.Module):
             scales = scales * squeeze_of_blend(blend_norm2)[:, None]
         elif cfg.joint_shrink:
             weights = self._render_skin_weights()
-            weights = rows(self.skin_weights() if weights is None else weights)
+            with torch.no_grad():  # the squeeze takes no gradient: no graph over (N, 24) weights
+                weights = rows(self.skin_weights() if weights is None else weights)
             scales = scales * joint_shrink(weights, bones)[:, None]
         if camera is not None:  # what the camera cannot see needs no colour
             seen = may_be_visible(means, scales, camera.viewmat, camera.K, camera.width, camera.height)
@@ -441,7 +442,8 @@ def render(
         if posed.index is not None and extra_channels.shape[0] != colors.shape[0]:
             extra_channels = extra_channels[posed.index]
         colors = torch.cat([colors, extra_channels], dim=1)
-    if background is not None and extra_channels is not None:
+    black = isinstance(background, (int, float)) and background == 0  # rasterize skips its blend
+    if background is not None and extra_channels is not None and not black:
         bg = torch.as_tensor(background, dtype=colors.dtype, device=colors.device).reshape(-1)
         if bg.numel() == 1:
             bg = bg.expand(3)

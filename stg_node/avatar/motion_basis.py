@@ -52,6 +52,8 @@ def initial_coefficients(skin_weights: torch.Tensor, count: int) -> torch.Tensor
     """(M, count) coefficients of Gaussians that start to move: their skinning weights (M, 24)
     summed over the bones of each basis. The motions start at zero, so the offsets start at zero,
     yet both factors get a gradient from the first step."""
+    if count == NUM_BONES:  # one bone per basis: the weights themselves (no scatter over 24 columns)
+        return skin_weights.clone()
     group = torch.arange(NUM_BONES, device=skin_weights.device) * count // NUM_BONES
     out = skin_weights.new_zeros(skin_weights.shape[0], count)
     return out.index_add_(1, group, skin_weights)

@@ -128,8 +128,13 @@ class TableOptimizer:
     @torch.no_grad()
     def freeze_rows(self, name: str, rows: torch.Tensor) -> None:
         """Zero this step's gradient of ``rows`` of a column: with zero moments they stay exactly put."""
-        if name in self.table and self.table[name].grad is not None:
-            self.table[name].grad[rows] = 0
+        if name not in self.table or self.table[name].grad is None:
+            return
+        grad = self.table[name].grad
+        if rows.dtype == torch.bool:  # a mask: one pass, where indexing by it gathers its rows first
+            grad.masked_fill_(rows.reshape(-1, *([1] * (grad.dim() - 1))), 0)
+        else:
+            grad[rows] = 0
 
     # --- proximal L1 ---------------------------------------------------------------------------
     @torch.no_grad()
@@ -144,7 +149,8 @@ class TableOptimizer:
             return
         param = self.table[name]
         thr = self.lr(name) * strength
-        param.copy_(torch.sign(param) * (param.abs() - thr).clamp_min(0.0))
+        # x - clamp(x, -thr, thr) is sign(x) max(|x| - thr, 0) (to the sign of a zero) in two passes
+        param.sub_(param.clamp(-thr, thr))
 
     @torch.no_grad()
     def zero_rows(self, name: str, rows: torch.Tensor) -> None:

@@ -89,7 +89,9 @@ class AvatarRenderer:
         )
 
     def _color_cache(self, stream: str | None) -> ColorCache | None:
-        if stream is None or self.color_refresh_every == 1:
+        # The cache saves the MLP's arithmetic, which a CPU pays for; on a GPU its gathers and
+        # scatters cost more launches than the MLP they save (docs/BENCHMARKS.md, "On a GPU").
+        if stream is None or self.color_refresh_every == 1 or self.device.type != "cpu":
             return None
         cache = self._streams.pop(stream, None) or ColorCache(self.color_refresh_every)
         self._streams[stream] = cache

@@ -398,10 +398,16 @@ class Trainer:
             posed, camera, background=0.0, backend=self.backend, extra_channels=extra, render_depth=want_depth
         )
         timer.mark("render")
-        region = alpha[..., 0].detach() > 0.95  # where the person is rendered and seen: the gains' evidence
-        if mask is not None:
-            region = region & mask
-        rgb = self.exposure.apply(image[..., :3], stored.frame.index, it, target, region)
+        # The colour and the motion channels as two tensors (one split: its backward is one cat,
+        # where two slices would each scatter into a zeroed image); no split without motion.
+        rendered_rgb, rendered_flow = (
+            image.split([3, image.shape[-1] - 3], dim=-1) if use_flow else (image, None)
+        )
+        region = None
+        if self.exposure.enabled:  # where the person is rendered and seen: the gains' evidence
+            region = alpha[..., 0].detach() > 0.95
+            region = region & mask if mask is not None else region
+        rgb = self.exposure.apply(rendered_rgb, stored.frame.index, it, target, region)
         l1, dssim = L.photometric(rgb, target, c.loss.ssim)
         terms["photo"] = (1 - c.loss.ssim) * l1 + c.loss.ssim * dssim
         if mask is not None and c.loss.mask > 0:
@@ -409,7 +415,7 @@ class Trainer:
         if use_flow:
             fwd = torch.from_numpy(flow_pair.forward[y0 : y0 + h, x0 : x0 + w]).to(self.device)
             valid = torch.from_numpy(flow_pair.valid_forward[y0 : y0 + h, x0 : x0 + w]).to(self.device)
-            terms["flow"] = L.flow_loss(image[..., 3:5], alpha, fwd, valid)
+            terms["flow"] = L.flow_loss(rendered_flow, alpha, fwd, valid)
         if want_temporal:
             terms["temporal"] = self._temporal_term(state, next_state)
         if c.loss.line_of_sight > 0 and state.offsets is not None:
@@ -486,7 +492,7 @@ class Trainer:
                 motion_threshold_px=self.motion_threshold(),
                 time_range=self.time_range(),
                 surface=self.surface,
-                rendered_flow=(image[..., 3:5] / alpha.clamp_min(0.5)).detach() if use_flow else None,
+                rendered_flow=(rendered_flow / alpha.clamp_min(0.5)).detach() if use_flow else None,
                 rendered_depth=surface_depth(info["depth"], alpha) if want_depth else None,
                 grow_in_time=not self._deciding(),
             )
@@ -710,7 +716,7 @@ class Trainer:
             o = table.opacities()
             out["opacity"] = (-(o * (o + 1e-6).log() + (1 - o) * (1 - o + 1e-6).log())).mean()
         if "skin_delta" in table and c.skin > 0:
-            out["skin"] = table["skin_delta"].pow(2).mean()
+            out["skin"] = L.mean_square(table["skin_delta"])
         if self.pose_deltas is not None and c.pose_refine > 0:
             out["pose"] = self.pose_deltas.pow(2).sum(1).mean()
         if self.model.shading is not None and c.light > 0:

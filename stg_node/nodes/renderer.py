@@ -77,7 +77,7 @@ class RendererParams:
         min=1,
         max=16,
         doc="live views: recompute each Gaussian's colour every Nth frame, in turns (1: every frame; "
-        "one-shot requests are always exact)",
+        "one-shot requests and renders on a GPU are always exact)",
     )
     record_dir: str = param("", doc="write default-view images here, and an MP4 + contact sheet at the end")
     record_every: int = param(1, min=1, doc="record every Nth default-view image")

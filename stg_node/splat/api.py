@@ -244,6 +244,8 @@ def rasterize(
         raise ValueError(f"eps2d and radius_clip must be >= 0, got eps2d={eps2d}, radius_clip={radius_clip}")
     if int(max_intersections) < 1:
         raise ValueError(f"max_intersections must be >= 1, got {max_intersections}")
+    if isinstance(background, (int, float)) and background == 0:
+        background = None  # black: blending it adds 0 to every pixel, forward and backward
     if not isinstance(background, torch.Tensor) and background is not None:
         background = torch.as_tensor(background, dtype=colors.dtype, device=colors.device)
     check_inputs(

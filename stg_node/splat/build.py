@@ -38,8 +38,15 @@ log = logging.getLogger(__name__)
 ENV_CACHE = "STG_SPLAT_CACHE"
 ENV_ARCH_FLAGS = "STG_SPLAT_ARCH_FLAGS"
 CSRC_DIR = Path(__file__).resolve().parent / "csrc"
-SOURCES = ("splat_kernels.cpp", "image_filter.cpp", "skinning.cpp", "small_mlp.cpp", "splat_bindings.cpp")
-HEADERS = ("splat_kernels.h", "image_filter.h", "skinning.h", "small_mlp.h", "fast_math.h")
+SOURCES = (
+    "splat_kernels.cpp",
+    "image_filter.cpp",
+    "edge_loss.cpp",
+    "skinning.cpp",
+    "small_mlp.cpp",
+    "splat_bindings.cpp",
+)
+HEADERS = ("splat_kernels.h", "image_filter.h", "edge_loss.h", "skinning.h", "small_mlp.h", "fast_math.h")
 # -ffp-contract=off: the forward and backward passes must compute alpha bit-identically (the
 # kernels fuse multiply-adds explicitly, in helpers both passes share).
 # -fno-trapping-math: lets the compiler if-convert float selects, so the lane loops vectorise

@@ -10,6 +10,10 @@ fused pass and keeps three derivative maps; the backward pass is the transposed 
 (``grad_a = T(d_mu) + 2 a T(d_var) + b T(d_cov)``), several times faster than autograd through
 depthwise convolutions.
 
+``l1_ssim(a, b)`` returns the mean absolute difference with the SSIM, differentiable together:
+the backward pass adds the L1 term's ``sign(a - b) / n`` in the loop that writes the SSIM's
+gradient (the photometric loss of a training step, ``stg_node.avatar.losses.photometric``).
+
 ``ssim_kernel_applies(a, b)`` says whether the kernel can take a pair (CPU float32 tensors, ``b``
 not requiring a gradient, and the kernels build here); callers keep a torch implementation for
 everything else (CUDA tensors, no compiler). The window's constants live here, once.
@@ -65,17 +69,23 @@ def check_ssim_images(a: torch.Tensor, b: torch.Tensor) -> None:
 def ssim_kernel_applies(a: torch.Tensor, b: torch.Tensor) -> bool:
     """Whether ``ssim`` can take this pair: float32 CPU tensors, no gradient wanted for ``b``, and
     the C++ kernels available (built on the first call; a failure is logged once)."""
-    global _unavailable_logged
     if a.device.type != "cpu" or b.device.type != "cpu":
         return False
     if a.dtype != torch.float32 or b.dtype != torch.float32 or b.requires_grad:
         return False
+    return kernels_available()
+
+
+def kernels_available() -> bool:
+    """Whether the C++ kernels load here (built on the first call; a failure is logged once: the
+    image losses fall back to torch)."""
+    global _unavailable_logged
     try:
         load_kernels()
     except BackendUnavailable as exc:
         if not _unavailable_logged:
             _unavailable_logged = True
-            log.warning("SSIM falls back to torch: the CPU kernels are unavailable (%s)", exc)
+            log.warning("the image losses fall back to torch: the CPU kernels are unavailable (%s)", exc)
         return False
     return True
 
@@ -97,7 +107,34 @@ class _Ssim(torch.autograd.Function):
     def backward(ctx, grad):
         a32, b32, d_mu, d_var, d_cov = ctx.saved_tensors
         ops = load_kernels().ops
-        grad_a = ops.ssim_bwd(a32, b32, _TAPS, d_mu, d_var, d_cov, float(grad), torch.get_num_threads())
+        grad_a = ops.ssim_bwd(a32, b32, _TAPS, d_mu, d_var, d_cov, float(grad), 0.0, torch.get_num_threads())
+        return grad_a, None, None
+
+
+class _L1Ssim(torch.autograd.Function):
+    """(mean |a - b|, mean SSIM) of one pair: one SSIM pass forward, and one backward pass that
+    writes the gradient of both (the photometric loss's two terms, ``l1_ssim``)."""
+
+    @staticmethod
+    def forward(ctx, a, b, want_grad):
+        ops = load_kernels().ops
+        a32 = a.detach().to(torch.float32).contiguous()
+        b32 = b.detach().to(torch.float32).contiguous()
+        value, d_mu, d_var, d_cov = ops.ssim_fwd(
+            a32, b32, _TAPS, SSIM_C1, SSIM_C2, want_grad, torch.get_num_threads()
+        )
+        l1 = ops.abs_diff_sum(a32, b32) / a32.numel()
+        if want_grad:
+            ctx.save_for_backward(a32, b32, d_mu, d_var, d_cov)
+        return l1.to(a.dtype), value.to(a.dtype)
+
+    @staticmethod
+    def backward(ctx, grad_l1, grad_ssim):
+        a32, b32, d_mu, d_var, d_cov = ctx.saved_tensors
+        ops = load_kernels().ops
+        g_l1 = 0.0 if grad_l1 is None else float(grad_l1) / a32.numel()
+        g_ssim = 0.0 if grad_ssim is None else float(grad_ssim)
+        grad_a = ops.ssim_bwd(a32, b32, _TAPS, d_mu, d_var, d_cov, g_ssim, g_l1, torch.get_num_threads())
         return grad_a, None, None
 
 
@@ -114,3 +151,19 @@ def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         )
     # Without a gradient to come (no_grad, or `a` a constant) the derivative maps are not made.
     return _Ssim.apply(a, b, torch.is_grad_enabled() and a.requires_grad)
+
+
+def l1_ssim(a: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(mean |a - b|, mean SSIM)`` of ``(H, W, C)`` CPU images (the photometric loss's two terms),
+    differentiable with respect to ``a``: one kernel pass each way for both, where the L1 term in
+    torch would add four passes over the image (difference, abs, mean, and the sum of the two
+    terms' gradients). Computed in float32; the same checks as ``ssim``."""
+    check_ssim_images(a, b)
+    if a.device.type != "cpu" or b.device.type != "cpu":
+        raise ValueError(f"image_ops.l1_ssim runs on CPU tensors, got {a.device} and {b.device}")
+    if b.requires_grad:
+        raise ValueError(
+            "image_ops.l1_ssim differentiates only its first image; b requires a gradient "
+            "(detach it, or use a torch implementation)"
+        )
+    return _L1Ssim.apply(a, b, torch.is_grad_enabled() and a.requires_grad)

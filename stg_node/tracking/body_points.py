@@ -9,8 +9,9 @@ from the kinematic chain and each surface point is one vertex skinned with its o
 - the rest joints and their shape directions (``J_regressor`` applied to the template and to
   each shape direction), and
 - the surface landmarks (:func:`surface_landmarks`: found on the rest mesh by geometry, so the
-  same code serves the official SMPL and the open body), with their shape directions and
-  skinning weights,
+  same code serves the official SMPL and the open body; face, heels, toes and the hand's index
+  and pinky knuckles and thumb, which give the palm's turn about the forearm), with their shape
+  directions and skinning weights,
 
 and poses them with the body package's own forward kinematics (``lbs.rigid_chain``) and skinning
 (``lbs.skin_points``). SMPL's pose-corrective blend shapes are left out (millimetres at these
@@ -39,6 +40,12 @@ LANDMARK_NAMES = (
     "right_heel",
     "left_toe",
     "right_toe",
+    "left_index",
+    "right_index",
+    "left_pinky",
+    "right_pinky",
+    "left_thumb",
+    "right_thumb",
 )
 # Rough face geometry of an adult (metres, SMPL axes at rest: x = the body's left, y up, z front),
 # used only to pick vertices; any body's own mesh decides where the points actually are.
@@ -46,6 +53,11 @@ EYE_HALF_SPACING_M = 0.032
 EYE_ABOVE_NOSE_M = 0.035
 EAR_ABOVE_NOSE_M = 0.01
 SEARCH_BAND_M = 0.03
+# Hand landmarks: the knuckle line is the slice of hand vertices within this distance of the hand
+# joint along the forearm's axis; the fingers' outer part is the hand beyond the knuckles by more
+# than this share of the longest finger (the thumb, shorter, ends before it).
+KNUCKLE_BAND_M = 0.015
+FINGERTIP_SHARE = 0.6
 
 
 def _region(weights: np.ndarray, joints: list[int]) -> np.ndarray:
@@ -87,6 +99,50 @@ def surface_landmarks(vertices: np.ndarray, weights: np.ndarray, rest_joints: np
         low = low if low.size else below
         found[f"{side}_heel"] = int(low[np.argmin(vertices[low, 2])])
         found[f"{side}_toe"] = int(below[np.argmax(vertices[below, 2])])
+        found.update(hand_landmarks(vertices, weights, rest_joints, side))
+    return found
+
+
+def hand_landmarks(
+    vertices: np.ndarray, weights: np.ndarray, rest_joints: np.ndarray, side: str
+) -> dict[str, int]:
+    """Vertex index of one hand's index knuckle, pinky knuckle and thumb on a rest-pose mesh.
+
+    In SMPL's rest pose the arms are straight out, palms down, both thumbs forward (+z). In the
+    hand's frame (axis: wrist joint to hand joint, SMPL's knuckle line; lateral: +z made
+    orthogonal to it, the thumb's side) the knuckles are the two vertices of the knuckle slice
+    (within ``KNUCKLE_BAND_M`` of the hand joint along the axis) nearest to the fingers' lateral
+    extremes, measured where the thumb has ended (the fingers' outer ``FINGERTIP_SHARE``), at the slice's
+    mid height: index on the thumb's side, pinky on the other. The thumb is the most lateral hand
+    vertex (its tip). BlazePose's index and pinky points are those knuckles; its thumb point is the
+    thumb's second knuckle, a little short of the tip. What matters for the fit is the palm's
+    lateral line, index to pinky: it turns with the forearm's twist, which no joint point shows.
+    """
+    wrist, hand = rest_joints[JOINT_INDEX[f"{side}_wrist"]], rest_joints[JOINT_INDEX[f"{side}_hand"]]
+    region = np.flatnonzero(_region(weights, [JOINT_INDEX[f"{side}_wrist"], JOINT_INDEX[f"{side}_hand"]]))
+    axis = hand - wrist
+    length = float(np.linalg.norm(axis))
+    if region.size < 10 or length < 1e-3:
+        raise ValueError(f"the body has no {side} hand to place knuckle landmarks on")
+    axis /= length
+    lateral = np.array([0.0, 0.0, 1.0]) - axis[2] * axis
+    lateral /= max(float(np.linalg.norm(lateral)), 1e-9)
+    normal = np.cross(axis, lateral)
+    offset = vertices[region] - hand
+    along, across = offset @ axis, offset @ lateral
+    knuckles = region[np.abs(along) < KNUCKLE_BAND_M]
+    fingers = along > FINGERTIP_SHARE * along.max()
+    if knuckles.size < 4 or fingers.sum() < 4:
+        raise ValueError(
+            f"the body's {side} hand has no fingers beyond its knuckles (a hand joint misplaced?)"
+        )
+    k_across = (vertices[knuckles] - hand) @ lateral
+    k_up = (vertices[knuckles] - hand) @ normal
+    mid = 0.5 * (k_up.max() + k_up.min())
+    found = {}
+    for name, extreme in (("index", across[fingers].max()), ("pinky", across[fingers].min())):
+        found[f"{side}_{name}"] = int(knuckles[np.argmin(np.hypot(k_across - extreme, k_up - mid))])
+    found[f"{side}_thumb"] = int(region[np.argmax(across)])
     return found
 
 

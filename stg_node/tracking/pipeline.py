@@ -13,6 +13,7 @@
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import logging
@@ -37,6 +38,9 @@ log = logging.getLogger(__name__)
 
 ENV_CACHE = "STG_TRACK_CACHE"
 CACHE_FORMAT = 2  # bump when the output of the same input and settings changes
+# The code whose edits change the tracked poses: an edited fit or keypoint layout tracks afresh
+# (a version number is not bumped by every commit, and a stale entry hid a tracker change once).
+TRACKING_CODE = ("tracking", "body")
 
 
 @dataclass(frozen=True)
@@ -113,7 +117,20 @@ def _options_digest(options: TrackOptions) -> str:
     described["stg_node"] = stg_node.__version__
     described["format"] = CACHE_FORMAT
     described["fit"] = asdict(FitConfig())  # new fit defaults (a silhouette term) track afresh
+    described["code"] = tracking_code_digest()
     return hashlib.sha256(json.dumps(described, sort_keys=True, default=str).encode()).hexdigest()
+
+
+@functools.cache
+def tracking_code_digest(packages: tuple[str, ...] = TRACKING_CODE) -> str:
+    """SHA-256 over the Python sources of these stg_node subpackages (names and bytes, sorted)."""
+    digest = hashlib.sha256()
+    root = Path(stg_node.__file__).parent
+    for package in packages:
+        for source in sorted((root / package).rglob("*.py")):
+            digest.update(source.relative_to(root).as_posix().encode())
+            digest.update(source.read_bytes())
+    return digest.hexdigest()
 
 
 def cache_root() -> Path:

@@ -126,3 +126,34 @@ def test_a_model_from_before_the_joint_shrink_loads_without_it(tiny_frames):
     data = trainer.config.to_dict()
     del data["model"]["joint_shrink"]
     assert TrainConfig.from_dict(data).model.joint_shrink is False
+
+
+def test_a_training_pose_takes_the_same_squeeze_and_differentiates_the_scales_through_it(tiny_frames):
+    """With gradients on (a training step) the squeeze comes from the skinning kernel's blend, as a
+    renderer's: the posed scales equal the table's times the torch factor (rigid.joint_shrink) to
+    float rounding, and the scales' gradient is the factor's (the squeeze takes none itself)."""
+    from avatar_helpers import small_config
+
+    from stg_node.avatar.model import BodyState
+    from stg_node.avatar.rigid import joint_shrink
+    from stg_node.avatar.trainer import Trainer
+    from stg_node.body.params import SmplParams
+
+    trainer = Trainer(small_config(iterations=2), seed=0)
+    trainer.add_frames(tiny_frames[:2])
+    model = trainer.model
+    smpl = tiny_frames[0].smpl
+    bent = SmplParams(poses=_bent_elbow_pose(150.0), Rh=smpl.Rh, Th=smpl.Th, betas=smpl.betas)
+    body = BodyState.from_smpl(bent)
+    centre = torch.tensor([0.0, -3.0, 1.0])
+    posed = model.pose(body, 0.0, centre, cull_transparent=False)
+    with torch.no_grad():
+        factor = joint_shrink(model.skin_weights(), model.bones(body))
+    assert bool((factor < 0.5).any())  # the fold squeezes some
+    torch.testing.assert_close(
+        posed.scales.detach(), model.scales().detach() * factor[:, None], atol=1e-6, rtol=1e-5
+    )
+    log_scales = model.table["log_scales"]
+    (got,) = torch.autograd.grad(posed.scales.sum(), log_scales)
+    (want,) = torch.autograd.grad((model.scales() * factor[:, None]).sum(), log_scales)
+    torch.testing.assert_close(got, want, atol=1e-6, rtol=1e-5)

@@ -114,6 +114,19 @@ def test_proximal_step_is_the_soft_threshold():
     assert table.motion_active().tolist() == [True, True, False]
 
 
+def test_freeze_rows_zeroes_the_gradient_of_masked_or_listed_rows_only():
+    table = GaussianTable({"means": torch.zeros(4, 3), "motion": torch.zeros(4, 2, 3)})
+    opt = TableOptimizer(table, {"means": 0.1, "motion": 0.1}, {})
+    for rows in (torch.tensor([True, False, True, False]), torch.tensor([0, 2])):
+        grad = torch.arange(24.0).reshape(4, 2, 3) + 1
+        table["motion"].grad = grad.clone()
+        opt.freeze_rows("motion", rows)
+        assert torch.equal(table["motion"].grad[[0, 2]], torch.zeros(2, 2, 3))
+        assert torch.equal(table["motion"].grad[[1, 3]], grad[[1, 3]])
+    opt.freeze_rows("means", torch.tensor([True, True, False, False]))  # no gradient yet: nothing to do
+    assert table["means"].grad is None
+
+
 @pytest.mark.parametrize(
     "mask_box, margin, expected",
     [((10, 20, 30, 40), 5, (5, 15, 40, 33)), ((0, 0, 8, 8), 16, (0, 0, 24, 24)), (None, 5, (0, 0, 64, 48))],

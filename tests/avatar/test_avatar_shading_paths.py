@@ -5,6 +5,7 @@ to frame while the light is applied anew every frame (normals turn with the pose
 from __future__ import annotations
 
 import contextlib
+from collections import OrderedDict
 
 import numpy as np
 import pytest
@@ -155,3 +156,15 @@ def test_renderer_streams_of_a_shaded_model_are_exact_at_refresh_one_and_close_o
         lit_vs_albedo = max(lit_vs_albedo, int(np.abs(a - d).max()))
     assert worst <= 8  # albedo at most one frame old, lit this frame (8-bit levels)
     assert lit_vs_albedo > 40  # the light shows in the images
+
+
+def test_color_streams_are_a_cpu_economy(monkeypatch):
+    """On a GPU a stream renders exactly (no cache): the cache's gathers cost more than the MLP there."""
+    renderer = AvatarRenderer.__new__(AvatarRenderer)  # the cache rule needs no model
+    renderer.color_refresh_every = 3
+    renderer._streams = OrderedDict()
+    monkeypatch.setattr(AvatarRenderer, "device", property(lambda self: torch.device("cpu")))
+    assert isinstance(renderer._color_cache("live"), ColorCache)
+    assert renderer._color_cache(None) is None
+    monkeypatch.setattr(AvatarRenderer, "device", property(lambda self: torch.device("cuda")))
+    assert renderer._color_cache("live") is None

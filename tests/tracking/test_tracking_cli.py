@@ -126,6 +126,29 @@ def test_track_video_caches_by_content_and_options(tmp_path, monkeypatch, synth_
     assert not [p for p in cache.iterdir() if p.name.startswith(".")]  # no staging folders left
 
 
+def test_track_video_retracks_after_a_code_change(tmp_path, monkeypatch, request, synth_video, dot_model):
+    """An edited fit or keypoint layout must not be answered from a cache entry the old code wrote."""
+    calls = count_tracking_runs(monkeypatch)
+    options = pipeline.TrackOptions(detector="onnx", pose_model=str(dot_model), mask="none")
+    cache = tmp_path / "cache"
+    first = pipeline.track_video(synth_video, options, cache_dir=cache, progress=False)
+    package = tmp_path / "pkg"
+    (package / "tracking").mkdir(parents=True)
+    source = package / "tracking" / "fitting.py"
+    source.write_text("WEIGHT = 1.0\n")
+    monkeypatch.setattr(pipeline.stg_node, "__file__", str(package / "__init__.py"))
+    digest = pipeline.tracking_code_digest
+    request.addfinalizer(digest.cache_clear)  # no digest of the stand-in package outlives the test
+    before = digest(("tracking",))
+    source.write_text("WEIGHT = 0.5\n")
+    digest.cache_clear()
+    after = digest(("tracking",))
+    assert before != after
+    monkeypatch.setattr(pipeline, "tracking_code_digest", lambda: after)
+    edited = pipeline.track_video(synth_video, options, cache_dir=cache, progress=False)
+    assert edited != first and len(calls) == 2
+
+
 @needs_blazepose
 def test_stg_track_on_a_synthetic_video_with_the_shipped_detector(tmp_path, synth_video, synth_small):
     import json

@@ -18,6 +18,7 @@
 // fused explicitly where the target has FMA.
 #include "image_filter.h"
 
+#include <cmath>
 #include <cstddef>
 #include <vector>
 
@@ -134,7 +135,7 @@ void vertical_transposed(const float* const* rm, const float* const* rv, const f
 void horizontal_transposed_grad(const float* __restrict pm, const float* __restrict pv,
                                 const float* __restrict pc, const float* __restrict a,
                                 const float* __restrict b, int64_t n, int64_t c, const Taps& taps, float g,
-                                float* __restrict out) {
+                                float l1_grad, float* __restrict out) {
     const float* k = taps.k;
 #pragma omp simd
     for (int64_t j = 0; j < n; ++j) {
@@ -146,11 +147,57 @@ void horizontal_transposed_grad(const float* __restrict pm, const float* __restr
             tv = STG_IMG_MADD(k[t], pv[at], tv);
             tc = STG_IMG_MADD(k[t], pc[at], tc);
         }
-        out[j] = g * (tm + 2.0f * a[j] * tv + b[j] * tc);
+        // + the L1 term's l1_grad * sign(a - b), 0 where they are equal (torch's abs backward)
+        const float sign = static_cast<float>(a[j] > b[j]) - static_cast<float>(a[j] < b[j]);
+        out[j] = STG_IMG_MADD(l1_grad, sign, g * (tm + 2.0f * a[j] * tv + b[j] * tc));
     }
 }
 
 }  // namespace
+
+double abs_diff_sum(const float* a, const float* b, int64_t count) {
+    double total = 0.0;
+    constexpr int64_t kBlock = 4096;  // float sums of short blocks, added in double: exact enough, vectorised
+    for (int64_t start = 0; start < count; start += kBlock) {
+        const int64_t end = start + kBlock < count ? start + kBlock : count;
+        float block = 0.0f;
+#pragma omp simd reduction(+ : block)
+        for (int64_t j = start; j < end; ++j) block += a[j] > b[j] ? a[j] - b[j] : b[j] - a[j];
+        total += static_cast<double>(block);
+    }
+    return total;
+}
+
+double charbonnier_flow(const float* r, const float* alpha, const float* o, const bool* valid, int64_t n,
+                        float alpha_min, float eps, float scale, int64_t* count, float* g_r, float* g_alpha) {
+    double total = 0.0;
+    int64_t used = 0;
+    const float eps2 = eps * eps;
+    for (int64_t p = 0; p < n; ++p) {
+        const float a = alpha[p];
+        if (!valid[p] || !(a > alpha_min)) {  // also skips a NaN alpha, as alpha > alpha_min does
+            if (g_r != nullptr) {
+                g_r[2 * p] = g_r[2 * p + 1] = 0.0f;
+                g_alpha[p] = 0.0f;
+            }
+            continue;
+        }
+        const float inv = 1.0f / a;
+        const float dx = r[2 * p] * inv - o[2 * p];
+        const float dy = r[2 * p + 1] * inv - o[2 * p + 1];
+        const float d = std::sqrt(dx * dx + dy * dy + eps2);
+        total += static_cast<double>(d);
+        ++used;
+        if (g_r != nullptr) {
+            const float ux = scale * dx / d, uy = scale * dy / d;  // d(scale d) / d(r / alpha)
+            g_r[2 * p] = ux * inv;
+            g_r[2 * p + 1] = uy * inv;
+            g_alpha[p] = -(ux * r[2 * p] + uy * r[2 * p + 1]) * inv * inv;
+        }
+    }
+    *count = used;
+    return total;
+}
 
 void ssim_forward(const float* a, const float* b, int64_t height, int64_t width, int64_t channels,
                   const float* taps, float c1, float c2, float scale, int threads, double* row_sums,
@@ -184,7 +231,7 @@ void ssim_forward(const float* a, const float* b, int64_t height, int64_t width,
 
 void ssim_backward(const float* a, const float* b, int64_t height, int64_t width, int64_t channels,
                    const float* taps, const float* d_mu, const float* d_var, const float* d_cov, float g,
-                   int threads, float* grad_a) {
+                   float l1_grad, int threads, float* grad_a) {
     const Taps k(taps);
     const int64_t n = width * channels;
     const int64_t out_rows = height - kHalo;
@@ -211,7 +258,8 @@ void ssim_backward(const float* a, const float* b, int64_t height, int64_t width
                 rows_c[t] = inside ? d_cov + q * m : zeros.data();
             }
             vertical_transposed(rows_m, rows_v, rows_c, m, k, pm + pad, pv + pad, pc + pad);
-            horizontal_transposed_grad(pm, pv, pc, a + i * n, b + i * n, n, channels, k, g, grad_a + i * n);
+            horizontal_transposed_grad(pm, pv, pc, a + i * n, b + i * n, n, channels, k, g, l1_grad,
+                                       grad_a + i * n);
         }
     }
 }

@@ -29,10 +29,23 @@ void ssim_forward(const float* a, const float* b, int64_t height, int64_t width,
                   const float* taps, float c1, float c2, float scale, int threads, double* row_sums,
                   float* d_mu, float* d_var, float* d_cov);
 
-// grad_a (H, W*C) = g * (T(d_mu) + 2 a T(d_var) + b T(d_cov)), with T the 'full' (transposed
-// 'valid') separable filter of the (Ho, Wo*C) maps that ssim_forward wrote.
+// grad_a (H, W*C) = g * (T(d_mu) + 2 a T(d_var) + b T(d_cov)) + l1_grad * sign(a - b), with T the
+// 'full' (transposed 'valid') separable filter of the (Ho, Wo*C) maps that ssim_forward wrote: the
+// gradient of g * SSIM plus that of an L1 term whose derivative per pixel is l1_grad |a - b|' (the
+// photometric loss's two terms in one pass; sign(0) = 0, torch's abs backward).
 void ssim_backward(const float* a, const float* b, int64_t height, int64_t width, int64_t channels,
                    const float* taps, const float* d_mu, const float* d_var, const float* d_cov, float g,
-                   int threads, float* grad_a);
+                   float l1_grad, int threads, float* grad_a);
+
+// sum_j |a_j - b_j| over count floats (float sums of blocks, added in double).
+double abs_diff_sum(const float* a, const float* b, int64_t count);
+
+// Charbonnier distance between a rendered motion field and an observed one, over n pixels: where
+// valid[p] and alpha[p] > alpha_min, d_p = sqrt(|r_p / alpha_p - o_p|^2 + eps^2) (r, o: 2 floats a
+// pixel). Returns the sum of d_p (in double) and writes the number of pixels used to *count. With
+// g_r not null (then g_alpha too), writes the gradients of scale * sum d_p with respect to r
+// (n x 2) and alpha (n), 0 at the pixels not used.
+double charbonnier_flow(const float* r, const float* alpha, const float* o, const bool* valid, int64_t n,
+                        float alpha_min, float eps, float scale, int64_t* count, float* g_r, float* g_alpha);
 
 }  // namespace stg_image

@@ -7,10 +7,12 @@
 #include <ATen/ATen.h>
 #include <torch/library.h>
 
+#include <algorithm>
 #include <string>
 #include <tuple>
 #include <vector>
 
+#include "edge_loss.h"
 #include "image_filter.h"
 #include "skinning.h"
 #include "small_mlp.h"
@@ -325,8 +327,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> ssim_fwd(const at::Te
     return {value, d_mu, d_var, d_cov};
 }
 
+// grad * d(SSIM)/da + l1_grad * sign(a - b) (image_filter.h).
 at::Tensor ssim_bwd(const at::Tensor& a, const at::Tensor& b, c10::ArrayRef<double> taps, const at::Tensor& d_mu,
-                    const at::Tensor& d_var, const at::Tensor& d_cov, double grad, int64_t threads) {
+                    const at::Tensor& d_var, const at::Tensor& d_cov, double grad, double l1_grad, int64_t threads) {
     check_ssim_images(a, b);
     TORCH_CHECK(threads >= 1, "threads must be >= 1");
     const std::vector<float> k = window_taps(taps);
@@ -340,8 +343,91 @@ at::Tensor ssim_bwd(const at::Tensor& a, const at::Tensor& b, c10::ArrayRef<doub
     at::Tensor grad_a = at::empty_like(a);
     stg_image::ssim_backward(a.data_ptr<float>(), b.data_ptr<float>(), H, W, C, k.data(),
                              d_mu.data_ptr<float>(), d_var.data_ptr<float>(), d_cov.data_ptr<float>(),
-                             static_cast<float>(grad), static_cast<int>(threads), grad_a.data_ptr<float>());
+                             static_cast<float>(grad), static_cast<float>(l1_grad), static_cast<int>(threads),
+                             grad_a.data_ptr<float>());
     return grad_a;
+}
+
+// sum |a - b| of two same-shaped contiguous float32 CPU tensors, as a float64 scalar.
+at::Tensor abs_diff_sum(const at::Tensor& a, const at::Tensor& b) {
+    check_image(a, "a");
+    check_image(b, "b");
+    TORCH_CHECK(a.sizes() == b.sizes(), "a and b must have the same shape, got ", a.sizes(), " and ", b.sizes());
+    at::Tensor value = at::empty({}, a.options().dtype(at::kDouble));
+    *value.data_ptr<double>() = stg_image::abs_diff_sum(a.data_ptr<float>(), b.data_ptr<float>(), a.numel());
+    return value;
+}
+
+// (sum of the Charbonnier distances as float64, pixels used as int64, grad r, grad alpha): r and o
+// (H, W, 2), alpha (H, W, 1), valid (H, W) bool; the gradients of scale * sum, empty unless want_grad.
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> charbonnier_flow(
+    const at::Tensor& r, const at::Tensor& alpha, const at::Tensor& o, const at::Tensor& valid, double alpha_min,
+    double eps, double scale, bool want_grad) {
+    check_image(r, "rendered flow");
+    check_image(alpha, "alpha");
+    check_image(o, "observed flow");
+    TORCH_CHECK(r.size(2) == 2 && o.sizes() == r.sizes(), "flows must be (H, W, 2) of one shape, got ", r.sizes(),
+                " and ", o.sizes());
+    TORCH_CHECK(alpha.size(0) == r.size(0) && alpha.size(1) == r.size(1) && alpha.size(2) == 1,
+                "alpha must be (H, W, 1) of the flow's size, got ", alpha.sizes());
+    TORCH_CHECK(valid.device().is_cpu() && valid.scalar_type() == at::kBool && valid.is_contiguous() &&
+                    valid.dim() == 2 && valid.size(0) == r.size(0) && valid.size(1) == r.size(1),
+                "valid must be a contiguous (H, W) bool CPU tensor, got ", valid.scalar_type(), " ", valid.sizes());
+    const int64_t n = r.size(0) * r.size(1);
+    at::Tensor g_r = want_grad ? at::empty_like(r) : at::empty({0}, r.options());
+    at::Tensor g_alpha = want_grad ? at::empty_like(alpha) : at::empty({0}, alpha.options());
+    int64_t count = 0;
+    const double total = stg_image::charbonnier_flow(
+        r.data_ptr<float>(), alpha.data_ptr<float>(), o.data_ptr<float>(), valid.data_ptr<bool>(), n,
+        static_cast<float>(alpha_min), static_cast<float>(eps), static_cast<float>(scale), &count,
+        want_grad ? g_r.data_ptr<float>() : nullptr, want_grad ? g_alpha.data_ptr<float>() : nullptr);
+    at::Tensor value = at::empty({}, r.options().dtype(at::kDouble));
+    *value.data_ptr<double>() = total;
+    at::Tensor used = at::empty({}, r.options().dtype(at::kLong));
+    *used.data_ptr<int64_t>() = count;
+    return {value, used, g_r, g_alpha};
+}
+
+// ---- the edge-length loss (edge_loss.h) ----
+void check_edges(const at::Tensor& x, const at::Tensor& c, const at::Tensor& a, const at::Tensor& b) {
+    check_cpu_float(x, "x", x.size(0), 3);
+    check_cpu_float(c, "c", x.size(0), 3);
+    for (const at::Tensor* t : {&a, &b}) {
+        TORCH_CHECK(t->device().is_cpu() && t->scalar_type() == at::kLong && t->dim() == 1 && t->is_contiguous(),
+                    "edge ends must be contiguous 1-D int64 CPU tensors, got ", t->scalar_type(), " ", t->sizes());
+    }
+    TORCH_CHECK(a.size(0) == b.size(0), "edge ends must have one length, got ", a.size(0), " and ", b.size(0));
+    const int64_t m = x.size(0);
+    const int64_t* pa = a.data_ptr<int64_t>();
+    const int64_t* pb = b.data_ptr<int64_t>();
+    int64_t lo = 0, hi = 0;  // one pass over both ends (four reductions in torch cost 4x)
+    for (int64_t e = 0; e < a.size(0); ++e) {
+        lo = std::min(lo, std::min(pa[e], pb[e]));
+        hi = std::max(hi, std::max(pa[e], pb[e]));
+    }
+    TORCH_CHECK(lo >= 0 && (a.size(0) == 0 || hi < m), "edge ends must index the ", m, " points, got [", lo, ", ",
+                hi, "]");
+}
+
+// The mean edge-length residual as a float64 scalar.
+at::Tensor edge_length_fwd(const at::Tensor& x, const at::Tensor& c, const at::Tensor& a, const at::Tensor& b) {
+    check_edges(x, c, a, b);
+    at::Tensor value = at::empty({}, x.options().dtype(at::kDouble));
+    *value.data_ptr<double>() = stg_edge::edge_length_forward(x.data_ptr<float>(), c.data_ptr<float>(),
+                                                              a.data_ptr<int64_t>(), b.data_ptr<int64_t>(), a.size(0));
+    return value;
+}
+
+// (grad_x, grad_c) of grad * mean; an unwanted one comes back empty.
+std::tuple<at::Tensor, at::Tensor> edge_length_bwd(const at::Tensor& x, const at::Tensor& c, const at::Tensor& a,
+                                                   const at::Tensor& b, double grad, bool want_x, bool want_c) {
+    check_edges(x, c, a, b);
+    at::Tensor gx = want_x ? at::zeros_like(x) : at::empty({0}, x.options());
+    at::Tensor gc = want_c ? at::zeros_like(c) : at::empty({0}, c.options());
+    stg_edge::edge_length_backward(x.data_ptr<float>(), c.data_ptr<float>(), a.data_ptr<int64_t>(),
+                                   b.data_ptr<int64_t>(), a.size(0), grad, want_x ? gx.data_ptr<float>() : nullptr,
+                                   want_c ? gc.data_ptr<float>() : nullptr);
+    return {gx, gc};
 }
 
 // ---- skinning (skinning.h); an absent optional tensor is passed as an empty one ----
@@ -534,8 +620,16 @@ TORCH_LIBRARY(STG_SPLAT_NS, m) {
           "(Tensor, Tensor, Tensor, Tensor)",
           &ssim_fwd);
     m.def("ssim_bwd(Tensor a, Tensor b, float[] taps, Tensor d_mu, Tensor d_var, Tensor d_cov, float grad, "
-          "int threads) -> Tensor",
+          "float l1_grad, int threads) -> Tensor",
           &ssim_bwd);
+    m.def("abs_diff_sum(Tensor a, Tensor b) -> Tensor", &abs_diff_sum);
+    m.def("charbonnier_flow(Tensor r, Tensor alpha, Tensor o, Tensor valid, float alpha_min, float eps, float scale, "
+          "bool want_grad) -> (Tensor, Tensor, Tensor, Tensor)",
+          &charbonnier_flow);
+    m.def("edge_length_fwd(Tensor x, Tensor c, Tensor a, Tensor b) -> Tensor", &edge_length_fwd);
+    m.def("edge_length_bwd(Tensor x, Tensor c, Tensor a, Tensor b, float grad, bool want_x, bool want_c) -> "
+          "(Tensor, Tensor)",
+          &edge_length_bwd);
     m.def("count_intersections(Tensor bbox, Tensor visible, int width, int height, int max_per_chunk) -> Tensor",
           &count_isect);
     m.def(
