@@ -72,11 +72,16 @@ def main() -> None:
         cv2.calcOpticalFlowFarneback(gb, ga, None, 0.5, 3, 15, 3, 5, 1.2, 0)
 
     variants = {"Farneback, full frame (baseline)": farneback}
-    for preset in ("ultrafast", "fast", "medium"):
-        cropped = FlowSettings(preset=preset)
-        whole = FlowSettings(preset=preset, crop_margin=10**6)
+    for preset in ("ultrafast", "fast", "medium"):  # each down to its preset's finest level
+        cropped = FlowSettings(preset=preset, finest_scale=None)
+        whole = FlowSettings(preset=preset, crop_margin=10**6, finest_scale=None)
         variants[f"DIS {preset}, person crop"] = lambda s=cropped: compute_flow_pair(a, b, ma, mb, s)
         variants[f"DIS {preset}, full frame"] = lambda s=whole: compute_flow_pair(a, b, ma, mb, s)
+    for level in (1, 0):  # the fast preset down to half resolution, and to the frames' own (the default)
+        settings = FlowSettings(finest_scale=level)
+        default = " (default)" if settings == FlowSettings() else ""
+        label = f"DIS fast to level {level}, person crop{default}"
+        variants[label] = lambda s=settings: compute_flow_pair(a, b, ma, mb, s)
     from stg_node.data.flow import _crop_box, dis_flow
 
     x0, y0, x1, y1 = _crop_box(ma, mb, FlowSettings().crop_margin)

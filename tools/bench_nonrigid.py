@@ -89,6 +89,7 @@ ROWS = [
         {"model.spacetime": False, "densify.flow_guided": False},
     ),
     ("mixed_auto", "mixed subject, default", "mixed", {}),
+    ("mixed_on", "mixed subject, forced on", "mixed", ON),  # does the part pay where the trial says off?
     ("mixed_auto_before", "mixed subject, before (seeds on raw flow, small swings kept)", "mixed", BEFORE),
     (
         "mixed_lbs",

@@ -210,12 +210,22 @@ class DensifyStrategy:
             return report
         if c.flow_guided and inputs.grow_in_time and inputs.flow is not None and self.flow_round(it):
             report["flow_added"] = self._flow_guided(model, optimizer, state, inputs)
-        if (it - c.start_iter) % c.interval == 0 and it > c.start_iter:
+        density_step = (it - c.start_iter) % c.interval == 0 and it > c.start_iter
+        if density_step:
             report.update(self._adaptive_density(model, optimizer, state, inputs))
         if gate_round:  # after the density step: its temporal split saw who was dynamic all interval
             report.update(self._gate_round(model, optimizer, state, inputs))
+        if density_step:  # a new interval starts only once both have read the one that ends
+            self._reset_interval(state)
         self._tally(state, report)
         return report
+
+    @staticmethod
+    def _reset_interval(state: dict) -> None:
+        """Start a new density interval: the screen-gradient and visibility statistics start from zero
+        (the flow's running means and the pixel spans carry on)."""
+        for name in ("grad_sum", "vis_count", "front_count", "steps_seen"):
+            state[name].zero_()
 
     def _tally(self, state: dict, report: dict[str, int]) -> None:
         for k, v in report.items():
@@ -529,11 +539,7 @@ class DensifyStrategy:
             self._resize(state, keep=~prune)
             report["pruned"] = int(prune.sum()) - int(split.numel())
         report["resampled"] = self._resample(model, optimizer, state, inputs)
-        state["grad_sum"].zero_()
-        state["vis_count"].zero_()
-        state["front_count"].zero_()
-        state["steps_seen"].zero_()
-        return report
+        return report  # the caller starts the next interval (_reset_interval) after the gate round
 
     @torch.no_grad()
     def _temporal_split_rows(

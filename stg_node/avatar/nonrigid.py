@@ -8,7 +8,10 @@ loose clothing needs them. The trainer cannot know which from the data's name, s
 1. **Is there motion the rigid model misses?** Every visible Gaussian keeps a running mean of
    the optical flow its own rendered motion does not explain (``resid_w``, densify.py). When
    fewer than ``nonrigid_min_moving`` of the Gaussians seen see more than ``residual_motion_px``
-   (pixels per frame at the frames' size), nothing moves that skinning does not: off.
+   (pixels per frame at the frames' size), nothing moves that skinning does not: off. The test is
+   only as good as the flow: its error must stay well under that threshold, hence DIS down to the
+   frames' own pixels (``FlowSettings.finest_scale``; at a quarter of the resolution its error
+   alone made a still subject at 256 px read as 25 % moving, docs/BENCHMARKS.md).
 2. **Do the non-rigid terms explain frames they were not trained on?** Until the decision every
    ``nonrigid_holdout_every``-th training frame is held out. Each is rendered with the model and
    with the model's rigid part alone (:func:`rigid_part`), and the squared errors are pooled over

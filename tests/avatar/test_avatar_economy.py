@@ -17,14 +17,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tools"))
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(
-    strict=True,
-    reason="known regression (2026-11-26, round 5): at this 256 px scale the still subject's trial keeps "
-    "the non-rigid part (19-30 % of its Gaussians see flow the model's motion misses by > 0.75 px, all of "
-    "its motion being SMPL joints). Its 'off' in round 3 rested on the pose-refinement random walk fixed "
-    "then (e337409): round 3's branch with lr_pose=0 chose 'on' too (29.7 %). At 512 px the trial "
-    "switches it off (docs/BENCHMARKS.md, issue 22 round 5). strict: passes again -> fails",
-)
 def test_the_still_subject_switches_the_non_rigid_part_off_and_the_dancing_one_keeps_it(tmp_path_factory):
     import bench_nonrigid
     import tradeoff

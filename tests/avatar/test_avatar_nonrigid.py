@@ -415,3 +415,53 @@ def test_a_gaussian_hidden_behind_the_surface_does_not_read_its_occluders_flow(o
     # Both were rasterized; only the front one counts as seen (the motion gate's mean pull).
     assert state["vis_count"].tolist() == [1.0, 1.0]
     assert state["front_count"].tolist() == ([1.0, 1.0] if back_reads_flow else [1.0, 0.0])
+
+
+def test_a_gate_round_on_a_density_step_reads_the_interval_that_ends_there(tiny_frames, monkeypatch):
+    """A density step and a gate round on one step (the fast preset's schedule: every density step):
+    the gate round must see the ending interval's mean pull (grad_sum / front_count), not the zeros of
+    the next one. Row 0 sits on flow its motion misses and the image pulls on it at 0.75 x the clone
+    threshold (above the gate's half, below cloning), so its gate opens; row 1, as pulled but on
+    motion skinning explains, stays static. Then the next interval starts from zero."""
+    from types import SimpleNamespace
+
+    changes = {
+        "nonrigid": "on",
+        "densify.start_iter": 4,
+        "densify.gate_start_iter": 4,
+        "densify.interval": 4,
+        "densify.prune_opacity": 0.0,
+        "densify.prune_score": 0.0,
+        "densify.prune_scale_m": 1e9,
+        "densify.resample_fraction": 0.0,
+    }
+    trainer, _ = _trainer(tiny_frames, _trial_config(**changes), 1)
+    model, state, strategy = trainer.model, trainer.densify_state, trainer.densifier
+    c = trainer.config.densify
+    n = model.table.num
+    model.table["motion_gate"].data.zero_()
+    for key in ("flow_w", "resid_w", "help_dot", "help_norm", "was_dynamic", "grad_sum", "vis_count"):
+        state[key] = torch.zeros(n)
+    state["front_count"] = torch.zeros(n)
+    state["resid_w"][0] = 2 * c.residual_motion_px
+    state["grad_sum"][:2] = 3 * 0.75 * c.grad_threshold  # summed over three sightings: mean 0.75 x
+    state["vis_count"][:2] = state["front_count"][:2] = 3.0
+    state["steps_seen"] = torch.full((1,), 3.0)
+    monkeypatch.setattr(strategy, "_accumulate", lambda state, inputs: None)  # the sums above stand
+    monkeypatch.setattr(strategy, "_accumulate_help", lambda model, state, inputs: None)
+    iteration = 8  # > start_iter, (8 - 4) % 4 == 0 for both schedules
+    assert strategy.active(iteration)
+    inputs = SimpleNamespace(
+        iteration=iteration,
+        flow=None,
+        grow_in_time=True,
+        motion_threshold_px=1.0,
+        time_range=(0.0, 1.0),
+        generator=torch.Generator().manual_seed(0),
+        rendered_flow=None,
+    )
+    report = strategy.step_post_backward(model, trainer.optimizer, state, inputs)
+    assert report["cloned"] == 0 and report["split"] == 0 and report["pruned"] == 0
+    assert model.table.motion_gate()[:2].tolist() == [True, False] and report["motion_on"] == 1
+    for key in ("grad_sum", "vis_count", "front_count", "steps_seen"):
+        assert not bool(state[key].any()), key
