@@ -123,7 +123,10 @@ class Trainer:
         backend: str = "auto",
         seed: int = 0,
         flow_cache=None,
+        flow_settings=None,
     ):
+        """``flow_settings`` (stg_node.data.flow.FlowSettings): how the flow of new frame pairs is
+        computed where no ``flow_cache`` answers (a live trainer trades its accuracy for time)."""
         config.validate()
         if config.nonrigid == "off":
             config = config.replace(**LBS_ONLY)
@@ -139,6 +142,7 @@ class Trainer:
             crop_margin=config.crop_margin_px,
             flow=want_flow and config.model.spacetime or config.loss.flow > 0,
             flow_cache=flow_cache,
+            flow_settings=flow_settings,
             seed=seed,
         )
         self.model: AvatarModel | None = None
@@ -774,13 +778,26 @@ class Trainer:
 
     @classmethod
     def load(
-        cls, path: str | Path, *, body_model=None, device="cpu", backend="auto", flow_cache=None
+        cls,
+        path: str | Path,
+        *,
+        body_model=None,
+        device="cpu",
+        backend="auto",
+        flow_cache=None,
+        flow_settings=None,
     ) -> Trainer:
         """Resume from a checkpoint written by :meth:`save`; frames must be added again."""
         state = checkpoint.load(path, device=device)
         body = body_model if body_model is not None else state.body_model
         trainer = cls(
-            state.config, body, device=device, backend=backend, seed=state.seed, flow_cache=flow_cache
+            state.config,
+            body,
+            device=device,
+            backend=backend,
+            seed=state.seed,
+            flow_cache=flow_cache,
+            flow_settings=flow_settings,
         )
         trainer._restore(state)
         return trainer

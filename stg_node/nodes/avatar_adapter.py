@@ -69,24 +69,44 @@ class TrainerAdapter:
         seed: int = 0,
         max_frames: int = 64,
         footage: bool = False,
+        flow_level: int | None = None,
     ) -> TrainerAdapter:
         """``footage``: frames from a camera that sets its own exposure (the avatar's ``for_footage``
-        settings, where the avatar package has them)."""
+        settings, where the avatar package has them). ``flow_level``: the optical flow's finest
+        pyramid level (None: the avatar package's default)."""
         avatar = avatar_module(module)
         # The frame store's bound lives in the config, the one thing a checkpoint keeps: a trainer
         # resumed from one is bounded as the one that wrote it.
         config = dataclasses.replace(avatar.preset(preset), max_frames=int(max_frames))
         if footage and hasattr(avatar, "for_footage"):
             config = avatar.for_footage(config)
-        trainer = avatar.Trainer(config, body_model=body_model, device=device, backend=backend, seed=seed)
+        trainer = avatar.Trainer(
+            config,
+            body_model=body_model,
+            device=device,
+            backend=backend,
+            seed=seed,
+            **_flow(avatar.Trainer, flow_level),
+        )
         return cls(trainer, avatar)
 
     @classmethod
     def load(
-        cls, path: str | Path, *, module: str = DEFAULT_MODULE, device: str = "cpu", backend: str = "auto"
+        cls,
+        path: str | Path,
+        *,
+        module: str = DEFAULT_MODULE,
+        device: str = "cpu",
+        backend: str = "auto",
+        flow_level: int | None = None,
     ):
         avatar = avatar_module(module)
-        return cls(avatar.Trainer.load(str(path), device=device, backend=backend), avatar)
+        return cls(
+            avatar.Trainer.load(
+                str(path), device=device, backend=backend, **_flow(avatar.Trainer.load, flow_level)
+            ),
+            avatar,
+        )
 
     @property
     def iteration(self) -> int:
@@ -152,6 +172,15 @@ class TrainerAdapter:
             "ssim": float(report["ssim"]),
             "lpips": None if report.get("lpips") is None else float(report["lpips"]),
         }
+
+
+def _flow(fn, level: int | None) -> dict:
+    """The flow keyword for ``fn`` at this pyramid level (none where it takes none or level is None)."""
+    if level is None or not _accepts(fn, "flow_settings"):
+        return {}
+    from stg_node.data.flow import FlowSettings
+
+    return {"flow_settings": FlowSettings(finest_scale=int(level))}
 
 
 def _accepts(fn, name: str) -> bool:

@@ -62,6 +62,17 @@ class TrainerParams:
         doc="learn a per-frame exposure/white-balance correction: on for a live camera that sets "
         "its own exposure, off for data filmed at a fixed one (avatar/exposure.py)",
     )
+    # Live, every new frame pair's flow is computed as it arrives (offline, once into a cache): at
+    # the frames' own pixels (level 0, stg-train's default) DIS costs about 10x a quarter
+    # resolution (level 2) at 512 px, more than a live trainer can spend per frame on 2 cores.
+    flow_level: int = param(
+        2,
+        min=0,
+        max=8,
+        doc="finest pyramid level of each new frame pair's optical flow (0: the frames' own pixels, "
+        "as stg-train, about 10x the time of 2 at 512 px; 2: a quarter of the resolution, its error "
+        "can read a near-still body as missed motion)",
+    )
     iters: int = param(0, min=0, doc="stop after this many iterations (0: train until stopped)")
     max_frames: int = param(
         64, min=1, doc="frames the trainer keeps (a reservoir sample: old and new frames stay)"
@@ -174,7 +185,7 @@ class TrainerNode(Node):
         resume = p.resume == "always" or (p.resume == "respawn" and self.respawned)
         if self.checkpoint is not None and resume and self.checkpoint.is_file():
             self.trainer = TrainerAdapter.load(
-                self.checkpoint, module=p.avatar, device=p.device, backend=p.backend
+                self.checkpoint, module=p.avatar, device=p.device, backend=p.backend, flow_level=p.flow_level
             )
             self.elapsed_before = float(self.trainer.notes.get("elapsed_s", 0.0))
             self.iteration = self.trainer.iteration
@@ -190,6 +201,7 @@ class TrainerNode(Node):
                 seed=p.seed,
                 max_frames=p.max_frames,
                 footage=p.exposure_correction,
+                flow_level=p.flow_level,
             )
             self.iteration = 0
         self.pairs = FramePairs(p.pending)  # a rig: replaced below, keyed by camera too
