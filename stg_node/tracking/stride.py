@@ -1,0 +1,205 @@
+"""The focal length from a walker's planted feet: the body's travel in depth against its legs.
+
+A camera of unknown focal length sees a body of known size (the calibrated shape) at a depth that
+scales with the focal length: fitted with ``s`` times the true focal length, every frame's body
+sits ``s`` times as deep, at the same place in the picture (its sideways position and its pose
+unchanged, as long as the perspective within the body is small). A walker's stance foot stays
+where it was put while the body passes over it, so over a stance the body's travel in depth must
+equal the legs' own: with the pelvis at depth ``Z_t`` and the stance ankle ``d_t`` in front of or
+behind it (a depth offset the pose gives in metres), ``s * Z_t + d_t`` is constant. The ratio of
+the two rates of change is the error of the focal length, in closed form:
+
+    s = - sum_r w_r b_r(d) b_r(Z) / sum_r w_r b_r(Z)^2
+
+over stance runs ``r`` (consecutive frames with the same stance leg, lifted clear of the other),
+``b_r`` the least-squares rate of change over the run and ``w_r`` its time spread (a rate's
+precision). Rates rather than values keep the per-frame jitter of the depth (a few per cent of the
+image scale) from biasing the ratio. Unlike the perspective within the body (focal.py's profile),
+this needs no near camera: a walk towards or away from the camera at any distance has it, and a
+detector's systematic error in the 2D points cancels in a ratio of rates (it scales the travel
+and the body alike). What it needs: the person walks in depth (a person standing still, or
+walking across the picture, moves no foot in depth, and is left to the profile), and the legs'
+depth swing from the fit, which comes from the network's 3D directions (focal.py's docstring).
+
+:func:`stride_focal` fits consecutive tracked frames at a trial focal length (the shape calibrated
+on the first frames, then held), finds the stance runs, solves for ``s`` and bootstraps over runs;
+a second pass at the corrected focal length removes most of the small-perspective approximation.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from stg_node.tracking.camera import from_fov
+from stg_node.tracking.fitting import FitConfig, SmplFitter
+
+PELVIS, LEFT_ANKLE, RIGHT_ANKLE = 0, 7, 8
+MAX_FRAMES = 150  # consecutive frames fitted per pass (every k-th frame of a longer sequence)
+MIN_RUN_FRAMES = 5  # a stance run this long at least
+STANCE_MARGIN_M = 0.03  # the stance ankle at least this much below the other, along the body's up
+MIN_RUNS = 3
+MIN_TRAVEL_M = 0.5  # the pelvis's travel in depth, summed over the runs, for a sure answer
+BOOTSTRAP = 200
+PASSES = 2
+MIN_CONFIDENCE = 0.5
+
+
+@dataclass(frozen=True)
+class StrideEstimate:
+    focal_px: float  # the estimate; NaN without stance runs
+    low_px: float  # 16-84 % bootstrap interval over stance runs
+    high_px: float
+    runs: int  # stance runs used
+    travel_m: float  # the pelvis's travel in depth over those runs (at the estimate)
+    frames: int  # frames fitted
+
+    @property
+    def relative(self) -> float:
+        """Half-width of the interval relative to the estimate (inf when there is none)."""
+        if not (math.isfinite(self.focal_px) and self.focal_px > 0):
+            return math.inf
+        return max(self.high_px / self.focal_px - 1.0, 1.0 - self.low_px / self.focal_px)
+
+    def as_dict(self) -> dict:
+        return {
+            "focal_px": self.focal_px if math.isfinite(self.focal_px) else None,
+            "low_px": self.low_px if math.isfinite(self.low_px) else None,
+            "high_px": self.high_px if math.isfinite(self.high_px) else None,
+            "runs": self.runs,
+            "travel_m": round(self.travel_m, 3),
+            "frames": self.frames,
+        }
+
+
+def fov_of(focal_px: float, width: int) -> float:
+    return math.degrees(2.0 * math.atan(0.5 * width / focal_px))
+
+
+def _rate(t: np.ndarray, y: np.ndarray) -> float:
+    dt = t - t.mean()
+    return float((dt * (y - y.mean())).sum() / (dt * dt).sum())
+
+
+def stance_runs(times: np.ndarray, up_heights: np.ndarray, max_gap: float) -> list[tuple[np.ndarray, int]]:
+    """(frame indices, stance leg 0/1) of each run of consecutive frames whose stance leg is clear:
+    ``up_heights`` (N, 2) the ankles' heights along the body's up axis; frames further apart than
+    ``max_gap`` seconds break a run."""
+    lower = np.argmin(up_heights, axis=1)
+    clear = np.abs(up_heights[:, 0] - up_heights[:, 1]) >= STANCE_MARGIN_M
+    runs, current = [], []
+    for i in range(len(times)):
+        joins = (
+            current
+            and clear[i]
+            and lower[i] == lower[current[-1]]
+            and times[i] - times[current[-1]] <= max_gap
+        )
+        if clear[i] and (not current or joins):
+            current.append(i)
+            continue
+        if len(current) >= MIN_RUN_FRAMES:
+            runs.append((np.array(current), int(lower[current[0]])))
+        current = [i] if clear[i] else []
+    if len(current) >= MIN_RUN_FRAMES:
+        runs.append((np.array(current), int(lower[current[0]])))
+    return runs
+
+
+def planted_scale(times, pelvis_z, ankle_z, runs, rng=None, draws: int = 0):
+    """(s, per-run rates (runs, 3): weight, pelvis rate, stance ankle's offset rate, bootstrap
+    draws of s): the focal length's error factor that keeps the stance feet still (module doc).
+
+    ``pelvis_z`` (N,) depth of the pelvis, ``ankle_z`` (N, 2) depth of each ankle, camera frame."""
+    rates = []
+    for frames, leg in runs:
+        t = times[frames]
+        offset = ankle_z[frames, leg] - pelvis_z[frames]
+        rates.append((float(((t - t.mean()) ** 2).sum()), _rate(t, pelvis_z[frames]), _rate(t, offset)))
+    rates = np.array(rates, dtype=np.float64).reshape(-1, 3)
+
+    def solve(rows: np.ndarray) -> float:
+        w, bz, bd = rows.T
+        denominator = (w * bz * bz).sum()
+        return float(-(w * bd * bz).sum() / denominator) if denominator > 0 else math.nan
+
+    s = solve(rates) if len(rates) else math.nan
+    samples = np.array([])
+    if rng is not None and draws and len(rates) >= 2:
+        samples = np.array([solve(rates[rng.integers(0, len(rates), len(rates))]) for _ in range(draws)])
+    return s, rates, samples
+
+
+def _fit_sequence(observations, body, layout, K):
+    """Fit the observations in order at camera ``K``: (times, joints (N, 24, 3) camera frame, the
+    body's up axis (N, 3)); the shape is calibrated on the first frames, which are then refitted."""
+    calibration = min(20, max(len(observations) // 4, 1))
+    fitter = SmplFitter(body, layout, K, FitConfig(iterations=4, calibration_frames=calibration))
+    for obs in observations[:calibration]:
+        result = fitter.fit(obs.keypoints, obs.timestamp)
+        if result is not None:
+            fitter.add_calibration(result, max(obs.confidence, fitter.config.calibration_min_confidence))
+    if not fitter.calibrated:
+        return np.zeros(0), np.zeros((0, 24, 3)), np.zeros((0, 3))
+    fitter.reset()  # the shape is held; the calibration frames are fitted again with it
+    times, poses, Rh, Th = [], [], [], []
+    for obs in observations:
+        result = fitter.fit(obs.keypoints, obs.timestamp)
+        if result is None:
+            continue
+        times.append(obs.timestamp)
+        poses.append(result.poses)
+        Rh.append(result.Rh)
+        Th.append(result.Th)
+    if not times:
+        return np.zeros(0), np.zeros((0, 24, 3)), np.zeros((0, 3))
+    like = body.v_template
+    with torch.no_grad():
+        out = body(
+            betas=torch.as_tensor(np.asarray(fitter.betas)[None], dtype=like.dtype),
+            poses=torch.as_tensor(np.stack(poses).reshape(len(poses), 72), dtype=like.dtype),
+            Rh=torch.as_tensor(np.stack(Rh), dtype=like.dtype),
+            Th=torch.as_tensor(np.stack(Th), dtype=like.dtype),
+        )
+    joints = out.joints.double().numpy()
+    rotations = out.bone_transforms[:, PELVIS, :3, :3].double().numpy()
+    up = rotations[:, :, 1]  # SMPL's y axis (up) in the camera frame
+    return np.asarray(times), joints, up
+
+
+def stride_focal(observations, body, layout, width: int, height: int, focal_px: float, seed: int = 0):
+    """The focal length that keeps a walker's stance feet still (module doc), starting from the
+    trial ``focal_px``; ``observations``: focal.FocalObservation in time order."""
+    usable = [o for o in observations if o.keypoints is not None and o.confidence >= MIN_CONFIDENCE]
+    step = max(1, math.ceil(len(usable) / MAX_FRAMES))
+    usable = usable[::step]
+    if len(usable) < 2 * MIN_RUN_FRAMES:
+        return StrideEstimate(math.nan, math.nan, math.nan, 0, 0.0, len(usable))
+    frame_gap = float(np.median(np.diff([o.timestamp for o in usable])))
+    rng = np.random.default_rng(seed)
+    estimate = StrideEstimate(math.nan, math.nan, math.nan, 0, 0.0, len(usable))
+    trial = float(focal_px)
+    for _ in range(PASSES):
+        K = from_fov(width, height, float(np.clip(fov_of(trial, width), 5.0, 160.0))).K
+        times, joints, up = _fit_sequence(usable, body, layout, K)
+        if len(times) < 2 * MIN_RUN_FRAMES:
+            return estimate
+        heights = np.einsum("nkc,nc->nk", joints[:, [LEFT_ANKLE, RIGHT_ANKLE]] - joints[:, None, PELVIS], up)
+        runs = stance_runs(times, heights, 2.5 * frame_gap)
+        pelvis_z = joints[:, PELVIS, 2]
+        ankle_z = joints[:, [LEFT_ANKLE, RIGHT_ANKLE], 2]
+        s, rates, draws = planted_scale(times, pelvis_z, ankle_z, runs, rng, BOOTSTRAP)
+        if len(runs) < MIN_RUNS or not (math.isfinite(s) and s > 0):
+            return StrideEstimate(math.nan, math.nan, math.nan, len(runs), 0.0, len(times))
+        draws = draws[np.isfinite(draws) & (draws > 0)]
+        low, high = np.percentile(draws, [16, 84]) if len(draws) else (math.nan, math.nan)
+        durations = np.array([times[f[-1]] - times[f[0]] for f, _ in runs])
+        travel = float((np.abs(rates[:, 1]) * durations).sum() * s)
+        estimate = StrideEstimate(trial * s, trial * low, trial * high, len(runs), travel, len(times))
+        if abs(s - 1.0) < 0.02:
+            break
+        trial *= s
+    return estimate
