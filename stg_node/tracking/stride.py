@@ -44,7 +44,8 @@ STANCE_MARGIN_M = 0.03  # the stance ankle at least this much below the other, a
 MIN_RUNS = 3
 MIN_TRAVEL_M = 0.5  # the pelvis's travel in depth, summed over the runs, for a sure answer
 BOOTSTRAP = 200
-PASSES = 2
+PASSES = 3  # fits of the sequence at most (the scaling law first, then a secant in log focal length)
+CONVERGED = 0.02  # stop when a pass's factor is within this of 1
 MIN_CONFIDENCE = 0.5
 
 
@@ -109,22 +110,35 @@ def stance_runs(times: np.ndarray, up_heights: np.ndarray, max_gap: float) -> li
     return runs
 
 
-def planted_scale(times, pelvis_z, ankle_z, runs, rng=None, draws: int = 0):
+def weighted_median(values: np.ndarray, weights: np.ndarray) -> float:
+    order = np.argsort(values)
+    cumulative = np.cumsum(weights[order])
+    if not cumulative[-1] > 0:
+        return math.nan
+    return float(values[order][np.searchsorted(cumulative, 0.5 * cumulative[-1])])
+
+
+def planted_scale(times, pelvis_z, offsets, runs, rng=None, draws: int = 0):
     """(s, per-run rates (runs, 3): weight, pelvis rate, stance ankle's offset rate, bootstrap
     draws of s): the focal length's error factor that keeps the stance feet still (module doc).
 
-    ``pelvis_z`` (N,) depth of the pelvis, ``ankle_z`` (N, 2) depth of each ankle, camera frame."""
+    ``pelvis_z`` (N,) depth of the pelvis (camera frame), ``offsets`` (N, 2) depth of each ankle
+    relative to it. Each run says ``-b(d) / b(Z)``; the answer is their median weighted by
+    ``w b(Z)^2`` (the least-squares weight), robust to the runs where a foot pivots or slides (a
+    turn on the spot) rather than stays planted."""
     rates = []
     for frames, leg in runs:
         t = times[frames]
-        offset = ankle_z[frames, leg] - pelvis_z[frames]
-        rates.append((float(((t - t.mean()) ** 2).sum()), _rate(t, pelvis_z[frames]), _rate(t, offset)))
+        spread = float(((t - t.mean()) ** 2).sum())
+        rates.append((spread, _rate(t, pelvis_z[frames]), _rate(t, offsets[frames, leg])))
     rates = np.array(rates, dtype=np.float64).reshape(-1, 3)
 
     def solve(rows: np.ndarray) -> float:
         w, bz, bd = rows.T
-        denominator = (w * bz * bz).sum()
-        return float(-(w * bd * bz).sum() / denominator) if denominator > 0 else math.nan
+        moving = np.abs(bz) > 1e-9
+        if not moving.any():
+            return math.nan
+        return weighted_median(-bd[moving] / bz[moving], (w * bz * bz)[moving])
 
     s = solve(rates) if len(rates) else math.nan
     samples = np.array([])
@@ -133,9 +147,31 @@ def planted_scale(times, pelvis_z, ankle_z, runs, rng=None, draws: int = 0):
     return s, rates, samples
 
 
+def network_offsets(observations, layout) -> tuple[np.ndarray, np.ndarray]:
+    """From the detector's 3D points (metres, root-relative, camera-aligned): each ankle's depth
+    relative to the hips' midpoint (N, 2) and each leg's length hip-knee-ankle (N, 2); NaN where
+    a frame has no 3D points."""
+    offsets = np.full((len(observations), 2), np.nan)
+    lengths = np.full((len(observations), 2), np.nan)
+    root = list(layout.root_sources)
+    for i, obs in enumerate(observations):
+        world = obs.keypoints.world
+        if world is None:
+            continue
+        hips = np.asarray(world, np.float64)[root].mean(axis=0)
+        for leg, side in enumerate(("left", "right")):
+            hip, knee, ankle = (
+                np.asarray(world[layout.index(f"{side}_{p}")], np.float64) for p in ("hip", "knee", "ankle")
+            )
+            offsets[i, leg] = ankle[2] - hips[2]
+            lengths[i, leg] = np.linalg.norm(knee - hip) + np.linalg.norm(ankle - knee)
+    return offsets, lengths
+
+
 def _fit_sequence(observations, body, layout, K):
-    """Fit the observations in order at camera ``K``: (times, joints (N, 24, 3) camera frame, the
-    body's up axis (N, 3)); the shape is calibrated on the first frames, which are then refitted."""
+    """Fit the observations in order at camera ``K``: (indices of the fitted observations, their
+    times, joints (N, 24, 3) camera frame, the body's up axis (N, 3)); the shape is calibrated on
+    the first frames, which are then refitted with it."""
     calibration = min(20, max(len(observations) // 4, 1))
     fitter = SmplFitter(body, layout, K, FitConfig(iterations=4, calibration_frames=calibration))
     for obs in observations[:calibration]:
@@ -143,19 +179,20 @@ def _fit_sequence(observations, body, layout, K):
         if result is not None:
             fitter.add_calibration(result, max(obs.confidence, fitter.config.calibration_min_confidence))
     if not fitter.calibrated:
-        return np.zeros(0), np.zeros((0, 24, 3)), np.zeros((0, 3))
+        return np.zeros(0, int), np.zeros(0), np.zeros((0, 24, 3)), np.zeros((0, 3))
     fitter.reset()  # the shape is held; the calibration frames are fitted again with it
-    times, poses, Rh, Th = [], [], [], []
-    for obs in observations:
+    times, poses, Rh, Th, kept = [], [], [], [], []
+    for index, obs in enumerate(observations):
         result = fitter.fit(obs.keypoints, obs.timestamp)
         if result is None:
             continue
+        kept.append(index)
         times.append(obs.timestamp)
         poses.append(result.poses)
         Rh.append(result.Rh)
         Th.append(result.Th)
     if not times:
-        return np.zeros(0), np.zeros((0, 24, 3)), np.zeros((0, 3))
+        return np.zeros(0, int), np.zeros(0), np.zeros((0, 24, 3)), np.zeros((0, 3))
     like = body.v_template
     with torch.no_grad():
         out = body(
@@ -167,7 +204,18 @@ def _fit_sequence(observations, body, layout, K):
     joints = out.joints.double().numpy()
     rotations = out.bone_transforms[:, PELVIS, :3, :3].double().numpy()
     up = rotations[:, :, 1]  # SMPL's y axis (up) in the camera frame
-    return np.asarray(times), joints, up
+    return np.asarray(kept), np.asarray(times), joints, up
+
+
+def _leg_ratio(joints: np.ndarray, network_legs: np.ndarray) -> float:
+    """The fitted body's leg length (hip-knee-ankle) over the network's skeleton's (medians)."""
+    body_legs = [
+        np.linalg.norm(joints[:, k] - joints[:, h], axis=1)
+        + np.linalg.norm(joints[:, a] - joints[:, k], axis=1)
+        for h, k, a in ((1, 4, LEFT_ANKLE), (2, 5, RIGHT_ANKLE))
+    ]
+    network = np.nanmedian(network_legs) if np.isfinite(network_legs).any() else math.nan
+    return float(np.median(np.concatenate(body_legs)) / network) if network > 0 else math.nan
 
 
 def stride_focal(observations, body, layout, width: int, height: int, focal_px: float, seed: int = 0):
@@ -176,22 +224,24 @@ def stride_focal(observations, body, layout, width: int, height: int, focal_px: 
     usable = [o for o in observations if o.keypoints is not None and o.confidence >= MIN_CONFIDENCE]
     step = max(1, math.ceil(len(usable) / MAX_FRAMES))
     usable = usable[::step]
-    if len(usable) < 2 * MIN_RUN_FRAMES:
+    net_offsets, net_legs = network_offsets(usable, layout)
+    if len(usable) < 2 * MIN_RUN_FRAMES or np.isfinite(net_offsets[:, 0]).sum() < 2 * MIN_RUN_FRAMES:
         return StrideEstimate(math.nan, math.nan, math.nan, 0, 0.0, len(usable))
     frame_gap = float(np.median(np.diff([o.timestamp for o in usable])))
     rng = np.random.default_rng(seed)
     estimate = StrideEstimate(math.nan, math.nan, math.nan, 0, 0.0, len(usable))
-    trial = float(focal_px)
+    trial, previous = float(focal_px), None  # previous: (log focal, log s) of the last pass
     for _ in range(PASSES):
         K = from_fov(width, height, float(np.clip(fov_of(trial, width), 5.0, 160.0))).K
-        times, joints, up = _fit_sequence(usable, body, layout, K)
+        kept, times, joints, up = _fit_sequence(usable, body, layout, K)
+        offsets = net_offsets[kept] * _leg_ratio(joints, net_legs[kept])  # the network's legs, body-sized
+        known = np.all(np.isfinite(offsets), axis=1)
+        kept, times, joints, up, offsets = kept[known], times[known], joints[known], up[known], offsets[known]
         if len(times) < 2 * MIN_RUN_FRAMES:
             return estimate
         heights = np.einsum("nkc,nc->nk", joints[:, [LEFT_ANKLE, RIGHT_ANKLE]] - joints[:, None, PELVIS], up)
         runs = stance_runs(times, heights, 2.5 * frame_gap)
-        pelvis_z = joints[:, PELVIS, 2]
-        ankle_z = joints[:, [LEFT_ANKLE, RIGHT_ANKLE], 2]
-        s, rates, draws = planted_scale(times, pelvis_z, ankle_z, runs, rng, BOOTSTRAP)
+        s, rates, draws = planted_scale(times, joints[:, PELVIS, 2], offsets, runs, rng, BOOTSTRAP)
         if len(runs) < MIN_RUNS or not (math.isfinite(s) and s > 0):
             return StrideEstimate(math.nan, math.nan, math.nan, len(runs), 0.0, len(times))
         draws = draws[np.isfinite(draws) & (draws > 0)]
@@ -199,7 +249,14 @@ def stride_focal(observations, body, layout, width: int, height: int, focal_px: 
         durations = np.array([times[f[-1]] - times[f[0]] for f, _ in runs])
         travel = float((np.abs(rates[:, 1]) * durations).sum() * s)
         estimate = StrideEstimate(trial * s, trial * low, trial * high, len(runs), travel, len(times))
-        if abs(s - 1.0) < 0.02:
+        if abs(s - 1.0) < CONVERGED:
             break
-        trial *= s
+        here = (math.log(trial), math.log(s))
+        step = here[1]  # the scaling law: the focal length that makes s = 1
+        if previous is not None and abs(here[1] - previous[1]) > 1e-6:  # a secant through two passes
+            slope = (here[1] - previous[1]) / (here[0] - previous[0])
+            if slope < 0:  # s falls as the trial focal length grows, as it must
+                step = -here[1] / slope
+        previous = here
+        trial = math.exp(here[0] + float(np.clip(step, -1.0, 1.0)))
     return estimate
