@@ -27,10 +27,10 @@ from pathlib import Path
 CASES = (
     ("approach", 30, 6.5),
     ("approach", 45, 5.0),
+    ("still", 45, 5.0),
+    ("approach", 90, 3.0),
     ("approach", 60, 4.0),
     ("approach", 75, 3.5),
-    ("approach", 90, 3.0),
-    ("still", 45, 5.0),
 )
 
 
