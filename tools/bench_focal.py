@@ -76,7 +76,7 @@ def table(args) -> None:
     rows = []
     for motion, fov, distance in CASES:
         keep = args.out / f"{motion}_{fov}.observations.pkl"
-        if not keep.is_file():
+        if not keep.is_file() or (args.cases and f"{motion}_{fov}" not in args.cases.split(",")):
             continue
         seen = pickle.loads(keep.read_bytes())
         tracker, body = build_tracker(TrackOptions(fps=30.0), seen["width"], seen["height"], 1)
@@ -89,7 +89,8 @@ def table(args) -> None:
                    stride=found.stride, seconds=round(time.perf_counter() - t0))  # fmt: skip
         rows.append(row)
         print(json.dumps(row), flush=True)
-    (args.out / "table.json").write_text(json.dumps(rows, indent=1))
+    name = "table.json" if not args.cases else f"table_{args.cases.replace(',', '_')}.json"
+    (args.out / name).write_text(json.dumps(rows, indent=1))
 
 
 def main() -> None:
@@ -98,6 +99,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("runs/bench_focal"))
     parser.add_argument("--size", type=int, default=256)
     parser.add_argument("--frames", type=int, default=120)
+    parser.add_argument("--cases", default="", help="table: only these (e.g. approach_30,still_45)")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     {"capture": capture, "table": table}[args.command](args)

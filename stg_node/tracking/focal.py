@@ -36,7 +36,7 @@ import numpy as np
 
 from stg_node.tracking.camera import from_fov
 from stg_node.tracking.fitting import FitConfig, SmplFitter
-from stg_node.tracking.stride import MIN_TRAVEL_M, StrideEstimate, stride_focal
+from stg_node.tracking.stride import MIN_TRAVEL_M, MIN_WALK_SPEED, StrideEstimate, stride_focal
 from stg_node.tracking.types import Keypoints
 
 log = logging.getLogger(__name__)
@@ -241,6 +241,7 @@ def _stride_pins(stride: StrideEstimate, grid_focal: np.ndarray) -> bool:
     return (
         stride.runs >= MIN_STANCE_RUNS
         and stride.travel_m >= MIN_TRAVEL_M
+        and stride.speed_mps >= MIN_WALK_SPEED
         and stride.relative <= SURE_RELATIVE
         and grid_focal.min() <= stride.focal_px <= grid_focal.max()
     )
@@ -251,8 +252,9 @@ def _stride_words(stride: StrideEstimate, width: int) -> str:
         return f"the planted feet do not say ({stride.runs} stance runs)"
     return (
         f"the planted feet say {fov_of(stride.focal_px, width):.1f} deg (+-{100 * stride.relative:.0f} %, "
-        f"{stride.runs} stance runs, {stride.travel_m:.1f} m of travel in depth; sure needs "
-        f"{MIN_STANCE_RUNS} runs, {MIN_TRAVEL_M:g} m and +-{100 * SURE_RELATIVE:.0f} %)"
+        f"{stride.runs} stance runs, {stride.travel_m:.1f} m of travel in depth, legs at "
+        f"{stride.speed_mps:.1f} m/s; sure needs {MIN_STANCE_RUNS} runs, {MIN_TRAVEL_M:g} m, "
+        f"{MIN_WALK_SPEED:g} m/s and +-{100 * SURE_RELATIVE:.0f} %)"
     )
 
 

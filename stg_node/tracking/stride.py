@@ -40,6 +40,8 @@ from stg_node.tracking.fitting import FitConfig, SmplFitter
 PELVIS, LEFT_ANKLE, RIGHT_ANKLE = 0, 7, 8
 MAX_FRAMES = 150  # consecutive frames fitted per pass (every k-th frame of a longer sequence)
 MIN_RUN_FRAMES = 5  # a stance run this long at least
+RUN_TRIM = 0.2  # of a run's frames left out at each end (_middle)
+MIN_WALK_SPEED = 0.6  # m/s: the legs' speed a stepping walker has at least (slower: the 3D points are flat)
 STANCE_MARGIN_M = 0.03  # the stance ankle at least this much below the other, along the body's up
 MIN_RUNS = 3
 MIN_TRAVEL_M = 0.5  # the pelvis's travel in depth, summed over the runs, for a sure answer
@@ -57,6 +59,7 @@ class StrideEstimate:
     runs: int  # stance runs used
     travel_m: float  # the pelvis's travel in depth over those runs (at the estimate)
     frames: int  # frames fitted
+    speed_mps: float = math.nan  # the legs' speed in depth over the stance runs (weighted median)
 
     @property
     def relative(self) -> float:
@@ -73,6 +76,7 @@ class StrideEstimate:
             "runs": self.runs,
             "travel_m": round(self.travel_m, 3),
             "frames": self.frames,
+            "speed_mps": round(self.speed_mps, 3) if math.isfinite(self.speed_mps) else None,
         }
 
 
@@ -107,7 +111,15 @@ def stance_runs(times: np.ndarray, up_heights: np.ndarray, max_gap: float) -> li
         current = [i] if clear[i] else []
     if len(current) >= MIN_RUN_FRAMES:
         runs.append((np.array(current), int(lower[current[0]])))
-    return runs
+    return [(_middle(frames), leg) for frames, leg in runs]
+
+
+def _middle(frames: list[int]) -> np.ndarray:
+    """The run without ``RUN_TRIM`` of its frames at each end: where a stance starts and ends the
+    foot is still landing or already lifting (on true keypoints the whole runs read the focal
+    length 18 % short, the middles 8 %)."""
+    cut = int(round(RUN_TRIM * len(frames)))
+    return np.array(frames[cut : len(frames) - cut] if len(frames) - 2 * cut >= 3 else frames)
 
 
 def weighted_median(values: np.ndarray, weights: np.ndarray) -> float:
@@ -248,7 +260,8 @@ def stride_focal(observations, body, layout, width: int, height: int, focal_px: 
         low, high = np.percentile(draws, [16, 84]) if len(draws) else (math.nan, math.nan)
         durations = np.array([times[f[-1]] - times[f[0]] for f, _ in runs])
         travel = float((np.abs(rates[:, 1]) * durations).sum() * s)
-        estimate = StrideEstimate(trial * s, trial * low, trial * high, len(runs), travel, len(times))
+        speed = weighted_median(np.abs(rates[:, 2]), rates[:, 0] * rates[:, 1] ** 2)
+        estimate = StrideEstimate(trial * s, trial * low, trial * high, len(runs), travel, len(times), speed)
         if abs(s - 1.0) < CONVERGED:
             break
         here = (math.log(trial), math.log(s))

@@ -161,7 +161,7 @@ def test_stance_runs_follow_the_lower_ankle():
     runs = stride.stance_runs(t, heights, 0.05)
     assert len(runs) == 8  # 4 s at two steps a second
     assert [leg for _, leg in runs] == [0, 1] * 4
-    assert all(len(frames) == 15 for frames, _ in runs)
+    assert all(len(frames) == 9 for frames, _ in runs)  # 15 a stance, the 3 at each end left out
     heights[:, 1] = heights[:, 0]  # both feet down (standing): no stance to read
     assert stride.stance_runs(t, heights, 0.05) == []
 
@@ -171,7 +171,7 @@ def test_the_planted_scale_recovers_the_focal_error(focal_error):
     t, z, offsets, heights = walker(focal_error)
     runs = stride.stance_runs(t, heights, 0.05)
     s, rates, draws = stride.planted_scale(t, z, offsets, runs, np.random.default_rng(0), 100)
-    assert s * focal_error == pytest.approx(1.0, rel=0.02)  # the fit's focal length times s is the truth
+    assert s * focal_error == pytest.approx(1.0, rel=0.03)  # the fit's focal length times s is the truth
     assert np.percentile(draws, 84) / np.percentile(draws, 16) < 1.05
 
 
@@ -207,3 +207,18 @@ def test_planted_feet_pin_the_focal_length_at_any_distance(tmp_path_factory, bod
                                 truth.size, default)  # fmt: skip
     assert abs(truth.K[0, 0] / found.focal_px - 1.0) < 0.10, (found, true_fov(truth))
     assert found.runs >= focal.MIN_STANCE_RUNS and found.relative < focal.SURE_RELATIVE
+
+
+@pytest.mark.parametrize("speed, sure", [(1.2, True), (0.3, False)])
+def test_the_stride_decides_only_for_a_plausible_walk(monkeypatch, speed, sure):
+    """A tight stride estimate decides (cue "stride") when its legs walk at a walker's speed; legs
+    that barely move in depth (a detector's flattened 3D points) leave it to the flat profile: unsure."""
+    found_stride = stride.StrideEstimate(300.0, 290.0, 310.0, 6, 1.5, 120, speed)
+    frames_with_profile(monkeypatch, 0.005, focal.GRID_FOV_DEG, 256, 50.0)  # installs the flat profile
+    monkeypatch.setattr(focal, "stride_focal", lambda *a, **k: found_stride)
+    kp = Keypoints("blazepose33", np.zeros((33, 2), np.float32), np.ones(33, np.float32), None)
+    found = estimate_focal([FocalObservation(i / 30.0, kp, 1.0) for i in range(24)], None, None, 256, 256)
+    assert found.sure is sure, found.describe()
+    assert (found.cue == "stride") is sure and found.stride["speed_mps"] == speed
+    if sure:
+        assert found.focal_px == 300.0 and found.low_fov_deg < found.fov_deg < found.high_fov_deg
