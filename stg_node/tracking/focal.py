@@ -236,10 +236,12 @@ def estimate_focal(
 
 
 def _stride_pins(stride: StrideEstimate, grid_focal: np.ndarray) -> bool:
-    """Whether the planted feet pin the focal length: enough stance runs, enough travel in depth,
-    a tight interval, inside the range searched."""
+    """Whether the planted feet pin the focal length: a fixed point (the last fit's factor near 1),
+    enough stance runs, travel in depth, legs at a walker's speed, a tight interval, inside the
+    range searched."""
     return (
-        stride.runs >= MIN_STANCE_RUNS
+        stride.converged
+        and stride.runs >= MIN_STANCE_RUNS
         and stride.travel_m >= MIN_TRAVEL_M
         and stride.speed_mps >= MIN_WALK_SPEED
         and stride.relative <= SURE_RELATIVE

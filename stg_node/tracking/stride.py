@@ -60,6 +60,7 @@ class StrideEstimate:
     travel_m: float  # the pelvis's travel in depth over those runs (at the estimate)
     frames: int  # frames fitted
     speed_mps: float = math.nan  # the legs' speed in depth over the stance runs (weighted median)
+    converged: bool = False  # the last pass's factor within CONVERGED of 1 (a fixed point, not a jump)
 
     @property
     def relative(self) -> float:
@@ -77,6 +78,7 @@ class StrideEstimate:
             "travel_m": round(self.travel_m, 3),
             "frames": self.frames,
             "speed_mps": round(self.speed_mps, 3) if math.isfinite(self.speed_mps) else None,
+            "converged": self.converged,
         }
 
 
@@ -261,8 +263,11 @@ def stride_focal(observations, body, layout, width: int, height: int, focal_px: 
         durations = np.array([times[f[-1]] - times[f[0]] for f, _ in runs])
         travel = float((np.abs(rates[:, 1]) * durations).sum() * s)
         speed = weighted_median(np.abs(rates[:, 2]), rates[:, 0] * rates[:, 1] ** 2)
-        estimate = StrideEstimate(trial * s, trial * low, trial * high, len(runs), travel, len(times), speed)
-        if abs(s - 1.0) < CONVERGED:
+        converged = abs(s - 1.0) < CONVERGED
+        estimate = StrideEstimate(
+            trial * s, trial * low, trial * high, len(runs), travel, len(times), speed, converged
+        )
+        if converged:
             break
         here = (math.log(trial), math.log(s))
         step = here[1]  # the scaling law: the focal length that makes s = 1

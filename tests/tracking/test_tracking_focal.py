@@ -213,7 +213,7 @@ def test_planted_feet_pin_the_focal_length_at_any_distance(tmp_path_factory, bod
 def test_the_stride_decides_only_for_a_plausible_walk(monkeypatch, speed, sure):
     """A tight stride estimate decides (cue "stride") when its legs walk at a walker's speed; legs
     that barely move in depth (a detector's flattened 3D points) leave it to the flat profile: unsure."""
-    found_stride = stride.StrideEstimate(300.0, 290.0, 310.0, 6, 1.5, 120, speed)
+    found_stride = stride.StrideEstimate(300.0, 290.0, 310.0, 6, 1.5, 120, speed, converged=True)
     frames_with_profile(monkeypatch, 0.005, focal.GRID_FOV_DEG, 256, 50.0)  # installs the flat profile
     monkeypatch.setattr(focal, "stride_focal", lambda *a, **k: found_stride)
     kp = Keypoints("blazepose33", np.zeros((33, 2), np.float32), np.ones(33, np.float32), None)
