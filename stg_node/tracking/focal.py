@@ -1,5 +1,8 @@
 """The focal length of an uncalibrated camera, from the person in the footage, and how sure that is.
 
+Two cues. First the stride (stride.py: a walker's planted feet against the body's travel in depth);
+when it does not pin the focal length (:func:`_stride_pins`), the perspective within the body:
+
 A single view of a body of known proportions pins its distance only up to the focal length: a
 longer lens with the person farther away gives the same image, except for perspective within
 the body (the near parts of a body a metre or two away look larger than the far ones). With one
