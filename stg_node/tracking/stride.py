@@ -8,21 +8,21 @@ where it was put while the body passes over it, so over a stance the body's trav
 equal the legs' own: with the pelvis at depth ``Z_t`` and the stance ankle ``d_t`` in front of or
 behind it (a depth offset in metres: the detector's 3D points, scaled to the fitted body's leg
 length; the fit's own stance-foot swing came out at 0.4 of the truth on true keypoints, damped by
-its priors), ``s * Z_t + d_t`` is constant. The ratio of
-the two rates of change is the error of the focal length, in closed form:
+its priors), ``s * Z_t + d_t`` is constant. Each stance run ``r`` (consecutive frames with the
+same stance leg, lifted clear of the other, its ends left out) says, in closed form,
 
-    s = - sum_r w_r b_r(d) b_r(Z) / sum_r w_r b_r(Z)^2
+    s_r = - b_r(d) / b_r(Z)
 
-over stance runs ``r`` (consecutive frames with the same stance leg, lifted clear of the other,
-their ends left out), ``b_r`` the least-squares rate of change over the run and ``w_r`` its time
-spread (a rate's precision); the runs' answers are combined by their weighted median (a run where
-the foot pivots in a turn does not pull it). Rates rather than values keep the per-frame jitter of the depth (a few per cent of the
-image scale) from biasing the ratio. Unlike the perspective within the body (focal.py's profile),
-this needs no near camera: a walk towards or away from the camera at any distance has it, and a
-detector's systematic error in the 2D points cancels in a ratio of rates (it scales the travel
-and the body alike). What it needs: the person walks in depth (a person standing still, or
-walking across the picture, moves no foot in depth, and is left to the profile), and the legs'
-depth swing from the fit, which comes from the network's 3D directions (focal.py's docstring).
+with ``b_r`` the least-squares rate of change over the run; the sequence's answer is the median
+of the ``s_r`` weighted by ``w_r b_r(Z)^2`` (``w_r`` the run's time spread: the least-squares
+weight), so a run where the foot pivots in a turn does not pull it. Rates rather than values keep
+the per-frame jitter of the depth (a few per cent of the image scale) from biasing the ratio.
+Unlike the perspective within the body (focal.py's profile), this needs no near camera: a walk
+towards or away from the camera at any distance has it, and a detector's systematic error in the
+2D points cancels in a ratio of rates (it scales the travel and the body alike). What it needs:
+the person walks in depth (a person standing still, or walking across the picture, moves no foot
+in depth, and is left to the profile), and a true depth swing of the legs from the detector's 3D
+points.
 
 :func:`stride_focal` fits consecutive tracked frames at a trial focal length (the shape calibrated
 on the first frames, then held), finds the stance runs, solves for ``s`` and bootstraps over runs;
