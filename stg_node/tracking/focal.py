@@ -1,5 +1,8 @@
 """The focal length of an uncalibrated camera, from the person in the footage, and how sure that is.
 
+Two cues. First the stride (stride.py: a walker's planted feet against the body's travel in depth);
+when it does not pin the focal length (:func:`_stride_pins`), the perspective within the body:
+
 A single view of a body of known proportions pins its distance only up to the focal length: a
 longer lens with the person farther away gives the same image, except for perspective within
 the body (the near parts of a body a metre or two away look larger than the far ones). With one
@@ -36,6 +39,7 @@ import numpy as np
 
 from stg_node.tracking.camera import from_fov
 from stg_node.tracking.fitting import FitConfig, SmplFitter
+from stg_node.tracking.stride import MIN_TRAVEL_M, MIN_WALK_SPEED, StrideEstimate, stride_focal
 from stg_node.tracking.types import Keypoints
 
 log = logging.getLogger(__name__)
@@ -49,6 +53,7 @@ MIN_CONFIDENCE = 0.5
 SURE_RELATIVE = 0.10  # the 16-84 % interval within +-10 % of the estimate
 BOOTSTRAP = 200
 BLOCK = 8  # frames per bootstrap block
+MIN_STANCE_RUNS = 4  # the stride cue (stride.py) decides with at least this many stance runs
 
 
 @dataclass(frozen=True)
@@ -71,6 +76,8 @@ class FocalEstimate:
     frames: int  # frames the estimate used
     rise: float = 0.0  # relative rise of the profile at +-20 % focal length (MIN_RISE)
     profile: list[tuple[float, float]] = field(default_factory=list)  # (fov_deg, summed cost)
+    cue: str = "perspective"  # what decided: "stride" (planted feet, stride.py) or the profile
+    stride: dict | None = None  # the stride estimate (stride.StrideEstimate.as_dict), when tried
 
     def describe(self) -> str:
         verdict = "sure" if self.sure else "UNSURE"
@@ -165,6 +172,10 @@ def estimate_focal(
         return FocalEstimate(default, 65.0, min(fovs), max(fovs), False, reason, len(picks))
     fovs = tuple(sorted(fovs, reverse=True))  # increasing focal length
     focal = np.array([from_fov(width, height, f).K[0, 0] for f in fovs])
+    ordered = sorted((o for o in observations if o.keypoints is not None), key=lambda o: o.timestamp)
+    stride = stride_focal(ordered, body, layout, width, height, default, seed=seed)
+    if _stride_pins(stride, focal):
+        return _from_stride(stride, width, len(picks))
     log_f = np.log(focal)
     costs = _profile(observations, picks, body, layout, width, height, fovs)
     rows = np.all(np.isfinite(costs), axis=1)
@@ -211,6 +222,8 @@ def estimate_focal(
             True,
             (f"the interval spans +-{100 * relative:.0f} %, the fit cost rises {100 * rise:.1f} % at +-20 %"),
         )
+    if stride.runs:
+        reason += f"; {_stride_words(stride, width)}"
     return FocalEstimate(
         focal_px=f_best,
         fov_deg=fov_of(f_best, width),
@@ -221,4 +234,48 @@ def estimate_focal(
         frames=len(costs),
         rise=rise,
         profile=[(float(f), float(c)) for f, c in zip(fovs, profile, strict=True)],
+        stride=stride.as_dict(),
+    )
+
+
+def _stride_pins(stride: StrideEstimate, grid_focal: np.ndarray) -> bool:
+    """Whether the planted feet pin the focal length: a fixed point (the last fit's factor near 1),
+    enough stance runs, travel in depth, legs at a walker's speed, a tight interval, inside the
+    range searched."""
+    return (
+        stride.converged
+        and stride.runs >= MIN_STANCE_RUNS
+        and stride.travel_m >= MIN_TRAVEL_M
+        and stride.speed_mps >= MIN_WALK_SPEED
+        and stride.relative <= SURE_RELATIVE
+        and grid_focal.min() <= stride.focal_px <= grid_focal.max()
+    )
+
+
+def _stride_words(stride: StrideEstimate, width: int) -> str:
+    if not math.isfinite(stride.focal_px):
+        return f"the planted feet do not say ({stride.runs} stance runs)"
+    return (
+        f"the planted feet say {fov_of(stride.focal_px, width):.1f} deg (+-{100 * stride.relative:.0f} %, "
+        f"{stride.runs} stance runs, {stride.travel_m:.1f} m of travel in depth, legs at "
+        f"{stride.speed_mps:.1f} m/s; sure needs {MIN_STANCE_RUNS} runs, {MIN_TRAVEL_M:g} m, "
+        f"{MIN_WALK_SPEED:g} m/s and +-{100 * SURE_RELATIVE:.0f} %)"
+    )
+
+
+def _from_stride(stride: StrideEstimate, width: int, frames: int) -> FocalEstimate:
+    reason = (
+        f"a walk in depth with planted feet: {stride.runs} stance runs, {stride.travel_m:.1f} m of "
+        f"travel in depth, interval +-{100 * stride.relative:.0f} %"
+    )
+    return FocalEstimate(
+        focal_px=stride.focal_px,
+        fov_deg=fov_of(stride.focal_px, width),
+        low_fov_deg=fov_of(stride.high_px, width),
+        high_fov_deg=fov_of(stride.low_px, width),
+        sure=True,
+        reason=reason,
+        frames=stride.frames,
+        cue="stride",
+        stride=stride.as_dict(),
     )

@@ -190,6 +190,23 @@ def _body_forward(model, params: SmplSequence) -> np.ndarray:
     return np.concatenate(chunks, axis=0)
 
 
+# Motions whose walking plants its feet. ``mixed`` (the benchmark's default subject, with a walking
+# segment) keeps its sliding gait, so the figures recorded on it stay comparable.
+PLANTED = ("walk", "approach")
+
+
+def _body_joints(model, betas: np.ndarray, poses: np.ndarray, Rh: np.ndarray) -> np.ndarray:
+    """World joints (T, 24, 3) float64 of ``model`` posed by ``poses`` and ``Rh`` (no translation),
+    in the same chunks as :func:`_body_forward`: the skeleton the walks plant their feet with."""
+    sequence = SmplSequence(poses=poses, Rh=Rh, Th=np.zeros_like(Rh), betas=betas)
+    chunks = []
+    with torch.no_grad():
+        for lo in range(0, len(sequence), BODY_CHUNK_FRAMES):
+            out = drive_body(model, sequence, frames=slice(lo, lo + BODY_CHUNK_FRAMES))
+            chunks.append(out.joints.detach().to(torch.float64).cpu().numpy())
+    return np.concatenate(chunks, axis=0)
+
+
 def _lambert_shade(vertices: torch.Tensor, faces: torch.Tensor, Rh: np.ndarray) -> torch.Tensor:
     """The ``lambert`` mode's shade (light fixed in the body frame): lighting.lighting("lambert")."""
     return lighting("lambert").vertex_shade(vertices, faces, Rh)
@@ -268,6 +285,10 @@ def generate(config: SynthConfig, body=None, progress: bool = True) -> SynthResu
         test_motion=config.test_motion,
         train_yaw_deg=config.train_yaw_deg,
         test_yaw_deg=config.test_yaw_deg,
+        # walks plant their feet (gait.py); the default mixed subject keeps its recorded walk
+        skeleton=(lambda poses, Rh: _body_joints(body, betas, poses, Rh))
+        if config.motion in PLANTED
+        else None,
     )
     light = lighting(config.shading)
     cameras = make_rig(

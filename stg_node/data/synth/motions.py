@@ -54,11 +54,13 @@ clip), recorded in ``cuts``; the generator restarts the garment's dynamics there
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
 from stg_node.body.params import SmplSequence
+from stg_node.data.synth.gait import Feet
 from stg_node.data.synth.joint_limits import (
     JOINT_INDEX,
     NUM_JOINTS,
@@ -136,6 +138,7 @@ class _Drive:
     sway: np.ndarray  # (N, 2) metres: offset along the subject's left and forward axes
     walking: bool = False  # its yaw rate is the walking circle's curvature times the speed
     steered: bool = True  # while walking, steered onto the circle (False: the path is its own)
+    stepping: np.ndarray | None = None  # (N,) how much the travel comes from the feet; None: walking's
 
 
 @dataclass(frozen=True)
@@ -522,7 +525,9 @@ def _approach(t: np.ndarray, rng: np.random.Generator, style: _Style) -> _Drive:
     turn_area = APPROACH_TURN_S - ramp
     yaw_rate = style.direction * np.pi / turn_area * turning
     speed = speed_mps * walking * (leg / (leg - ramp))  # the ramps do not shorten the leg
-    return _Drive(gait.euler, yaw_rate, speed, gait.root, gait.sway, walking=True, steered=False)
+    return _Drive(  # turning round at the ends is stepping on the spot: the feet pivot, the body stays
+        gait.euler, yaw_rate, speed, gait.root, gait.sway, walking=True, steered=False, stepping=walking
+    )
 
 
 _PRIMITIVES = {
@@ -583,7 +588,14 @@ def _blend_weights(frame_time: np.ndarray, starts: list[float], cut: float | Non
 
 
 def _integrate_root(
-    yaw_rate: np.ndarray, speed: np.ndarray, walking: np.ndarray, style: _Style, dt: float, yaw0: float
+    yaw_rate: np.ndarray,
+    speed: np.ndarray,
+    walking: np.ndarray,
+    style: _Style,
+    dt: float,
+    yaw0: float,
+    feet: Feet | None = None,
+    stepping: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Integrate yaw (N,) and ground position (N, 2) from the blended rates, frame by frame.
 
@@ -591,6 +603,9 @@ def _integrate_root(
     turns the subject onto the sequence's circle around the origin (tangent to it, pulled
     radially back onto it), so every walking segment shares one circle and the subject never
     leaves the cameras' view. (A path of its own, as ``approach``'s, is not steered.)
+
+    ``feet`` (the posed skeleton's ankles) with ``stepping`` (N,): a frame that steps travels by
+    its stance foot (gait.py: the foot stays planted), blended with the speed by ``stepping``.
     """
     n = yaw_rate.shape[0]
     yaw = np.empty(n)
@@ -609,6 +624,9 @@ def _integrate_root(
             steer = walking[i] * STEER_GAIN * error
         yaw[i + 1] = yaw[i] + dt * (yaw_rate[i] + steer)
         ground[i + 1] = ground[i] + dt * speed[i] * heading
+        if feet is not None and stepping[i] > 0:
+            planted = feet.planted_step(i, yaw[i], yaw[i + 1])
+            ground[i + 1] = ground[i] + stepping[i] * planted + (1.0 - stepping[i]) * dt * speed[i] * heading
     return yaw, ground
 
 
@@ -623,6 +641,7 @@ def make_motion(
     test_motion: str | tuple[str, ...] | None = None,
     train_yaw_deg: float | None = None,
     test_yaw_deg: float | None = None,
+    skeleton: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
 ) -> MotionSequence:
     """Generate ``num_frames`` frames of ``motion`` at ``fps``, reproducibly from ``rng``.
 
@@ -630,7 +649,10 @@ def make_motion(
     frames); frames from there on use a fresh draw of the motion's parameters, or
     ``test_motion`` (one motion or several, played in equal parts). ``train_yaw_deg`` and
     ``test_yaw_deg`` hold orientations out (module doc). ``betas`` (S,) is the body shape the
-    sequence carries (default: ten zeros, the model's mean shape); it does not change the motion.
+    sequence carries (default: ten zeros, the model's mean shape). ``skeleton(poses, Rh) -> (N, 24,
+    3)`` poses the body's joints (SMPL axis-angle poses (N, 24, 3), rotations Rh (N, 3), no
+    translation): with it the walking frames plant their feet (gait.py), without it the walks'
+    feet slide (the travel is the drawn speed).
     """
     if motion not in MOTIONS:
         raise ValueError(f"unknown motion {motion!r}; choose one of {', '.join(MOTIONS)}")
@@ -670,7 +692,15 @@ def make_motion(
     walking = weights @ np.array([float(d.walking) for d in drives])
     steered = weights @ np.array([float(d.walking and d.steered) for d in drives])
     yaw0 = rng.uniform(-0.3, 0.3)
-    yaw, ground = _integrate_root(yaw_rate, speed, steered, style, dt, yaw0)
+    feet = None
+    stepping = np.stack(
+        [np.full(num_frames, float(d.walking)) if d.stepping is None else d.stepping for d in drives], axis=1
+    )
+    stepping = (weights * stepping).sum(axis=1)  # how much each frame's travel comes from its feet
+    if skeleton is not None and train_yaw_deg is None and np.any(stepping > 0):
+        unturned = SMPL_TO_WORLD @ euler_zyx_to_matrix(np.deg2rad(root))  # the pose's own lean, no yaw
+        feet = Feet(skeleton(euler_to_smpl_pose(euler).astype(np.float32), matrix_to_axis_angle(unturned)))
+    yaw, ground = _integrate_root(yaw_rate, speed, steered, style, dt, yaw0, feet, stepping)
     cuts: tuple[int, ...] = ()
     if train_yaw_deg is not None:
         # Held-out orientations: a sweep through the window replaces the motion's own turning,
@@ -688,7 +718,7 @@ def make_motion(
         if room > 1e-6 and abs(target) > abs(turned):
             yaw_rate = yaw_rate.copy()
             yaw_rate[:train_end] += standing[:train_end] * (target - turned) / room
-            yaw, ground = _integrate_root(yaw_rate, speed, steered, style, dt, yaw0)
+            yaw, ground = _integrate_root(yaw_rate, speed, steered, style, dt, yaw0, feet, stepping)
     yaw_rot = axis_rotation("z", yaw)  # (N, 3, 3)
     forward = yaw_rot @ np.array([0.0, -1.0, 0.0])
     left = yaw_rot @ np.array([1.0, 0.0, 0.0])
