@@ -35,3 +35,14 @@ def _project_thread_default():
     from stg_node.threads import configure_threads
 
     configure_threads()
+
+
+@pytest.fixture
+def cpu_kernels():
+    """The C++ CPU kernels, built (or found cached); skips where this machine cannot build them."""
+    from stg_node.splat import build
+
+    try:
+        return build.load_kernels()
+    except build.ExtensionUnavailable as exc:  # pragma: no cover - machines without a compiler
+        pytest.skip(f"CPU kernels unavailable: {exc}")

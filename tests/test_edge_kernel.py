@@ -7,15 +7,9 @@ import pytest
 import torch
 
 from stg_node.avatar.isometry import approximate_knn
-from stg_node.splat import build, edge_ops
+from stg_node.splat import edge_ops
 
-
-@pytest.fixture(autouse=True)
-def _kernels():
-    try:
-        build.load_kernels()
-    except build.ExtensionUnavailable as exc:  # pragma: no cover - machines without a compiler
-        pytest.skip(f"CPU kernels unavailable: {exc}")
+pytestmark = pytest.mark.usefixtures("cpu_kernels")  # skips where the kernels cannot build
 
 
 def graph_case(n=600, seed=0):

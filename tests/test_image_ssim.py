@@ -16,12 +16,7 @@ from stg_node.splat import build, image_ops
 SIZES = [(11, 11), (12, 37), (37, 12), (420, 200)]
 
 
-@pytest.fixture(autouse=True)
-def _kernels():
-    try:
-        build.load_kernels()
-    except build.ExtensionUnavailable as exc:  # pragma: no cover - machines without a compiler
-        pytest.skip(f"CPU kernels unavailable: {exc}")
+pytestmark = pytest.mark.usefixtures("cpu_kernels")  # skips where the kernels cannot build
 
 
 def random_pair(h, w, c=3, seed=0):

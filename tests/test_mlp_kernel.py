@@ -7,15 +7,9 @@ import pytest
 import torch
 from torch import nn
 
-from stg_node.splat import build, mlp_ops
+from stg_node.splat import mlp_ops
 
-
-@pytest.fixture(autouse=True)
-def _kernels():
-    try:
-        build.load_kernels()
-    except build.ExtensionUnavailable as exc:  # pragma: no cover - machines without a compiler
-        pytest.skip(f"CPU kernels unavailable: {exc}")
+pytestmark = pytest.mark.usefixtures("cpu_kernels")  # skips where the kernels cannot build
 
 
 def network(widths, activations, bias=True, seed=0):

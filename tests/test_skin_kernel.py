@@ -9,15 +9,9 @@ import torch
 from stg_node.avatar.model import _normalise, conjugate, quat_multiply, rotate
 from stg_node.avatar.rigid import QUAT_EPS, SKIN_WEIGHT_EPS, PosedBones, blend_weights, skin
 from stg_node.body import lbs
-from stg_node.splat import build, skin_ops
+from stg_node.splat import skin_ops
 
-
-@pytest.fixture(autouse=True)
-def _kernels():
-    try:
-        build.load_kernels()
-    except build.ExtensionUnavailable as exc:  # pragma: no cover - machines without a compiler
-        pytest.skip(f"CPU kernels unavailable: {exc}")
+pytestmark = pytest.mark.usefixtures("cpu_kernels")  # skips where the kernels cannot build
 
 
 def scene(n=300, bones=24, seed=0, dtype=torch.float64):

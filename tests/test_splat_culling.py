@@ -7,16 +7,10 @@ from __future__ import annotations
 import pytest
 import torch
 
-from stg_node.splat import build, culling, rasterize
+from stg_node.splat import culling, rasterize
 from stg_node.splat.scenes import front_camera, person_sized_scene
 
-
-@pytest.fixture(autouse=True)
-def _kernels():
-    try:
-        build.load_kernels()
-    except build.ExtensionUnavailable as exc:  # pragma: no cover - machines without a compiler
-        pytest.skip(f"CPU kernels unavailable: {exc}")
+pytestmark = pytest.mark.usefixtures("cpu_kernels")  # skips where the kernels cannot build
 
 
 def cameras(size=128):

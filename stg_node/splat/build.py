@@ -235,6 +235,20 @@ _kernels: CpuKernels | None = None
 _failure: ExtensionUnavailable | None = None
 
 
+def kernels_take(*tensors) -> bool:
+    """Whether the CPU kernels take these tensors: float32 CPU ones (None entries are ignored) and
+    kernels that build here. Raises nothing; the build's failure is remembered."""
+    import torch
+
+    if any(t is not None and (t.device.type != "cpu" or t.dtype != torch.float32) for t in tensors):
+        return False
+    try:
+        load_kernels()
+    except BackendUnavailable:
+        return False
+    return True
+
+
 def load_kernels() -> CpuKernels:
     """The process-wide kernels, built on first call; the first failure is remembered."""
     global _kernels, _failure

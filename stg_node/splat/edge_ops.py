@@ -17,8 +17,7 @@ from __future__ import annotations
 
 import torch
 
-from .build import load_kernels
-from .types import BackendUnavailable
+from .build import kernels_take, load_kernels
 
 
 def edge_length_loss_torch(
@@ -32,14 +31,7 @@ def edge_length_loss_torch(
 
 def edge_kernel_applies(x: torch.Tensor, c: torch.Tensor) -> bool:
     """Whether the kernel takes this pair: float32 CPU tensors, and the kernels build here."""
-    for t in (x, c):
-        if t.device.type != "cpu" or t.dtype != torch.float32:
-            return False
-    try:
-        load_kernels()
-    except BackendUnavailable:
-        return False
-    return True
+    return kernels_take(x, c)
 
 
 class _EdgeLength(torch.autograd.Function):

@@ -138,17 +138,22 @@ class _L1Ssim(torch.autograd.Function):
         return grad_a, None, None
 
 
+def _check_kernel_pair(name: str, a: torch.Tensor, b: torch.Tensor) -> None:
+    """The kernels' terms: SSIM's image checks, CPU tensors, and no gradient wanted for ``b``."""
+    check_ssim_images(a, b)
+    if a.device.type != "cpu" or b.device.type != "cpu":
+        raise ValueError(f"image_ops.{name} runs on CPU tensors, got {a.device} and {b.device}")
+    if b.requires_grad:
+        raise ValueError(
+            f"image_ops.{name} differentiates only its first image; b requires a gradient "
+            "(detach it, or use a torch implementation)"
+        )
+
+
 def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Mean SSIM of ``(H, W, C)`` CPU images in [0, 1] (module docstring), as a 0-d tensor of
     ``a``'s dtype; differentiable with respect to ``a`` only. Computed in float32."""
-    check_ssim_images(a, b)
-    if a.device.type != "cpu" or b.device.type != "cpu":
-        raise ValueError(f"image_ops.ssim runs on CPU tensors, got {a.device} and {b.device}")
-    if b.requires_grad:
-        raise ValueError(
-            "image_ops.ssim differentiates only its first image; b requires a gradient "
-            "(detach it, or use a torch implementation)"
-        )
+    _check_kernel_pair("ssim", a, b)
     # Without a gradient to come (no_grad, or `a` a constant) the derivative maps are not made.
     return _Ssim.apply(a, b, torch.is_grad_enabled() and a.requires_grad)
 
@@ -158,12 +163,5 @@ def l1_ssim(a: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, torch.Tenso
     differentiable with respect to ``a``: one kernel pass each way for both, where the L1 term in
     torch would add four passes over the image (difference, abs, mean, and the sum of the two
     terms' gradients). Computed in float32; the same checks as ``ssim``."""
-    check_ssim_images(a, b)
-    if a.device.type != "cpu" or b.device.type != "cpu":
-        raise ValueError(f"image_ops.l1_ssim runs on CPU tensors, got {a.device} and {b.device}")
-    if b.requires_grad:
-        raise ValueError(
-            "image_ops.l1_ssim differentiates only its first image; b requires a gradient "
-            "(detach it, or use a torch implementation)"
-        )
+    _check_kernel_pair("l1_ssim", a, b)
     return _L1Ssim.apply(a, b, torch.is_grad_enabled() and a.requires_grad)

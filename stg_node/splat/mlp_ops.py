@@ -22,8 +22,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from .build import load_kernels
-from .types import BackendUnavailable
+from .build import kernels_take, load_kernels
 
 # Activation codes of csrc/small_mlp.h (enum Activation).
 ACTIVATIONS = {"identity": 0, "relu": 1, "sigmoid": 2, "tanh": 3}
@@ -92,14 +91,7 @@ def mlp_torch(x: torch.Tensor, layers: list[Layer]) -> torch.Tensor:
 
 def mlp_kernel_applies(x: torch.Tensor, layers: list[Layer]) -> bool:
     """Whether :func:`mlp` can take this call: float32 CPU tensors and the kernels build here."""
-    tensors = [x] + [t for layer in layers for t in (layer.weight, layer.bias) if t is not None]
-    if any(t.device.type != "cpu" or t.dtype != torch.float32 for t in tensors):
-        return False
-    try:
-        load_kernels()
-    except BackendUnavailable:
-        return False
-    return True
+    return kernels_take(x, *(t for layer in layers for t in (layer.weight, layer.bias)))
 
 
 def _f32(t: torch.Tensor) -> torch.Tensor:

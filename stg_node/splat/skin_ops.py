@@ -21,8 +21,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .build import load_kernels
-from .types import BackendUnavailable
+from .build import kernels_take, load_kernels
 
 BONE_STRIDE = 16  # floats per bone handed to the kernel: [R | t] rows (12), then the quaternion (4)
 
@@ -48,16 +47,7 @@ def _f32(t: torch.Tensor) -> torch.Tensor:
 def skin_kernel_applies(*tensors: torch.Tensor | None) -> bool:
     """Whether :func:`skin` takes these inputs: float32 CPU tensors (None entries are ignored) and
     the kernels build here. Raises nothing; the build's failure is remembered by build.py."""
-    for t in tensors:
-        if t is None:
-            continue
-        if t.device.type != "cpu" or t.dtype != torch.float32:
-            return False
-    try:
-        load_kernels()
-    except BackendUnavailable:
-        return False
-    return True
+    return kernels_take(*tensors)
 
 
 class _Skin(torch.autograd.Function):

@@ -16,15 +16,8 @@ from stg_node.avatar.color_cache import ColorCache
 from stg_node.avatar.model import Camera3, render
 from stg_node.avatar.renderer import AvatarRenderer
 from stg_node.avatar.trainer import Trainer
-from stg_node.splat import build
 
-
-@pytest.fixture(autouse=True)
-def _kernels():
-    try:
-        build.load_kernels()
-    except build.ExtensionUnavailable as exc:  # pragma: no cover - machines without a compiler
-        pytest.skip(f"CPU kernels unavailable: {exc}")
+pytestmark = pytest.mark.usefixtures("cpu_kernels")  # skips where the kernels cannot build
 
 
 @pytest.fixture(scope="module")

@@ -7,15 +7,8 @@ import pytest
 import torch
 
 from stg_node.avatar import losses as L
-from stg_node.splat import build
 
-
-@pytest.fixture(autouse=True)
-def _kernels():
-    try:
-        build.load_kernels()
-    except build.ExtensionUnavailable as exc:  # pragma: no cover - machines without a compiler
-        pytest.skip(f"CPU kernels unavailable: {exc}")
+pytestmark = pytest.mark.usefixtures("cpu_kernels")  # skips where the kernels cannot build
 
 
 def flow_case(h=37, w=29, seed=0):
