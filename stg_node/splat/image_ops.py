@@ -90,17 +90,24 @@ def kernels_available() -> bool:
     return True
 
 
+def _ssim_forward(ctx, a, b, want_grad):
+    """The SSIM kernel's forward pass for an autograd Function: (ops, a32, b32, mean SSIM), with
+    what the backward needs saved on ``ctx`` when a gradient is wanted."""
+    ops = load_kernels().ops
+    a32 = a.detach().to(torch.float32).contiguous()
+    b32 = b.detach().to(torch.float32).contiguous()
+    value, d_mu, d_var, d_cov = ops.ssim_fwd(
+        a32, b32, _TAPS, SSIM_C1, SSIM_C2, want_grad, torch.get_num_threads()
+    )
+    if want_grad:
+        ctx.save_for_backward(a32, b32, d_mu, d_var, d_cov)
+    return ops, a32, b32, value
+
+
 class _Ssim(torch.autograd.Function):
     @staticmethod
     def forward(ctx, a, b, want_grad):
-        ops = load_kernels().ops
-        a32 = a.detach().to(torch.float32).contiguous()
-        b32 = b.detach().to(torch.float32).contiguous()
-        value, d_mu, d_var, d_cov = ops.ssim_fwd(
-            a32, b32, _TAPS, SSIM_C1, SSIM_C2, want_grad, torch.get_num_threads()
-        )
-        if want_grad:
-            ctx.save_for_backward(a32, b32, d_mu, d_var, d_cov)
+        _, _, _, value = _ssim_forward(ctx, a, b, want_grad)
         return value.to(a.dtype)
 
     @staticmethod
@@ -117,15 +124,8 @@ class _L1Ssim(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, a, b, want_grad):
-        ops = load_kernels().ops
-        a32 = a.detach().to(torch.float32).contiguous()
-        b32 = b.detach().to(torch.float32).contiguous()
-        value, d_mu, d_var, d_cov = ops.ssim_fwd(
-            a32, b32, _TAPS, SSIM_C1, SSIM_C2, want_grad, torch.get_num_threads()
-        )
+        ops, a32, b32, value = _ssim_forward(ctx, a, b, want_grad)
         l1 = ops.abs_diff_sum(a32, b32) / a32.numel()
-        if want_grad:
-            ctx.save_for_backward(a32, b32, d_mu, d_var, d_cov)
         return l1.to(a.dtype), value.to(a.dtype)
 
     @staticmethod
