@@ -69,26 +69,31 @@ def _bent_elbow_pose(degrees: float) -> np.ndarray:
     return poses
 
 
+def _bent_elbow_trainer(tiny_frames):
+    """A 2-step trainer's model with the left elbow folded 150 degrees: (trainer, body, camera centre)."""
+    from avatar_helpers import small_config
+
+    from stg_node.avatar.model import BodyState
+    from stg_node.avatar.trainer import Trainer
+    from stg_node.body.params import SmplParams
+
+    trainer = Trainer(small_config(iterations=2), seed=0)
+    trainer.add_frames(tiny_frames[:2])
+    smpl = tiny_frames[0].smpl
+    bent = SmplParams(poses=_bent_elbow_pose(150.0), Rh=smpl.Rh, Th=smpl.Th, betas=smpl.betas)
+    return trainer, BodyState.from_smpl(bent), torch.tensor([0.0, -3.0, 1.0])
+
+
 def test_posing_shrinks_gaussians_between_bent_bones_only(tiny_frames):
     """A trained model posed with an elbow folded 150 degrees: with the joint shrink on, each
     Gaussian is rendered at its size times the squeeze of its bones' blend; one on a single bone is
     rendered at its size where its bones all turn alike; off, every Gaussian keeps its size."""
     import dataclasses
 
-    from avatar_helpers import small_config
-
-    from stg_node.avatar.model import BodyState
     from stg_node.avatar.rigid import joint_shrink
-    from stg_node.avatar.trainer import Trainer
-    from stg_node.body.params import SmplParams
 
-    trainer = Trainer(small_config(iterations=2), seed=0)
-    trainer.add_frames(tiny_frames[:2])
+    trainer, body, centre = _bent_elbow_trainer(tiny_frames)
     model = trainer.model
-    smpl = tiny_frames[0].smpl
-    bent = SmplParams(poses=_bent_elbow_pose(150.0), Rh=smpl.Rh, Th=smpl.Th, betas=smpl.betas)
-    body = BodyState.from_smpl(bent)
-    centre = torch.tensor([0.0, -3.0, 1.0])
     with torch.no_grad():
         on = model.pose(body, 0.0, centre, cull_transparent=False)
         factor = joint_shrink(model.skin_weights(), model.bones(body))
@@ -132,20 +137,11 @@ def test_a_training_pose_takes_the_same_squeeze_and_differentiates_the_scales_th
     """With gradients on (a training step) the squeeze comes from the skinning kernel's blend, as a
     renderer's: the posed scales equal the table's times the torch factor (rigid.joint_shrink) to
     float rounding, and the scales' gradient is the factor's (the squeeze takes none itself)."""
-    from avatar_helpers import small_config
 
-    from stg_node.avatar.model import BodyState
     from stg_node.avatar.rigid import joint_shrink
-    from stg_node.avatar.trainer import Trainer
-    from stg_node.body.params import SmplParams
 
-    trainer = Trainer(small_config(iterations=2), seed=0)
-    trainer.add_frames(tiny_frames[:2])
+    trainer, body, centre = _bent_elbow_trainer(tiny_frames)
     model = trainer.model
-    smpl = tiny_frames[0].smpl
-    bent = SmplParams(poses=_bent_elbow_pose(150.0), Rh=smpl.Rh, Th=smpl.Th, betas=smpl.betas)
-    body = BodyState.from_smpl(bent)
-    centre = torch.tensor([0.0, -3.0, 1.0])
     posed = model.pose(body, 0.0, centre, cull_transparent=False)
     with torch.no_grad():
         factor = joint_shrink(model.skin_weights(), model.bones(body))
