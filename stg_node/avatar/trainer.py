@@ -25,6 +25,7 @@ import torch
 
 from stg_node.avatar import checkpoint, nonrigid, spacetime
 from stg_node.avatar import losses as L
+from stg_node.avatar.color_cache import TrainingColorTurns
 from stg_node.avatar.config import LBS_ONLY, TrainConfig
 from stg_node.avatar.densify import (
     CanonicalSurface,
@@ -164,6 +165,9 @@ class Trainer:
         )
         self.neighbours = NeighbourGraph()  # local rigidity of the non-rigid motion
         self.isometry = IsometryGraph()  # canonical neighbours keep their distances when posed
+        # the colour MLP in turns: a CPU economy (on a GPU the network costs little: every row)
+        turns = config.color_every if self.device.type == "cpu" else 1
+        self.color_turns = TrainingColorTurns(turns) if turns > 1 else None
         self.profile: StepProfile | None = None  # set to a StepProfile to time the phases of each step
         self.decision: nonrigid.Decision | None = None  # what "auto" chose for the non-rigid part
         #: Numbers the caller keeps with the checkpoint, written and restored in the same file (the
@@ -371,7 +375,15 @@ class Trainer:
         moving = self._moving_rows()  # only these carry motion terms (the gate); the rest are rigid
         state = self.model.spacetime(u + jitter, rows=moving)
         posed = self.model.pose(
-            body, u, camera.center, sh_degree=sh_degree, bones=bones, key=key, state=state, camera=camera
+            body,
+            u,
+            camera.center,
+            sh_degree=sh_degree,
+            bones=bones,
+            key=key,
+            state=state,
+            camera=camera,
+            color_turns=None if self.color_turns is None else (self.color_turns, it),
         )
         timer.mark("pose")
 
@@ -751,6 +763,8 @@ class Trainer:
         """Checkpoint everything needed to resume exactly (one GaussianSnapshot file, atomic)."""
         if self.model is None:
             raise RuntimeError("no model yet: add a frame first")
+        if self.color_turns is not None:  # a run resumed from here makes the same steps: full colour next
+            self.color_turns.reset()
         slots = sorted(self.pose_slots.items(), key=lambda kv: kv[1])
         state = checkpoint.TrainingState(
             model=self.model,
