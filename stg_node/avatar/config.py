@@ -275,9 +275,10 @@ class TrainConfig:
     full_frame_every: int = 0  # every K-th step renders the whole frame (0 = never)
     # The colour MLP in turns on a CPU (issue 24, color_cache.TrainingColorTurns): a step evaluates
     # it, with its gradient (x color_every), on every color_every-th row only; the other rows keep
-    # their last colour. 2: the step's MLP half the cost, the benchmark's result within 0.02 dB
-    # (3 and 4 lost 0.2-0.25 dB: docs/BENCHMARKS.md). 1: every row every step (as on a GPU).
-    color_every: int = 2
+    # their last colour, and the features learn at lr_color x sqrt(color_every) (Adam on a gradient
+    # 1 step in k). 3: a third of the MLP's cost per step (docs/BENCHMARKS.md, issue 24 round 7).
+    # 1: every row every step (as on a GPU).
+    color_every: int = 3
     sh_increase_every: int = 500  # SH degree grows by one every this many steps, up to sh_degree
     checkpoint_every: int = 500
     log_every: int = 10

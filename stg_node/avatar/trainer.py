@@ -251,7 +251,9 @@ class Trainer:
             "quats": c.lr_quats,
             "opacity_logits": c.lr_opacity,
             "sh": c.lr_color,
-            "features": c.lr_color,
+            # in turns a row's features take a step's gradient on 1 step in k: with Adam they would
+            # move ~1/sqrt(k) as far, so their rate is x sqrt(k) (color_cache.TrainingColorTurns)
+            "features": c.lr_color * math.sqrt(1 if self.color_turns is None else self.color_turns.every),
             "skin_delta": c.lr_skin,
             "motion": c.lr_motion,
             "motion_coef": c.lr_motion_coef,
