@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+import numpy as np
 import torch
 
 
@@ -89,9 +90,9 @@ class TrainingColorTurns:
     ``every`` times (the value is unchanged), so each network weight and each row's feature get in
     expectation the gradient they would get from the full evaluation. Colours are carried only
     while the rows are the same rows: a change of the table (densification, a restore), of the
-    SH degree, or :meth:`reset` (the trainer calls it at every checkpoint, so a resumed run makes
-    the same steps as one that never stopped) starts a full evaluation. ``every=1`` is the exact
-    step (every row every step)."""
+    SH degree, or :meth:`reset` starts a full evaluation. The carried colours are checkpointed
+    (:meth:`state_arrays`), so a resumed run makes the same steps as one that never stopped.
+    ``every=1`` is the exact step (every row every step)."""
 
     def __init__(self, every: int):
         if int(every) < 1:
@@ -100,10 +101,33 @@ class TrainingColorTurns:
         self._key: tuple | None = None
         self._colors: torch.Tensor | None = None  # (table rows, 3), no graph
         self._known: torch.Tensor | None = None  # (table rows,) bool
+        self._restored: tuple[int, int] | None = None
         self.evaluated = 0  # rows evaluated by the last call (tests, benchmarks)
 
     def reset(self) -> None:
         self._key = self._colors = self._known = None
+        self._restored: tuple[int, int] | None = None  # (SH degree, rows) of restored colours
+
+    def state_arrays(self) -> dict[str, np.ndarray]:
+        """The carried colours for a checkpoint (float32 as they are: exact), or {} with none."""
+        if self._colors is None:
+            return {}
+        return {
+            "colors": self._colors.cpu().numpy(),
+            "known": self._known.cpu().numpy().astype(np.float32),
+            "degree": np.asarray([self._key[1]], np.float32),
+        }
+
+    def load_state_arrays(self, arrays: dict[str, np.ndarray], device) -> None:
+        """From :meth:`state_arrays`: carried again from the first step on the same rows and SH
+        degree (a checkpoint written without them starts with a full evaluation)."""
+        self.reset()
+        if "colors" not in arrays:
+            return
+        colors = np.array(arrays["colors"], np.float32)  # a copy: the checkpoint's arrays are read-only
+        self._colors = torch.from_numpy(colors.reshape(colors.shape[0], -1)).to(device)
+        self._known = torch.as_tensor(np.asarray(arrays["known"]) > 0.5, device=device)
+        self._restored = (int(np.asarray(arrays["degree"]).reshape(-1)[0]), colors.shape[0])
 
     def colors(
         self,
@@ -115,8 +139,13 @@ class TrainingColorTurns:
     ) -> torch.Tensor:
         """Colours of the rendered rows (``rows`` (M,): their table rows, None: every row in order)
         at step ``iteration``; ``evaluate(sel)`` is the network on the rendered rows at positions
-        ``sel`` (None: all), with its graph. ``key`` names the rows and what the colours are of."""
+        ``sel`` (None: all), with its graph. ``key`` (model, SH degree, table version) names the
+        rows and what the colours are of."""
         key = (*key, int(num_rows))
+        if self._restored is not None:  # the model and table are new objects: the same rows?
+            if self._restored == (key[1], key[-1]):
+                self._key = key
+            self._restored = None
         if self.every == 1 or key != self._key or self._colors is None:
             fresh = evaluate(None)
             self.evaluated = fresh.shape[0]

@@ -765,8 +765,6 @@ class Trainer:
         """Checkpoint everything needed to resume exactly (one GaussianSnapshot file, atomic)."""
         if self.model is None:
             raise RuntimeError("no model yet: add a frame first")
-        if self.color_turns is not None:  # a run resumed from here makes the same steps: full colour next
-            self.color_turns.reset()
         slots = sorted(self.pose_slots.items(), key=lambda kv: kv[1])
         state = checkpoint.TrainingState(
             model=self.model,
@@ -789,6 +787,7 @@ class Trainer:
             isometry=self.isometry.state_arrays(),
             notes=dict(self.notes),
             exposure=self.exposure.state_arrays(),
+            color_turns={} if self.color_turns is None else self.color_turns.state_arrays(),
         )
         return checkpoint.save(path, state)
 
@@ -825,6 +824,8 @@ class Trainer:
             self.pose_deltas = torch.nn.Parameter(state.pose_deltas.to(self.device))
         self._build_optimizer()
         self.exposure.load_state_arrays(state.exposure)
+        if self.color_turns is not None:
+            self.color_turns.load_state_arrays(state.color_turns, self.device)
         self.optimizer.load_table_state(state.table_adam)
         self.optimizer.load_dense_state(state.dense_adam)
         self.densify_state = self.densifier.initialize_state(self.model) | {
