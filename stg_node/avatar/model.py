@@ -18,7 +18,7 @@ from torch import nn
 
 from stg_node.avatar import spacetime
 from stg_node.avatar.color import ColorMLP, sh_color
-from stg_node.avatar.color_cache import ColorCache
+from stg_node.avatar.color_cache import ColorCache, TrainingColorTurns
 from stg_node.avatar.config import ModelConfig
 from stg_node.avatar.gaussians import MOTION_COLUMNS, GaussianTable, cap_scale_ratio
 from stg_node.avatar.motion_basis import MotionBases
@@ -314,13 +314,16 @@ class AvatarModel(nn.Module):
         camera: Camera3 | None = None,
         color_cache: ColorCache | None = None,
         light: LightSpec | None = None,
+        color_turns: tuple[TrainingColorTurns, int] | None = None,
     ) -> PosedGaussians:
         """World-space Gaussians for one body pose at normalised time ``u``, seen from ``camera_center``.
 
         ``camera``: leave out the Gaussians it cannot see (splat.culling) before they are coloured.
         ``color_cache``: colours of a live stream, recomputed in turns (color_cache.py; rendering
         only, ignored when gradients are on).
-        ``light``: how a model with shading is lit (default: its learned light, shading.py)."""
+        ``light``: how a model with shading is lit (default: its learned light, shading.py).
+        ``color_turns``: (turns, iteration) in training: the colour MLP on this step's turn of the
+        rows only, the others' colours carried (color_cache.TrainingColorTurns)."""
         cfg = self.config
         table = self.table
         bones = bones or self.bones(body)
@@ -382,6 +385,10 @@ class AvatarModel(nn.Module):
             if color_cache is not None and not torch.is_grad_enabled():
                 versions = (table["features"]._version, *(p._version for p in self.color_mlp.parameters()))
                 colors = color_cache.colors(evaluate, index, table.num, (self.cache_token, degree, versions))
+            elif color_turns is not None and torch.is_grad_enabled():
+                turns, iteration = color_turns
+                rows_key = (self.cache_token, degree, table.version)
+                colors = turns.colors(evaluate, index, table.num, iteration, rows_key)
             else:
                 colors = evaluate(None)
         else:
