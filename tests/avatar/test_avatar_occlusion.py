@@ -200,7 +200,9 @@ def _random_spheres(seed: int, points: int, spheres: int, groups: int):
     radii = 0.02 + 0.1 * torch.rand(spheres, generator=g, dtype=torch.float64)
     p = torch.randn(points, 3, generator=g, dtype=torch.float64) * 0.4
     p[: spheres // 2] = centres[: spheres // 2]  # at a centre: d^2 clamped, the share capped at 1
-    p[spheres // 2 : spheres] = centres[: spheres - spheres // 2] + 0.5 * radii[: spheres - spheres // 2, None]
+    p[spheres // 2 : spheres] = (
+        centres[: spheres - spheres // 2] + 0.5 * radii[: spheres - spheres // 2, None]
+    )
     n = torch.nn.functional.normalize(torch.randn(points, 3, generator=g, dtype=torch.float64), dim=1)
     mask = torch.rand(groups, spheres, generator=g) > 0.3
     group = torch.randint(0, groups, (points,), generator=g)
@@ -219,7 +221,9 @@ def test_the_kernel_equals_the_torch_reference_in_float64(cpu_kernels, spheres):
     assert got.dtype == torch.float32 and got.shape == (600,)
     assert float(truth.min()) < 0.9  # the case covers points in the spheres' shadow
     np.testing.assert_allclose(got.double().numpy(), truth.numpy(), atol=2e-6, rtol=0)
-    two = cpu_kernels.ops.sphere_visibility(p.float(), n.float(), group, c.float(), r.square().float(), mask.float(), 2)
+    two = cpu_kernels.ops.sphere_visibility(
+        p.float(), n.float(), group, c.float(), r.square().float(), mask.float(), 2
+    )
     assert torch.equal(two, got)  # threads split the points, never a point's product
 
 
@@ -249,7 +253,9 @@ def test_the_kernel_refuses_a_group_outside_its_mask(cpu_kernels):
     p, n, c, r, mask, group = _random_spheres(0, 10, 4, 2)
     group[3] = 2
     with pytest.raises(RuntimeError, match="group 2 of point 3"):
-        cpu_kernels.ops.sphere_visibility(p.float(), n.float(), group, c.float(), r.square().float(), mask.float(), 1)
+        cpu_kernels.ops.sphere_visibility(
+            p.float(), n.float(), group, c.float(), r.square().float(), mask.float(), 1
+        )
 
 
 # --- the default --------------------------------------------------------------------------------
