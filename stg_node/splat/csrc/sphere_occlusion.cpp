@@ -52,9 +52,10 @@ void sphere_visibility(const float* points, const float* normals, const int64_t*
 
 #pragma omp parallel for schedule(static) num_threads(std::max(1, threads))
     for (int64_t i = 0; i < m; ++i) {
-        const v8f px = v8_splat(points[3 * i]), py = v8_splat(points[3 * i + 1]), pz = v8_splat(points[3 * i + 2]);
-        const v8f nx = v8_splat(normals[3 * i]), ny = v8_splat(normals[3 * i + 1]),
-                  nz = v8_splat(normals[3 * i + 2]);
+        const float* p = points + 3 * i;
+        const float* n = normals + 3 * i;
+        const v8f px = v8_splat(p[0]), py = v8_splat(p[1]), pz = v8_splat(p[2]);
+        const v8f nx = v8_splat(n[0]), ny = v8_splat(n[1]), nz = v8_splat(n[2]);
         const float* wi = w.data() + group[i] * padded;
         v8f acc = one;
         for (int64_t s = 0; s < padded; s += 8) {
