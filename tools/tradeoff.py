@@ -405,13 +405,13 @@ NEEDLE_ABLATIONS = (
     ),
     ("room_turn_held_out", "no_joint_shrink", "no joint shrink", {"model.joint_shrink": False}),
 )
-# The body's ambient-occlusion term (occlusion.py) switched on, on the subject that casts shadows on
-# itself and on the conditions without self-shadowing (it must not cost there).
-OCCLUSION = {"model.occlusion": True}
+# The body's ambient-occlusion term (occlusion.py, on in the presets) switched off, on the subject
+# that casts shadows on itself and on the conditions without self-shadowing (it must not cost there).
+NO_OCCLUSION = {"model.occlusion": False}
 OCCLUSION_ABLATIONS = (
-    ("room_self_shadow", "occlusion", "with the ambient-occlusion term", OCCLUSION),
-    ("room_turn_held_out", "occlusion", "with the ambient-occlusion term", OCCLUSION),
-    ("flat_turn_held_out", "occlusion", "with the ambient-occlusion term", OCCLUSION),
+    ("room_self_shadow", "no_occlusion", "without the ambient-occlusion term", NO_OCCLUSION),
+    ("room_turn_held_out", "no_occlusion", "without the ambient-occlusion term", NO_OCCLUSION),
+    ("flat_turn_held_out", "no_occlusion", "without the ambient-occlusion term", NO_OCCLUSION),
 )
 
 

@@ -84,7 +84,8 @@ class ModelConfig:
     joint_shrink: bool = True
     # What the body casts on itself (occlusion.py): with shading, the irradiance times the share of
     # each Gaussian's sky the posed body (spheres fitted to it) leaves open, at a learned strength.
-    occlusion: bool = False
+    # On by default since its C++ kernel (csrc/sphere_occlusion.cpp) made it cheap: docs/AVATAR.md.
+    occlusion: bool = True
 
     def validate(self) -> None:
         if self.light_model not in LIGHT_MODELS:

@@ -176,6 +176,7 @@ class AvatarModel(nn.Module):
         self._skin_weight_cache: tuple | None = None  # (key, weights): see _render_skin_weights
         self._moving_rows_cache: tuple | None = None  # (key, rows): see _render_spacetime
         self._scale_cache: tuple | None = None  # (key, scales): see _render_scales
+        self._bone_cache: tuple | None = None  # (key, bones): see _dominant_bones
 
     @property
     def device(self) -> torch.device:
@@ -251,6 +252,17 @@ class AvatarModel(nn.Module):
         if cached is None or cached[0] != key:
             cached = (key, self.scales().detach())
             self._scale_cache = cached
+        return cached[1]
+
+    def _dominant_bones(self) -> torch.Tensor:
+        """(N,) each Gaussian's largest body skinning weight's bone (the occlusion term's own bone),
+        found once per change of the table, not every frame (an argmax over (N, 24))."""
+        column = self.table["skin_weights"]
+        key = (self.table.version, column._version, column.shape[0])
+        cached = self._bone_cache
+        if cached is None or cached[0] != key:
+            cached = (key, column.detach().argmax(dim=1))
+            self._bone_cache = cached
         return cached[1]
 
     def bones(self, body: BodyState) -> PosedBones:
@@ -400,7 +412,7 @@ class AvatarModel(nn.Module):
                 root = lbs.axis_angle_to_matrix(body.Rh[0]) @ lbs.axis_angle_to_matrix(body.poses[0, 0])
             visible = None
             if self.shading.occlusion is not None:  # what the posed body casts on each Gaussian
-                bone = table["skin_weights"].detach().argmax(dim=1)
+                bone = self._dominant_bones()
                 visible = self.shading.occlusion.visibility(
                     means, normals, bone if index is None else bone[index], bones.transforms[0]
                 )
