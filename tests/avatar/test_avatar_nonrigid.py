@@ -518,3 +518,28 @@ def test_a_row_is_judged_on_the_steps_it_existed_in(tiny_frames, monkeypatch):
     assert report["pruned"] == 1 and report["cloned"] == 0
     assert torch.equal(model.table["means"].detach(), means[1:])  # row 0 went, the others stayed
     assert not bool(state["alive_count"].any())  # the next interval counts from zero
+
+
+def test_a_checkpoint_without_per_row_step_counts_resumes_with_every_row_there_all_interval(
+    tiny_frames, tmp_path, monkeypatch
+):
+    """A checkpoint written before ``alive_count`` was kept loads with it equal to the interval's
+    step count for every row (the old rule: each row judged over the whole interval), not zeros,
+    which would spare every row from the next prune."""
+    from stg_node.avatar import checkpoint
+
+    trainer, _ = _trainer(tiny_frames, _trial_config(**{"densify.interval": 8}), 6)
+    steps = float(trainer.densify_state["steps_seen"])
+    assert steps > 0
+    path = trainer.save(tmp_path / "ck.stgsnap")
+    read = checkpoint.read_snapshot_file
+
+    def without_alive(p):
+        msg = read(p)
+        del msg.arrays["train.densify.alive_count"]
+        return msg
+
+    monkeypatch.setattr(checkpoint, "read_snapshot_file", without_alive)
+    alive = checkpoint.load(path).densify["alive_count"]
+    assert alive.shape == trainer.densify_state["vis_count"].shape
+    assert bool((alive == steps).all())
