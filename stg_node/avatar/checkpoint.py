@@ -153,6 +153,9 @@ def load(path: str | Path, *, device="cpu") -> TrainingState:
             densify["steps_seen"] = torch.tensor([float(value)], device=dev)
         elif key.startswith("train.densify.count."):
             densify["count." + key[len("train.densify.count.") :]] = torch.tensor([float(value)], device=dev)
+    if "alive_count" not in densify and "vis_count" in densify and "steps_seen" in densify:
+        # Written before each row's own step count was kept: every row there for the whole interval.
+        densify["alive_count"] = torch.full_like(densify["vis_count"], float(densify["steps_seen"]))
     pose_frames = []
     if "train.pose_frames" in arrays:
         pose_frames = [int(f) for f in np.asarray(arrays["train.pose_frames"])]

@@ -105,6 +105,7 @@ ROW_STATE = (
     "help_norm",
     "was_dynamic",
     "m_per_px",
+    "alive_count",
 )
 COUNT_PREFIX = "count."
 
@@ -151,6 +152,9 @@ class DensifyStrategy:
             if gate is None
             else gate.float(),  # at the last density step
             "m_per_px": torch.zeros(n, device=dev),  # metres one pixel spans at the Gaussian (running mean)
+            # steps of the current interval the row existed in: what its visibility is a fraction of
+            # (a row added along the flow mid-interval is judged on the steps it was there for)
+            "alive_count": torch.zeros(n, device=dev),
             "steps_seen": torch.zeros(1, device=dev),  # scalars are 1-element tensors (as stored)
             "initial_part_counts": self._part_counts(model),
         }
@@ -201,6 +205,8 @@ class DensifyStrategy:
             state["m_per_px"] = torch.zeros_like(state["vis_count"])
         if "front_count" not in state:  # likewise: every sighting counted as seen
             state["front_count"] = state["vis_count"].clone()
+        if "alive_count" not in state:  # likewise: every row there for the whole interval
+            state["alive_count"] = torch.full_like(state["vis_count"], float(state["steps_seen"]))
         self._accumulate(state, inputs)
         self._accumulate_help(model, state, inputs)
         report: dict[str, int] = {}
@@ -228,8 +234,9 @@ class DensifyStrategy:
     def _reset_interval(state: dict) -> None:
         """Start a new density interval: the screen-gradient and visibility statistics start from zero
         (the flow's running means and the pixel spans carry on)."""
-        for name in ("grad_sum", "vis_count", "front_count", "steps_seen"):
-            state[name].zero_()
+        for name in ("grad_sum", "vis_count", "front_count", "steps_seen", "alive_count"):
+            if name in state:
+                state[name].zero_()
 
     def _tally(self, state: dict, report: dict[str, int]) -> None:
         for k, v in report.items():
@@ -267,6 +274,8 @@ class DensifyStrategy:
         state["grad_sum"].index_add_(0, table_rows, pull)
         vis_count.index_add_(0, table_rows, torch.ones_like(table_rows, dtype=vis_count.dtype))
         state["steps_seen"] += 1
+        if "alive_count" in state:
+            state["alive_count"] += 1
         x0, y0, w, h = inputs.crop
         xy = means2d.detach()[rows]
         px = xy[:, 0].round().long().clamp(0, w - 1)
@@ -524,17 +533,22 @@ class DensifyStrategy:
             self._append(optimizer, state, rows)
             report["time_split"] = int(sources.numel())
             split = torch.cat([split, sources])
-        # Prune (the split originals, plus what contributes nothing).
+        # Prune (the split originals, plus what contributes nothing). Each row is judged on the steps
+        # it existed in: a row added along the flow this step has no statistics yet, and one added
+        # mid-interval is seen in a fraction of the steps it was there for, not of the interval's.
         n = model.table.num
         prune = torch.zeros(n, dtype=torch.bool, device=model.device)
         prune[split] = True
         opacity = model.table.opacities()
-        seen = state["vis_count"] / max(float(state["steps_seen"]), 1.0)
+        alive = state.get("alive_count")
+        if alive is None:  # a state without it: every row there for the whole interval (as before)
+            alive = torch.full_like(state["vis_count"], float(state["steps_seen"]))
+        seen = state["vis_count"] / alive.clamp_min(1.0)
         delta = inputs.motion_threshold_px
         score = opacity * seen * (1.0 + c.motion_protect_gamma * state["flow_w"] / delta)
-        old = torch.arange(n, device=model.device) < n_before  # new rows have no statistics yet
+        old = (torch.arange(n, device=model.device) < n_before) & (alive > 0)  # new rows: no statistics yet
         prune |= old & (opacity < c.prune_opacity)
-        prune |= old & (score < c.prune_score) & (float(state["steps_seen"]) >= c.interval)
+        prune |= old & (score < c.prune_score) & (alive >= c.interval)
         prune |= model.table.scales().max(dim=1).values > c.prune_scale_m
         if bool(prune.all()):
             prune[opacity.argmax()] = False  # never prune the model away entirely

@@ -465,3 +465,81 @@ def test_a_gate_round_on_a_density_step_reads_the_interval_that_ends_there(tiny_
     assert model.table.motion_gate()[:2].tolist() == [True, False] and report["motion_on"] == 1
     for key in ("grad_sum", "vis_count", "front_count", "steps_seen"):
         assert not bool(state[key].any()), key
+
+
+def test_a_row_is_judged_on_the_steps_it_existed_in(tiny_frames, monkeypatch):
+    """The contribution prune (opacity x fraction of steps seen < prune_score) on a density step that
+    ends an 8-step interval. Row 0 was there all interval and never seen: pruned. Row 1 was added
+    (along the flow) 2 steps before and seen in both: its fraction is 2/2, not 2/8, so it stays,
+    though opacity x 2/8 is under the threshold. Row 2 was added this very step (a flow round on a
+    density step): no statistics yet, it stays. Row 3, there all interval and seen every step: stays.
+    Judged over the interval's 8 steps (the rule before), rows 1 and 2 would go."""
+    from types import SimpleNamespace
+
+    changes = {
+        "nonrigid": "on",
+        "densify.start_iter": 4,
+        "densify.gate_start_iter": 100,
+        "densify.interval": 8,
+        "densify.prune_opacity": 0.0,
+        "densify.prune_score": 0.2,
+        "densify.prune_scale_m": 1e9,
+        "densify.resample_fraction": 0.0,
+        "densify.grad_threshold": 1e9,
+    }
+    trainer, _ = _trainer(tiny_frames, _trial_config(**changes), 1)
+    model, state, strategy = trainer.model, trainer.densify_state, trainer.densifier
+    n = model.table.num
+    model.table["opacity_logits"].data.fill_(0.0)  # opacity 0.5: 0.5 x 2/8 = 0.125 < 0.2 <= 0.5
+    for key in ("grad_sum", "flow_w", "resid_w", "help_dot", "help_norm"):
+        state[key] = torch.zeros(n)
+    state["steps_seen"] = torch.full((1,), 8.0)
+    state["alive_count"] = torch.full((n,), 8.0)
+    state["vis_count"] = torch.full((n,), 8.0)
+    state["front_count"] = state["vis_count"].clone()
+    state["vis_count"][0] = 0.0
+    state["alive_count"][1], state["vis_count"][1] = 2.0, 2.0
+    state["alive_count"][2], state["vis_count"][2] = 0.0, 0.0
+    monkeypatch.setattr(strategy, "_accumulate", lambda state, inputs: None)  # the sums above stand
+    monkeypatch.setattr(strategy, "_accumulate_help", lambda model, state, inputs: None)
+    means = model.table["means"].detach().clone()
+    iteration = 12  # > start_iter, (12 - 4) % 8 == 0, before densification stops (15)
+    assert strategy.active(iteration)
+    inputs = SimpleNamespace(
+        iteration=iteration,
+        flow=None,
+        grow_in_time=True,
+        motion_threshold_px=1.0,
+        time_range=(0.0, 1.0),
+        generator=torch.Generator().manual_seed(0),
+        rendered_flow=None,
+    )
+    report = strategy.step_post_backward(model, trainer.optimizer, state, inputs)
+    assert report["pruned"] == 1 and report["cloned"] == 0
+    assert torch.equal(model.table["means"].detach(), means[1:])  # row 0 went, the others stayed
+    assert not bool(state["alive_count"].any())  # the next interval counts from zero
+
+
+def test_a_checkpoint_without_per_row_step_counts_resumes_with_every_row_there_all_interval(
+    tiny_frames, tmp_path, monkeypatch
+):
+    """A checkpoint written before ``alive_count`` was kept loads with it equal to the interval's
+    step count for every row (the old rule: each row judged over the whole interval), not zeros,
+    which would spare every row from the next prune."""
+    from stg_node.avatar import checkpoint
+
+    trainer, _ = _trainer(tiny_frames, _trial_config(**{"densify.interval": 8}), 6)
+    steps = float(trainer.densify_state["steps_seen"])
+    assert steps > 0
+    path = trainer.save(tmp_path / "ck.stgsnap")
+    read = checkpoint.read_snapshot_file
+
+    def without_alive(p):
+        msg = read(p)
+        del msg.arrays["train.densify.alive_count"]
+        return msg
+
+    monkeypatch.setattr(checkpoint, "read_snapshot_file", without_alive)
+    alive = checkpoint.load(path).densify["alive_count"]
+    assert alive.shape == trainer.densify_state["vis_count"].shape
+    assert bool((alive == steps).all())
