@@ -166,6 +166,8 @@ class Trainer:
         self.isometry = IsometryGraph()  # canonical neighbours keep their distances when posed
         self.profile: StepProfile | None = None  # set to a StepProfile to time the phases of each step
         self.decision: nonrigid.Decision | None = None  # what "auto" chose for the non-rigid part
+        # Training camera name -> its column in the per-camera motion statistics (order of arrival).
+        self.camera_slots: dict[str, int] = {}
         #: Numbers the caller keeps with the checkpoint, written and restored in the same file (the
         #: trainer node's wall time): nothing beside a checkpoint can disagree with it after a kill.
         self.notes: dict[str, float] = {}
@@ -174,6 +176,7 @@ class Trainer:
     def add_frame(self, frame: TrainFrame) -> None:
         """Add one training view (the first one also initialises the model from its body shape)."""
         stored = self.store.add(frame)
+        self.camera_slots.setdefault(frame.camera.name, len(self.camera_slots))
         if self.model is None:
             self._initialize(stored.frame)
         u = self.model.time_axis(frame.time)
@@ -499,6 +502,7 @@ class Trainer:
                 rendered_flow=(rendered_flow / alpha.clamp_min(0.5)).detach() if use_flow else None,
                 rendered_depth=surface_depth(info["depth"], alpha) if want_depth else None,
                 grow_in_time=not self._deciding(),
+                camera_slot=self.camera_slots.get(stored.frame.camera.name, 0),
             )
             report = self.densifier.step_post_backward(self.model, self.optimizer, self.densify_state, inputs)
             timer.mark("densify")
