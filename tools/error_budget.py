@@ -35,7 +35,18 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-ORDER = ("garment edge", "body edge", "garment", "head", "torso", "arms", "hands", "legs", "feet", "background")
+ORDER = (
+    "garment edge",
+    "body edge",
+    "garment",
+    "head",
+    "torso",
+    "arms",
+    "hands",
+    "legs",
+    "feet",
+    "background",
+)
 
 
 def band(mask: np.ndarray, radius: int) -> np.ndarray:
@@ -126,9 +137,7 @@ def budget_of(run_dir: Path, data: Path, scale, radius: int) -> dict:
 
 def table(reports: dict[str, dict]) -> str:
     names = list(reports)
-    head = "| region | pixels | " + " | ".join(
-        f"{n}: error share / PSNR / bound" for n in names
-    ) + " |"
+    head = "| region | pixels | " + " | ".join(f"{n}: error share / PSNR / bound" for n in names) + " |"
     lines = [head, "|" + "---|" * (2 + len(names))]
     first = reports[names[0]]
     for region in ORDER:
@@ -137,7 +146,11 @@ def table(reports: dict[str, dict]) -> str:
             f"{r['regions'][region]['bound_psnr']:.2f}"
             for r in reports.values()
         ]
-        lines.append(f"| {region} | {first['regions'][region]['pixel_share'] * 100:.2f} % | " + " | ".join(cells) + " |")
+        lines.append(
+            f"| {region} | {first['regions'][region]['pixel_share'] * 100:.2f} % | "
+            + " | ".join(cells)
+            + " |"
+        )
     lines.append("| whole image | 100 % | " + " | ".join(f"{r['psnr']:.2f}" for r in reports.values()) + " |")
     return "\n".join(lines)
 

@@ -488,7 +488,8 @@ class DensifyStrategy:
         sees it (the seed moves along this camera's flow), else raw flow > delta."""
         c = self.config
         if c.flow_seed_missed and inputs.rendered_flow is not None:
-            return self._camera_residuals(state, inputs.camera_slot)[rows, inputs.camera_slot] > c.residual_motion_px
+            own = self._camera_residuals(state, inputs.camera_slot)[:, inputs.camera_slot]
+            return own[rows] > c.residual_motion_px
         return state["flow_w"][rows] > inputs.motion_threshold_px
 
     # --- clone / split / prune / re-sample -------------------------------------------------------

@@ -425,7 +425,9 @@ class Trainer:
             terms["flow"] = L.flow_loss(rendered_flow, alpha, fwd, valid)
         if want_temporal:
             terms["temporal"] = self._temporal_term(state, next_state)
-        if c.loss.line_of_sight > 0 and state.offsets is not None:
+        if c.loss.line_of_sight > 0 and state.offsets is not None and len(self.camera_slots) == 1:
+            # One camera only: several around the subject see depth, and holding each step's motion
+            # off its own camera's rays would hold it off every camera's in turn.
             terms["line_of_sight"] = self._line_of_sight(state, bones, camera)
         if c.loss.rigidity > 0 and state.offsets is not None and self.model.motion_bases is None:
             terms["rigidity"] = self.neighbours.loss(table, state.offsets, state.temporal)
