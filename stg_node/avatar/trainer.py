@@ -566,14 +566,19 @@ class Trainer:
         c = self.config
         state = self.densify_state
         seen = state["resid_w"] > 0
+        # From several cameras, motion terms on at the decision count as motion the rigid model misses.
+        learned = self.model.table.motion_gate() if len(self.camera_slots) > 1 else None
         evidence = {
-            "moving_fraction": nonrigid.moving_fraction(state["resid_w"], seen, c.densify.residual_motion_px),
+            "moving_fraction": nonrigid.moving_fraction(
+                state["resid_w"], seen, c.densify.residual_motion_px, learned
+            ),
             "active_motion_fraction": self.stats()["active_motion_fraction"],
         }
         if evidence["moving_fraction"] < c.nonrigid_min_moving:
             why = (
                 f"the rigid model explains the motion: {100 * evidence['moving_fraction']:.1f} % of the "
                 f"Gaussians see flow it misses by more than {c.densify.residual_motion_px:g} px per frame "
+                f"{'or move with their own terms ' if learned is not None else ''}"
                 f"(needs >= {100 * c.nonrigid_min_moving:g} %)"
             )
             chose = "off"

@@ -100,6 +100,46 @@ def test_with_motion_the_held_out_gain_decides(tiny_frames, monkeypatch, gain, c
     assert ("motion_coef" in trainer.model.table.names()) == (chose == "on")
 
 
+def test_the_moving_share_counts_learned_motion_only_where_it_is_given():
+    """Four Gaussians seen, one with missed flow above the threshold, two with their motion terms on
+    (one of them the same): 1/4 on the flow alone, 2/4 with the motion terms; unseen rows never count."""
+    resid = torch.tensor([2.0, 0.1, 0.1, 0.2, 5.0])
+    seen = torch.tensor([True, True, True, True, False])
+    terms = torch.tensor([True, True, False, False, True])
+    assert nonrigid.moving_fraction(resid, seen, 1.5) == pytest.approx(1 / 4)
+    assert nonrigid.moving_fraction(resid, seen, 1.5, terms) == pytest.approx(2 / 4)
+
+
+@pytest.mark.parametrize("cameras, chose", [(1, "off"), (2, "on")])
+def test_from_several_cameras_motion_the_terms_already_follow_counts_as_missed(
+    tiny_frames, monkeypatch, cameras, chose
+):
+    """At the decision the flow is explained everywhere (the full model's motion follows it) and 30 %
+    of the Gaussians move with their own terms. From one camera that is no evidence (off at the first
+    test, as before); from two it is motion the rigid model misses, so the held-out gain decides."""
+    import dataclasses
+
+    from stg_node.avatar.frames import TrainFrame
+
+    frames = list(tiny_frames)
+    if cameras == 2:  # the same views again, as a second camera of the rig
+        frames += [
+            TrainFrame(f.index, f.time, f.image, f.mask, dataclasses.replace(f.camera, name="B"), f.smpl)
+            for f in tiny_frames
+        ]
+    trainer, _ = _trainer(frames, _trial_config(), 12)
+    assert len(trainer.camera_slots) == cameras
+    trainer.densify_state["resid_w"].fill_(0.01)  # seen, every flow explained by the full model
+    gate = trainer.model.table["motion_gate"]
+    gate.data[:] = 0.0
+    gate.data[: int(0.3 * gate.shape[0])] = 1.0
+    gains = {"gain_db": 1.0, "changed_fraction": 0.2, "psnr_full": 30.0, "psnr_rigid": 29.0}
+    monkeypatch.setattr(nonrigid, "validation_gain", lambda *a: gains)
+    trainer.step()
+    assert trainer.decision.chose == chose
+    assert trainer.decision.evidence["moving_fraction"] == pytest.approx(0.0 if cameras == 1 else 0.3, abs=0.01)
+
+
 def test_forced_on_never_decides_and_short_runs_keep_every_frame(tiny_frames):
     trainer, drawn = _trainer(tiny_frames, _trial_config(nonrigid="on"), 20)
     assert trainer.decision is None and trainer.nonrigid_report()["why"].startswith("nonrigid=on")
