@@ -137,7 +137,9 @@ def test_from_several_cameras_motion_the_terms_already_follow_counts_as_missed(
     monkeypatch.setattr(nonrigid, "validation_gain", lambda *a: gains)
     trainer.step()
     assert trainer.decision.chose == chose
-    assert trainer.decision.evidence["moving_fraction"] == pytest.approx(0.0 if cameras == 1 else 0.3, abs=0.01)
+    assert trainer.decision.evidence["moving_fraction"] == pytest.approx(
+        0.0 if cameras == 1 else 0.3, abs=0.01
+    )
 
 
 def test_forced_on_never_decides_and_short_runs_keep_every_frame(tiny_frames):
