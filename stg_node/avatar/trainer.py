@@ -593,6 +593,7 @@ class Trainer:
                 f"of the pixels and gain {gain:+.2f} dB there ({'>=' if pays else '<'} "
                 f"{c.nonrigid_min_gain_db:g} dB); {100 * evidence['moving_fraction']:.1f} % of the "
                 "Gaussians see flow the rigid model misses"
+                f"{' or move with their own terms' if learned is not None else ''}"
             )
         self.decision = nonrigid.Decision(chose, why, self.iteration, evidence)
         log.info("non-rigid part %s at iteration %d: %s", chose, self.iteration, why)
