@@ -36,13 +36,14 @@ from tradeoff import BAKED  # noqa: E402  (the colour before shading)
 
 CONFIGS = {
     "baked": BAKED,  # today's colour: the light baked in, spheres, no cap, no isometry
-    "shaded": {},  # the fast preset as it is now: every part on
+    "shaded": {},  # the fast preset as it is now: every part on (the occlusion term included)
+    "no_occlusion": {"model.occlusion": False},  # shaded without what the body casts on itself
     "no_shading": {"model.shading": False},
     "no_scale_cap": {"model.max_scale_ratio": 0.0},
     "no_isometry": {"loss.isometry": 0.0},
     "sphere_init": {"model.init_flatness": 1.0},
     "no_joint_shrink": {"model.joint_shrink": False},
-    "occlusion": {"model.occlusion": True},  # plus what the body casts on itself (occlusion.py)
+    "occlusion": {"model.occlusion": True},  # what the body casts on itself (occlusion.py; the default)
 }
 
 

@@ -220,25 +220,20 @@ PIXEL_KEYS = {
 }
 
 
-def _get(config, dotted: str):
-    value = config
-    for part in dotted.split("."):
-        value = getattr(value, part)
-    return value
-
-
 def scaled(config, scale: Scale):
     """``config`` with its iteration counts, Gaussian budgets and pixel sizes scaled to ``scale``."""
+    from stg_node.avatar.budget import setting_value
+
     pixel_factor = scale.size / 512.0
     if scale.iteration_factor == 1.0 and scale.gaussian_factor == 1.0 and pixel_factor == 1.0:
         return config
     changes = {}
     for key in ITERATION_KEYS:
-        changes[key] = max(1, round(_get(config, key) * scale.iteration_factor))
+        changes[key] = max(1, round(setting_value(config, key) * scale.iteration_factor))
     for key in GAUSSIAN_KEYS:
-        changes[key] = max(1, round(_get(config, key) * scale.gaussian_factor))
+        changes[key] = max(1, round(setting_value(config, key) * scale.gaussian_factor))
     for key, integer in PIXEL_KEYS.items():
-        value = _get(config, key) * pixel_factor
+        value = setting_value(config, key) * pixel_factor
         changes[key] = max(2, round(value)) if integer else value
     return config.replace(**changes)
 
@@ -410,13 +405,13 @@ NEEDLE_ABLATIONS = (
     ),
     ("room_turn_held_out", "no_joint_shrink", "no joint shrink", {"model.joint_shrink": False}),
 )
-# The body's ambient-occlusion term (occlusion.py) switched on, on the subject that casts shadows on
-# itself and on the conditions without self-shadowing (it must not cost there).
-OCCLUSION = {"model.occlusion": True}
+# The body's ambient-occlusion term (occlusion.py, on in the presets) switched off, on the subject
+# that casts shadows on itself and on the conditions without self-shadowing (it must not cost there).
+NO_OCCLUSION = {"model.occlusion": False}
 OCCLUSION_ABLATIONS = (
-    ("room_self_shadow", "occlusion", "with the ambient-occlusion term", OCCLUSION),
-    ("room_turn_held_out", "occlusion", "with the ambient-occlusion term", OCCLUSION),
-    ("flat_turn_held_out", "occlusion", "with the ambient-occlusion term", OCCLUSION),
+    ("room_self_shadow", "no_occlusion", "without the ambient-occlusion term", NO_OCCLUSION),
+    ("room_turn_held_out", "no_occlusion", "without the ambient-occlusion term", NO_OCCLUSION),
+    ("flat_turn_held_out", "no_occlusion", "without the ambient-occlusion term", NO_OCCLUSION),
 )
 
 

@@ -4,10 +4,10 @@ What the model needs is the published snapshot (snapshot.py); a checkpoint adds,
 arrays and meta: the Adam moments of every column and dense module, the densification
 strategy's state dict, the isometry loss's state, the per-frame pose corrections, the
 adaptive-weight averages, the counters, the caller's ``notes``, the per-frame exposure gains,
-and the TrainConfig (the frame store's bound ``max_frames`` with it) with what the trainer
-decided about the non-rigid part (JSON bytes) and the subject's betas (to rebuild the canonical
-mesh). Frames are not saved: ``stg-train --resume`` re-reads them from the dataset, the online
-trainer from the stream.
+the colours carried by the colour MLP's turns, and the TrainConfig (the frame store's bound
+``max_frames`` with it) with what the trainer decided about the non-rigid part (JSON bytes) and
+the subject's betas (to rebuild the canonical mesh). Frames are not saved: ``stg-train --resume``
+re-reads them from the dataset, the online trainer from the stream.
 Because every random choice of step k is a function of (seed, k), a run resumed at checkpoint k
 is the uninterrupted run.
 
@@ -63,6 +63,7 @@ class TrainingState:
     isometry: dict[str, torch.Tensor] = field(default_factory=dict)  # the isometry loss's state arrays
     notes: dict[str, float] = field(default_factory=dict)  # the caller's figures (e.g. wall time)
     exposure: dict[str, np.ndarray] = field(default_factory=dict)  # per-frame exposure gains (exposure.py)
+    color_turns: dict[str, np.ndarray] = field(default_factory=dict)  # carried colours (color_cache.py)
 
 
 def _np(t: torch.Tensor) -> np.ndarray:
@@ -109,6 +110,8 @@ def save(path: str | Path, state: TrainingState) -> Path:
         arrays["train.pose_frames"] = np.asarray(state.pose_frames, np.float32)
     for name, value in state.exposure.items():
         arrays[f"train.exposure.{name}"] = value
+    for name, value in state.color_turns.items():
+        arrays[f"train.color_turns.{name}"] = value
     for name, value in state.densify.items():
         arrays[f"train.densify.{name}"] = _np(value)
     for name, value in state.loss_ema.items():
@@ -175,5 +178,8 @@ def load(path: str | Path, *, device="cpu") -> TrainingState:
         notes={k[len("train.notes.") :]: float(v) for k, v in meta.items() if k.startswith("train.notes.")},
         exposure={
             k[len("train.exposure.") :]: v for k, v in arrays.items() if k.startswith("train.exposure.")
+        },
+        color_turns={
+            k[len("train.color_turns.") :]: v for k, v in arrays.items() if k.startswith("train.color_turns.")
         },
     )

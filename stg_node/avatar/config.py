@@ -39,6 +39,7 @@ PREDATING_DEFAULTS = {
     "densify": {"flow_seed_missed": False, "motion_min_px": 0.0, "occlusion_m": 0.0},
     "nonrigid": "on",  # runs stored before the trial kept their non-rigid part
     "lr_exposure": 0.0,  # no exposure correction before real footage had one
+    "color_every": 1,  # the colour MLP on every row every step before issue 24's turns
 }
 
 
@@ -83,7 +84,8 @@ class ModelConfig:
     joint_shrink: bool = True
     # What the body casts on itself (occlusion.py): with shading, the irradiance times the share of
     # each Gaussian's sky the posed body (spheres fitted to it) leaves open, at a learned strength.
-    occlusion: bool = False
+    # On by default since its C++ kernel (csrc/sphere_occlusion.cpp) made it cheap: docs/AVATAR.md.
+    occlusion: bool = True
 
     def validate(self) -> None:
         if self.light_model not in LIGHT_MODELS:
@@ -272,6 +274,12 @@ class TrainConfig:
     lr_schedule_final: float = 0.1  # every rate but the means' decays to this fraction (cosine)
     crop_margin_px: int = 16  # render the mask's bounding box plus this margin, not the whole frame
     full_frame_every: int = 0  # every K-th step renders the whole frame (0 = never)
+    # The colour MLP in turns on a CPU (issue 24, color_cache.TrainingColorTurns): a step evaluates
+    # it, with its gradient (x color_every), on every color_every-th row only; the other rows keep
+    # their last colour, and the features learn at lr_color x sqrt(color_every) (Adam on a gradient
+    # 1 step in k). 3: a third of the MLP's cost per step (docs/BENCHMARKS.md, issue 24 round 7).
+    # 1: every row every step (as on a GPU).
+    color_every: int = 3
     sh_increase_every: int = 500  # SH degree grows by one every this many steps, up to sh_degree
     checkpoint_every: int = 500
     log_every: int = 10
@@ -301,6 +309,8 @@ class TrainConfig:
             raise ValueError(
                 f"loss.flow_every must be >= 1 (1: the flow term every step), got {self.loss.flow_every}"
             )
+        if self.color_every < 1:
+            raise ValueError(f"color_every must be >= 1 (1: every row every step), got {self.color_every}")
         if self.nonrigid not in NONRIGID_MODES:
             raise ValueError(f"nonrigid must be one of {NONRIGID_MODES}, got {self.nonrigid!r}")
         if not 0.0 <= self.pose_warmup <= 0.5:

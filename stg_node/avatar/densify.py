@@ -197,6 +197,10 @@ class DensifyStrategy:
         c = self.config
         if not c.enabled:
             return {}
+        if inputs.iteration >= int(c.stop_fraction * self.total) and inputs.grow_in_time:
+            # the schedule is over (no density step, gate or flow round reads them any more) and
+            # no non-rigid trial is deciding on the flow residual: no statistics to keep (issue 24)
+            return {}
         if "m_per_px" not in state:  # a state saved before it was kept
             state["m_per_px"] = torch.zeros_like(state["vis_count"])
         if "front_count" not in state:  # likewise: every sighting counted as seen

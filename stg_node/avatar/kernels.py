@@ -2,7 +2,8 @@
 
 Skinning (:mod:`rigid`), the colour MLP (:mod:`color`) and the isometry term (:mod:`isometry`)
 each have a fused CPU kernel with a hand-written backward (``stg_node.splat.skin_ops``,
-``stg_node.splat.mlp_ops``, ``stg_node.splat.edge_ops``) and a torch
+``stg_node.splat.mlp_ops``, ``stg_node.splat.edge_ops``), the occlusion term's visibility
+(:mod:`occlusion`, no gradient) a forward-only one, and each a torch
 implementation, which is the reference the kernels are tested against and what runs on other
 devices, in float64, or without a C++ compiler. The kernels are used wherever they apply (float32
 CPU tensors, kernels built) unless switched off:

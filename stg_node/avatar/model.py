@@ -18,7 +18,7 @@ from torch import nn
 
 from stg_node.avatar import spacetime
 from stg_node.avatar.color import ColorMLP, sh_color
-from stg_node.avatar.color_cache import ColorCache
+from stg_node.avatar.color_cache import ColorCache, TrainingColorTurns
 from stg_node.avatar.config import ModelConfig
 from stg_node.avatar.gaussians import MOTION_COLUMNS, GaussianTable, cap_scale_ratio
 from stg_node.avatar.motion_basis import MotionBases
@@ -176,6 +176,7 @@ class AvatarModel(nn.Module):
         self._skin_weight_cache: tuple | None = None  # (key, weights): see _render_skin_weights
         self._moving_rows_cache: tuple | None = None  # (key, rows): see _render_spacetime
         self._scale_cache: tuple | None = None  # (key, scales): see _render_scales
+        self._bone_cache: tuple | None = None  # (key, bones): see _dominant_bones
 
     @property
     def device(self) -> torch.device:
@@ -253,6 +254,17 @@ class AvatarModel(nn.Module):
             self._scale_cache = cached
         return cached[1]
 
+    def _dominant_bones(self) -> torch.Tensor:
+        """(N,) each Gaussian's largest body skinning weight's bone (the occlusion term's own bone),
+        found once per change of the table, not every frame (an argmax over (N, 24))."""
+        column = self.table["skin_weights"]
+        key = (self.table.version, column._version, column.shape[0])
+        cached = self._bone_cache
+        if cached is None or cached[0] != key:
+            cached = (key, column.detach().argmax(dim=1))
+            self._bone_cache = cached
+        return cached[1]
+
     def bones(self, body: BodyState) -> PosedBones:
         return self.skeleton.bones(body.poses, body.Rh, body.Th)
 
@@ -314,13 +326,16 @@ class AvatarModel(nn.Module):
         camera: Camera3 | None = None,
         color_cache: ColorCache | None = None,
         light: LightSpec | None = None,
+        color_turns: tuple[TrainingColorTurns, int] | None = None,
     ) -> PosedGaussians:
         """World-space Gaussians for one body pose at normalised time ``u``, seen from ``camera_center``.
 
         ``camera``: leave out the Gaussians it cannot see (splat.culling) before they are coloured.
         ``color_cache``: colours of a live stream, recomputed in turns (color_cache.py; rendering
         only, ignored when gradients are on).
-        ``light``: how a model with shading is lit (default: its learned light, shading.py)."""
+        ``light``: how a model with shading is lit (default: its learned light, shading.py).
+        ``color_turns``: (turns, iteration) in training: the colour MLP on this step's turn of the
+        rows only, the others' colours carried (color_cache.TrainingColorTurns)."""
         cfg = self.config
         table = self.table
         bones = bones or self.bones(body)
@@ -382,6 +397,10 @@ class AvatarModel(nn.Module):
             if color_cache is not None and not torch.is_grad_enabled():
                 versions = (table["features"]._version, *(p._version for p in self.color_mlp.parameters()))
                 colors = color_cache.colors(evaluate, index, table.num, (self.cache_token, degree, versions))
+            elif color_turns is not None and torch.is_grad_enabled():
+                turns, iteration = color_turns
+                rows_key = (self.cache_token, degree, table.version)
+                colors = turns.colors(evaluate, index, table.num, iteration, rows_key)
             else:
                 colors = evaluate(None)
         else:
@@ -393,7 +412,7 @@ class AvatarModel(nn.Module):
                 root = lbs.axis_angle_to_matrix(body.Rh[0]) @ lbs.axis_angle_to_matrix(body.poses[0, 0])
             visible = None
             if self.shading.occlusion is not None:  # what the posed body casts on each Gaussian
-                bone = table["skin_weights"].detach().argmax(dim=1)
+                bone = self._dominant_bones()
                 visible = self.shading.occlusion.visibility(
                     means, normals, bone if index is None else bone[index], bones.transforms[0]
                 )

@@ -25,6 +25,7 @@ import torch
 
 from stg_node.avatar import checkpoint, nonrigid, spacetime
 from stg_node.avatar import losses as L
+from stg_node.avatar.color_cache import TrainingColorTurns
 from stg_node.avatar.config import LBS_ONLY, TrainConfig
 from stg_node.avatar.densify import (
     CanonicalSurface,
@@ -164,6 +165,9 @@ class Trainer:
         )
         self.neighbours = NeighbourGraph()  # local rigidity of the non-rigid motion
         self.isometry = IsometryGraph()  # canonical neighbours keep their distances when posed
+        # the colour MLP in turns: a CPU economy (on a GPU the network costs little: every row)
+        turns = config.color_every if self.device.type == "cpu" else 1
+        self.color_turns = TrainingColorTurns(turns) if turns > 1 else None
         self.profile: StepProfile | None = None  # set to a StepProfile to time the phases of each step
         self.decision: nonrigid.Decision | None = None  # what "auto" chose for the non-rigid part
         # Training camera name -> its column in the per-camera motion statistics (order of arrival).
@@ -250,7 +254,9 @@ class Trainer:
             "quats": c.lr_quats,
             "opacity_logits": c.lr_opacity,
             "sh": c.lr_color,
-            "features": c.lr_color,
+            # in turns a row's features take a step's gradient on 1 step in k: with Adam they would
+            # move ~1/sqrt(k) as far, so their rate is x sqrt(k) (color_cache.TrainingColorTurns)
+            "features": c.lr_color * math.sqrt(1 if self.color_turns is None else self.color_turns.every),
             "skin_delta": c.lr_skin,
             "motion": c.lr_motion,
             "motion_coef": c.lr_motion_coef,
@@ -374,7 +380,15 @@ class Trainer:
         moving = self._moving_rows()  # only these carry motion terms (the gate); the rest are rigid
         state = self.model.spacetime(u + jitter, rows=moving)
         posed = self.model.pose(
-            body, u, camera.center, sh_degree=sh_degree, bones=bones, key=key, state=state, camera=camera
+            body,
+            u,
+            camera.center,
+            sh_degree=sh_degree,
+            bones=bones,
+            key=key,
+            state=state,
+            camera=camera,
+            color_turns=None if self.color_turns is None else (self.color_turns, it),
         )
         timer.mark("pose")
 
@@ -785,6 +799,7 @@ class Trainer:
             isometry=self.isometry.state_arrays(),
             notes=dict(self.notes),
             exposure=self.exposure.state_arrays(),
+            color_turns={} if self.color_turns is None else self.color_turns.state_arrays(),
         )
         return checkpoint.save(path, state)
 
@@ -821,6 +836,8 @@ class Trainer:
             self.pose_deltas = torch.nn.Parameter(state.pose_deltas.to(self.device))
         self._build_optimizer()
         self.exposure.load_state_arrays(state.exposure)
+        if self.color_turns is not None:
+            self.color_turns.load_state_arrays(state.color_turns, self.device)
         self.optimizer.load_table_state(state.table_adam)
         self.optimizer.load_dense_state(state.dense_adam)
         self.densify_state = self.densifier.initialize_state(self.model) | {

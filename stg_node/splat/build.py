@@ -44,9 +44,18 @@ SOURCES = (
     "edge_loss.cpp",
     "skinning.cpp",
     "small_mlp.cpp",
+    "sphere_occlusion.cpp",
     "splat_bindings.cpp",
 )
-HEADERS = ("splat_kernels.h", "image_filter.h", "edge_loss.h", "skinning.h", "small_mlp.h", "fast_math.h")
+HEADERS = (
+    "splat_kernels.h",
+    "image_filter.h",
+    "edge_loss.h",
+    "skinning.h",
+    "small_mlp.h",
+    "sphere_occlusion.h",
+    "fast_math.h",
+)
 # -ffp-contract=off: the forward and backward passes must compute alpha bit-identically (the
 # kernels fuse multiply-adds explicitly, in helpers both passes share).
 # -fno-trapping-math: lets the compiler if-convert float selects, so the lane loops vectorise

@@ -135,8 +135,7 @@ def test_a_trained_model_with_occlusion_renders_the_same_after_a_snapshot(tiny_f
     from stg_node.avatar.snapshot import model_from_snapshot
     from stg_node.avatar.trainer import Trainer
 
-    config = small_config(iterations=3)
-    config = config.replace(**{"model.occlusion": True})
+    config = small_config(iterations=3)  # the term is on by default
     trainer = Trainer(config, seed=0)
     trainer.add_frames(tiny_frames[:2])
     strength = float(trainer.model.shading.occlusion.strength().detach())
@@ -189,3 +188,116 @@ def test_the_spheres_agree_with_the_bodys_own_ambient_occlusion():
     visible = occ.visibility(vertices, normals, body.weights.argmax(dim=1), posed.bone_transforms[0].float())
     truth = ambient_occlusion(vertices, normals, vertices, faces, directions=32)
     assert np.corrcoef(truth.numpy(), visible.numpy())[0, 1] > 0.5
+
+
+# --- the C++ kernel (csrc/sphere_occlusion.cpp) against the torch reference ---------------------
+
+
+def _random_spheres(seed: int, points: int, spheres: int, groups: int):
+    """Points around and inside spheres (some exactly at a centre), unit normals, a random mask."""
+    g = torch.Generator().manual_seed(seed)
+    centres = torch.randn(spheres, 3, generator=g, dtype=torch.float64) * 0.3
+    radii = 0.02 + 0.1 * torch.rand(spheres, generator=g, dtype=torch.float64)
+    p = torch.randn(points, 3, generator=g, dtype=torch.float64) * 0.4
+    p[: spheres // 2] = centres[: spheres // 2]  # at a centre: d^2 clamped, the share capped at 1
+    p[spheres // 2 : spheres] = (
+        centres[: spheres - spheres // 2] + 0.5 * radii[: spheres - spheres // 2, None]
+    )
+    n = torch.nn.functional.normalize(torch.randn(points, 3, generator=g, dtype=torch.float64), dim=1)
+    mask = torch.rand(groups, spheres, generator=g) > 0.3
+    group = torch.randint(0, groups, (points,), generator=g)
+    return p, n, centres, radii, mask, group
+
+
+@pytest.mark.parametrize("spheres", [1, 7, 8, 13, 71])
+def test_the_kernel_equals_the_torch_reference_in_float64(cpu_kernels, spheres):
+    """The kernel (float32, eight spheres a lane group, padded) against ``sphere_visibility`` in float64,
+    for sphere counts below, at and past a multiple of eight."""
+    p, n, c, r, mask, group = _random_spheres(spheres, 600, spheres, 5)
+    truth = sphere_visibility(p, n, c, r, mask[group])
+    got = cpu_kernels.ops.sphere_visibility(
+        p.float(), n.float(), group, c.float(), r.square().float(), mask.float(), 1
+    )
+    assert got.dtype == torch.float32 and got.shape == (600,)
+    assert float(truth.min()) < 0.9  # the case covers points in the spheres' shadow
+    np.testing.assert_allclose(got.double().numpy(), truth.numpy(), atol=2e-6, rtol=0)
+    two = cpu_kernels.ops.sphere_visibility(
+        p.float(), n.float(), group, c.float(), r.square().float(), mask.float(), 2
+    )
+    assert torch.equal(two, got)  # threads split the points, never a point's product
+
+
+def test_body_occlusion_takes_the_kernel_and_agrees_with_its_reference(cpu_kernels):
+    """BodyOcclusion.visibility: float32 CPU tensors go to the kernel, the same call under
+    ``kernels.reference()`` (and in float64) to torch; posed spheres, own and neighbouring bones left out."""
+    from stg_node.avatar import kernels
+
+    occ = _two_bone_occlusion()
+    g = torch.Generator().manual_seed(3)
+    points = torch.randn(500, 3, generator=g) * 0.5
+    normals = torch.nn.functional.normalize(torch.randn(500, 3, generator=g), dim=1)
+    bone = torch.randint(0, 3, (500,), generator=g)
+    transforms = torch.eye(4).repeat(3, 1, 1)
+    transforms[1, :3, 3] = torch.tensor([0.0, 0.3, -2.8])  # the child ball swung down beside the first
+    fast = occ.visibility(points, normals, bone, transforms)
+    with kernels.reference():
+        ref = occ.visibility(points, normals, bone, transforms)
+    exact = occ.visibility(points.double(), normals.double(), bone, transforms.double())
+    assert float(exact.min()) < 0.7 and float(exact.max()) == 1.0
+    np.testing.assert_allclose(fast.double().numpy(), exact.numpy(), atol=2e-6)
+    np.testing.assert_allclose(ref.double().numpy(), exact.numpy(), atol=1e-4)  # torch's float32 cancels
+    assert occ.visibility(points[:0], normals[:0], bone[:0], transforms).shape == (0,)
+
+
+def test_the_kernel_refuses_a_group_outside_its_mask(cpu_kernels):
+    p, n, c, r, mask, group = _random_spheres(0, 10, 4, 2)
+    group[3] = 2
+    with pytest.raises(RuntimeError, match="group 2 of point 3"):
+        cpu_kernels.ops.sphere_visibility(
+            p.float(), n.float(), group, c.float(), r.square().float(), mask.float(), 1
+        )
+
+
+# --- the default --------------------------------------------------------------------------------
+
+
+def test_every_preset_casts_the_body_on_itself():
+    """On by default (docs/AVATAR.md, "What the body casts on itself"): every preset's model has the
+    term, and a trainer fits its spheres."""
+    from stg_node.avatar import preset
+    from stg_node.avatar.config import ModelConfig
+
+    assert ModelConfig().occlusion is True
+    for name in ("fast", "balanced", "quality"):
+        assert preset(name).model.occlusion is True, name
+
+
+def test_a_model_from_before_the_term_loads_and_renders_without_it(tiny_frames):
+    """A snapshot written before the term existed (no ``model.occlusion`` in its meta, no spheres)
+    loads with the term off and renders as the model it was."""
+    import dataclasses
+
+    from avatar_helpers import small_config
+
+    from stg_node.avatar.config import TrainConfig
+    from stg_node.avatar.model import BodyState, Camera3
+    from stg_node.avatar.snapshot import model_from_snapshot
+    from stg_node.avatar.trainer import Trainer
+
+    trainer = Trainer(small_config(iterations=2).replace(**{"model.occlusion": False}), seed=0)
+    trainer.add_frames(tiny_frames[:2])
+    trainer.step()
+    msg = trainer.snapshot()
+    assert not any(".occlusion." in name for name in msg.arrays)  # what an older writer wrote
+    old = dataclasses.replace(msg, meta={k: v for k, v in msg.meta.items() if k != "model.occlusion"})
+    model = model_from_snapshot(old)
+    assert model.config.occlusion is False and model.shading.occlusion is None
+    frame = tiny_frames[0]
+    body, camera = BodyState.from_smpl(frame.smpl), Camera3.from_camera(frame.camera)
+    with torch.no_grad():
+        torch.testing.assert_close(
+            model.pose(body, 0.0, camera.center).colors, trainer.model.pose(body, 0.0, camera.center).colors
+        )
+    data = trainer.config.to_dict()
+    del data["model"]["occlusion"]
+    assert TrainConfig.from_dict(data).model.occlusion is False

@@ -82,3 +82,49 @@ def test_motion_help_sums_match_the_per_row_definition(tiny_frames, count, movin
     untouched = table.motion_gate() | (grad == 0).all(1)
     assert torch.equal(state["help_dot"][untouched], start_dot[untouched])  # exactly, not merely close
     assert torch.equal(state["help_norm"][untouched], start_norm[untouched])
+
+
+def test_statistics_stop_with_the_schedule_and_training_is_unchanged(tiny_frames, monkeypatch):
+    """Past the densification schedule (and with no non-rigid trial deciding) nothing reads the
+    per-step statistics: the trainer stops gathering them, and the model it trains equals, bit for
+    bit, one trained by the step before the change (statistics gathered on every step)."""
+    from stg_node.avatar.densify import DensifyStrategy
+
+    config = small_config(
+        iterations=40, nonrigid="on", **{"densify.stop_fraction": 0.5, "model.motion_basis": 4}
+    )
+    gathered = []
+    original = DensifyStrategy.step_post_backward
+
+    def every_step(self, model, optimizer, state, inputs):  # the step before the change
+        out = original(self, model, optimizer, state, inputs)
+        if inputs.iteration >= int(self.config.stop_fraction * self.total):
+            self._accumulate(state, inputs)
+            self._accumulate_help(model, state, inputs)
+        return out
+
+    def counted(self, state, inputs):
+        gathered.append(inputs.iteration)
+        return accumulate(self, state, inputs)
+
+    accumulate = DensifyStrategy._accumulate
+    trained = {}
+    for name in ("now", "before"):
+        gathered.clear()
+        with monkeypatch.context() as patch:
+            patch.setattr(DensifyStrategy, "_accumulate", counted)
+            if name == "before":
+                patch.setattr(DensifyStrategy, "step_post_backward", every_step)
+            trainer = Trainer(config, seed=0)
+            trainer.add_frames(tiny_frames)
+            for _ in range(config.iterations):
+                trainer.step()
+        trained[name] = {k: v.detach().clone() for k, v in trainer.model.state_dict().items()}
+        if name == "now":
+            assert gathered == list(range(20)), gathered
+            assert trainer.model.motion_bases is not None
+        else:
+            assert gathered == list(range(40))
+    assert trained["now"].keys() == trained["before"].keys()
+    for key, value in trained["now"].items():
+        assert torch.equal(value, trained["before"][key]), key

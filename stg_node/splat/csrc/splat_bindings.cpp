@@ -16,6 +16,7 @@
 #include "image_filter.h"
 #include "skinning.h"
 #include "small_mlp.h"
+#include "sphere_occlusion.h"
 #include "splat_kernels.h"
 
 #ifndef STG_SPLAT_NS
@@ -430,6 +431,36 @@ std::tuple<at::Tensor, at::Tensor> edge_length_bwd(const at::Tensor& x, const at
     return {gx, gc};
 }
 
+// ---- the spheres' occlusion of each point's hemisphere (sphere_occlusion.h) ----
+// (M,) visible share; group values are checked to index mask's rows.
+at::Tensor sphere_visibility_fwd(const at::Tensor& points, const at::Tensor& normals, const at::Tensor& group,
+                                 const at::Tensor& centres, const at::Tensor& radii2, const at::Tensor& mask,
+                                 int64_t threads) {
+    const int64_t m = points.size(0);
+    const int64_t spheres = centres.size(0);
+    check_cpu_float(points, "points", m, 3);
+    check_cpu_float(normals, "normals", m, 3);
+    check_cpu_float(centres, "centres", spheres, 3);
+    check_cpu_float(radii2, "radii2", spheres, 0);
+    TORCH_CHECK(radii2.dim() == 1, "radii2 must be 1-D, got ", radii2.sizes());
+    TORCH_CHECK(mask.dim() == 2 && mask.size(1) == spheres, "mask must be [groups, ", spheres, "], got ",
+                mask.sizes());
+    check_cpu_float(mask, "mask", mask.size(0), spheres);
+    TORCH_CHECK(group.device().is_cpu() && group.scalar_type() == at::kLong && group.dim() == 1 &&
+                    group.is_contiguous() && group.size(0) == m,
+                "group must be a contiguous (", m, ",) int64 CPU tensor, got ", group.scalar_type(), " ",
+                group.sizes());
+    const int64_t* g = group.data_ptr<int64_t>();
+    for (int64_t i = 0; i < m; ++i)
+        TORCH_CHECK(g[i] >= 0 && g[i] < mask.size(0), "group ", g[i], " of point ", i, " is not a row of the ",
+                    mask.size(0), "-row mask");
+    at::Tensor visible = at::empty({m}, points.options());
+    stg_occ::sphere_visibility(points.data_ptr<float>(), normals.data_ptr<float>(), g, m, centres.data_ptr<float>(),
+                               radii2.data_ptr<float>(), mask.data_ptr<float>(), spheres, mask.size(0),
+                               visible.data_ptr<float>(), static_cast<int>(threads));
+    return visible;
+}
+
 // ---- skinning (skinning.h); an absent optional tensor is passed as an empty one ----
 bool given(const at::Tensor& t) { return t.defined() && t.numel() > 0; }
 
@@ -626,6 +657,9 @@ TORCH_LIBRARY(STG_SPLAT_NS, m) {
     m.def("charbonnier_flow(Tensor r, Tensor alpha, Tensor o, Tensor valid, float alpha_min, float eps, float scale, "
           "bool want_grad) -> (Tensor, Tensor, Tensor, Tensor)",
           &charbonnier_flow);
+    m.def("sphere_visibility(Tensor points, Tensor normals, Tensor group, Tensor centres, Tensor radii2, "
+          "Tensor mask, int threads) -> Tensor",
+          &sphere_visibility_fwd);
     m.def("edge_length_fwd(Tensor x, Tensor c, Tensor a, Tensor b) -> Tensor", &edge_length_fwd);
     m.def("edge_length_bwd(Tensor x, Tensor c, Tensor a, Tensor b, float grad, bool want_x, bool want_c) -> "
           "(Tensor, Tensor)",
