@@ -6,7 +6,8 @@ loose clothing needs them. The trainer cannot know which from the data's name, s
 (:class:`Trainer`, ``nonrigid = "auto"``), once, at ``nonrigid_decide_iter``:
 
 1. **Is there motion the rigid model misses?** Every visible Gaussian keeps a running mean of
-   the optical flow its own rendered motion does not explain (``resid_w``, densify.py). When
+   the optical flow its own rendered motion does not explain (``resid_w``, densify.py: per
+   training camera, the most any camera sees). When
    fewer than ``nonrigid_min_moving`` of the Gaussians seen see more than ``residual_motion_px``
    (pixels per frame at the frames' size), nothing moves that skinning does not: off. (The missed
    flow is the *full* model's: where its motion terms already follow the cloth it falls. From
@@ -73,7 +74,8 @@ def moving_fraction(
     resid_w: torch.Tensor, seen: torch.Tensor, threshold_px: float, moving_terms: torch.Tensor | None = None
 ) -> float:
     """Share of the Gaussians ``seen`` whose missed flow (running mean, px per frame) exceeds threshold_px,
-    or, where ``moving_terms`` (n,) bool is given, whose motion terms are on (see :func:`rig_motion`)."""
+    or, where ``moving_terms`` (n,) bool is given, whose motion terms are on (from several cameras:
+    the module's test 1)."""
     count = int(seen.sum())
     moving = resid_w > threshold_px
     if moving_terms is not None:
