@@ -149,7 +149,7 @@ class LossConfig:
     flow_every: int = 4
     temporal: float = 0.1  # offsets (cm) and temporal opacities at consecutive frames agree
     rigidity: float = 0.05  # neighbouring Gaussians move together (cm; rigidity.py)
-    line_of_sight: float = 0.0  # motion along the training camera's rays (cm; motion_priors.py)
+    line_of_sight: float = 0.0  # motion along the training camera's rays (cm; motion_priors.py; 1 camera)
     motion_sparsity: float = 0.3  # proximal L1 threshold, x the motion learning rate (optim.soft_threshold)
     motion_smooth: float = 1e-3  # higher polynomial orders cost more (|b_ik| (k - 1))
     basis_smooth: float = 0.01  # shared motion bases: |second difference| of their knots (cm)

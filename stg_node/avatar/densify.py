@@ -92,6 +92,7 @@ class DensifyInputs:
     # behind it reads the flow of what hides it, not its own (occlusion-aware flow statistics)
     rendered_depth: torch.Tensor | None = None
     grow_in_time: bool = True  # temporal copies and flow-guided additions (off while the trainer decides)
+    camera_slot: int = 0  # which training camera the step renders: 0, 1, ... in order of arrival
 
 
 # Per-Gaussian entries of the state (resized with the table's rows).
@@ -107,6 +108,9 @@ ROW_STATE = (
     "m_per_px",
     "alive_count",
 )
+# Per-Gaussian, per-training-camera entries (n, cameras): motion seen in pixels depends on the view
+# (across one camera's image is along another's rays), so it is kept per camera, never averaged.
+CAMERA_STATE = ("resid_cam",)
 COUNT_PREFIX = "count."
 
 
@@ -161,12 +165,12 @@ class DensifyStrategy:
 
     @staticmethod
     def _resize(state: dict, keep: torch.Tensor | None = None, added: int = 0) -> None:
-        for name in ROW_STATE:
+        for name in ROW_STATE + tuple(n for n in CAMERA_STATE if n in state):
             t = state[name]
             if keep is not None:
                 t = t[keep]
             if added:
-                t = torch.cat([t, t.new_zeros(added)])
+                t = torch.cat([t, t.new_zeros((added, *t.shape[1:]))])
             state[name] = t
 
     @staticmethod
@@ -302,8 +306,24 @@ class DensifyStrategy:
         flow_w[sel] = W_DECAY * flow_w[sel] + (1 - W_DECAY) * mag[ok]
         if inputs.rendered_flow is not None:
             missed = (seen_flow - inputs.rendered_flow[py, px]).norm(dim=-1)
-            resid_w = state["resid_w"]
-            resid_w[sel] = W_DECAY * resid_w[sel] + (1 - W_DECAY) * missed[ok]
+            per_camera = self._camera_residuals(state, inputs.camera_slot)
+            column = per_camera[:, inputs.camera_slot]
+            column[sel] = W_DECAY * column[sel] + (1 - W_DECAY) * missed[ok]  # a view: writes per_camera
+            # R_i: the most any training camera sees missed. Averaged over cameras, motion across one
+            # view's image would be diluted by the views it runs along the rays of (near zero pixels).
+            state["resid_w"][sel] = per_camera[sel].amax(dim=1)
+
+    @staticmethod
+    def _camera_residuals(state: dict, slot: int) -> torch.Tensor:
+        """(n, cameras) running missed flow per training camera, with a column for ``slot``."""
+        per_camera = state.get("resid_cam")
+        if per_camera is None:  # a fresh state, or one saved before cameras were told apart
+            per_camera = state["resid_w"][:, None].clone()
+        if slot >= per_camera.shape[1]:
+            pad = per_camera.new_zeros((per_camera.shape[0], slot + 1 - per_camera.shape[1]))
+            per_camera = torch.cat([per_camera, pad], dim=1)
+        state["resid_cam"] = per_camera
+        return per_camera
 
     def _error_weight(self, inputs: DensifyInputs, xy: torch.Tensor) -> torch.Tensor:
         """(len(xy),) in [0, 1]: how badly the region under each projected centre is explained,
@@ -477,10 +497,12 @@ class DensifyStrategy:
 
     def _seed_motion(self, state: dict, rows: torch.Tensor, inputs: DensifyInputs) -> torch.Tensor:
         """(len(rows),) bool: rows on motion a flow-guided seed needs: flow the model's own rendered
-        motion misses (``flow_seed_missed``, when the step rendered its motion), else raw flow > delta."""
+        motion misses (``flow_seed_missed``, when the step rendered its motion) as this step's camera
+        sees it (the seed moves along this camera's flow), else raw flow > delta."""
         c = self.config
         if c.flow_seed_missed and inputs.rendered_flow is not None:
-            return state["resid_w"][rows] > c.residual_motion_px
+            own = self._camera_residuals(state, inputs.camera_slot)[:, inputs.camera_slot]
+            return own[rows] > c.residual_motion_px
         return state["flow_w"][rows] > inputs.motion_threshold_px
 
     # --- clone / split / prune / re-sample -------------------------------------------------------

@@ -6,9 +6,15 @@ loose clothing needs them. The trainer cannot know which from the data's name, s
 (:class:`Trainer`, ``nonrigid = "auto"``), once, at ``nonrigid_decide_iter``:
 
 1. **Is there motion the rigid model misses?** Every visible Gaussian keeps a running mean of
-   the optical flow its own rendered motion does not explain (``resid_w``, densify.py). When
+   the optical flow its own rendered motion does not explain (``resid_w``, densify.py: per
+   training camera, the most any camera sees). When
    fewer than ``nonrigid_min_moving`` of the Gaussians seen see more than ``residual_motion_px``
-   (pixels per frame at the frames' size), nothing moves that skinning does not: off. The test is
+   (pixels per frame at the frames' size), nothing moves that skinning does not: off. (The missed
+   flow is the *full* model's: where its motion terms already follow the cloth it falls. From
+   several cameras the Gaussians whose motion terms are on at the decision count as moving too:
+   their gates opened on missed flow, and their learned motion, which every camera's images
+   constrain, stayed above ``densify.motion_min_px``. From one camera that motion may be a
+   training view's residue, so there they do not count.) The test is
    only as good as the flow: its error must stay well under that threshold, hence DIS down to the
    frames' own pixels (``FlowSettings.finest_scale``; at a quarter of the resolution its error
    alone made a still subject at 256 px read as 25 % moving, docs/BENCHMARKS.md).
@@ -64,10 +70,17 @@ def held_out(frame_index: int, every: int) -> bool:
     return every > 1 and frame_index % every == every // 2
 
 
-def moving_fraction(resid_w: torch.Tensor, seen: torch.Tensor, threshold_px: float) -> float:
-    """Share of the Gaussians ``seen`` whose missed flow (running mean, px per frame) exceeds threshold_px."""
+def moving_fraction(
+    resid_w: torch.Tensor, seen: torch.Tensor, threshold_px: float, moving_terms: torch.Tensor | None = None
+) -> float:
+    """Share of the Gaussians ``seen`` whose missed flow (running mean, px per frame) exceeds threshold_px,
+    or, where ``moving_terms`` (n,) bool is given, whose motion terms are on (from several cameras:
+    the module's test 1)."""
     count = int(seen.sum())
-    return float((resid_w[seen] > threshold_px).sum()) / count if count else 0.0
+    moving = resid_w > threshold_px
+    if moving_terms is not None:
+        moving = moving | moving_terms
+    return float(moving[seen].sum()) / count if count else 0.0
 
 
 def rigid_part(model: AvatarModel) -> tuple[AvatarModel, torch.Tensor]:

@@ -170,6 +170,8 @@ class Trainer:
         self.color_turns = TrainingColorTurns(turns) if turns > 1 else None
         self.profile: StepProfile | None = None  # set to a StepProfile to time the phases of each step
         self.decision: nonrigid.Decision | None = None  # what "auto" chose for the non-rigid part
+        # Training camera name -> its column in the per-camera motion statistics (order of arrival).
+        self.camera_slots: dict[str, int] = {}
         #: Numbers the caller keeps with the checkpoint, written and restored in the same file (the
         #: trainer node's wall time): nothing beside a checkpoint can disagree with it after a kill.
         self.notes: dict[str, float] = {}
@@ -178,6 +180,7 @@ class Trainer:
     def add_frame(self, frame: TrainFrame) -> None:
         """Add one training view (the first one also initialises the model from its body shape)."""
         stored = self.store.add(frame)
+        self.camera_slots.setdefault(frame.camera.name, len(self.camera_slots))
         if self.model is None:
             self._initialize(stored.frame)
         u = self.model.time_axis(frame.time)
@@ -436,7 +439,9 @@ class Trainer:
             terms["flow"] = L.flow_loss(rendered_flow, alpha, fwd, valid)
         if want_temporal:
             terms["temporal"] = self._temporal_term(state, next_state)
-        if c.loss.line_of_sight > 0 and state.offsets is not None:
+        if c.loss.line_of_sight > 0 and state.offsets is not None and len(self.camera_slots) == 1:
+            # One camera only: several around the subject see depth, and holding each step's motion
+            # off its own camera's rays would hold it off every camera's in turn.
             terms["line_of_sight"] = self._line_of_sight(state, bones, camera)
         if c.loss.rigidity > 0 and state.offsets is not None and self.model.motion_bases is None:
             terms["rigidity"] = self.neighbours.loss(table, state.offsets, state.temporal)
@@ -513,6 +518,7 @@ class Trainer:
                 rendered_flow=(rendered_flow / alpha.clamp_min(0.5)).detach() if use_flow else None,
                 rendered_depth=surface_depth(info["depth"], alpha) if want_depth else None,
                 grow_in_time=not self._deciding(),
+                camera_slot=self.camera_slots.get(stored.frame.camera.name, 0),
             )
             report = self.densifier.step_post_backward(self.model, self.optimizer, self.densify_state, inputs)
             timer.mark("densify")
@@ -574,14 +580,19 @@ class Trainer:
         c = self.config
         state = self.densify_state
         seen = state["resid_w"] > 0
+        # From several cameras, motion terms on at the decision count as motion the rigid model misses.
+        learned = self.model.table.motion_gate() if len(self.camera_slots) > 1 else None
         evidence = {
-            "moving_fraction": nonrigid.moving_fraction(state["resid_w"], seen, c.densify.residual_motion_px),
+            "moving_fraction": nonrigid.moving_fraction(
+                state["resid_w"], seen, c.densify.residual_motion_px, learned
+            ),
             "active_motion_fraction": self.stats()["active_motion_fraction"],
         }
         if evidence["moving_fraction"] < c.nonrigid_min_moving:
             why = (
                 f"the rigid model explains the motion: {100 * evidence['moving_fraction']:.1f} % of the "
                 f"Gaussians see flow it misses by more than {c.densify.residual_motion_px:g} px per frame "
+                f"{'or move with their own terms ' if learned is not None else ''}"
                 f"(needs >= {100 * c.nonrigid_min_moving:g} %)"
             )
             chose = "off"
@@ -596,6 +607,7 @@ class Trainer:
                 f"of the pixels and gain {gain:+.2f} dB there ({'>=' if pays else '<'} "
                 f"{c.nonrigid_min_gain_db:g} dB); {100 * evidence['moving_fraction']:.1f} % of the "
                 "Gaussians see flow the rigid model misses"
+                f"{' or move with their own terms' if learned is not None else ''}"
             )
         self.decision = nonrigid.Decision(chose, why, self.iteration, evidence)
         log.info("non-rigid part %s at iteration %d: %s", chose, self.iteration, why)

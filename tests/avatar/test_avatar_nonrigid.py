@@ -100,6 +100,48 @@ def test_with_motion_the_held_out_gain_decides(tiny_frames, monkeypatch, gain, c
     assert ("motion_coef" in trainer.model.table.names()) == (chose == "on")
 
 
+def test_the_moving_share_counts_learned_motion_only_where_it_is_given():
+    """Four Gaussians seen, one with missed flow above the threshold, two with their motion terms on
+    (one of them the same): 1/4 on the flow alone, 2/4 with the motion terms; unseen rows never count."""
+    resid = torch.tensor([2.0, 0.1, 0.1, 0.2, 5.0])
+    seen = torch.tensor([True, True, True, True, False])
+    terms = torch.tensor([True, True, False, False, True])
+    assert nonrigid.moving_fraction(resid, seen, 1.5) == pytest.approx(1 / 4)
+    assert nonrigid.moving_fraction(resid, seen, 1.5, terms) == pytest.approx(2 / 4)
+
+
+@pytest.mark.parametrize("cameras, chose", [(1, "off"), (2, "on")])
+def test_from_several_cameras_motion_the_terms_already_follow_counts_as_missed(
+    tiny_frames, monkeypatch, cameras, chose
+):
+    """At the decision the flow is explained everywhere (the full model's motion follows it) and 30 %
+    of the Gaussians move with their own terms. From one camera that is no evidence (off at the first
+    test, as before); from two it is motion the rigid model misses, so the held-out gain decides."""
+    import dataclasses
+
+    from stg_node.avatar.frames import TrainFrame
+
+    frames = list(tiny_frames)
+    if cameras == 2:  # the same views again, as a second camera of the rig
+        frames += [
+            TrainFrame(f.index, f.time, f.image, f.mask, dataclasses.replace(f.camera, name="B"), f.smpl)
+            for f in tiny_frames
+        ]
+    trainer, _ = _trainer(frames, _trial_config(), 12)
+    assert len(trainer.camera_slots) == cameras
+    trainer.densify_state["resid_w"].fill_(0.01)  # seen, every flow explained by the full model
+    gate = trainer.model.table["motion_gate"]
+    gate.data[:] = 0.0
+    gate.data[: int(0.3 * gate.shape[0])] = 1.0
+    gains = {"gain_db": 1.0, "changed_fraction": 0.2, "psnr_full": 30.0, "psnr_rigid": 29.0}
+    monkeypatch.setattr(nonrigid, "validation_gain", lambda *a: gains)
+    trainer.step()
+    assert trainer.decision.chose == chose
+    assert trainer.decision.evidence["moving_fraction"] == pytest.approx(
+        0.0 if cameras == 1 else 0.3, abs=0.01
+    )
+
+
 def test_forced_on_never_decides_and_short_runs_keep_every_frame(tiny_frames):
     trainer, drawn = _trainer(tiny_frames, _trial_config(nonrigid="on"), 20)
     assert trainer.decision is None and trainer.nonrigid_report()["why"].startswith("nonrigid=on")
@@ -310,13 +352,107 @@ def test_flow_guided_seeds_sit_on_motion_the_model_misses_not_on_motion_it_follo
 
     state = {"flow_w": torch.tensor([6.0, 0.5, 0.2]), "resid_w": torch.tensor([0.3, 2.0, 0.1])}
     rows = torch.arange(3)
-    rendered = SimpleNamespace(motion_threshold_px=1.0, rendered_flow=torch.zeros(1, 1, 2))
-    unrendered = SimpleNamespace(motion_threshold_px=1.0, rendered_flow=None)
+    rendered = SimpleNamespace(motion_threshold_px=1.0, rendered_flow=torch.zeros(1, 1, 2), camera_slot=0)
+    unrendered = SimpleNamespace(motion_threshold_px=1.0, rendered_flow=None, camera_slot=0)
     config = DensifyConfig(residual_motion_px=1.5)
     assert DensifyStrategy(config, 100)._seed_motion(state, rows, rendered).tolist() == [False, True, False]
     assert DensifyStrategy(config, 100)._seed_motion(state, rows, unrendered).tolist() == [True, False, False]
     raw = DensifyStrategy(dataclasses.replace(config, flow_seed_missed=False), 100)
     assert raw._seed_motion(state, rows, rendered).tolist() == [True, False, False]
+
+
+def _missed_flow_step(state, slot: int, missed_px: float, config=None) -> None:
+    """One step's statistics for one Gaussian at pixel (2, 2) of an 8x8 crop, seen by training camera
+    ``slot``, where the flow is ``missed_px`` along x and the model renders no motion."""
+    from types import SimpleNamespace
+
+    from stg_node.avatar.config import DensifyConfig
+    from stg_node.avatar.densify import DensifyStrategy
+    from stg_node.data.flow import FlowPair
+
+    flow = np.zeros((8, 8, 2), np.float32)
+    flow[..., 0] = missed_px
+    valid = np.ones((8, 8), bool)
+    means2d = torch.tensor([[2.0, 2.0]], requires_grad=True)
+    means2d.grad = torch.zeros(1, 2)
+    inputs = SimpleNamespace(
+        info={"radii": torch.ones(1, dtype=torch.int32), "means2d": means2d},
+        index=None,
+        crop=(0, 0, 8, 8),
+        flow=FlowPair(forward=flow, backward=-flow, valid_forward=valid, valid_backward=valid),
+        camera=SimpleNamespace(K=torch.eye(3)),
+        rendered_flow=torch.zeros(8, 8, 2),
+        rendered_depth=None,
+        camera_slot=slot,
+        motion_threshold_px=1.0,
+    )
+    DensifyStrategy(config or DensifyConfig(clone_on_error=False), 100)._accumulate(state, inputs)
+
+
+def _fresh_state(n: int = 1) -> dict:
+    from stg_node.avatar.densify import ROW_STATE
+
+    return {k: torch.zeros(n) for k in ROW_STATE} | {"steps_seen": torch.zeros(1)}
+
+
+def test_missed_flow_is_the_most_any_training_camera_sees_not_the_mean_over_cameras():
+    """A hem swinging toward camera A and across camera B's image: B sees 2.5 px a frame the model
+    misses, A (looking along the swing) 0 px. Interleaved, a running mean over both cameras would
+    stay near 1.3 px, under the 1.5 px threshold; per camera it is B's running mean, in closed form
+    2.5 (1 - W^k) after B's k
+    sightings, and A's column stays 0. The step's own camera decides a flow-guided seed (it moves
+    along that camera's flow): a seed on B's steps, none on A's."""
+    from types import SimpleNamespace
+
+    from stg_node.avatar.config import DensifyConfig
+    from stg_node.avatar.densify import W_DECAY, DensifyStrategy
+
+    state = _fresh_state()
+    for _ in range(20):
+        _missed_flow_step(state, 0, 0.0)
+        _missed_flow_step(state, 1, 2.5)
+    expected = 2.5 * (1 - W_DECAY**20)
+    assert state["resid_cam"].shape == (1, 2)
+    assert float(state["resid_cam"][0, 0]) == 0.0
+    assert abs(float(state["resid_cam"][0, 1]) - expected) < 1e-5
+    assert abs(float(state["resid_w"][0]) - expected) < 1e-5
+    mixed = 0.0  # what one running mean over the interleaved readings gives: well under the threshold
+    for _ in range(20):
+        mixed = W_DECAY * (W_DECAY * mixed) + (1 - W_DECAY) * 2.5
+    assert mixed < DensifyConfig().residual_motion_px < float(state["resid_w"][0])
+    strategy = DensifyStrategy(DensifyConfig(residual_motion_px=1.5), 100)
+    rows = torch.arange(1)
+    on = [
+        strategy._seed_motion(state, rows, SimpleNamespace(rendered_flow=torch.zeros(1, 1, 2), camera_slot=s))
+        for s in (0, 1)
+    ]
+    assert [bool(x) for x in on] == [False, True]
+
+
+def test_with_one_camera_the_missed_flow_is_its_running_mean_as_before():
+    """One training camera: the statistic is the plain running mean of the readings (closed form), so
+    single-camera training reads the same numbers it did before cameras were told apart."""
+    from stg_node.avatar.densify import W_DECAY
+
+    state = _fresh_state()
+    readings = [2.0, 0.5, 4.0, 1.0]
+    expected = 0.0
+    for r in readings:
+        _missed_flow_step(state, 0, r)
+        expected = W_DECAY * expected + (1 - W_DECAY) * r
+    assert state["resid_cam"].shape == (1, 1)
+    assert abs(float(state["resid_w"][0]) - expected) < 1e-6
+
+
+def test_per_camera_statistics_follow_the_rows_when_gaussians_are_added_and_pruned():
+    """Growing and pruning the table resizes the (n, cameras) statistic with the per-row ones."""
+    from stg_node.avatar.densify import DensifyStrategy
+
+    state = _fresh_state(3)
+    state["resid_cam"] = torch.tensor([[1.0, 2.0], [3.0, 4.0], [5.0, 6.0]])
+    DensifyStrategy._resize(state, keep=torch.tensor([True, False, True]), added=2)
+    assert state["resid_cam"].tolist() == [[1.0, 2.0], [5.0, 6.0], [0.0, 0.0], [0.0, 0.0]]
+    assert state["resid_w"].shape == (4,)
 
 
 @pytest.mark.parametrize("on_error", [True, False])
@@ -407,6 +543,7 @@ def test_a_gaussian_hidden_behind_the_surface_does_not_read_its_occluders_flow(o
         camera=SimpleNamespace(K=K),
         rendered_flow=torch.zeros(size, size, 2),
         rendered_depth=depth,
+        camera_slot=0,
     )
     DensifyStrategy(DensifyConfig(occlusion_m=occlusion_m), 100)._accumulate(state, inputs)
     assert float(state["resid_w"][0]) > 0 and float(state["flow_w"][0]) > 0

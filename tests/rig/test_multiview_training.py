@@ -143,6 +143,49 @@ def test_interleaved_cameras_each_keep_their_own_flow(ring):
     assert by_camera == {"1", "3"}
 
 
+def test_each_training_camera_keeps_its_own_missed_flow_column(ring):
+    """The trainer numbers its cameras in order of arrival and hands each step's to the densifier:
+    after steps that render their motion, the missed-flow statistic has one column per camera, each
+    filled only by its own camera's steps, and R_i is the most any of them sees (densify.py)."""
+    import torch
+
+    from stg_node.avatar import Trainer, preset
+
+    config = preset("fast").replace(iterations=40, **{"loss.flow_every": 1})
+    trainer = Trainer(config, seed=0)
+    trainer.add_frames(DataSpec(str(ring), "synthetic", size=96, train_cameras=("1", "3", "5")).open("train"))
+    assert trainer.camera_slots == {"1": 0, "3": 1, "5": 2}
+    drawn = set()
+    while trainer.iteration < 40:
+        before = trainer.densify_state.get("resid_cam")
+        before = None if before is None else before.clone()
+        trainer.step()
+        after = trainer.densify_state["resid_cam"] if "resid_cam" in trainer.densify_state else None
+        if after is None or before is None or before.shape != after.shape:
+            continue
+        changed = {int(c) for c in (after != before).any(dim=0).nonzero().flatten()}
+        assert len(changed) <= 1  # a step reads one camera's flow, into that camera's column only
+        drawn |= changed
+    state = trainer.densify_state
+    assert state["resid_cam"].shape[1] == 3 and len(drawn) >= 2
+    assert torch.equal(state["resid_w"], state["resid_cam"].amax(dim=1))
+
+
+@pytest.mark.parametrize("cameras, applied", [(("1",), True), (("1", "5"), False)])
+def test_the_line_of_sight_prior_holds_only_a_single_cameras_motion(ring, cameras, applied):
+    """loss.line_of_sight keeps motion off the training camera's rays, the depth one camera cannot
+    see; with several cameras around the subject the others see it, so the term is not applied."""
+    from stg_node.avatar import Trainer, preset
+
+    config = preset("fast").replace(iterations=3, nonrigid="on", **{"loss.line_of_sight": 1.0})
+    trainer = Trainer(config, seed=0)
+    trainer.add_frames(DataSpec(str(ring), "synthetic", size=96, train_cameras=cameras).open("train"))
+    trainer.step()
+    trainer.model.table["motion_gate"].data[:] = 1.0  # every Gaussian may move: the motion terms exist
+    result = trainer.step()
+    assert ("line_of_sight" in result.losses) == applied
+
+
 def test_stg_train_with_several_cameras_end_to_end(ring, tmp_path, capsys):
     out = tmp_path / "run"
     common = [
