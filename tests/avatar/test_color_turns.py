@@ -4,12 +4,15 @@ colours are dropped, and a model trained so scoring like one trained with every 
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 import torch
 from avatar_helpers import held_out_psnr, small_config
 
 from stg_node.avatar.color_cache import TrainingColorTurns
 from stg_node.avatar.config import TrainConfig
+from stg_node.avatar.frames import TrainFrame
 from stg_node.avatar.trainer import Trainer
 
 
@@ -99,6 +102,29 @@ def test_the_trainer_evaluates_a_third_of_the_rows_by_default_on_a_cpu(tiny_fram
     assert base["sh"] == trainer.config.lr_color
     with pytest.raises(ValueError, match="color_every must be >= 1"):
         small_config(color_every=0).validate()
+
+
+def test_a_second_training_camera_ends_the_turns_and_their_rate(tiny_frames):
+    """From a rig (issue 25) every row is evaluated every step, from the first camera on or when a
+    second camera arrives mid-run (a live rig), and the features' rate drops back to lr_color."""
+    second = [
+        TrainFrame(f.index, f.time, f.image, f.mask, dataclasses.replace(f.camera, name="B"), f.smpl)
+        for f in tiny_frames
+    ]
+    rig = Trainer(small_config(iterations=30), seed=0)
+    rig.add_frames([f for pair in zip(tiny_frames, second, strict=True) for f in pair])
+    assert rig.color_turns is None
+    assert rig.optimizer.base_lrs["features"] == rig.config.lr_color
+    live = Trainer(small_config(iterations=30), seed=0)
+    live.add_frames(tiny_frames)
+    for _ in range(3):
+        live.step()
+    assert live.color_turns is not None and live.color_turns.evaluated < live.model.table.num
+    live.add_frames(second[:1])
+    assert live.color_turns is None
+    live.step()
+    assert live.optimizer.lr("features") <= live.config.lr_color
+    assert live.optimizer.base_lrs["features"] == live.config.lr_color
 
 
 def test_a_config_stored_before_the_setting_reads_it_as_every_row():
