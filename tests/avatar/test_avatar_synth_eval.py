@@ -130,3 +130,19 @@ def test_shrinking_for_the_far_subjects_resolution_averages_pixel_blocks():
     expected = np.zeros((4, 3), np.uint8)
     expected[0, 0] = 255
     assert np.array_equal(small_mask, expected)
+
+
+def test_same_camera_held_out_frames_are_every_frame_after_the_training_range_of_the_training_camera(tmp_path):
+    """``same_camera`` (stg-eval --split novel_pose on a video run): the generator's held-out frames,
+    every one, seen by the training camera only; the benchmark's own split keeps other cameras."""
+    from stg_node.avatar.data_spec import DataSpec
+    from stg_node.avatar.synth_eval import _held_out_same_camera
+    from stg_node.data.synth import SynthConfig, generate
+
+    generate(SynthConfig(out=tmp_path, num_frames=10, size=32, num_novel_views=2, view_every=3), progress=False)
+    train = DataSpec(str(tmp_path), "synthetic", None, None, 32).open("train")
+    held_out = _held_out_same_camera(tmp_path, train, 32)
+    views = [(sample.index, sample.camera.name) for sample in held_out]
+    assert views == [(8, train.camera_names[0]), (9, train.camera_names[0])]  # 0.8 of 10 frames train
+    benchmark = {sample.camera.name for sample in DataSpec(str(tmp_path), "synthetic", None, None, 32).open("novel_pose")}
+    assert len(benchmark) > 1
