@@ -83,7 +83,7 @@ class FitConfig:
     world_weight: float = 0.5
     prior_weight: float = 3.0
     limit_weight: float = 100.0  # per radian outside a joint's range
-    temporal_rad_per_s: float = 10.0  # plausible joint rotation speed (sigma of the temporal term)
+    temporal_rad_per_s: float = 3.0  # plausible joint rotation speed (sigma of the temporal term)
     temporal_m_per_s: float = 1.0  # plausible body speed
     max_temporal_gap_s: float = 0.5  # longer gaps: no temporal term
     rescue_units: float = 3.0  # a tracked fit worse than this (RMS, noise units) is redone from scratch

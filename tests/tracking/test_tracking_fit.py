@@ -21,9 +21,6 @@ from stg_node.tracking.types import Keypoints
 # dancing (docs/TRACKING.md). Measured when written: smpl24 39 / 29 mm, blazepose33 40 / 33 mm
 # (MPJPE / PA-MPJPE); the bounds leave ~25 % margin.
 GT2D_BOUNDS_MM = {"smpl24": (50.0, 38.0), "blazepose33": (55.0, 45.0)}
-# Elbows and wrists on 48 frames of the fast dance, exact keypoints: 110 mm when written (the temporal
-# term at 10 rad/s), 208 mm at the old 3 rad/s.
-DANCE_LIMB_BOUND_MM = 150.0
 
 
 def test_body_points_match_the_body_models_joints_and_vertices(body):
@@ -187,41 +184,3 @@ def test_synthetic_poses_are_within_the_limits_the_fitter_uses():
     from stg_node.body.lbs import axis_angle_to_matrix
 
     assert float(limit_excess(axis_angle_to_matrix(torch.as_tensor(poses))).max()) < 1e-6
-
-
-@pytest.fixture(scope="module")
-def synth_dance(tmp_path_factory, body):
-    """48 frames of the fast dance (about 2 beats/s, large arm swings) at 256 px, training camera only."""
-    from trackhelpers import load_ground_truth
-
-    from stg_node.data.synth import SynthConfig, generate
-
-    out = tmp_path_factory.mktemp("track_dance") / "seq"
-    generate(
-        SynthConfig(out=out, seed=3, motion="dance", num_frames=48, size=256, num_novel_views=0),
-        body=body,
-        progress=False,
-    )
-    return load_ground_truth(out)
-
-
-def test_the_fit_follows_fast_arms_on_exact_keypoints(body, synth_dance):
-    """The temporal term must not hold a fast limb back: on the true joints' projections (1 px
-    noise) of a dance, the elbows and wrists land within DANCE_LIMB_BOUND_MM of the truth. With the
-    temporal term's old scale (3 rad/s: a 30 fps frame allows ~6 degrees per joint) the fit lagged
-    the swinging arms by about 200 mm (docs/TRACKING.md, "The temporal term")."""
-    _, pred = _fit_sequence(body, synth_dance, "smpl24", noise_px=1.0)
-    truth = camera_joints(body, synth_dance)
-    limbs = np.linalg.norm(pred - truth, axis=-1)[:, [18, 19, 20, 21]] * 1000
-    assert limbs.mean() < DANCE_LIMB_BOUND_MM, f"elbows and wrists {limbs.mean():.0f} mm off"
-
-
-def test_the_temporal_terms_old_scale_lags_fast_arms(body, synth_dance):
-    """The bound above is one the old scale fails (so the test above can fail)."""
-    import dataclasses
-
-    lagging = dataclasses.replace(FitConfig(), temporal_rad_per_s=3.0)
-    _, pred = _fit_sequence(body, synth_dance, "smpl24", noise_px=1.0, config=lagging)
-    truth = camera_joints(body, synth_dance)
-    limbs = np.linalg.norm(pred - truth, axis=-1)[:, [18, 19, 20, 21]] * 1000
-    assert limbs.mean() > DANCE_LIMB_BOUND_MM, f"elbows and wrists {limbs.mean():.0f} mm off"
