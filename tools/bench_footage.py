@@ -13,6 +13,7 @@ size in the frame and an unknown camera cost, and what each remedy buys back.
     python tools/bench_footage.py chains    [--size 256] [--runs ...]     # the gap: torso chain vs limbs
     python tools/bench_footage.py errors    [--size 256]                  # what the tracked poses' errors are
     python tools/bench_footage.py twist     [--size 256] [--runs mixed,...] # tracker per bone, motions
+    python tools/bench_footage.py closeup   [--size 256] [--frames 90] [--closeup-m 2.2] # same camera
     common: --out DIR (default runs/bench_footage) --preset fast --seed 0 --json
 
 Every experiment generates its subjects with ``stg-synth``'s generator into ``--out/data``
@@ -88,6 +89,16 @@ to ``--out/results/EXPERIMENT.json``; a run folder that is already finished is n
   mixed, dance, wave, reach, walk), tracked as ``stg-train --format video`` tracks: MPJPE /
   PA-MPJPE, the global orientation's error, and each bone's (upper arms, forearms, hands,
   thighs, shins, feet, chest, neck) orientation error in the camera's frame with its twist.
+- ``closeup``: what ``stg-eval RUN --split novel_pose`` scores on a real clip (the frames after the
+  training range, the same camera, the tracker's poses as tracked), on a subject shaped like a
+  martial-arts clip: the ``dance`` motion (fast, large arm and leg swings), the striped shirt and
+  checked trousers, filling the frame (``--closeup-m`` 2.2 m from a 55 degree camera), facing the
+  camera within a 90 degree window. ``tracked``: ``--format video`` on the training camera with
+  its intrinsics, frames 0 to 0.8 N; ``truth``: ``--format synthetic``, same frames;
+  ``true-poses``: the tracked run's own images, masks and camera with the true parameters (what
+  the pipeline costs without pose errors). Scored on every held-out frame of the training camera
+  against the true image and mask (``same_camera``), and on novel views, per body part; the gap
+  to ``truth`` per part.
 - ``framing``: renders RUN_DIR's default orbit (and follow camera) and reports the share of
   frames with the avatar whole and at least 30 % of the image tall.
 
@@ -877,6 +888,15 @@ JOINT_GROUPS = {  # SMPL joint indices
 }
 
 
+JOINT_2D_GROUPS = {  # SMPL joints whose image position says where a limb's end is
+    "elbows": (18, 19),
+    "wrists": (20, 21),
+    "knees": (4, 5),
+    "ankles": (7, 8),
+    "head": (15,),
+}
+
+
 def rotation_angles_deg(a, b):
     """Angle (degrees) of the relative rotation between matching (..., 3) axis-angle vectors."""
     import numpy as np
@@ -968,8 +988,14 @@ def track_accuracy(data: Path, fit_config, poses_out: Path, smoothing: bool = Tr
     own = in_mask(*tracked_args, rows["mask"])
     on_truth = in_mask(*tracked_args, true_masks)
     per_joint = joint_err.mean(axis=0)
+    uv_pred, uv_gt = pred @ K.T, gt @ K.T  # the camera's own picture: what a same-camera score sees
+    joint_px = np.linalg.norm(uv_pred[..., :2] / uv_pred[..., 2:] - uv_gt[..., :2] / uv_gt[..., 2:], axis=-1)
     return {
         "frames": n,
+        "joint_2d_px": {
+            "mean": float(joint_px.mean()),
+            **{g: float(joint_px[:, list(js)].mean()) for g, js in JOINT_2D_GROUPS.items()},
+        },
         "seconds_per_frame": seconds / n,
         "mpjpe_mm": float(mpjpe(pred, gt).mean() * 1000),
         "pa_mpjpe_mm": float(pa_mpjpe(pred, gt).mean() * 1000),
@@ -1077,6 +1103,114 @@ def fit_training(args, data: Path, wanted: list[str]) -> dict:
     return result
 
 
+CLOSEUP_RUNS = ("truth", "tracked", "true-poses")
+
+
+def closeup_subject(args) -> Path:
+    """A dancer (fast, large arm and leg swings, twisting) in the striped shirt, filling the frame
+    (``--closeup-m`` from a 55 degree camera), facing the camera within a 90 degree window: the
+    shape of a martial-arts clip. Frames after the generator's training range are new poses."""
+    return subject(
+        args.out,
+        f"closeup_{args.size}_{args.frames}_{args.closeup_m:g}m",
+        motion="dance",
+        num_frames=args.frames,
+        size=args.size,
+        camera_distance=args.closeup_m,
+        fov_deg=55.0,
+        train_yaw_deg=90.0,
+    )
+
+
+def closeup(args) -> dict:
+    """Held-out frames of the training camera (module docstring): ``truth`` (``--format
+    synthetic``), ``tracked`` (``--format video``: the tracker's poses and masks, its poses for the
+    held-out frames as tracked) and ``true-poses`` (the tracked run's own images, masks and camera
+    with the true parameters for every frame: what the pipeline costs without pose errors)."""
+    from stg_node.avatar.video import prepare_video
+
+    out = args.out
+    data = closeup_subject(args)
+    tag = f"{args.size}_{args.frames}_{args.closeup_m:g}m_s{args.seed}"
+    n_train = round(0.8 * args.frames)
+    frames = ["--train-frames", f"0:{n_train}", "--size", str(args.size)]
+    video = [
+        "--data",
+        str(data / "Camera_B1"),
+        "--format",
+        "video",
+        "--intrinsics",
+        str(intrinsics_file(data)),
+    ]
+    wanted = wanted_runs(args.runs, CLOSEUP_RUNS, "closeup")
+    rows = {}
+    for name in wanted:
+        if name == "truth":
+            flags = ("--data", str(data), "--format", "synthetic", "--size", str(args.size))
+        elif name == "tracked":
+            flags = (*video, *frames)
+        else:  # the true parameters in the tracker's world, trained as the tracked run trains
+            video_data = out / "closeup" / f"video_data_{args.size}_{args.frames}_{args.closeup_m:g}m"
+            if not (video_data / "poses.npz").is_file():
+                prepare_video(
+                    data / "Camera_B1", video_data, intrinsics=intrinsics_file(data), progress=False
+                )
+            folder = pose_variants(video_data, data, out / "closeup" / f"data_{tag}")["true"]
+            flags = ("--data", str(folder), "--format", "folder", *frames, *as_video_trains())
+        run = train(out, f"closeup_{name.replace('-', '_')}_{tag}", args, *flags)
+        rows[name] = closeup_scores(run, data)
+        cached = out / "results" / f"closeup_{name}_{tag}.json"
+        cached.parent.mkdir(parents=True, exist_ok=True)
+        cached.write_text(json.dumps(rows[name], default=float) + "\n")
+    for name in CLOSEUP_RUNS:  # rows another process scored
+        cached = out / "results" / f"closeup_{name}_{tag}.json"
+        if name not in rows and cached.is_file():
+            rows[name] = json.loads(cached.read_text())
+    if "truth" in rows:
+        for row in rows.values():
+            row["gap_db"] = gap_by_part(rows["truth"], row)
+    return rows
+
+
+def as_video_trains() -> list[str]:
+    """The ``--set`` flags that make a folder dataset train as ``--format video`` trains (the
+    refinement for tracked poses, the per-frame colour correction)."""
+    from stg_node.avatar.pose_refine import REFINEMENTS
+
+    r = REFINEMENTS["tracked"]
+    sets = [f"lr_pose={r.lr_pose}", f"loss.pose_refine={r.pose_refine}", f"loss.pose_smooth={r.pose_smooth}",
+            f"lr_exposure={FOOTAGE_RATE}"]  # fmt: skip
+    return [x for kv in sets for x in ("--set", kv)]
+
+
+def closeup_scores(run: Path, data: Path) -> dict:
+    """A run on the closeup subject: held-out frames of the training camera (the tracker's poses
+    for a tracked run) and novel views, per body part."""
+    return {
+        "held_out_same_camera": score(run, data, "novel_pose", same_camera=True),
+        "novel_view": score(run, data, "novel_view"),
+    }
+
+
+def gap_by_part(truth: dict, row: dict) -> dict:
+    """Truth's PSNR minus ``row``'s, overall and per body part, for each split both scored."""
+    result = {}
+    for split in truth:
+        if split not in row or not isinstance(truth[split], dict) or "psnr" not in truth[split]:
+            continue
+        mine, theirs = row[split], truth[split]
+        result[split] = {
+            "psnr": theirs["psnr"] - mine["psnr"],
+            "lpips": mine["lpips"] - theirs["lpips"],
+            "parts": {
+                part: theirs["parts_psnr"][part] - mine["parts_psnr"][part]
+                for part in theirs.get("parts_psnr", {})
+                if part in mine.get("parts_psnr", {})
+            },
+        }
+    return result
+
+
 TWIST_MOTIONS = ("mixed", "dance", "wave", "reach", "walk")
 
 
@@ -1158,6 +1292,7 @@ EXPERIMENTS = {
     "chains": chains,
     "errors": errors,
     "twist": twist,
+    "closeup": closeup,
 }
 
 
@@ -1174,6 +1309,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--train-size", type=int, default=None, help="sources: training image size (default: --size)"
     )
     p.add_argument("--close-m", type=float, default=1.9, help="size: the close camera's distance (m)")
+    p.add_argument(
+        "--closeup-m", type=float, default=2.2, help="closeup: the camera's distance (m; fills the frame)"
+    )
     p.add_argument("--far-m", type=float, default=5.0, help="size: the far camera's distance (m)")
     p.add_argument("--figure", type=Path, default=None, help="size: a PNG of one held-out view of every row")
     p.add_argument("--preset", default="fast")

@@ -168,6 +168,7 @@ def evaluate_on_synth(
     backend="auto",
     show_progress: bool = True,
     resample: float = 1.0,
+    same_camera: bool = False,
 ) -> dict:
     """A run scored on an stg-synth subject's ``split`` (module docstring): PSNR / SSIM / LPIPS under
     ``protocol`` (``full``: the whole image, as stg-eval; ``bbox``: the person's box), PSNR per body
@@ -176,7 +177,10 @@ def evaluate_on_synth(
     ``align`` (a tracked run): ``camera`` (the training camera's extrinsics and the depth-ratio
     scale) or ``similarity`` (:func:`similarity_alignment`). ``resample`` < 1: render, truth and mask
     shrunk by this factor (area average) before scoring, to score people filmed at different sizes
-    at the same resolution of the person (tools/bench_footage.py size)."""
+    at the same resolution of the person (tools/bench_footage.py size). ``same_camera`` (novel_pose
+    only): every held-out frame of the training camera and no other camera, as ``stg-eval
+    --split novel_pose`` scores a video run (the frames after the training range, same camera),
+    in place of the benchmark's every 30th frame of every camera."""
     from stg_node.avatar.data_spec import DataSpec
     from stg_node.avatar.loading import corrected, load_run_renderer
     from stg_node.body import load_body_model
@@ -192,6 +196,8 @@ def evaluate_on_synth(
         raise ValueError(f"align must be camera or similarity, got {align!r}")
     if not 0.0 < resample <= 1.0:
         raise ValueError(f"resample must be in (0, 1], got {resample}")
+    if same_camera and split != "novel_pose":
+        raise ValueError("same_camera scores held-out frames: it needs split='novel_pose'")
     if resample != 1.0 and parts:
         raise ValueError("resample needs parts=False (the part labels are at the images' own size)")
     synth_dir = Path(synth_dir)
@@ -215,7 +221,7 @@ def evaluate_on_synth(
             )
     else:
         alignment = WorldAlignment.identity()
-    dataset = truth.open(split)
+    dataset = _held_out_same_camera(synth_dir, train_truth, spec.size) if same_camera else truth.open(split)
     evaluator = Evaluator(protocol, lpips_nets=lpips_nets)
     part_scores = RegionScores()
     labeller = SynthPartLabeller(synth_dir, body) if parts else None
@@ -260,6 +266,17 @@ def evaluate_on_synth(
         "train_seconds": summary.get("train_seconds", math.nan),
         "gaussians": summary.get("gaussians"),
     }
+
+
+def _held_out_same_camera(synth_dir: Path, train_truth, size):
+    """Every frame after the generator's training range, seen by the (first) training camera."""
+    from stg_node.data.splits import FrameRange, SplitSpec
+    from stg_node.data.synth.dataset import open_synth
+    from stg_node.data.synth.writer import read_metadata
+
+    n_train = int(read_metadata(synth_dir)["num_train_frames"])
+    spec = SplitSpec("novel_pose", FrameRange(n_train, None), cameras=(train_truth.camera_names[0],))
+    return open_synth(synth_dir, spec, size=size)
 
 
 def _shrunk(factor: float, image, target, mask):

@@ -130,3 +130,47 @@ def test_shrinking_for_the_far_subjects_resolution_averages_pixel_blocks():
     expected = np.zeros((4, 3), np.uint8)
     expected[0, 0] = 255
     assert np.array_equal(small_mask, expected)
+
+
+def test_same_camera_scores_every_frame_after_the_training_range_on_the_training_camera(tmp_path):
+    """``same_camera`` (stg-eval --split novel_pose on a video run): the generator's held-out frames,
+    every one, seen by the training camera only; the benchmark's own split keeps other cameras."""
+    from stg_node.avatar.data_spec import DataSpec
+    from stg_node.avatar.synth_eval import _held_out_same_camera
+    from stg_node.data.synth import SynthConfig, generate
+
+    generate(
+        SynthConfig(out=tmp_path, num_frames=10, size=32, num_novel_views=2, view_every=3), progress=False
+    )
+    train = DataSpec(str(tmp_path), "synthetic", None, None, 32).open("train")
+    held_out = _held_out_same_camera(tmp_path, train, 32)
+    views = [(sample.index, sample.camera.name) for sample in held_out]
+    assert views == [(8, train.camera_names[0]), (9, train.camera_names[0])]  # 0.8 of 10 frames train
+    benchmark = {
+        sample.camera.name
+        for sample in DataSpec(str(tmp_path), "synthetic", None, None, 32).open("novel_pose")
+    }
+    assert len(benchmark) > 1
+
+
+def test_bench_footage_gap_by_part_is_truth_minus_the_run_per_split_and_part():
+    """tools/bench_footage.py closeup's gap: truth's PSNR minus the run's, overall and per part
+    (only parts and splits both have); LPIPS the run's minus truth's (worse is positive)."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tools"))
+    import bench_footage
+
+    truth = {
+        "held_out_same_camera": {"psnr": 28.0, "lpips": 0.03, "parts_psnr": {"arms": 14.0, "legs": 31.0}}
+    }
+    run = {
+        "held_out_same_camera": {"psnr": 24.5, "lpips": 0.07, "parts_psnr": {"arms": 12.0}},
+        "novel_view": {"psnr": 20.0, "lpips": 0.1, "parts_psnr": {}},
+    }
+    gap = bench_footage.gap_by_part(truth, run)
+    assert list(gap) == ["held_out_same_camera"]
+    assert gap["held_out_same_camera"]["psnr"] == pytest.approx(3.5)
+    assert gap["held_out_same_camera"]["lpips"] == pytest.approx(0.04)
+    assert gap["held_out_same_camera"]["parts"] == {"arms": pytest.approx(2.0)}
