@@ -120,9 +120,12 @@ class FitConfig:
         if self.silhouette_samples < 1 or self.silhouette_outline_points < 1:
             raise ValueError("silhouette_samples and silhouette_outline_points must be >= 1")
         if not self.temporal_max_rad_per_s >= self.temporal_rad_per_s or self.temporal_jitter_units < 0:
-            raise ValueError("temporal_max_rad_per_s must be >= temporal_rad_per_s, temporal_jitter_units >= 0")
+            raise ValueError(
+                "temporal_max_rad_per_s must be >= temporal_rad_per_s and temporal_jitter_units >= 0"
+            )
         for name in ("noise_fraction", "robust_scale", "world_sigma", "shape_sigma", "step_eps",
-                     "silhouette_robust_units", "silhouette_trust_units", "temporal_min_length_units"):  # fmt: skip
+                     "silhouette_robust_units", "silhouette_trust_units",
+                     "temporal_min_length_units"):  # fmt: skip
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
 

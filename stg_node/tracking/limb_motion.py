@@ -73,7 +73,9 @@ class LimbMotion:
                 joint = int(parents[joint])
             self.anchor[k - 1] = index == joint if joint > 0 else np.ones(count, dtype=bool)
 
-    def turn(self, xy_before, ok_before, xy_after, ok_after, jitter_px: float, min_length_px: float) -> np.ndarray:
+    def turn(
+        self, xy_before, ok_before, xy_after, ok_after, jitter_px: float, min_length_px: float
+    ) -> np.ndarray:
         """(23,) radians each joint's limb turned in the image between the frames (0 where the
         points cannot tell: too few usable in both frames)."""
         xy_before, xy_after = _numpy(xy_before), _numpy(xy_after)
