@@ -16,8 +16,8 @@ solver minimises the sum of squares):
   Directions, not positions: the network's skeleton has its own size, but it knows whether an
   arm points towards the camera or away, which the 2D points cannot say;
 - **pose prior** and **joint limits** (priors.py); **temporal**: change since the previous frame
-  in units of the motion a body plausibly makes in that time, per joint loosened where the
-  detector's points show the limb turned further (limb_motion.py); **shape prior** while calibrating.
+  in units of the motion a body plausibly makes in that time (opt-in: per joint loosened where the
+  detector's points show the limb turned further, limb_motion.py); **shape prior** while calibrating.
 
 The Jacobian is taken by forward differences on one batched evaluation (parameters + 1 rows of
 the tiny body-point model, ~2 ms), cheaper on a CPU than autograd for 75-85 unknowns.
@@ -89,8 +89,10 @@ class FitConfig:
     temporal_m_per_s: float = 1.0  # plausible body speed
     # Where the detector's points say a limb turned faster (limb_motion.py: the image-plane turn
     # of its points about the joint, less the jitter), that joint's temporal sigma follows the
-    # evidence up to this speed; equal to temporal_rad_per_s turns the adaptation off.
-    temporal_max_rad_per_s: float = 12.0
+    # evidence up to this speed; equal to temporal_rad_per_s (the default) turns it off. Off: at
+    # 12 rad/s it tracked a dancer 80.7 -> 77.6 mm and a mixed motion 46.2 -> 45.9 mm MPJPE, but
+    # the dancer's held-out frames trained 0.06 and 0.25 dB worse (two seeds; docs/BENCHMARKS.md).
+    temporal_max_rad_per_s: float = 3.0
     temporal_jitter_units: float = 4.0  # point displacement read as jitter, in 2D units
     temporal_min_length_units: float = 5.0  # shorter segments count as this long (a hand's points)
     max_temporal_gap_s: float = 0.5  # longer gaps: no temporal term
@@ -552,9 +554,9 @@ class SmplFitter:
 
     def _limb_turn(self, obs: _Observation) -> np.ndarray | None:
         """Per-joint turn (radians) the targets show since the last fitted frame (limb_motion.py)."""
-        if self._last_targets is None:
-            return None
         cfg = self.config
+        if self._last_targets is None or cfg.temporal_max_rad_per_s <= cfg.temporal_rad_per_s:
+            return None
         xy, ok = self._last_targets
         return self._limb_motion.turn(
             xy, ok, obs.xy, obs.weight > 0,

@@ -1,5 +1,5 @@
-"""The fit's per-joint temporal term: a fast limb with exact keypoints is followed, a still limb
-with jittered keypoints is held (limb_motion.py, FitConfig.temporal_max_rad_per_s)."""
+"""The fit's per-joint temporal term (opt-in): a fast limb with exact keypoints is followed, a still
+limb with jittered keypoints is held (limb_motion.py, FitConfig.temporal_max_rad_per_s)."""
 
 from __future__ import annotations
 
@@ -90,7 +90,8 @@ def _angle_deg(a, b) -> np.ndarray:
     return np.degrees(np.arccos(np.clip(cos.numpy(), -1.0, 1.0)))
 
 
-FIXED = dataclasses.replace(FitConfig(), temporal_max_rad_per_s=FitConfig().temporal_rad_per_s)
+FIXED = FitConfig()  # the default: one plausible speed for every joint
+ADAPTIVE = dataclasses.replace(FitConfig(), temporal_max_rad_per_s=12.0)
 
 
 def test_a_fast_limb_with_exact_keypoints_is_not_held_back(body):
@@ -100,7 +101,7 @@ def test_a_fast_limb_with_exact_keypoints_is_not_held_back(body):
     poses = np.zeros((frames, 24, 3))
     poses[:, L_SHOULDER, 2] = -1.2 + 0.3 * np.arange(frames)
     truth = _facing_camera_truth(poses)
-    adaptive = _track(body, truth, FitConfig())
+    adaptive = _track(body, truth, ADAPTIVE)
     fixed = _track(body, truth, FIXED)
     late = slice(3, frames)
     err_adaptive = _angle_deg(adaptive[late, L_SHOULDER], poses[late, L_SHOULDER])
@@ -117,7 +118,7 @@ def test_a_still_limb_with_jittered_keypoints_is_held_still(body):
     poses[:, L_SHOULDER, 2] = -1.1
     poses[:, L_ELBOW, 1] = -0.3
     truth = _facing_camera_truth(poses)
-    adaptive = _track(body, truth, FitConfig(), noise_px=1.5)
+    adaptive = _track(body, truth, ADAPTIVE, noise_px=1.5)
     fixed = _track(body, truth, FIXED, noise_px=1.5)
     for joint in (L_SHOULDER, L_ELBOW):
         step_adaptive = _angle_deg(adaptive[2:, joint], adaptive[1:-1, joint]).mean()
