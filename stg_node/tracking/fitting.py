@@ -16,7 +16,8 @@ solver minimises the sum of squares):
   Directions, not positions: the network's skeleton has its own size, but it knows whether an
   arm points towards the camera or away, which the 2D points cannot say;
 - **pose prior** and **joint limits** (priors.py); **temporal**: change since the previous frame
-  in units of the motion a body plausibly makes in that time; **shape prior** while calibrating.
+  in units of the motion a body plausibly makes in that time (opt-in: per joint loosened where the
+  detector's points show the limb turned further, limb_motion.py); **shape prior** while calibrating.
 
 The Jacobian is taken by forward differences on one batched evaluation (parameters + 1 rows of
 the tiny body-point model, ~2 ms), cheaper on a CPU than autograd for 75-85 unknowns.
@@ -43,6 +44,7 @@ import torch
 from stg_node.body import BodyModel, lbs
 from stg_node.tracking.body_points import BodyKeypoints
 from stg_node.tracking.layouts import KeypointLayout
+from stg_node.tracking.limb_motion import LimbMotion
 from stg_node.tracking.priors import limit_excess, prior_sigma
 from stg_node.tracking.silhouette import MaskTarget, MeshSamples, silhouette_residuals
 from stg_node.tracking.types import Keypoints
@@ -85,6 +87,14 @@ class FitConfig:
     limit_weight: float = 100.0  # per radian outside a joint's range
     temporal_rad_per_s: float = 3.0  # plausible joint rotation speed (sigma of the temporal term)
     temporal_m_per_s: float = 1.0  # plausible body speed
+    # Where the detector's points say a limb turned faster (limb_motion.py: the image-plane turn
+    # of its points about the joint, less the jitter), that joint's temporal sigma follows the
+    # evidence up to this speed; equal to temporal_rad_per_s (the default) turns it off. Off: at
+    # 12 rad/s it tracked a dancer 80.7 -> 77.6 mm and a mixed motion 46.2 -> 45.9 mm MPJPE, but
+    # the dancer's held-out frames trained 0.06 and 0.25 dB worse (two seeds; docs/BENCHMARKS.md).
+    temporal_max_rad_per_s: float = 3.0
+    temporal_jitter_units: float = 4.0  # point displacement read as jitter, in 2D units
+    temporal_min_length_units: float = 5.0  # shorter segments count as this long (a hand's points)
     max_temporal_gap_s: float = 0.5  # longer gaps: no temporal term
     rescue_units: float = 3.0  # a tracked fit worse than this (RMS, noise units) is redone from scratch
     rescue_cooldown_s: float = 0.5  # at most one rescue per this time (each costs ~10 frames' fitting)
@@ -111,8 +121,13 @@ class FitConfig:
             raise ValueError("silhouette_weight must be >= 0 and silhouette_iterations >= 1")
         if self.silhouette_samples < 1 or self.silhouette_outline_points < 1:
             raise ValueError("silhouette_samples and silhouette_outline_points must be >= 1")
+        if not self.temporal_max_rad_per_s >= self.temporal_rad_per_s or self.temporal_jitter_units < 0:
+            raise ValueError(
+                "temporal_max_rad_per_s must be >= temporal_rad_per_s and temporal_jitter_units >= 0"
+            )
         for name in ("noise_fraction", "robust_scale", "world_sigma", "shape_sigma", "step_eps",
-                     "silhouette_robust_units", "silhouette_trust_units"):  # fmt: skip
+                     "silhouette_robust_units", "silhouette_trust_units",
+                     "temporal_min_length_units"):  # fmt: skip
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
 
@@ -204,6 +219,8 @@ class SmplFitter:
         self._bone_start, self._bone_end = bone_index[:, 0], bone_index[:, 1]
         sigma = torch.as_tensor(prior_sigma().reshape(-1), dtype=DTYPE)
         self._prior_scale = math.sqrt(self.config.prior_weight) / sigma
+        self._limb_motion = LimbMotion(self.model)
+        self._last_targets: tuple[torch.Tensor, torch.Tensor] | None = None
         self._root_rotation = torch.eye(3, dtype=DTYPE)[None, None]
         self._mesh = (
             MeshSamples(body, self.config.silhouette_samples) if self.config.silhouette_weight > 0 else None
@@ -230,6 +247,7 @@ class SmplFitter:
         self._last_rescue: float | None = None
         self._tracking = False
         self._last_fit = None
+        self._last_targets = None
         if not keep_shape and not self._fixed_betas:
             self.betas = np.zeros(self.num_betas)
             self._calibration: list[tuple[float, np.ndarray]] = []
@@ -246,6 +264,7 @@ class SmplFitter:
         """The person is gone: the next fit starts from scratch (shape is kept)."""
         self._tracking = False
         self._last_fit = None
+        self._last_targets = None
 
     # ---- observation --------------------------------------------------------------------------
     def observe(self, keypoints: Keypoints, xy_undistorted: np.ndarray | None = None) -> _Observation | None:
@@ -411,7 +430,8 @@ class SmplFitter:
         if ctx["previous"] is not None:
             prev_pose, rad_sigma, m_sigma = ctx["previous"]
             parts.append((flat_pose - prev_pose) / rad_sigma)
-            parts.append(thetas[:, :3] / rad_sigma)
+            # The body's turn keeps the base sigma (the per-joint one is never below it).
+            parts.append(thetas[:, :3] / (rad_sigma.min() if torch.is_tensor(rad_sigma) else rad_sigma))
             parts.append((thetas[:, 3:6] - ctx["prev_translation"]) / m_sigma)
         if ctx["calibrating"]:
             parts.append(betas / cfg.shape_sigma)
@@ -501,7 +521,7 @@ class SmplFitter:
             dt = max(gap, 1e-3)
             ctx["previous"] = (
                 torch.as_tensor(self._pose, dtype=DTYPE),
-                max(cfg.temporal_rad_per_s * dt, 1e-3),
+                self._joint_sigma(ctx.get("limb_turn"), dt),
                 max(cfg.temporal_m_per_s * dt, 1e-3),
             )
             ctx["prev_translation"] = torch.as_tensor(self._translation, dtype=DTYPE)
@@ -521,6 +541,28 @@ class SmplFitter:
                 if fresh is not None and self._cost(fresh[0], obs, fresh[1]) < tracked_cost:
                     (theta, ctx), rescued = fresh, True
         return theta, ctx, active, reinit or rescued
+
+    def _joint_sigma(self, limb_turn: np.ndarray | None, dt: float):
+        """The temporal term's sigma over a frame gap ``dt``: temporal_rad_per_s x dt, or per joint
+        (a (69,) tensor) the evidence's turn where it says more, up to temporal_max_rad_per_s x dt."""
+        cfg = self.config
+        base = max(cfg.temporal_rad_per_s * dt, 1e-3)
+        if limb_turn is None or cfg.temporal_max_rad_per_s <= cfg.temporal_rad_per_s:
+            return base
+        per_joint = np.clip(limb_turn, base, max(cfg.temporal_max_rad_per_s * dt, base))
+        return torch.as_tensor(np.repeat(per_joint, 3), dtype=DTYPE)
+
+    def _limb_turn(self, obs: _Observation) -> np.ndarray | None:
+        """Per-joint turn (radians) the targets show since the last fitted frame (limb_motion.py)."""
+        cfg = self.config
+        if self._last_targets is None or cfg.temporal_max_rad_per_s <= cfg.temporal_rad_per_s:
+            return None
+        xy, ok = self._last_targets
+        return self._limb_motion.turn(
+            xy, ok, obs.xy, obs.weight > 0,
+            jitter_px=cfg.temporal_jitter_units * obs.unit_px,
+            min_length_px=cfg.temporal_min_length_units * obs.unit_px,
+        )  # fmt: skip
 
     def _keep_state(self, theta: torch.Tensor, ctx: dict, timestamp: float) -> np.ndarray:
         """Hold a frame's solution as the next frame's warm start; returns the frame's betas."""
@@ -548,9 +590,11 @@ class SmplFitter:
             "calibrating": calibrating,
             "previous": None,
             "robust": torch.ones(obs.xy.shape[0], dtype=DTYPE),
+            "limb_turn": self._limb_turn(obs),
         }
         theta, ctx, _active, reinitialised = self._fit_frame(obs, ctx, timestamp, self._initialise)
         betas = self._keep_state(theta, ctx, timestamp)
+        self._last_targets = (obs.xy.clone(), obs.weight > 0)
         self._last_fit = (obs, ctx, reinitialised)
         self._last_betas = np.asarray(betas, dtype=np.float64).copy()
         return self._result(theta, obs, ctx, betas, reinitialised)
