@@ -38,3 +38,15 @@ def held_out_psnr(trainer, synth_folder, size: int = 128) -> float:
         mse = float(np.mean((image - truth) ** 2)) / 255.0**2
         scores.append(-10 * math.log10(max(mse, 1e-12)))
     return float(np.mean(scores))
+
+
+def trained_held_out_psnr(frames, synth_folder, config, seed: int = 0) -> float:
+    """Held-out PSNR of a model trained on ``frames`` with ``config`` for its whole schedule (the
+    same-result checks of the training economies: one call per variant, same seed)."""
+    from stg_node.avatar.trainer import Trainer
+
+    trainer = Trainer(config, seed=seed)
+    trainer.add_frames(frames)
+    for _ in range(config.iterations):
+        assert not trainer.step().skipped
+    return held_out_psnr(trainer, synth_folder)
