@@ -197,18 +197,18 @@ def wanted_runs(runs: str | None, known, experiment: str) -> list[str]:
     return wanted
 
 
+def camera_video_args(data: Path) -> list[str]:
+    """stg-train arguments that train from the subject's camera-1 video through the tracker, with
+    the camera's true intrinsics (the focal estimate is measured on its own, `focal`)."""
+    intrinsics = str(intrinsics_file(data))
+    return ["--data", str(data / "Camera_B1"), "--format", "video", "--intrinsics", intrinsics]
+
+
 # --- experiments ---------------------------------------------------------------------------------
 def gap(args) -> dict:
     out = args.out
     data = subject(out, f"mixed_{args.size}", num_frames=args.frames, size=args.size)
-    video = [
-        "--data",
-        str(data / "Camera_B1"),
-        "--format",
-        "video",
-        "--intrinsics",
-        str(intrinsics_file(data)),
-    ]
+    video = camera_video_args(data)
     video += ["--train-frames", f"0:{round(0.8 * args.frames)}", "--size", str(args.size)]
     before = ["--set", "lr_pose=0.0001", "--set", "loss.pose_refine=0.001", "--set", "loss.pose_smooth=0.0",
               "--set", "lr_exposure=0.0"]  # fmt: skip
@@ -1134,14 +1134,7 @@ def closeup(args) -> dict:
     tag = f"{args.size}_{args.frames}_{args.closeup_m:g}m_s{args.seed}"
     n_train = round(0.8 * args.frames)
     frames = ["--train-frames", f"0:{n_train}", "--size", str(args.size)]
-    video = [
-        "--data",
-        str(data / "Camera_B1"),
-        "--format",
-        "video",
-        "--intrinsics",
-        str(intrinsics_file(data)),
-    ]
+    video = camera_video_args(data)
     wanted = wanted_runs(args.runs, CLOSEUP_RUNS, "closeup")
     rows = {}
     for name in wanted:
