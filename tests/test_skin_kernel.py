@@ -209,3 +209,83 @@ def test_shading_normals_kernel_matches_the_torch_reference():
     assert bool((facing >= 0).all())  # every normal faces the camera
     with pytest.raises(ValueError, match="quats"):
         skin_ops.gaussian_normals(quats[:, :3], scales, means, camera)
+
+
+def second_frame(bones, seed, dtype=torch.float64):
+    """Another frame's rigid bone transforms (the flow loss's next frame)."""
+    gen = torch.Generator().manual_seed(100 + seed)
+    transforms = torch.eye(4, dtype=dtype).repeat(bones, 1, 1)
+    transforms[:, :3, :3] = lbs.axis_angle_to_matrix(torch.randn(bones, 3, generator=gen, dtype=dtype))
+    transforms[:, :3, 3] = torch.randn(bones, 3, generator=gen, dtype=dtype)
+    return transforms
+
+
+@pytest.mark.parametrize("own_means", [True, False])
+@pytest.mark.parametrize("with_delta", [True, False])
+@pytest.mark.parametrize("bones", [24, 5])
+def test_two_frames_in_one_pass_match_two_float64_autograd_skinnings(own_means, with_delta, bones):
+    """The second frame's centres (same weights, other bones, the frame's own canonical centres or
+    the first's) and every gradient (both frames' bones, both centres, the correction summed over
+    the frames) against two calls of the torch reference in float64."""
+    means, weights, delta, transforms, quats, local, camera = scene(bones=bones, seed=20 + bones)
+    delta = delta if with_delta else None
+    transforms2 = second_frame(bones, bones)
+    gen = torch.Generator().manual_seed(2)
+    means2 = (
+        means + 0.05 * torch.randn(means.shape, generator=gen, dtype=torch.float64) if own_means else None
+    )
+    g_means = torch.randn(means.shape, generator=gen, dtype=torch.float64)
+    g_quats = torch.randn(means.shape[0], 4, generator=gen, dtype=torch.float64)
+    g_next = torch.randn(means.shape, generator=gen, dtype=torch.float64)
+
+    def losses(dtype, run):
+        ins = leaves([means, delta, transforms, quats, local, transforms2, means2], dtype)
+        world, quat, nxt = run(*ins)
+        loss = (
+            (world * g_means.to(dtype)).sum()
+            + (quat * g_quats.to(dtype)).sum()
+            + (nxt * g_next.to(dtype)).sum()
+        )
+        return (world, quat, nxt), torch.autograd.grad(loss, [x for x in ins if x is not None])
+
+    def torch_two_passes(m, d, t, q, loc, t2, m2):
+        world, quat, _ = reference(m, weights, d, t, q, loc, camera)
+        nxt = skin(
+            m if m2 is None else m2, blend_weights(weights, d), PosedBones(t2[None], q[None]), rotations=False
+        )
+        return world, quat, nxt.means
+
+    def kernel_one_pass(m, d, t, q, loc, t2, m2):
+        out = kernel(m, weights.float(), d, t, q, loc, camera.float(), next_bone_transforms=t2, next_means=m2)
+        return out.means, out.quats, out.next_means
+
+    want, want_grads = losses(torch.float64, torch_two_passes)
+    got, got_grads = losses(torch.float32, kernel_one_pass)
+    for a, b in zip(got, want, strict=True):
+        torch.testing.assert_close(a.double(), b, atol=2e-6, rtol=1e-5)
+    assert len(got_grads) == len(want_grads)
+    for a, b in zip(got_grads, want_grads, strict=True):
+        scale = float(b.abs().max())
+        torch.testing.assert_close(a.double(), b, atol=1e-5 * max(scale, 1.0), rtol=1e-4)
+
+
+def test_the_second_frame_leaves_the_first_untouched_and_equals_its_own_pass():
+    """Asking for a second frame changes nothing of the first's outputs, and its centres are bit for
+    bit those of a centres-only pass with its bones."""
+    means, weights, delta, transforms, quats, local, camera = scene(seed=9)
+    f = [t.float() for t in (means, weights, delta, transforms, quats, local, camera)]
+    t2 = second_frame(24, 9).float()
+    with torch.no_grad():
+        one = kernel(*f)
+        both = kernel(*f, next_bone_transforms=t2)
+        alone = kernel(f[0], f[1], f[2], t2, f[4], None, None, rotations=False)
+    for name in ("means", "quats", "view_dirs"):
+        assert torch.equal(getattr(both, name), getattr(one, name))
+    assert one.next_means is None
+    assert torch.equal(both.next_means, alone.means)
+    with pytest.raises(ValueError, match="next_bone_transforms"):
+        kernel(*f, next_bone_transforms=t2[:3])
+    with pytest.raises(ValueError, match="next_means"):
+        kernel(*f, next_bone_transforms=t2, next_means=f[0][:5])
+    with pytest.raises(ValueError, match="next_bone_transforms"):
+        kernel(*f, next_means=f[0])

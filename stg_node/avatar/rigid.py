@@ -220,13 +220,27 @@ def skin_with_kernel(
     camera_center: torch.Tensor | None = None,
     rotations: bool = True,
     blend_norms: bool = False,
+    next_bones: PosedBones | None = None,
+    next_means: torch.Tensor | None = None,
 ):
     """The fused C++ skinning of ``means`` (stg_node.splat.skin_ops): ``blend_weights`` + ``skin``
     (+ the local rotation and the canonical view direction, see AvatarModel.pose) in one pass,
-    or None where the kernel does not apply (kernels.use_kernels); the caller then runs torch."""
-    if bones.transforms.shape[0] != 1:
+    or None where the kernel does not apply (kernels.use_kernels); the caller then runs torch.
+    ``next_bones``: also the centres (``next_means``, default ``means``) under another frame's
+    bones with the same weights (``.next_means``; skin_ops.skin's second frame)."""
+    if bones.transforms.shape[0] != 1 or (next_bones is not None and next_bones.transforms.shape[0] != 1):
         raise ValueError("skin_with_kernel() poses one frame at a time")
-    if not kernels.use_kernels(means, skin_weights, skin_delta, local_quats, bones.transforms, bones.quats):
+    next_transforms = None if next_bones is None else next_bones.transforms
+    if not kernels.use_kernels(
+        means,
+        skin_weights,
+        skin_delta,
+        local_quats,
+        bones.transforms,
+        bones.quats,
+        next_transforms,
+        next_means,
+    ):
         return None
     from stg_node.splat import skin_ops
 
@@ -242,4 +256,6 @@ def skin_with_kernel(
         camera_center=camera_center,
         rotations=rotations,
         blend_norms=blend_norms,
+        next_bone_transforms=None if next_transforms is None else next_transforms[0],
+        next_means=next_means,
     )

@@ -102,7 +102,7 @@ inline float local_rotation(const SkinShape& s, const float* l, float* ln) {
 void skin_forward(const SkinShape& s, const float* means, const float* skin_weights,
                   const float* skin_delta, const float* bones, const float* local_quats,
                   const float* camera, float* world, float* quats, float* view, float* weights,
-                  float* blend_norm2) {
+                  float* blend_norm2, const SecondFrame& second) {
     const int B = s.bones;
 #pragma omp parallel num_threads(s.threads)
     {
@@ -118,6 +118,14 @@ void skin_forward(const SkinShape& s, const float* means, const float* skin_weig
             for (int r = 0; r < 3; ++r)
                 p[r] = bl[r * 4] * x[0] + bl[r * 4 + 1] * x[1] + bl[r * 4 + 2] * x[2] + bl[r * 4 + 3];
             for (int r = 0; r < 3; ++r) world[i * 3 + r] = p[r];
+            if (second.bones != nullptr) {  // the other frame, same weights
+                float bl2[kBoneStride];
+                blend_bones(B, w, second.bones, bl2);
+                const float* x2 = second.means + i * 3;
+                for (int r = 0; r < 3; ++r)
+                    second.world[i * 3 + r] =
+                        bl2[r * 4] * x2[0] + bl2[r * 4 + 1] * x2[1] + bl2[r * 4 + 2] * x2[2] + bl2[r * 4 + 3];
+            }
             if (!s.rotations) continue;
             const float* qr = bl + 12;
             if (blend_norm2 != nullptr)
@@ -149,20 +157,27 @@ void skin_forward(const SkinShape& s, const float* means, const float* skin_weig
 void skin_backward(const SkinShape& s, const float* means, const float* weights,
                    const float* bones, const float* local_quats, const float* g_world,
                    const float* g_quats, float* g_means, float* g_delta, float* g_bones,
-                   float* g_local_quats) {
+                   float* g_local_quats, const SecondFrame& second) {
     const int B = s.bones;
     const int threads = std::max(1, s.threads);
-    // bones transposed (16 x B): dL/dw_b = <bones[b], g16> for all b as 16 axpys over b.
-    std::vector<float> bones_t(static_cast<size_t>(kBoneStride) * B);
+    const bool two = second.bones != nullptr;
+    const int frames = two ? 2 : 1;
+    // bones transposed (16 x B per frame): dL/dw_b = <bones[b], g16> for all b as 16 axpys over b.
+    std::vector<float> bones_t(static_cast<size_t>(frames) * kBoneStride * B);
     for (int b = 0; b < B; ++b)
-        for (int k = 0; k < kBoneStride; ++k) bones_t[k * B + b] = bones[b * kBoneStride + k];
+        for (int k = 0; k < kBoneStride; ++k) {
+            bones_t[k * B + b] = bones[b * kBoneStride + k];
+            if (two) bones_t[(kBoneStride + k) * B + b] = second.bones[b * kBoneStride + k];
+        }
+    // accumulators: frame f's bone b at (f * B + b) * 16
+    const size_t acc_size = static_cast<size_t>(frames) * B * kBoneStride;
     std::vector<std::vector<double>> totals(threads);
 #pragma omp parallel num_threads(threads)
     {
         const int tid = omp_get_thread_num();
         std::vector<double>& total = totals[tid];
-        total.assign(static_cast<size_t>(B) * kBoneStride, 0.0);
-        std::vector<float> acc(static_cast<size_t>(B) * kBoneStride, 0.0f);
+        total.assign(acc_size, 0.0);
+        std::vector<float> acc(acc_size, 0.0f);
         std::vector<float> gw(B);
         int since_flush = 0;
         auto flush = [&]() {
@@ -245,6 +260,33 @@ void skin_backward(const SkinShape& s, const float* means, const float* weights,
 #pragma omp simd
                 for (int k = 0; k < kBoneStride; ++k) a[k] = STG_MADD(wb, g16[k], a[k]);
             }
+            if (two) {  // the other frame: centres only, the same weights
+                float bl2[kBoneStride];
+                blend_bones(B, w, second.bones, bl2);
+                const float* x2 = second.means + i * 3;
+                const float* gp2 = second.g_world + i * 3;
+                for (int k = 0; k < 3; ++k)
+                    second.g_means[i * 3 + k] = bl2[k] * gp2[0] + bl2[4 + k] * gp2[1] + bl2[8 + k] * gp2[2];
+                float h16[12];
+                for (int r = 0; r < 3; ++r) {
+                    h16[r * 4] = gp2[r] * x2[0];
+                    h16[r * 4 + 1] = gp2[r] * x2[1];
+                    h16[r * 4 + 2] = gp2[r] * x2[2];
+                    h16[r * 4 + 3] = gp2[r];
+                }
+                for (int k = 0; k < 12; ++k) {
+                    const float hk = h16[k];
+                    const float* col = bones_t.data() + static_cast<size_t>(kBoneStride + k) * B;
+#pragma omp simd
+                    for (int b = 0; b < B; ++b) gw[b] = STG_MADD(hk, col[b], gw[b]);
+                }
+                for (int b = 0; b < B; ++b) {
+                    const float wb = w[b];
+                    float* a = acc.data() + static_cast<size_t>(B + b) * kBoneStride;
+#pragma omp simd
+                    for (int k = 0; k < 12; ++k) a[k] = STG_MADD(wb, h16[k], a[k]);
+                }
+            }
             if (++since_flush == kFlushEvery) flush();
             if (s.has_delta) {
                 // w = e / sum e with de_b/dd_b = e_b: dL/dd_b = w_b (dL/dw_b - sum_k w_k dL/dw_k)
@@ -257,11 +299,15 @@ void skin_backward(const SkinShape& s, const float* means, const float* weights,
         }
         flush();
     }
-    for (int k = 0; k < B * kBoneStride; ++k) {
+    for (size_t k = 0; k < acc_size; ++k) {
         double sum = 0.0;
         for (int t = 0; t < threads; ++t)
             if (!totals[t].empty()) sum += totals[t][k];
-        g_bones[k] = static_cast<float>(sum);
+        const size_t first = static_cast<size_t>(B) * kBoneStride;
+        if (k < first)
+            g_bones[k] = static_cast<float>(sum);
+        else
+            second.g_bones[k - first] = static_cast<float>(sum);  // its quaternions' entries are 0
     }
 }
 

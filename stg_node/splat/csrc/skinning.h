@@ -12,6 +12,11 @@
 //                                         a local rotation of norm <= quat_eps is the identity)
 //   view_i = conj(q_i) normalise(world_i - camera)   (the viewing direction in the canonical frame)
 // where normalise(q) = q / max(|q|, quat_eps).
+//
+// A second frame (SecondFrame: another set of bones and, optionally, other canonical centres x'_i)
+// is skinned in the same pass with the same weights: world'_i = B'_i[:, :3] x'_i + B'_i[:, 3] (centres
+// only; the flow loss's next frame). The weights, the costliest part of a point, are computed once,
+// and the backward pass sums both frames' dL/dw before the correction's chain rule.
 #pragma once
 
 #include <cstdint>
@@ -33,6 +38,19 @@ struct SkinShape {
     int threads;
 };
 
+// The second frame of one pass (all pointers nullptr when there is none): its bones [B*16] (the
+// quaternions are not read), its canonical centres [n*3] (may be the first frame's), its world
+// centres [n*3] (forward output), dL/dits world [n*3], dL/dits centres [n*3] and dL/dits bones [B*16]
+// (backward outputs).
+struct SecondFrame {
+    const float* bones = nullptr;
+    const float* means = nullptr;
+    float* world = nullptr;
+    const float* g_world = nullptr;
+    float* g_means = nullptr;
+    float* g_bones = nullptr;
+};
+
 // Outputs: world [n*3]; quats [n*4] (if rotations); view [n*3] (if camera != nullptr, needs
 // rotations); weights [n*B] the effective weights (if not nullptr: the backward pass takes them);
 // blend_norm2 [n] the squared norm of the blended bone quaternion (if not nullptr, needs
@@ -40,7 +58,7 @@ struct SkinShape {
 void skin_forward(const SkinShape& shape, const float* means, const float* skin_weights,
                   const float* skin_delta, const float* bones, const float* local_quats,
                   const float* camera, float* world, float* quats, float* view, float* weights,
-                  float* blend_norm2);
+                  float* blend_norm2, const SecondFrame& second = SecondFrame{});
 
 // Given dL/dworld [n*3] and dL/dquats [n*4] (if rotations), writes dL/dmeans [n*3], dL/ddelta
 // [n*B] (if has_delta), dL/dbones [B*16] and dL/dlocal_quats [n*4] (if has_local). `weights` are
@@ -48,7 +66,7 @@ void skin_forward(const SkinShape& shape, const float* means, const float* skin_
 void skin_backward(const SkinShape& shape, const float* means, const float* weights,
                    const float* bones, const float* local_quats, const float* g_world,
                    const float* g_quats, float* g_means, float* g_delta, float* g_bones,
-                   float* g_local_quats);
+                   float* g_local_quats, const SecondFrame& second = SecondFrame{});
 
 // Shading normals of posed Gaussians (no gradient; the torch reference is
 // stg_node.avatar.shading.gaussian_normals, which this follows operation for operation): each

@@ -464,10 +464,11 @@ at::Tensor sphere_visibility_fwd(const at::Tensor& points, const at::Tensor& nor
 // ---- skinning (skinning.h); an absent optional tensor is passed as an empty one ----
 bool given(const at::Tensor& t) { return t.defined() && t.numel() > 0; }
 
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> skin_fwd(
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> skin_fwd(
     const at::Tensor& means, const at::Tensor& skin_weights, const at::Tensor& skin_delta,
     const at::Tensor& bones, const at::Tensor& local_quats, const at::Tensor& camera, bool rotations,
-    double weight_eps, double quat_eps, bool save_weights, bool blend_norms, int64_t threads) {
+    double weight_eps, double quat_eps, bool save_weights, bool blend_norms, const at::Tensor& next_means,
+    const at::Tensor& next_bones, int64_t threads) {
     const int64_t n = means.size(0);
     check_cpu_float(means, "means", n, 3);
     TORCH_CHECK(bones.dim() == 2 && bones.size(1) == stg_skin::kBoneStride, "bones must be [B, ",
@@ -485,8 +486,20 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> skin_fwd(
     }
     TORCH_CHECK(rotations || (!has_local && !has_camera && !blend_norms),
                 "local rotations, the view and the blend norms need rotations");
+    const bool two = given(next_bones);
+    if (two) {
+        check_cpu_float(next_bones, "next_bones", B, stg_skin::kBoneStride);
+        check_cpu_float(next_means, "next_means", n, 3);
+    }
     TORCH_CHECK(threads >= 1, "threads must be >= 1");
     const auto f32 = means.options();
+    at::Tensor next_world = at::empty({two ? n : 0, 3}, f32);
+    stg_skin::SecondFrame second;
+    if (two) {
+        second.bones = next_bones.data_ptr<float>();
+        second.means = next_means.data_ptr<float>();
+        second.world = next_world.data_ptr<float>();
+    }
     at::Tensor world = at::empty({n, 3}, f32);
     at::Tensor quats = at::empty({rotations ? n : 0, 4}, f32);
     at::Tensor view = at::empty({has_camera ? n : 0, 3}, f32);
@@ -503,8 +516,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> skin_fwd(
                            rotations ? quats.data_ptr<float>() : nullptr,
                            has_camera ? view.data_ptr<float>() : nullptr,
                            save_weights ? weights.data_ptr<float>() : nullptr,
-                           blend_norms ? norms.data_ptr<float>() : nullptr);
-    return {world, quats, view, weights, norms};
+                           blend_norms ? norms.data_ptr<float>() : nullptr, second);
+    return {world, quats, view, weights, norms, next_world};
 }
 
 at::Tensor gaussian_normals_fwd(const at::Tensor& quats, const at::Tensor& scales, const at::Tensor& means,
@@ -522,10 +535,11 @@ at::Tensor gaussian_normals_fwd(const at::Tensor& quats, const at::Tensor& scale
     return normals;
 }
 
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> skin_bwd(
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> skin_bwd(
     const at::Tensor& means, const at::Tensor& weights, bool has_delta, const at::Tensor& bones,
     const at::Tensor& local_quats, bool rotations, double quat_eps, const at::Tensor& g_world,
-    const at::Tensor& g_quats, int64_t threads) {
+    const at::Tensor& g_quats, const at::Tensor& next_means, const at::Tensor& next_bones,
+    const at::Tensor& g_next_world, int64_t threads) {
     const int64_t n = means.size(0);
     check_cpu_float(means, "means", n, 3);
     const int64_t B = bones.size(0);
@@ -536,8 +550,24 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> skin_bwd(
     if (has_local) check_cpu_float(local_quats, "local_quats", n, 4);
     if (rotations) check_cpu_float(g_quats, "grad quats", n, 4);
     TORCH_CHECK(rotations || !has_local, "local rotations need rotations");
+    const bool two = given(next_bones);
+    if (two) {
+        check_cpu_float(next_bones, "next_bones", B, stg_skin::kBoneStride);
+        check_cpu_float(next_means, "next_means", n, 3);
+        check_cpu_float(g_next_world, "grad next world", n, 3);
+    }
     TORCH_CHECK(threads >= 1, "threads must be >= 1");
     const auto f32 = means.options();
+    at::Tensor g_next_means = at::empty({two ? n : 0, 3}, f32);
+    at::Tensor g_next_bones = at::empty({two ? B : 0, stg_skin::kBoneStride}, f32);
+    stg_skin::SecondFrame second;
+    if (two) {
+        second.bones = next_bones.data_ptr<float>();
+        second.means = next_means.data_ptr<float>();
+        second.g_world = g_next_world.data_ptr<float>();
+        second.g_means = g_next_means.data_ptr<float>();
+        second.g_bones = g_next_bones.data_ptr<float>();
+    }
     at::Tensor g_means = at::empty({n, 3}, f32);
     at::Tensor g_delta = at::empty({has_delta ? n : 0, B}, f32);
     at::Tensor g_bones = at::empty({B, stg_skin::kBoneStride}, f32);
@@ -548,8 +578,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> skin_bwd(
                             has_local ? local_quats.data_ptr<float>() : nullptr, g_world.data_ptr<float>(),
                             rotations ? g_quats.data_ptr<float>() : nullptr, g_means.data_ptr<float>(),
                             has_delta ? g_delta.data_ptr<float>() : nullptr, g_bones.data_ptr<float>(),
-                            has_local ? g_local.data_ptr<float>() : nullptr);
-    return {g_means, g_delta, g_bones, g_local};
+                            has_local ? g_local.data_ptr<float>() : nullptr, second);
+    return {g_means, g_delta, g_bones, g_local, g_next_means, g_next_bones};
 }
 
 // ---- small MLP (small_mlp.h) ----
@@ -695,14 +725,14 @@ TORCH_LIBRARY(STG_SPLAT_NS, m) {
     m.def(
         "skin_fwd(Tensor means, Tensor skin_weights, Tensor skin_delta, Tensor bones, Tensor local_quats, "
         "Tensor camera, bool rotations, float weight_eps, float quat_eps, bool save_weights, bool blend_norms, "
-        "int threads) -> (Tensor, Tensor, Tensor, Tensor, Tensor)",
+        "Tensor next_means, Tensor next_bones, int threads) -> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)",
         &skin_fwd);
     m.def("gaussian_normals_fwd(Tensor quats, Tensor scales, Tensor means, Tensor camera, int threads) -> Tensor",
           &gaussian_normals_fwd);
     m.def(
         "skin_bwd(Tensor means, Tensor weights, bool has_delta, Tensor bones, Tensor local_quats, "
-        "bool rotations, float quat_eps, Tensor g_world, Tensor g_quats, int threads) -> "
-        "(Tensor, Tensor, Tensor, Tensor)",
+        "bool rotations, float quat_eps, Tensor g_world, Tensor g_quats, Tensor next_means, Tensor next_bones, "
+        "Tensor g_next_world, int threads) -> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)",
         &skin_bwd);
     m.def(
         "mlp_fwd(Tensor x, Tensor[] weights, Tensor[] biases, int[] acts, bool keep_hidden, int threads) -> "
