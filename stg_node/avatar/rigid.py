@@ -74,6 +74,10 @@ class Skeleton(torch.nn.Module):
         """
         if not (torch.is_grad_enabled() and (poses.requires_grad or Rh.requires_grad or Th.requires_grad)):
             return self._bones_without_grad(poses, Rh, Th)
+        if kernels.mode() != "torch" and poses.device.type == "cpu":  # the hand-written backward
+            from stg_node.avatar import kinematics
+
+            return PosedBones(*kinematics.bones(self, poses, Rh, Th))
         batch = poses.shape[0]
         rotations = lbs.axis_angle_to_matrix(poses.reshape(batch, 24, 3))
         rest = self.rest_joints.expand(batch, 24, 3)
