@@ -82,19 +82,19 @@ class _Skin(torch.autograd.Function):
         two = next_bones is not None
         m2 = _f32(next_means) if two else _empty()
         bo2 = _f32(next_bones) if two else _empty()
-        world, quats, view, weights, norms, world2 = ops.skin_fwd(
+        world, quats, view, weights, norms, world2, blends = ops.skin_fwd(
             m, sw, delta, bo, local, cam, rotations, weight_eps, quat_eps, grad, blend_norms, m2, bo2,
             torch.get_num_threads(),
         )  # fmt: skip
         ctx.mark_non_differentiable(view, norms)
         if grad:
-            ctx.save_for_backward(m, weights, bo, local, m2, bo2)
+            ctx.save_for_backward(m, weights, bo, local, m2, bo2, blends)
         ctx.args = (skin_delta is not None, rotations, quat_eps)
         return world, quats, view, norms, world2
 
     @staticmethod
     def backward(ctx, g_world, g_quats, _g_view, _g_norms, g_world2):
-        m, weights, bo, local, m2, bo2 = ctx.saved_tensors
+        m, weights, bo, local, m2, bo2, blends = ctx.saved_tensors
         has_delta, rotations, quat_eps = ctx.args
         two = bo2.numel() > 0
         ops = load_kernels().ops
@@ -109,7 +109,7 @@ class _Skin(torch.autograd.Function):
             g_world2 = _empty()
         g_means, g_delta, g_bones, g_local, g_means2, g_bones2 = ops.skin_bwd(
             m, weights, has_delta, bo, local, rotations, quat_eps, g_world, g_quats, m2, bo2, g_world2,
-            torch.get_num_threads(),
+            blends, ctx.needs_input_grad[3], ctx.needs_input_grad[12], torch.get_num_threads(),
         )  # fmt: skip
         return (
             g_means,

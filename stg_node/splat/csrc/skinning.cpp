@@ -102,8 +102,9 @@ inline float local_rotation(const SkinShape& s, const float* l, float* ln) {
 void skin_forward(const SkinShape& s, const float* means, const float* skin_weights,
                   const float* skin_delta, const float* bones, const float* local_quats,
                   const float* camera, float* world, float* quats, float* view, float* weights,
-                  float* blend_norm2, const SecondFrame& second) {
+                  float* blend_norm2, float* blends, const SecondFrame& second) {
     const int B = s.bones;
+    const int frames = second.bones != nullptr ? 2 : 1;
 #pragma omp parallel num_threads(s.threads)
     {
         std::vector<float> wbuf(B);
@@ -113,6 +114,7 @@ void skin_forward(const SkinShape& s, const float* means, const float* skin_weig
             point_weights(s, skin_weights + i * B, s.has_delta ? skin_delta + i * B : nullptr, w);
             float bl[kBoneStride];
             blend_bones(B, w, bones, bl);
+            if (blends != nullptr) std::copy(bl, bl + kBoneStride, blends + i * frames * kBoneStride);
             const float* x = means + i * 3;
             float p[3];
             for (int r = 0; r < 3; ++r)
@@ -121,6 +123,7 @@ void skin_forward(const SkinShape& s, const float* means, const float* skin_weig
             if (second.bones != nullptr) {  // the other frame, same weights
                 float bl2[kBoneStride];
                 blend_bones(B, w, second.bones, bl2);
+                if (blends != nullptr) std::copy(bl2, bl2 + kBoneStride, blends + (i * 2 + 1) * kBoneStride);
                 const float* x2 = second.means + i * 3;
                 for (int r = 0; r < 3; ++r)
                     second.world[i * 3 + r] =
@@ -157,7 +160,7 @@ void skin_forward(const SkinShape& s, const float* means, const float* skin_weig
 void skin_backward(const SkinShape& s, const float* means, const float* weights,
                    const float* bones, const float* local_quats, const float* g_world,
                    const float* g_quats, float* g_means, float* g_delta, float* g_bones,
-                   float* g_local_quats, const SecondFrame& second) {
+                   float* g_local_quats, const float* blends, const SecondFrame& second) {
     const int B = s.bones;
     const int threads = std::max(1, s.threads);
     const bool two = second.bones != nullptr;
@@ -190,8 +193,12 @@ void skin_backward(const SkinShape& s, const float* means, const float* weights,
 #pragma omp for schedule(static)
         for (int64_t i = 0; i < s.n; ++i) {
             const float* w = weights + i * B;
-            float bl[kBoneStride];
-            blend_bones(B, w, bones, bl);
+            float own[kBoneStride];
+            const float* bl = own;
+            if (blends != nullptr)
+                bl = blends + i * frames * kBoneStride;
+            else
+                blend_bones(B, w, bones, own);
             const float* x = means + i * 3;
             const float* gp = g_world + i * 3;
             // world = M x + t: dL/dx = M^T g, dL/dM = g x^T, dL/dt = g
@@ -246,23 +253,31 @@ void skin_backward(const SkinShape& s, const float* means, const float* weights,
                     for (int k = 0; k < 4; ++k) g16[12 + k] = gq[k] * inv;
                 }
             }
-            // dL/dw_b = <bones[b], g16>; dL/dbones[b] += w_b g16
-            std::fill(gw.begin(), gw.end(), 0.0f);
-            for (int k = 0; k < kBoneStride; ++k) {
-                const float gk = g16[k];
-                const float* col = bones_t.data() + static_cast<size_t>(k) * B;
+            // dL/dw_b = <bones[b], g16> (only the correction takes it); dL/dbones[b] += w_b g16
+            if (s.has_delta) {
+                std::fill(gw.begin(), gw.end(), 0.0f);
+                for (int k = 0; k < kBoneStride; ++k) {
+                    const float gk = g16[k];
+                    const float* col = bones_t.data() + static_cast<size_t>(k) * B;
 #pragma omp simd
-                for (int b = 0; b < B; ++b) gw[b] = STG_MADD(gk, col[b], gw[b]);
+                    for (int b = 0; b < B; ++b) gw[b] = STG_MADD(gk, col[b], gw[b]);
+                }
             }
-            for (int b = 0; b < B; ++b) {
-                const float wb = w[b];
-                float* a = acc.data() + static_cast<size_t>(b) * kBoneStride;
+            if (s.bone_grads) {
+                for (int b = 0; b < B; ++b) {
+                    const float wb = w[b];
+                    float* a = acc.data() + static_cast<size_t>(b) * kBoneStride;
 #pragma omp simd
-                for (int k = 0; k < kBoneStride; ++k) a[k] = STG_MADD(wb, g16[k], a[k]);
+                    for (int k = 0; k < kBoneStride; ++k) a[k] = STG_MADD(wb, g16[k], a[k]);
+                }
             }
             if (two) {  // the other frame: centres only, the same weights
-                float bl2[kBoneStride];
-                blend_bones(B, w, second.bones, bl2);
+                float own2[kBoneStride];
+                const float* bl2 = own2;
+                if (blends != nullptr)
+                    bl2 = blends + (i * 2 + 1) * kBoneStride;
+                else
+                    blend_bones(B, w, second.bones, own2);
                 const float* x2 = second.means + i * 3;
                 const float* gp2 = second.g_world + i * 3;
                 for (int k = 0; k < 3; ++k)
@@ -274,17 +289,21 @@ void skin_backward(const SkinShape& s, const float* means, const float* weights,
                     h16[r * 4 + 2] = gp2[r] * x2[2];
                     h16[r * 4 + 3] = gp2[r];
                 }
-                for (int k = 0; k < 12; ++k) {
-                    const float hk = h16[k];
-                    const float* col = bones_t.data() + static_cast<size_t>(kBoneStride + k) * B;
+                if (s.has_delta) {
+                    for (int k = 0; k < 12; ++k) {
+                        const float hk = h16[k];
+                        const float* col = bones_t.data() + static_cast<size_t>(kBoneStride + k) * B;
 #pragma omp simd
-                    for (int b = 0; b < B; ++b) gw[b] = STG_MADD(hk, col[b], gw[b]);
+                        for (int b = 0; b < B; ++b) gw[b] = STG_MADD(hk, col[b], gw[b]);
+                    }
                 }
-                for (int b = 0; b < B; ++b) {
-                    const float wb = w[b];
-                    float* a = acc.data() + static_cast<size_t>(B + b) * kBoneStride;
+                if (s.next_bone_grads) {
+                    for (int b = 0; b < B; ++b) {
+                        const float wb = w[b];
+                        float* a = acc.data() + static_cast<size_t>(B + b) * kBoneStride;
 #pragma omp simd
-                    for (int k = 0; k < 12; ++k) a[k] = STG_MADD(wb, h16[k], a[k]);
+                        for (int k = 0; k < 12; ++k) a[k] = STG_MADD(wb, h16[k], a[k]);
+                    }
                 }
             }
             if (++since_flush == kFlushEvery) flush();

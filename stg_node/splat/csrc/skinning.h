@@ -36,6 +36,8 @@ struct SkinShape {
     float weight_eps;   // eps of the weight correction
     float quat_eps;     // normalisation floor of quaternions
     int threads;
+    bool bone_grads = true;       // backward: dL/dbones wanted (else left zero)
+    bool next_bone_grads = true;  // backward: dL/dthe second frame's bones wanted (else left zero)
 };
 
 // The second frame of one pass (all pointers nullptr when there is none): its bones [B*16] (the
@@ -54,19 +56,22 @@ struct SecondFrame {
 // Outputs: world [n*3]; quats [n*4] (if rotations); view [n*3] (if camera != nullptr, needs
 // rotations); weights [n*B] the effective weights (if not nullptr: the backward pass takes them);
 // blend_norm2 [n] the squared norm of the blended bone quaternion (if not nullptr, needs
-// rotations: how much the blend squeezes the body there, stg_node.avatar.rigid.joint_shrink).
+// rotations: how much the blend squeezes the body there, stg_node.avatar.rigid.joint_shrink);
+// blends [n*F*16] each point's blended bones, F = 1 or 2 frames (if not nullptr: the backward pass
+// takes them instead of blending again).
 void skin_forward(const SkinShape& shape, const float* means, const float* skin_weights,
                   const float* skin_delta, const float* bones, const float* local_quats,
                   const float* camera, float* world, float* quats, float* view, float* weights,
-                  float* blend_norm2, const SecondFrame& second = SecondFrame{});
+                  float* blend_norm2, float* blends = nullptr, const SecondFrame& second = SecondFrame{});
 
 // Given dL/dworld [n*3] and dL/dquats [n*4] (if rotations), writes dL/dmeans [n*3], dL/ddelta
 // [n*B] (if has_delta), dL/dbones [B*16] and dL/dlocal_quats [n*4] (if has_local). `weights` are
-// the effective weights skin_forward wrote.
+// the effective weights skin_forward wrote, `blends` its blends (or nullptr: blended again).
 void skin_backward(const SkinShape& shape, const float* means, const float* weights,
                    const float* bones, const float* local_quats, const float* g_world,
                    const float* g_quats, float* g_means, float* g_delta, float* g_bones,
-                   float* g_local_quats, const SecondFrame& second = SecondFrame{});
+                   float* g_local_quats, const float* blends = nullptr,
+                   const SecondFrame& second = SecondFrame{});
 
 // Shading normals of posed Gaussians (no gradient; the torch reference is
 // stg_node.avatar.shading.gaussian_normals, which this follows operation for operation): each

@@ -464,7 +464,7 @@ at::Tensor sphere_visibility_fwd(const at::Tensor& points, const at::Tensor& nor
 // ---- skinning (skinning.h); an absent optional tensor is passed as an empty one ----
 bool given(const at::Tensor& t) { return t.defined() && t.numel() > 0; }
 
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> skin_fwd(
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> skin_fwd(
     const at::Tensor& means, const at::Tensor& skin_weights, const at::Tensor& skin_delta,
     const at::Tensor& bones, const at::Tensor& local_quats, const at::Tensor& camera, bool rotations,
     double weight_eps, double quat_eps, bool save_weights, bool blend_norms, const at::Tensor& next_means,
@@ -505,6 +505,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
     at::Tensor view = at::empty({has_camera ? n : 0, 3}, f32);
     at::Tensor weights = at::empty({save_weights ? n : 0, B}, f32);
     at::Tensor norms = at::empty({blend_norms ? n : 0}, f32);
+    at::Tensor blends = at::empty({save_weights ? n : 0, two ? 2 : 1, stg_skin::kBoneStride}, f32);
     const stg_skin::SkinShape shape{n,         static_cast<int>(B),
                                     has_delta, rotations,
                                     has_local, static_cast<float>(weight_eps),
@@ -516,8 +517,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
                            rotations ? quats.data_ptr<float>() : nullptr,
                            has_camera ? view.data_ptr<float>() : nullptr,
                            save_weights ? weights.data_ptr<float>() : nullptr,
-                           blend_norms ? norms.data_ptr<float>() : nullptr, second);
-    return {world, quats, view, weights, norms, next_world};
+                           blend_norms ? norms.data_ptr<float>() : nullptr,
+                           save_weights ? blends.data_ptr<float>() : nullptr, second);
+    return {world, quats, view, weights, norms, next_world, blends};
 }
 
 at::Tensor gaussian_normals_fwd(const at::Tensor& quats, const at::Tensor& scales, const at::Tensor& means,
@@ -539,7 +541,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
     const at::Tensor& means, const at::Tensor& weights, bool has_delta, const at::Tensor& bones,
     const at::Tensor& local_quats, bool rotations, double quat_eps, const at::Tensor& g_world,
     const at::Tensor& g_quats, const at::Tensor& next_means, const at::Tensor& next_bones,
-    const at::Tensor& g_next_world, int64_t threads) {
+    const at::Tensor& g_next_world, const at::Tensor& blends, bool bone_grads, bool next_bone_grads,
+    int64_t threads) {
     const int64_t n = means.size(0);
     check_cpu_float(means, "means", n, 3);
     const int64_t B = bones.size(0);
@@ -572,13 +575,22 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
     at::Tensor g_delta = at::empty({has_delta ? n : 0, B}, f32);
     at::Tensor g_bones = at::empty({B, stg_skin::kBoneStride}, f32);
     at::Tensor g_local = at::empty({has_local ? n : 0, 4}, f32);
-    const stg_skin::SkinShape shape{n, static_cast<int>(B), has_delta, rotations, has_local, 0.0f,
-                                    static_cast<float>(quat_eps), static_cast<int>(threads)};
+    const bool has_blends = given(blends);
+    if (has_blends) check_cpu_float(blends, "blends", n, 0);
+    TORCH_CHECK(!has_blends || blends.numel() == n * (two ? 2 : 1) * stg_skin::kBoneStride, "blends must be [",
+                n, ", ", two ? 2 : 1, ", ", stg_skin::kBoneStride, "], got ", blends.sizes());
+    stg_skin::SkinShape shape{n, static_cast<int>(B), has_delta, rotations, has_local, 0.0f,
+                              static_cast<float>(quat_eps), static_cast<int>(threads)};
+    shape.bone_grads = bone_grads;
+    shape.next_bone_grads = next_bone_grads;
+    if (!bone_grads) g_bones.zero_();
+    if (two && !next_bone_grads) g_next_bones.zero_();
     stg_skin::skin_backward(shape, means.data_ptr<float>(), weights.data_ptr<float>(), bones.data_ptr<float>(),
                             has_local ? local_quats.data_ptr<float>() : nullptr, g_world.data_ptr<float>(),
                             rotations ? g_quats.data_ptr<float>() : nullptr, g_means.data_ptr<float>(),
                             has_delta ? g_delta.data_ptr<float>() : nullptr, g_bones.data_ptr<float>(),
-                            has_local ? g_local.data_ptr<float>() : nullptr, second);
+                            has_local ? g_local.data_ptr<float>() : nullptr,
+                            has_blends ? blends.data_ptr<float>() : nullptr, second);
     return {g_means, g_delta, g_bones, g_local, g_next_means, g_next_bones};
 }
 
@@ -725,14 +737,16 @@ TORCH_LIBRARY(STG_SPLAT_NS, m) {
     m.def(
         "skin_fwd(Tensor means, Tensor skin_weights, Tensor skin_delta, Tensor bones, Tensor local_quats, "
         "Tensor camera, bool rotations, float weight_eps, float quat_eps, bool save_weights, bool blend_norms, "
-        "Tensor next_means, Tensor next_bones, int threads) -> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)",
+        "Tensor next_means, Tensor next_bones, int threads) -> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, "
+        "Tensor)",
         &skin_fwd);
     m.def("gaussian_normals_fwd(Tensor quats, Tensor scales, Tensor means, Tensor camera, int threads) -> Tensor",
           &gaussian_normals_fwd);
     m.def(
         "skin_bwd(Tensor means, Tensor weights, bool has_delta, Tensor bones, Tensor local_quats, "
         "bool rotations, float quat_eps, Tensor g_world, Tensor g_quats, Tensor next_means, Tensor next_bones, "
-        "Tensor g_next_world, int threads) -> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)",
+        "Tensor g_next_world, Tensor blends, bool bone_grads, bool next_bone_grads, int threads) -> (Tensor, "
+        "Tensor, Tensor, Tensor, Tensor, Tensor)",
         &skin_bwd);
     m.def(
         "mlp_fwd(Tensor x, Tensor[] weights, Tensor[] biases, int[] acts, bool keep_hidden, int threads) -> "
