@@ -211,6 +211,32 @@ def test_shading_normals_kernel_matches_the_torch_reference():
         skin_ops.gaussian_normals(quats[:, :3], scales, means, camera)
 
 
+def test_shading_normals_gradient_matches_float64_autograd_of_the_torch_reference():
+    """The normals kernel's backward (to the rotations; the axis and the sign are constants, as in
+    the reference) against autograd through stg_node.avatar.shading.gaussian_normals in float64,
+    for unnormalised rotations too (the reference turns by q as given); through the dispatch."""
+    from stg_node.avatar import kernels
+    from stg_node.avatar.shading import gaussian_normals
+
+    gen = torch.Generator().manual_seed(5)
+    n = 500
+    quats = torch.randn(n, 4, generator=gen, dtype=torch.float64)
+    quats[::2] = torch.nn.functional.normalize(quats[::2], dim=1)
+    scales = torch.rand(n, 3, generator=gen, dtype=torch.float64) + 0.01
+    means = torch.randn(n, 3, generator=gen, dtype=torch.float64)
+    camera = torch.tensor([0.2, -0.1, 4.0], dtype=torch.float64)
+    g = torch.randn(n, 3, generator=gen, dtype=torch.float64)
+    q64 = quats.clone().requires_grad_(True)
+    with kernels.reference():
+        want = torch.autograd.grad((gaussian_normals(q64, scales, means, camera) * g).sum(), q64)[0]
+    q32 = quats.float().requires_grad_(True)
+    m32 = means.float().requires_grad_(True)
+    normals = gaussian_normals(q32, scales.float(), m32, camera.float())
+    got = torch.autograd.grad((normals * g.float()).sum(), [q32, m32], allow_unused=True)
+    assert got[1] is None  # the sign is a constant: the centres take no gradient
+    torch.testing.assert_close(got[0].double(), want, atol=1e-5 * float(want.abs().max()), rtol=1e-5)
+
+
 def second_frame(bones, seed, dtype=torch.float64):
     """Another frame's rigid bone transforms (the flow loss's next frame)."""
     gen = torch.Generator().manual_seed(100 + seed)

@@ -235,20 +235,34 @@ def skin(
     )
 
 
+class _Normals(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, quats, scales, means, camera):
+        ops = load_kernels().ops
+        q, sc, m, cam = _f32(quats), _f32(scales), _f32(means), _f32(camera.reshape(3))
+        ctx.save_for_backward(q, sc, m, cam)
+        return ops.gaussian_normals_fwd(q, sc, m, cam, torch.get_num_threads())
+
+    @staticmethod
+    def backward(ctx, g_normals):
+        q, sc, m, cam = ctx.saved_tensors
+        ops = load_kernels().ops
+        g_quats = ops.gaussian_normals_bwd(q, sc, m, cam, _f32(g_normals), torch.get_num_threads())
+        return g_quats, None, None, None
+
+
 def gaussian_normals(
     quats: torch.Tensor, scales: torch.Tensor, means: torch.Tensor, camera_center: torch.Tensor
 ) -> torch.Tensor:
-    """(M, 3) shading normals of posed Gaussians, no gradient: stg_node.avatar.shading's
-    ``gaussian_normals`` (its torch reference) in one pass per point instead of a dozen ops over
-    (M, 3) tensors; the same operations in the same order (a last bit apart where torch's own
-    kernels fuse a multiply-add)."""
+    """(M, 3) shading normals of posed Gaussians: stg_node.avatar.shading's ``gaussian_normals``
+    (its torch reference) in one pass per point instead of a dozen ops over (M, 3) tensors; the
+    same operations in the same order (a last bit apart where torch's own kernels fuse a
+    multiply-add). Differentiable with respect to ``quats`` only, as the reference (the axis and
+    the sign are constants for the gradient)."""
     n = quats.shape[0]
     if quats.shape != (n, 4) or scales.shape != (n, 3) or means.shape != (n, 3) or camera_center.numel() != 3:
         raise ValueError(
             f"gaussian_normals needs quats (M, 4), scales (M, 3), means (M, 3), a camera centre (3,); got "
             f"{tuple(quats.shape)}, {tuple(scales.shape)}, {tuple(means.shape)}, {tuple(camera_center.shape)}"
         )
-    ops = load_kernels().ops
-    return ops.gaussian_normals_fwd(
-        _f32(quats), _f32(scales), _f32(means), _f32(camera_center.reshape(3)), torch.get_num_threads()
-    )
+    return _Normals.apply(quats, scales, means, camera_center)

@@ -355,4 +355,37 @@ void gaussian_normals(int64_t n, const float* quats, const float* scales, const 
     }
 }
 
+void gaussian_normals_backward(int64_t n, const float* quats, const float* scales, const float* means,
+                               const float* camera, const float* g_normals, float* g_quats, int threads) {
+#pragma omp parallel for schedule(static) num_threads(threads)
+    for (int64_t i = 0; i < n; ++i) {
+        const float* sc = scales + i * 3;
+        int k = 0;  // the forward's axis and sign, found again
+        if (sc[1] < sc[k]) k = 1;
+        if (sc[2] < sc[k]) k = 2;
+        float a[3] = {0.0f, 0.0f, 0.0f};
+        a[k] = 1.0f;
+        const float* q = quats + i * 4;
+        const float w = q[0], u[3] = {q[1], q[2], q[3]};
+        const float ua[3] = {u[1] * a[2] - u[2] * a[1], u[2] * a[0] - u[0] * a[2], u[0] * a[1] - u[1] * a[0]};
+        const float uua[3] = {u[1] * ua[2] - u[2] * ua[1], u[2] * ua[0] - u[0] * ua[2],
+                              u[0] * ua[1] - u[1] * ua[0]};
+        float nrm[3];
+        for (int r = 0; r < 3; ++r) nrm[r] = a[r] + 2.0f * (w * ua[r] + uua[r]);
+        const float* p = means + i * 3;
+        const float t[3] = {camera[0] - p[0], camera[1] - p[1], camera[2] - p[2]};
+        const float sign = nrm[0] * t[0] + nrm[1] * t[1] + nrm[2] * t[2] < 0.0f ? -1.0f : 1.0f;
+        // n = sign (a + 2 (w (u x a) + u (u.a) - a (u.u)))
+        const float* gn = g_normals + i * 3;
+        const float g[3] = {sign * gn[0], sign * gn[1], sign * gn[2]};
+        const float ag[3] = {a[1] * g[2] - a[2] * g[1], a[2] * g[0] - a[0] * g[2], a[0] * g[1] - a[1] * g[0]};
+        const float u_a = u[0] * a[0] + u[1] * a[1] + u[2] * a[2];
+        const float u_g = u[0] * g[0] + u[1] * g[1] + u[2] * g[2];
+        const float a_g = a[0] * g[0] + a[1] * g[1] + a[2] * g[2];
+        float* out = g_quats + i * 4;
+        out[0] = 2.0f * (ua[0] * g[0] + ua[1] * g[1] + ua[2] * g[2]);
+        for (int r = 0; r < 3; ++r) out[1 + r] = 2.0f * (w * ag[r] + u_a * g[r] + u_g * a[r] - 2.0f * a_g * u[r]);
+    }
+}
+
 }  // namespace stg_skin

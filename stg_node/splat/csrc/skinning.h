@@ -81,4 +81,9 @@ void skin_backward(const SkinShape& shape, const float* means, const float* weig
 void gaussian_normals(int64_t n, const float* quats, const float* scales, const float* means,
                       const float* camera, float* normals, int threads);
 
+// The backward pass of gaussian_normals: dL/dquats [n*4] from dL/dnormals [n*3] (the axis and the
+// sign are constants for the gradient, as in the torch reference: scales and means take none).
+void gaussian_normals_backward(int64_t n, const float* quats, const float* scales, const float* means,
+                               const float* camera, const float* g_normals, float* g_quats, int threads);
+
 }  // namespace stg_skin

@@ -537,6 +537,24 @@ at::Tensor gaussian_normals_fwd(const at::Tensor& quats, const at::Tensor& scale
     return normals;
 }
 
+at::Tensor gaussian_normals_bwd(const at::Tensor& quats, const at::Tensor& scales, const at::Tensor& means,
+                                const at::Tensor& camera, const at::Tensor& g_normals, int64_t threads) {
+    const int64_t n = quats.size(0);
+    check_cpu_float(quats, "quats", n, 4);
+    check_cpu_float(scales, "scales", n, 3);
+    check_cpu_float(means, "means", n, 3);
+    check_cpu_float(g_normals, "grad normals", n, 3);
+    TORCH_CHECK(camera.numel() == 3, "camera must hold 3 values, got ", camera.numel());
+    check_cpu_float(camera, "camera", camera.size(0), 0);
+    TORCH_CHECK(threads >= 1, "threads must be >= 1");
+    at::Tensor g_quats = at::empty({n, 4}, quats.options());
+    stg_skin::gaussian_normals_backward(n, quats.data_ptr<float>(), scales.data_ptr<float>(),
+                                        means.data_ptr<float>(), camera.data_ptr<float>(),
+                                        g_normals.data_ptr<float>(), g_quats.data_ptr<float>(),
+                                        static_cast<int>(threads));
+    return g_quats;
+}
+
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> skin_bwd(
     const at::Tensor& means, const at::Tensor& weights, bool has_delta, const at::Tensor& bones,
     const at::Tensor& local_quats, bool rotations, double quat_eps, const at::Tensor& g_world,
@@ -742,6 +760,10 @@ TORCH_LIBRARY(STG_SPLAT_NS, m) {
         &skin_fwd);
     m.def("gaussian_normals_fwd(Tensor quats, Tensor scales, Tensor means, Tensor camera, int threads) -> Tensor",
           &gaussian_normals_fwd);
+    m.def(
+        "gaussian_normals_bwd(Tensor quats, Tensor scales, Tensor means, Tensor camera, Tensor g_normals, "
+        "int threads) -> Tensor",
+        &gaussian_normals_bwd);
     m.def(
         "skin_bwd(Tensor means, Tensor weights, bool has_delta, Tensor bones, Tensor local_quats, "
         "bool rotations, float quat_eps, Tensor g_world, Tensor g_quats, Tensor next_means, Tensor next_bones, "
