@@ -323,3 +323,41 @@ def test_the_second_frame_leaves_the_first_untouched_and_equals_its_own_pass():
         kernel(*f, next_bone_transforms=t2, next_means=f[0][:5])
     with pytest.raises(ValueError, match="next_bone_transforms"):
         kernel(*f, next_means=f[0])
+
+
+def test_pixel_motion_matches_float64_autograd_of_the_two_projections():
+    """skin_ops.pixel_motion (the flow loss's motion of the centres in the image) against
+    Camera3.project(next) - Camera3.project(now) in float64 autograd: values and both centres'
+    gradients, points behind the camera (the clamped depth) included; through Camera3.motion."""
+    from stg_node.avatar import kernels
+    from stg_node.avatar.model import Camera3
+
+    gen = torch.Generator().manual_seed(8)
+    n = 400
+    now = torch.randn(n, 3, generator=gen, dtype=torch.float64)
+    now[:, 2] += 4.0
+    now[:5, 2] = -1.0  # behind the camera: depth clamped
+    nxt = now + 0.05 * torch.randn(n, 3, generator=gen, dtype=torch.float64)
+    view = torch.eye(4, dtype=torch.float64)
+    view[:3, :3] = lbs.axis_angle_to_matrix(torch.tensor([0.1, -0.2, 0.05], dtype=torch.float64))
+    view[:3, 3] = torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64)
+    K = torch.tensor([[500.0, 0.0, 128.0], [0.0, 480.0, 120.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    g = torch.randn(n, 2, generator=gen, dtype=torch.float64)
+    cam64 = Camera3(view, K, 256, 256)
+    a, b = now.clone().requires_grad_(True), nxt.clone().requires_grad_(True)
+    with kernels.reference():
+        want = cam64.motion(a, b)
+    want_grads = torch.autograd.grad((want * g).sum(), [a, b])
+    cam32 = Camera3(view.float(), K.float(), 256, 256)
+    a32, b32 = now.float().requires_grad_(True), nxt.float().requires_grad_(True)
+    got = cam32.motion(a32, b32)
+    got_grads = torch.autograd.grad((got * g.float()).sum(), [a32, b32])
+    front = slice(5, None)  # behind the camera the pixels are huge (depth 1e-6): compare relative
+    torch.testing.assert_close(got.double()[front], want[front], atol=2e-3, rtol=1e-5)
+    torch.testing.assert_close(got.double()[:5], want[:5], atol=0, rtol=1e-5)
+    for x, y in zip(got_grads, want_grads, strict=True):
+        torch.testing.assert_close(x.double()[front], y[front], atol=1e-3, rtol=1e-4)
+        torch.testing.assert_close(x.double()[:5], y[:5], atol=0, rtol=1e-4)
+    torch.testing.assert_close(got, skin_ops.pixel_motion(a32, b32, cam32.viewmat, cam32.K), atol=0, rtol=0)
+    with pytest.raises(ValueError, match="next_points"):
+        skin_ops.pixel_motion(a32, b32[:3], cam32.viewmat, cam32.K)

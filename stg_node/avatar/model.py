@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from stg_node.avatar import spacetime
+from stg_node.avatar import kernels, spacetime
 from stg_node.avatar.color import ColorMLP, sh_color
 from stg_node.avatar.color_cache import ColorCache, TrainingColorTurns
 from stg_node.avatar.config import ModelConfig
@@ -111,6 +111,16 @@ class Camera3:
         cam = points @ self.viewmat[:3, :3].T + self.viewmat[:3, 3]
         pix = cam @ self.K.T
         return pix[:, :2] / pix[:, 2:3].clamp_min(1e-6)
+
+    def motion(self, points: torch.Tensor, next_points: torch.Tensor) -> torch.Tensor:
+        """``project(next_points) - project(points)`` (N, 2): where the kernels run, in one fused pass
+        (stg_node.splat.skin_ops.pixel_motion, its backward written out), else torch (the reference)."""
+        fixed = not (self.viewmat.requires_grad or self.K.requires_grad)
+        if fixed and kernels.use_kernels(points, next_points, self.viewmat, self.K):
+            from stg_node.splat import skin_ops
+
+            return skin_ops.pixel_motion(points, next_points, self.viewmat, self.K)
+        return self.project(next_points) - self.project(points)
 
 
 def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

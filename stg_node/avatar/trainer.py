@@ -421,7 +421,7 @@ class Trainer:
         terms: dict[str, torch.Tensor] = {}
         extra = None
         if use_flow:
-            extra = camera.project(posed.next_means) - camera.project(posed.means)
+            extra = camera.motion(posed.means, posed.next_means)
         timer.mark("flow_target")
 
         want_depth = use_flow and c.densify.occlusion_m > 0  # the surface each pixel sees (densify._in_front)

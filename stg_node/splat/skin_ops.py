@@ -266,3 +266,40 @@ def gaussian_normals(
             f"{tuple(quats.shape)}, {tuple(scales.shape)}, {tuple(means.shape)}, {tuple(camera_center.shape)}"
         )
     return _Normals.apply(quats, scales, means, camera_center)
+
+
+class _PixelMotion(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, points, next_points, viewmat, K):
+        ops = load_kernels().ops
+        a, b, v, k = _f32(points), _f32(next_points), _f32(viewmat), _f32(K)
+        ctx.save_for_backward(a, b, v, k)
+        return ops.pixel_motion_fwd(a, b, v, k, torch.get_num_threads())
+
+    @staticmethod
+    def backward(ctx, g_motion):
+        a, b, v, k = ctx.saved_tensors
+        g_a, g_b = load_kernels().ops.pixel_motion_bwd(a, b, v, k, _f32(g_motion), torch.get_num_threads())
+        return g_a, g_b, None, None
+
+
+def pixel_motion(
+    points: torch.Tensor, next_points: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor
+) -> torch.Tensor:
+    """(N, 2) image motion of world ``points`` (N, 3) to ``next_points`` (N, 3) under one pinhole camera
+    (``viewmat`` (4, 4) world -> camera, ``K`` (3, 3)): ``project(next_points) - project(points)``
+    as stg_node.avatar.model.Camera3.project (its torch reference; depths clamped below at 1e-6) in
+    one pass per point, differentiable with respect to both point sets (not the camera)."""
+    n = points.shape[0]
+    if points.shape != (n, 3) or next_points.shape != (n, 3):
+        raise ValueError(
+            "pixel_motion needs points and next_points (N, 3), got "
+            f"{tuple(points.shape)}, {tuple(next_points.shape)}"
+        )
+    if viewmat.shape != (4, 4) or K.shape != (3, 3):
+        raise ValueError(
+            f"pixel_motion needs viewmat (4, 4) and K (3, 3), got {tuple(viewmat.shape)}, {tuple(K.shape)}"
+        )
+    if viewmat.requires_grad or K.requires_grad:
+        raise ValueError("pixel_motion does not differentiate the camera")
+    return _PixelMotion.apply(points, next_points, viewmat, K)

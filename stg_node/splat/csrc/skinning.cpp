@@ -388,4 +388,62 @@ void gaussian_normals_backward(int64_t n, const float* quats, const float* scale
     }
 }
 
+namespace {
+
+// Pixel of world point x (camera = K (R x + t)), its depth clamped below at kMinDepth, and the
+// rows of d pixel / d x (2 x 3) when jac is not nullptr.
+constexpr float kMinDepth = 1e-6f;
+
+inline void project_point(const float* view, const float* K, const float* x, float* pix, float* jac) {
+    float c[3];
+    for (int r = 0; r < 3; ++r) c[r] = view[r * 4] * x[0] + view[r * 4 + 1] * x[1] + view[r * 4 + 2] * x[2] + view[r * 4 + 3];
+    float p[3];
+    for (int r = 0; r < 3; ++r) p[r] = K[r * 3] * c[0] + K[r * 3 + 1] * c[1] + K[r * 3 + 2] * c[2];
+    const bool clamped = !(p[2] > kMinDepth);
+    const float z = clamped ? kMinDepth : p[2];
+    pix[0] = p[0] / z;
+    pix[1] = p[1] / z;
+    if (jac == nullptr) return;
+    // d pix / d p = [1/z, 0, -pix0/z; 0, 1/z, -pix1/z] (no depth term where clamped); times K R
+    const float dz0 = clamped ? 0.0f : -pix[0] / z, dz1 = clamped ? 0.0f : -pix[1] / z;
+    const float inv = 1.0f / z;
+    float kr[9];  // K R
+    for (int r = 0; r < 3; ++r)
+        for (int k = 0; k < 3; ++k)
+            kr[r * 3 + k] = K[r * 3] * view[k] + K[r * 3 + 1] * view[4 + k] + K[r * 3 + 2] * view[8 + k];
+    for (int k = 0; k < 3; ++k) {
+        jac[k] = inv * kr[k] + dz0 * kr[6 + k];
+        jac[3 + k] = inv * kr[3 + k] + dz1 * kr[6 + k];
+    }
+}
+
+}  // namespace
+
+void pixel_motion(int64_t n, const float* from, const float* to, const float* view, const float* K, float* motion,
+                  int threads) {
+#pragma omp parallel for schedule(static) num_threads(threads)
+    for (int64_t i = 0; i < n; ++i) {
+        float a[2], b[2];
+        project_point(view, K, from + i * 3, a, nullptr);
+        project_point(view, K, to + i * 3, b, nullptr);
+        motion[i * 2] = b[0] - a[0];
+        motion[i * 2 + 1] = b[1] - a[1];
+    }
+}
+
+void pixel_motion_backward(int64_t n, const float* from, const float* to, const float* view, const float* K,
+                           const float* g_motion, float* g_from, float* g_to, int threads) {
+#pragma omp parallel for schedule(static) num_threads(threads)
+    for (int64_t i = 0; i < n; ++i) {
+        float pix[2], ja[6], jb[6];
+        project_point(view, K, from + i * 3, pix, ja);
+        project_point(view, K, to + i * 3, pix, jb);
+        const float* g = g_motion + i * 2;
+        for (int k = 0; k < 3; ++k) {
+            g_to[i * 3 + k] = g[0] * jb[k] + g[1] * jb[3 + k];
+            g_from[i * 3 + k] = -(g[0] * ja[k] + g[1] * ja[3 + k]);
+        }
+    }
+}
+
 }  // namespace stg_skin

@@ -86,4 +86,13 @@ void gaussian_normals(int64_t n, const float* quats, const float* scales, const 
 void gaussian_normals_backward(int64_t n, const float* quats, const float* scales, const float* means,
                                const float* camera, const float* g_normals, float* g_quats, int threads);
 
+// Image motion of points from world centres `from` [n*3] to `to` [n*3] under one pinhole camera
+// (view [16] row-major world -> camera, K [9]): motion [n*2] = pixel(to) - pixel(from), pixel(x) =
+// (K (R x + t))[:2] / max(depth, 1e-6) (stg_node.avatar.model.Camera3.project's maths). The backward
+// gives dL/dfrom and dL/dto [n*3] (the camera takes none).
+void pixel_motion(int64_t n, const float* from, const float* to, const float* view, const float* K, float* motion,
+                  int threads);
+void pixel_motion_backward(int64_t n, const float* from, const float* to, const float* view, const float* K,
+                           const float* g_motion, float* g_from, float* g_to, int threads);
+
 }  // namespace stg_skin

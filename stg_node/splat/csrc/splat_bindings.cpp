@@ -555,6 +555,43 @@ at::Tensor gaussian_normals_bwd(const at::Tensor& quats, const at::Tensor& scale
     return g_quats;
 }
 
+void check_camera(const at::Tensor& view, const at::Tensor& K) {
+    TORCH_CHECK(view.numel() == 16, "viewmat must be 4x4, got ", view.sizes());
+    TORCH_CHECK(K.numel() == 9, "K must be 3x3, got ", K.sizes());
+    check_cpu_float(view, "viewmat", view.size(0), 0);
+    check_cpu_float(K, "K", K.size(0), 0);
+}
+
+at::Tensor pixel_motion_fwd(const at::Tensor& from, const at::Tensor& to, const at::Tensor& view, const at::Tensor& K,
+                            int64_t threads) {
+    const int64_t n = from.size(0);
+    check_cpu_float(from, "from", n, 3);
+    check_cpu_float(to, "to", n, 3);
+    check_camera(view, K);
+    TORCH_CHECK(threads >= 1, "threads must be >= 1");
+    at::Tensor motion = at::empty({n, 2}, from.options());
+    stg_skin::pixel_motion(n, from.data_ptr<float>(), to.data_ptr<float>(), view.data_ptr<float>(), K.data_ptr<float>(),
+                           motion.data_ptr<float>(), static_cast<int>(threads));
+    return motion;
+}
+
+std::tuple<at::Tensor, at::Tensor> pixel_motion_bwd(const at::Tensor& from, const at::Tensor& to,
+                                                    const at::Tensor& view, const at::Tensor& K,
+                                                    const at::Tensor& g_motion, int64_t threads) {
+    const int64_t n = from.size(0);
+    check_cpu_float(from, "from", n, 3);
+    check_cpu_float(to, "to", n, 3);
+    check_cpu_float(g_motion, "grad motion", n, 2);
+    check_camera(view, K);
+    TORCH_CHECK(threads >= 1, "threads must be >= 1");
+    at::Tensor g_from = at::empty({n, 3}, from.options());
+    at::Tensor g_to = at::empty({n, 3}, from.options());
+    stg_skin::pixel_motion_backward(n, from.data_ptr<float>(), to.data_ptr<float>(), view.data_ptr<float>(),
+                                    K.data_ptr<float>(), g_motion.data_ptr<float>(), g_from.data_ptr<float>(),
+                                    g_to.data_ptr<float>(), static_cast<int>(threads));
+    return {g_from, g_to};
+}
+
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> skin_bwd(
     const at::Tensor& means, const at::Tensor& weights, bool has_delta, const at::Tensor& bones,
     const at::Tensor& local_quats, bool rotations, double quat_eps, const at::Tensor& g_world,
@@ -764,6 +801,12 @@ TORCH_LIBRARY(STG_SPLAT_NS, m) {
         "gaussian_normals_bwd(Tensor quats, Tensor scales, Tensor means, Tensor camera, Tensor g_normals, "
         "int threads) -> Tensor",
         &gaussian_normals_bwd);
+    m.def("pixel_motion_fwd(Tensor from, Tensor to, Tensor viewmat, Tensor K, int threads) -> Tensor",
+          &pixel_motion_fwd);
+    m.def(
+        "pixel_motion_bwd(Tensor from, Tensor to, Tensor viewmat, Tensor K, Tensor g_motion, int threads) -> "
+        "(Tensor, Tensor)",
+        &pixel_motion_bwd);
     m.def(
         "skin_bwd(Tensor means, Tensor weights, bool has_delta, Tensor bones, Tensor local_quats, "
         "bool rotations, float quat_eps, Tensor g_world, Tensor g_quats, Tensor next_means, Tensor next_bones, "
