@@ -25,10 +25,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from stg_node.body import lbs
 
-
-def _float64(t: torch.Tensor) -> np.ndarray:
+def as_float64(t: torch.Tensor) -> np.ndarray:
     return t.detach().cpu().numpy().astype(np.float64)
 
 
@@ -78,6 +76,42 @@ def _rotation_grad(G: np.ndarray, R: np.ndarray) -> np.ndarray:
     return np.stack([M[..., a, b] - M[..., c, d] for a, b, c, d in pairs], -1)
 
 
+def matrix_to_quaternion(m: np.ndarray) -> np.ndarray:
+    """lbs.matrix_to_quaternion in numpy: (..., 3, 3) rotations -> (..., 4) unit wxyz, w >= 0, from
+    the best conditioned of the four candidate solutions (the same formulas; ~40 torch ops on 24
+    matrices cost more than the kinematics)."""
+    m00, m01, m02 = m[..., 0, 0], m[..., 0, 1], m[..., 0, 2]
+    m10, m11, m12 = m[..., 1, 0], m[..., 1, 1], m[..., 1, 2]
+    m20, m21, m22 = m[..., 2, 0], m[..., 2, 1], m[..., 2, 2]
+    q_abs4 = np.stack(
+        [1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], -1
+    )
+    q_abs = np.sqrt(np.maximum(q_abs4, 0.0))
+    candidates = np.stack(
+        [
+            np.stack([q_abs[..., 0] ** 2, m21 - m12, m02 - m20, m10 - m01], -1),
+            np.stack([m21 - m12, q_abs[..., 1] ** 2, m10 + m01, m02 + m20], -1),
+            np.stack([m02 - m20, m10 + m01, q_abs[..., 2] ** 2, m21 + m12], -1),
+            np.stack([m10 - m01, m20 + m02, m21 + m12, q_abs[..., 3] ** 2], -1),
+        ],
+        -2,
+    )
+    candidates = candidates / (2.0 * np.maximum(q_abs[..., None], 0.1))
+    best = q_abs.argmax(-1)
+    quat = np.take_along_axis(candidates, best[..., None, None], axis=-2)[..., 0, :]
+    quat = quat / np.maximum(np.linalg.norm(quat, axis=-1, keepdims=True), 1e-12)
+    return np.where(quat[..., :1] < 0, -quat, quat)
+
+
+def hemisphere_signs(quats: np.ndarray, parents) -> np.ndarray:
+    """rigid.hemisphere_signs on a numpy (B, J, 4) array: (B, J, 1) signs +-1."""
+    sign = np.ones(quats.shape[:2])
+    for j in range(1, quats.shape[1]):
+        parent = parents[j]
+        sign[:, j] = np.where((quats[:, j] * quats[:, parent]).sum(-1) * sign[:, parent] < 0, -1.0, 1.0)
+    return sign[..., None]
+
+
 def forward_kinematics(poses: np.ndarray, Rh: np.ndarray, Th: np.ndarray, rest: np.ndarray, parents, big_inv):
     """Float64 kinematics of ``poses (B, 24, 3)``, ``Rh (B, 3)``, ``Th (B, 3)``: (transforms (B, J, 4,
     4) canonical -> world, and what the backward pass needs: local (B, J, 4, 4) joint -> parent,
@@ -106,30 +140,29 @@ def forward_kinematics(poses: np.ndarray, Rh: np.ndarray, Th: np.ndarray, rest: 
 class _Bones(torch.autograd.Function):
     @staticmethod
     def forward(ctx, poses, Rh, Th, skeleton):
-        from stg_node.avatar.rigid import hemisphere_signs
-
         batch = poses.shape[0]
-        rest = _float64(skeleton.rest_joints)
-        big_inv = _float64(skeleton.big_pose_inverse)
-        p = _float64(poses).reshape(batch, 24, 3)
-        rh, th = _float64(Rh).reshape(batch, 3), _float64(Th).reshape(batch, 3)
+        rest = as_float64(skeleton.rest_joints)
+        big_inv = as_float64(skeleton.big_pose_inverse)
+        p = as_float64(poses).reshape(batch, 24, 3)
+        rh, th = as_float64(Rh).reshape(batch, 3), as_float64(Th).reshape(batch, 3)
         transforms, saved = forward_kinematics(p, rh, th, rest, skeleton.parent_list, big_inv)
+        quats = matrix_to_quaternion(transforms[..., :3, :3])
+        quats = quats * hemisphere_signs(quats, skeleton.parent_list)
         dtype = torch.promote_types(skeleton.rest_joints.dtype, poses.dtype)
         out = torch.as_tensor(transforms, device=poses.device).to(dtype)
-        quats = lbs.matrix_to_quaternion(out[..., :3, :3])
-        quats = quats * hemisphere_signs(quats, skeleton.parent_list)
-        ctx.fk = (p, rh, rest, big_inv, skeleton.parent_list, transforms, _float64(quats), *saved)
+        out_quats = torch.as_tensor(quats, device=poses.device).to(dtype)
+        ctx.fk = (p, rh, rest, big_inv, skeleton.parent_list, transforms, quats, *saved)
         ctx.shapes = (poses.shape, Rh.shape, Th.shape, poses.dtype)
-        return out, quats
+        return out, out_quats
 
     @staticmethod
     def backward(ctx, g_transforms, g_quats):
         p, rh, rest, big_inv, parents, transforms, quats, local, world, bone, root = ctx.fk
         batch, joints = p.shape[:2]
-        G = np.zeros((batch, joints, 4, 4)) if g_transforms is None else _float64(g_transforms).copy()
+        G = np.zeros((batch, joints, 4, 4)) if g_transforms is None else as_float64(g_transforms).copy()
         G[..., 3, :] = 0.0  # the constant bottom row
         if g_quats is not None:  # dL/dq as a gradient of the rotation (module docstring)
-            g = _float64(g_quats)
+            g = as_float64(g_quats)
             qw, qv, gw, gv = quats[..., :1], quats[..., 1:], g[..., :1], g[..., 1:]
             h = -gw * qv + qw * gv + _cross(qv, gv)
             G[..., :3, :3] += _skew(h / 4.0) @ transforms[..., :3, :3]
