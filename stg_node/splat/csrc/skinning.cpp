@@ -330,27 +330,35 @@ void skin_backward(const SkinShape& s, const float* means, const float* weights,
     }
 }
 
+namespace {
+
+// One Gaussian's shading normal (stg_node.avatar.shading.gaussian_normals): its shortest axis a of
+// scales (the first of equal ones, as torch.argmin) turned by q (v + 2 (w (u x v) + u x (u x v))),
+// written to nrm before the flip; returns the sign that makes it face the camera from the centre p.
+inline float turned_axis(const float* sc, const float* q, const float* p, const float* camera, float* a,
+                         float* nrm) {
+    int k = 0;
+    if (sc[1] < sc[k]) k = 1;
+    if (sc[2] < sc[k]) k = 2;
+    a[0] = a[1] = a[2] = 0.0f;
+    a[k] = 1.0f;
+    const float w = q[0], u[3] = {q[1], q[2], q[3]};
+    const float uv[3] = {u[1] * a[2] - u[2] * a[1], u[2] * a[0] - u[0] * a[2], u[0] * a[1] - u[1] * a[0]};
+    const float uuv[3] = {u[1] * uv[2] - u[2] * uv[1], u[2] * uv[0] - u[0] * uv[2], u[0] * uv[1] - u[1] * uv[0]};
+    for (int r = 0; r < 3; ++r) nrm[r] = a[r] + 2.0f * (w * uv[r] + uuv[r]);
+    const float t[3] = {camera[0] - p[0], camera[1] - p[1], camera[2] - p[2]};
+    const float dot = nrm[0] * t[0] + nrm[1] * t[1] + nrm[2] * t[2];
+    return dot < 0.0f ? -1.0f : 1.0f;
+}
+
+}  // namespace
+
 void gaussian_normals(int64_t n, const float* quats, const float* scales, const float* means,
                       const float* camera, float* normals, int threads) {
 #pragma omp parallel for schedule(static) num_threads(threads)
     for (int64_t i = 0; i < n; ++i) {
-        const float* sc = scales + i * 3;
-        int k = 0;  // argmin, the first of equal ones (as torch.argmin)
-        if (sc[1] < sc[k]) k = 1;
-        if (sc[2] < sc[k]) k = 2;
-        float a[3] = {0.0f, 0.0f, 0.0f};
-        a[k] = 1.0f;
-        const float* q = quats + i * 4;
-        const float w = q[0], u[3] = {q[1], q[2], q[3]};
-        const float uv[3] = {u[1] * a[2] - u[2] * a[1], u[2] * a[0] - u[0] * a[2], u[0] * a[1] - u[1] * a[0]};
-        const float uuv[3] = {u[1] * uv[2] - u[2] * uv[1], u[2] * uv[0] - u[0] * uv[2],
-                              u[0] * uv[1] - u[1] * uv[0]};
-        float nrm[3];
-        for (int r = 0; r < 3; ++r) nrm[r] = a[r] + 2.0f * (w * uv[r] + uuv[r]);
-        const float* p = means + i * 3;
-        const float t[3] = {camera[0] - p[0], camera[1] - p[1], camera[2] - p[2]};
-        const float dot = nrm[0] * t[0] + nrm[1] * t[1] + nrm[2] * t[2];
-        const float sign = dot < 0.0f ? -1.0f : 1.0f;
+        float a[3], nrm[3];
+        const float sign = turned_axis(scales + i * 3, quats + i * 4, means + i * 3, camera, a, nrm);
         for (int r = 0; r < 3; ++r) normals[i * 3 + r] = nrm[r] * sign;
     }
 }
@@ -359,22 +367,11 @@ void gaussian_normals_backward(int64_t n, const float* quats, const float* scale
                                const float* camera, const float* g_normals, float* g_quats, int threads) {
 #pragma omp parallel for schedule(static) num_threads(threads)
     for (int64_t i = 0; i < n; ++i) {
-        const float* sc = scales + i * 3;
-        int k = 0;  // the forward's axis and sign, found again
-        if (sc[1] < sc[k]) k = 1;
-        if (sc[2] < sc[k]) k = 2;
-        float a[3] = {0.0f, 0.0f, 0.0f};
-        a[k] = 1.0f;
+        float a[3], nrm[3];  // the forward's axis and sign, found again
         const float* q = quats + i * 4;
+        const float sign = turned_axis(scales + i * 3, q, means + i * 3, camera, a, nrm);
         const float w = q[0], u[3] = {q[1], q[2], q[3]};
         const float ua[3] = {u[1] * a[2] - u[2] * a[1], u[2] * a[0] - u[0] * a[2], u[0] * a[1] - u[1] * a[0]};
-        const float uua[3] = {u[1] * ua[2] - u[2] * ua[1], u[2] * ua[0] - u[0] * ua[2],
-                              u[0] * ua[1] - u[1] * ua[0]};
-        float nrm[3];
-        for (int r = 0; r < 3; ++r) nrm[r] = a[r] + 2.0f * (w * ua[r] + uua[r]);
-        const float* p = means + i * 3;
-        const float t[3] = {camera[0] - p[0], camera[1] - p[1], camera[2] - p[2]};
-        const float sign = nrm[0] * t[0] + nrm[1] * t[1] + nrm[2] * t[2] < 0.0f ? -1.0f : 1.0f;
         // n = sign (a + 2 (w (u x a) + u (u.a) - a (u.u)))
         const float* gn = g_normals + i * 3;
         const float g[3] = {sign * gn[0], sign * gn[1], sign * gn[2]};
