@@ -209,3 +209,155 @@ def test_shading_normals_kernel_matches_the_torch_reference():
     assert bool((facing >= 0).all())  # every normal faces the camera
     with pytest.raises(ValueError, match="quats"):
         skin_ops.gaussian_normals(quats[:, :3], scales, means, camera)
+
+
+def test_shading_normals_gradient_matches_float64_autograd_of_the_torch_reference():
+    """The normals kernel's backward (to the rotations; the axis and the sign are constants, as in
+    the reference) against autograd through stg_node.avatar.shading.gaussian_normals in float64,
+    for unnormalised rotations too (the reference turns by q as given); through the dispatch."""
+    from stg_node.avatar import kernels
+    from stg_node.avatar.shading import gaussian_normals
+
+    gen = torch.Generator().manual_seed(5)
+    n = 500
+    quats = torch.randn(n, 4, generator=gen, dtype=torch.float64)
+    quats[::2] = torch.nn.functional.normalize(quats[::2], dim=1)
+    scales = torch.rand(n, 3, generator=gen, dtype=torch.float64) + 0.01
+    means = torch.randn(n, 3, generator=gen, dtype=torch.float64)
+    camera = torch.tensor([0.2, -0.1, 4.0], dtype=torch.float64)
+    g = torch.randn(n, 3, generator=gen, dtype=torch.float64)
+    q64 = quats.clone().requires_grad_(True)
+    with kernels.reference():
+        want = torch.autograd.grad((gaussian_normals(q64, scales, means, camera) * g).sum(), q64)[0]
+    q32 = quats.float().requires_grad_(True)
+    m32 = means.float().requires_grad_(True)
+    normals = gaussian_normals(q32, scales.float(), m32, camera.float())
+    got = torch.autograd.grad((normals * g.float()).sum(), [q32, m32], allow_unused=True)
+    assert got[1] is None  # the sign is a constant: the centres take no gradient
+    torch.testing.assert_close(got[0].double(), want, atol=1e-5 * float(want.abs().max()), rtol=1e-5)
+
+
+def second_frame(bones, seed, dtype=torch.float64):
+    """Another frame's rigid bone transforms (the flow loss's next frame)."""
+    gen = torch.Generator().manual_seed(100 + seed)
+    transforms = torch.eye(4, dtype=dtype).repeat(bones, 1, 1)
+    transforms[:, :3, :3] = lbs.axis_angle_to_matrix(torch.randn(bones, 3, generator=gen, dtype=dtype))
+    transforms[:, :3, 3] = torch.randn(bones, 3, generator=gen, dtype=dtype)
+    return transforms
+
+
+@pytest.mark.parametrize("bone_grads", [True, False])
+@pytest.mark.parametrize("own_means", [True, False])
+@pytest.mark.parametrize("with_delta", [True, False])
+@pytest.mark.parametrize("bones", [24, 5])
+def test_two_frames_in_one_pass_match_two_float64_autograd_skinnings(
+    own_means, with_delta, bones, bone_grads
+):
+    """The second frame's centres (same weights, other bones, the frame's own canonical centres or
+    the first's) and every gradient (both frames' bones, both centres, the correction summed over
+    the frames) against two calls of the torch reference in float64; with ``bone_grads`` off (a
+    training frame's cached bones) the backward skips the bones' sums and the rest is unchanged."""
+    means, weights, delta, transforms, quats, local, camera = scene(bones=bones, seed=20 + bones)
+    delta = delta if with_delta else None
+    transforms2 = second_frame(bones, bones)
+    gen = torch.Generator().manual_seed(2)
+    means2 = (
+        means + 0.05 * torch.randn(means.shape, generator=gen, dtype=torch.float64) if own_means else None
+    )
+    g_means = torch.randn(means.shape, generator=gen, dtype=torch.float64)
+    g_quats = torch.randn(means.shape[0], 4, generator=gen, dtype=torch.float64)
+    g_next = torch.randn(means.shape, generator=gen, dtype=torch.float64)
+
+    def losses(dtype, run):
+        ins = leaves([means, delta, transforms, quats, local, transforms2, means2], dtype)
+        if not bone_grads:
+            ins[2], ins[3], ins[5] = (ins[k].detach() for k in (2, 3, 5))
+        world, quat, nxt = run(*ins)
+        loss = (
+            (world * g_means.to(dtype)).sum()
+            + (quat * g_quats.to(dtype)).sum()
+            + (nxt * g_next.to(dtype)).sum()
+        )
+        return (world, quat, nxt), torch.autograd.grad(
+            loss, [x for x in ins if x is not None and x.requires_grad]
+        )
+
+    def torch_two_passes(m, d, t, q, loc, t2, m2):
+        world, quat, _ = reference(m, weights, d, t, q, loc, camera)
+        nxt = skin(
+            m if m2 is None else m2, blend_weights(weights, d), PosedBones(t2[None], q[None]), rotations=False
+        )
+        return world, quat, nxt.means
+
+    def kernel_one_pass(m, d, t, q, loc, t2, m2):
+        out = kernel(m, weights.float(), d, t, q, loc, camera.float(), next_bone_transforms=t2, next_means=m2)
+        return out.means, out.quats, out.next_means
+
+    want, want_grads = losses(torch.float64, torch_two_passes)
+    got, got_grads = losses(torch.float32, kernel_one_pass)
+    for a, b in zip(got, want, strict=True):
+        torch.testing.assert_close(a.double(), b, atol=2e-6, rtol=1e-5)
+    assert len(got_grads) == len(want_grads)
+    for a, b in zip(got_grads, want_grads, strict=True):
+        scale = float(b.abs().max())
+        torch.testing.assert_close(a.double(), b, atol=1e-5 * max(scale, 1.0), rtol=1e-4)
+
+
+def test_the_second_frame_leaves_the_first_untouched_and_equals_its_own_pass():
+    """Asking for a second frame changes nothing of the first's outputs, and its centres are bit for
+    bit those of a centres-only pass with its bones."""
+    means, weights, delta, transforms, quats, local, camera = scene(seed=9)
+    f = [t.float() for t in (means, weights, delta, transforms, quats, local, camera)]
+    t2 = second_frame(24, 9).float()
+    with torch.no_grad():
+        one = kernel(*f)
+        both = kernel(*f, next_bone_transforms=t2)
+        alone = kernel(f[0], f[1], f[2], t2, f[4], None, None, rotations=False)
+    for name in ("means", "quats", "view_dirs"):
+        assert torch.equal(getattr(both, name), getattr(one, name))
+    assert one.next_means is None
+    assert torch.equal(both.next_means, alone.means)
+    with pytest.raises(ValueError, match="next_bone_transforms"):
+        kernel(*f, next_bone_transforms=t2[:3])
+    with pytest.raises(ValueError, match="next_means"):
+        kernel(*f, next_bone_transforms=t2, next_means=f[0][:5])
+    with pytest.raises(ValueError, match="next_bone_transforms"):
+        kernel(*f, next_means=f[0])
+
+
+def test_pixel_motion_matches_float64_autograd_of_the_two_projections():
+    """skin_ops.pixel_motion (the flow loss's motion of the centres in the image) against
+    Camera3.project(next) - Camera3.project(now) in float64 autograd: values and both centres'
+    gradients, points behind the camera (the clamped depth) included; through Camera3.motion."""
+    from stg_node.avatar import kernels
+    from stg_node.avatar.model import Camera3
+
+    gen = torch.Generator().manual_seed(8)
+    n = 400
+    now = torch.randn(n, 3, generator=gen, dtype=torch.float64)
+    now[:, 2] += 4.0
+    now[:5, 2] = -1.0  # behind the camera: depth clamped
+    nxt = now + 0.05 * torch.randn(n, 3, generator=gen, dtype=torch.float64)
+    view = torch.eye(4, dtype=torch.float64)
+    view[:3, :3] = lbs.axis_angle_to_matrix(torch.tensor([0.1, -0.2, 0.05], dtype=torch.float64))
+    view[:3, 3] = torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64)
+    K = torch.tensor([[500.0, 0.0, 128.0], [0.0, 480.0, 120.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    g = torch.randn(n, 2, generator=gen, dtype=torch.float64)
+    cam64 = Camera3(view, K, 256, 256)
+    a, b = now.clone().requires_grad_(True), nxt.clone().requires_grad_(True)
+    with kernels.reference():
+        want = cam64.motion(a, b)
+    want_grads = torch.autograd.grad((want * g).sum(), [a, b])
+    cam32 = Camera3(view.float(), K.float(), 256, 256)
+    a32, b32 = now.float().requires_grad_(True), nxt.float().requires_grad_(True)
+    got = cam32.motion(a32, b32)
+    got_grads = torch.autograd.grad((got * g.float()).sum(), [a32, b32])
+    front = slice(5, None)  # behind the camera the pixels are huge (depth 1e-6): compare relative
+    torch.testing.assert_close(got.double()[front], want[front], atol=2e-3, rtol=1e-5)
+    torch.testing.assert_close(got.double()[:5], want[:5], atol=0, rtol=1e-5)
+    for x, y in zip(got_grads, want_grads, strict=True):
+        torch.testing.assert_close(x.double()[front], y[front], atol=1e-3, rtol=1e-4)
+        torch.testing.assert_close(x.double()[:5], y[:5], atol=0, rtol=1e-4)
+    torch.testing.assert_close(got, skin_ops.pixel_motion(a32, b32, cam32.viewmat, cam32.K), atol=0, rtol=0)
+    with pytest.raises(ValueError, match="next_points"):
+        skin_ops.pixel_motion(a32, b32[:3], cam32.viewmat, cam32.K)

@@ -161,7 +161,7 @@ class TrainingColorTurns:
         due = (ids % self.every == iteration % self.every) | ~self._known[ids]
         sel = due.nonzero().squeeze(1)
         self.evaluated = int(sel.numel())
-        carried = self._colors[ids]  # a gather: its own tensor, no graph
+        carried = self._colors.index_select(0, ids)  # a gather: its own tensor, no graph
         if self.evaluated == 0:
             return carried
         fresh = evaluate(sel)

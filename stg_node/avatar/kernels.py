@@ -2,8 +2,11 @@
 
 Skinning (:mod:`rigid`), the colour MLP (:mod:`color`) and the isometry term (:mod:`isometry`)
 each have a fused CPU kernel with a hand-written backward (``stg_node.splat.skin_ops``,
-``stg_node.splat.mlp_ops``, ``stg_node.splat.edge_ops``), the occlusion term's visibility
-(:mod:`occlusion`, no gradient) a forward-only one, and each a torch
+``stg_node.splat.mlp_ops``, ``stg_node.splat.edge_ops``; the skinning kernel also carries the
+flow loss's next frame, and ``skin_ops`` holds the shading normals and the flow target's image
+motion with their backward passes), the occlusion term's visibility (:mod:`occlusion`, no
+gradient) a forward-only one, the bones' kinematics with a gradient (:mod:`kinematics`) a numpy
+pass with a hand-written backward, and each a torch
 implementation, which is the reference the kernels are tested against and what runs on other
 devices, in float64, or without a C++ compiler. The kernels are used wherever they apply (float32
 CPU tensors, kernels built) unless switched off:

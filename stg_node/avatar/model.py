@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from stg_node.avatar import spacetime
+from stg_node.avatar import kernels, spacetime
 from stg_node.avatar.color import ColorMLP, sh_color
 from stg_node.avatar.color_cache import ColorCache, TrainingColorTurns
 from stg_node.avatar.config import ModelConfig
@@ -70,6 +70,7 @@ class PosedGaussians:
     colors: torch.Tensor  # (M, 3)
     index: torch.Tensor | None  # (M,) rows of the table, or None when every row is kept
     canonical: torch.Tensor | None = None  # (M, 3) canonical centres (with offsets) the means came from
+    next_means: torch.Tensor | None = None  # (M, 3) world centres at the pose's next_frame (if asked)
 
 
 @dataclass
@@ -110,6 +111,16 @@ class Camera3:
         cam = points @ self.viewmat[:3, :3].T + self.viewmat[:3, 3]
         pix = cam @ self.K.T
         return pix[:, :2] / pix[:, 2:3].clamp_min(1e-6)
+
+    def motion(self, points: torch.Tensor, next_points: torch.Tensor) -> torch.Tensor:
+        """``project(next_points) - project(points)`` (N, 2): where the kernels run, in one fused pass
+        (stg_node.splat.skin_ops.pixel_motion, its backward written out), else torch (the reference)."""
+        fixed = not (self.viewmat.requires_grad or self.K.requires_grad)
+        if fixed and kernels.use_kernels(points, next_points, self.viewmat, self.K):
+            from stg_node.splat import skin_ops
+
+            return skin_ops.pixel_motion(points, next_points, self.viewmat, self.K)
+        return self.project(next_points) - self.project(points)
 
 
 def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -327,6 +338,7 @@ class AvatarModel(nn.Module):
         color_cache: ColorCache | None = None,
         light: LightSpec | None = None,
         color_turns: tuple[TrainingColorTurns, int] | None = None,
+        next_frame: tuple[PosedBones, spacetime.SpacetimeState] | None = None,
     ) -> PosedGaussians:
         """World-space Gaussians for one body pose at normalised time ``u``, seen from ``camera_center``.
 
@@ -335,7 +347,10 @@ class AvatarModel(nn.Module):
         only, ignored when gradients are on).
         ``light``: how a model with shading is lit (default: its learned light, shading.py).
         ``color_turns``: (turns, iteration) in training: the colour MLP on this step's turn of the
-        rows only, the others' colours carried (color_cache.TrainingColorTurns)."""
+        rows only, the others' colours carried (color_cache.TrainingColorTurns).
+        ``next_frame``: (bones, spacetime terms) of another frame whose centres of the same rows are
+        wanted too (``PosedGaussians.next_means``: the flow loss's next frame, as :meth:`posed_means`
+        gives them): skinned in the same kernel pass, the weights computed once."""
         cfg = self.config
         table = self.table
         bones = bones or self.bones(body)
@@ -359,11 +374,26 @@ class AvatarModel(nn.Module):
 
         canonical = table["means"] if st.offsets is None else table["means"] + st.offsets
         canonical = rows(canonical)
+        next_canonical = None
+        if next_frame is not None:
+            next_offsets = next_frame[1].offsets
+            if next_offsets is None and st.offsets is None:
+                next_canonical = canonical  # the same centres: the kernel reads them once
+            else:
+                next_canonical = rows(
+                    table["means"] if next_offsets is None else table["means"] + next_offsets
+                )
         # the joint squeeze from the skinning kernel's blend where the kernel runs (training too: the
         # torch factor re-blended every row's 24 weights, ~5 % of a step, to agree to float rounding)
         squeeze_from_kernel = cfg.joint_shrink
-        means, quats, view_canonical, blend_norm2 = self._skin(
-            canonical, bones, rows(st.quats), camera_center, rows, blend_norms=squeeze_from_kernel
+        means, quats, view_canonical, blend_norm2, next_means = self._skin(
+            canonical,
+            bones,
+            rows(st.quats),
+            camera_center,
+            rows,
+            blend_norms=squeeze_from_kernel,
+            next_frame=None if next_frame is None else (next_frame[0], next_canonical),
         )
         scales = rows(self._render_scales())
         if blend_norm2 is not None:
@@ -381,6 +411,7 @@ class AvatarModel(nn.Module):
                 canonical, means, quats, view_canonical, scales = (
                     t[keep] for t in (canonical, means, quats, view_canonical, scales)
                 )
+                next_means = None if next_means is None else next_means[keep]
         degree = cfg.sh_degree if sh_degree is None else min(sh_degree, cfg.sh_degree)
         if self.color_mlp is not None:
             if body.poses.requires_grad:  # pose refinement: keep the pose code differentiable
@@ -392,7 +423,10 @@ class AvatarModel(nn.Module):
             def evaluate(sel):
                 if sel is None:
                     return self.color_mlp(canonical, features, key, view_canonical, degree)
-                return self.color_mlp(canonical[sel], features[sel], key, view_canonical[sel], degree)
+                # index_select: the same rows as t[sel], a cheaper gather (and an index_add backward)
+                # than advanced indexing on a CPU
+                means, feats, view = (t.index_select(0, sel) for t in (canonical, features, view_canonical))
+                return self.color_mlp(means, feats, key, view, degree)
 
             if color_cache is not None and not torch.is_grad_enabled():
                 versions = (table["features"]._version, *(p._version for p in self.color_mlp.parameters()))
@@ -417,15 +451,26 @@ class AvatarModel(nn.Module):
                     means, normals, bone if index is None else bone[index], bones.transforms[0]
                 )
             colors = self.shading(colors, normals, light, root, visible)
-        return PosedGaussians(means, quats, scales, rows(opacity), colors, index, canonical)
+        return PosedGaussians(means, quats, scales, rows(opacity), colors, index, canonical, next_means)
 
-    def _skin(self, canonical, bones: PosedBones, local_quats, camera_center, rows, blend_norms=False):
+    def _skin(
+        self,
+        canonical,
+        bones: PosedBones,
+        local_quats,
+        camera_center,
+        rows,
+        blend_norms=False,
+        next_frame=None,
+    ):
         """Posed centres, orientations (blended bones x local rotation), the viewing direction in
-        each Gaussian's canonical frame (no gradient) and, with ``blend_norms`` where the kernel
-        runs, the squared norms of the blended bone quaternions (else None): the fused kernel, or
+        each Gaussian's canonical frame (no gradient), with ``blend_norms`` where the kernel runs the
+        squared norms of the blended bone quaternions (else None) and, given ``next_frame`` (bones,
+        canonical centres), the centres under that frame's bones (else None): the fused kernel, or
         torch (the reference)."""
         table = self.table
         effective = self._render_skin_weights()
+        next_bones, next_canonical = next_frame if next_frame is not None else (None, None)
         fused = skin_with_kernel(
             canonical,
             rows(table["skin_weights"] if effective is None else effective),
@@ -434,16 +479,22 @@ class AvatarModel(nn.Module):
             local_quats=local_quats,
             camera_center=camera_center,
             blend_norms=blend_norms,
+            next_bones=next_bones,
+            next_means=None if next_canonical is canonical else next_canonical,
         )
         if fused is not None:
-            return fused.means, fused.quats, fused.view_dirs, fused.blend_norm2
-        skinned = skin(canonical, rows(self.skin_weights()), bones)
+            return fused.means, fused.quats, fused.view_dirs, fused.blend_norm2, fused.next_means
+        weights = rows(self.skin_weights())
+        skinned = skin(canonical, weights, bones)
         quats = quat_multiply(skinned.quats, _normalise(local_quats))
         with torch.no_grad():
             view = skinned.means - camera_center
             view = view / view.norm(dim=1, keepdim=True).clamp_min(1e-9)
             view_canonical = rotate(conjugate(skinned.quats), view)
-        return skinned.means, quats, view_canonical, None
+        next_means = None
+        if next_bones is not None:
+            next_means = skin(next_canonical, weights, next_bones, rotations=False).means
+        return skinned.means, quats, view_canonical, None, next_means
 
 
 def render(

@@ -17,10 +17,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 
-from stg_node.avatar import kernels
+from stg_node.avatar import kernels, kinematics
 from stg_node.body import lbs
 from stg_node.body.canonical import big_pose_output
 
@@ -74,6 +73,8 @@ class Skeleton(torch.nn.Module):
         """
         if not (torch.is_grad_enabled() and (poses.requires_grad or Rh.requires_grad or Th.requires_grad)):
             return self._bones_without_grad(poses, Rh, Th)
+        if kernels.mode() != "torch" and poses.device.type == "cpu":  # the hand-written backward
+            return PosedBones(*kinematics.bones(self, poses, Rh, Th))
         batch = poses.shape[0]
         rotations = lbs.axis_angle_to_matrix(poses.reshape(batch, 24, 3))
         rest = self.rest_joints.expand(batch, 24, 3)
@@ -83,60 +84,29 @@ class Skeleton(torch.nn.Module):
 
     def _bones_without_grad(self, poses: torch.Tensor, Rh: torch.Tensor, Th: torch.Tensor) -> PosedBones:
         """:meth:`bones` where no gradient is wanted (a renderer's frames, a training frame's fixed
-        bones): the same kinematics on 24 joints in float64 numpy, about half the cost of
-        the ~150 small torch ops (and their autograd bookkeeping) of the differentiable path."""
+        bones): the same kinematics on 24 joints in float64 numpy (kinematics.forward_kinematics),
+        about half the cost of the ~150 small torch ops (and their autograd bookkeeping) of the
+        differentiable path."""
         batch = poses.shape[0]
-        rest = _float64(self.rest_joints)
-        parents = self.parent_list
-        offsets = rest.copy()
-        offsets[1:] -= rest[parents[1:]]
-        local = np.zeros((batch, 24, 4, 4))
-        local[..., :3, :3] = _rodrigues(_float64(poses).reshape(batch, 24, 3))
-        local[..., :3, 3] = offsets
-        local[..., 3, 3] = 1.0
-        world = np.empty_like(local)
-        world[:, 0] = local[:, 0]
-        for j in range(1, 24):
-            world[:, j] = world[:, parents[j]] @ local[:, j]
-        world[..., :3, 3] -= (world[..., :3, :3] @ rest[..., None])[..., 0]  # act on rest-space points
-        root = np.zeros((batch, 4, 4))
-        root[:, :3, :3] = _rodrigues(_float64(Rh).reshape(batch, 3))
-        root[:, :3, 3] = _float64(Th).reshape(batch, 3)
-        root[:, 3, 3] = 1.0
-        transforms = root[:, None] @ world @ _float64(self.big_pose_inverse)
+        transforms, _ = kinematics.forward_kinematics(
+            kinematics.as_float64(poses).reshape(batch, 24, 3),
+            kinematics.as_float64(Rh).reshape(batch, 3),
+            kinematics.as_float64(Th).reshape(batch, 3),
+            kinematics.as_float64(self.rest_joints),
+            self.parent_list,
+            kinematics.as_float64(self.big_pose_inverse),
+        )
         dtype = torch.promote_types(self.rest_joints.dtype, poses.dtype)
         out = torch.as_tensor(transforms, device=self.rest_joints.device).to(dtype)
-        return PosedBones.from_transforms(out, parents)
+        return PosedBones.from_transforms(out, self.parent_list)
 
 
 def hemisphere_signs(quats: torch.Tensor, parents: list[int]) -> torch.Tensor:
     """(B, J, 1) signs +-1 that put each joint's quaternion of ``quats`` (B, J, 4) in its parent's
     hemisphere (the parent's already flipped), root first. Constants for the gradient, so found
     without it: one numpy loop over the joints instead of ~100 autograd nodes a frame."""
-    q = _float64(quats)
-    sign = np.ones(q.shape[:2])
-    for j in range(1, q.shape[1]):
-        parent = parents[j]
-        sign[:, j] = np.where((q[:, j] * q[:, parent]).sum(-1) * sign[:, parent] < 0, -1.0, 1.0)
-    return torch.as_tensor(sign[..., None], dtype=quats.dtype, device=quats.device)
-
-
-def _float64(t: torch.Tensor) -> np.ndarray:
-    return t.detach().cpu().numpy().astype(np.float64)
-
-
-def _rodrigues(axis_angle: np.ndarray) -> np.ndarray:
-    """lbs.axis_angle_to_matrix in numpy (the same small-angle series)."""
-    theta2 = (axis_angle * axis_angle).sum(-1)[..., None]
-    small = theta2 < 1e-8
-    safe = np.where(small, 1.0, theta2)
-    theta = np.sqrt(safe)
-    sinc = np.where(small, 1.0 - theta2 / 6.0, np.sin(theta) / theta)
-    cosc = np.where(small, 0.5 - theta2 / 24.0, (1.0 - np.cos(theta)) / safe)
-    x, y, z = axis_angle[..., 0], axis_angle[..., 1], axis_angle[..., 2]
-    zero = np.zeros_like(x)
-    skew = np.stack([zero, -z, y, z, zero, -x, -y, x, zero], axis=-1).reshape(axis_angle.shape + (3,))
-    return np.eye(3) + sinc[..., None] * skew + cosc[..., None] * (skew @ skew)
+    sign = kinematics.hemisphere_signs(kinematics.as_float64(quats), parents)
+    return torch.as_tensor(sign, dtype=quats.dtype, device=quats.device)
 
 
 def blend_weights(skin_weights: torch.Tensor, skin_delta: torch.Tensor | None) -> torch.Tensor:
@@ -220,13 +190,27 @@ def skin_with_kernel(
     camera_center: torch.Tensor | None = None,
     rotations: bool = True,
     blend_norms: bool = False,
+    next_bones: PosedBones | None = None,
+    next_means: torch.Tensor | None = None,
 ):
     """The fused C++ skinning of ``means`` (stg_node.splat.skin_ops): ``blend_weights`` + ``skin``
     (+ the local rotation and the canonical view direction, see AvatarModel.pose) in one pass,
-    or None where the kernel does not apply (kernels.use_kernels); the caller then runs torch."""
-    if bones.transforms.shape[0] != 1:
+    or None where the kernel does not apply (kernels.use_kernels); the caller then runs torch.
+    ``next_bones``: also the centres (``next_means``, default ``means``) under another frame's
+    bones with the same weights (``.next_means``; skin_ops.skin's second frame)."""
+    if bones.transforms.shape[0] != 1 or (next_bones is not None and next_bones.transforms.shape[0] != 1):
         raise ValueError("skin_with_kernel() poses one frame at a time")
-    if not kernels.use_kernels(means, skin_weights, skin_delta, local_quats, bones.transforms, bones.quats):
+    next_transforms = None if next_bones is None else next_bones.transforms
+    if not kernels.use_kernels(
+        means,
+        skin_weights,
+        skin_delta,
+        local_quats,
+        bones.transforms,
+        bones.quats,
+        next_transforms,
+        next_means,
+    ):
         return None
     from stg_node.splat import skin_ops
 
@@ -242,4 +226,6 @@ def skin_with_kernel(
         camera_center=camera_center,
         rotations=rotations,
         blend_norms=blend_norms,
+        next_bone_transforms=None if next_transforms is None else next_transforms[0],
+        next_means=next_means,
     )

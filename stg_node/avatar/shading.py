@@ -208,11 +208,11 @@ def gaussian_normals(
     quats: torch.Tensor, scales: torch.Tensor, means: torch.Tensor, camera_center: torch.Tensor
 ) -> torch.Tensor:
     """(M, 3) unit world normals: each Gaussian's shortest axis turned by its world rotation
-    ``quats`` (M, 4, unit wxyz), flipped to face ``camera_center`` (3,). Without gradient the
-    fused kernel (stg_node.splat.skin_ops.gaussian_normals: the same operations in one pass,
-    equal to float rounding)."""
-    wants_grad = torch.is_grad_enabled() and (quats.requires_grad or means.requires_grad)
-    if not wants_grad and kernels.use_kernels(quats, scales, means, camera_center):
+    ``quats`` (M, 4, unit wxyz), flipped to face ``camera_center`` (3,). Where the kernels run,
+    the fused kernel (stg_node.splat.skin_ops.gaussian_normals: the same operations in one pass,
+    equal to float rounding, its backward written out); the gradient reaches ``quats`` only (the
+    axis and the sign are constants for it)."""
+    if kernels.use_kernels(quats, scales, means, camera_center):
         from stg_node.splat import skin_ops
 
         return skin_ops.gaussian_normals(quats, scales, means, camera_center)

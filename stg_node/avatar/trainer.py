@@ -390,6 +390,20 @@ class Trainer:
         timer.mark("data")
         moving = self._moving_rows()  # only these carry motion terms (the gate); the rest are rigid
         state = self.model.spacetime(u + jitter, rows=moving)
+        flow_pair = stored.flow if stored.next_smpl is not None else None
+        use_flow = flow_pair is not None and c.loss.flow > 0 and self._flow_step(it)
+        table = self.model.table
+        want_temporal = c.loss.temporal > 0 and "t_center" in table and stored.next_time is not None
+        # The next frame's spacetime terms (at its time + the same jitter, on the moving rows): one
+        # evaluation for the flow and temporal terms. Its centres (the flow) are skinned in the
+        # pose's own pass (AvatarModel.pose's next_frame: the weights once for both frames).
+        next_state = next_frame = None
+        if use_flow or want_temporal:
+            u_next = self.model.time_axis(stored.next_time) + jitter
+            next_state = self.model.spacetime(u_next, rows=moving)
+        if use_flow:
+            next_body = self.body_state(stored.frame, smpl=stored.next_smpl)
+            next_frame = (self._frame_bones(stored, next_body, "next")[0], next_state)
         posed = self.model.pose(
             body,
             u,
@@ -400,29 +414,14 @@ class Trainer:
             state=state,
             camera=camera,
             color_turns=None if self.color_turns is None else (self.color_turns, it),
+            next_frame=next_frame,
         )
         timer.mark("pose")
 
         terms: dict[str, torch.Tensor] = {}
         extra = None
-        flow_pair = stored.flow if stored.next_smpl is not None else None
-        use_flow = flow_pair is not None and c.loss.flow > 0 and self._flow_step(it)
-        table = self.model.table
-        want_temporal = c.loss.temporal > 0 and "t_center" in table and stored.next_time is not None
-        # The next frame's spacetime terms (at its time + the same jitter, on the moving rows): one
-        # evaluation for the flow and temporal terms.
-        next_state = None
-        if use_flow or want_temporal:
-            u_next = self.model.time_axis(stored.next_time) + jitter
-            next_state = self.model.spacetime(u_next, rows=moving)
         if use_flow:
-            next_body = self.body_state(stored.frame, smpl=stored.next_smpl)
-            means_next = self.model.posed_means(
-                self._frame_bones(stored, next_body, "next")[0], u_next, state=next_state
-            )
-            if posed.index is not None:
-                means_next = means_next[posed.index]
-            extra = camera.project(means_next) - camera.project(posed.means)
+            extra = camera.motion(posed.means, posed.next_means)
         timer.mark("flow_target")
 
         want_depth = use_flow and c.densify.occlusion_m > 0  # the surface each pixel sees (densify._in_front)

@@ -10,6 +10,11 @@ backward is the chain rule written out per point, with the bones' gradients summ
 buffers. The torch reference it is tested against is ``stg_node.avatar.rigid`` (``blend_weights``,
 ``skin``) with the quaternion helpers of ``stg_node.avatar.model``.
 
+``next_bone_transforms`` skins a second frame's centres in the same pass (the flow loss's next
+frame): the weights, a point's costliest part, are computed once, and the backward pass sums both
+frames' gradients of the weights before the correction's chain rule. Its torch reference is two
+calls of ``stg_node.avatar.rigid.skin``.
+
 Differentiable with respect to ``means``, ``skin_delta``, ``bone_transforms``, ``bone_quats`` and
 ``local_quats``; not ``skin_weights`` (fixed columns; ``skin_kernel_applies`` says False when they
 require a gradient) and not the view directions. Float32 CPU tensors only.
@@ -34,6 +39,7 @@ class SkinnedPoints:
     quats: torch.Tensor | None  # (N, 4) unit wxyz: blended bone rotation x local rotation
     view_dirs: torch.Tensor | None  # (N, 3) unit viewing directions in each point's canonical frame
     blend_norm2: torch.Tensor | None = None  # (N,) squared norm of the blended bone quaternion
+    next_means: torch.Tensor | None = None  # (N, 3) world centres under the second frame's bones
 
 
 def _empty() -> torch.Tensor:
@@ -65,35 +71,46 @@ class _Skin(torch.autograd.Function):
         quat_eps,
         grad,
         blend_norms,
+        next_means,
+        next_bones,
     ):
         ops = load_kernels().ops
         m, sw, bo = _f32(means), _f32(skin_weights), _f32(bones)
         delta = _f32(skin_delta) if skin_delta is not None else _empty()
         local = _f32(local_quats) if local_quats is not None else _empty()
         cam = _f32(camera) if camera is not None else _empty()
-        world, quats, view, weights, norms = ops.skin_fwd(
-            m, sw, delta, bo, local, cam, rotations, weight_eps, quat_eps, grad, blend_norms,
+        two = next_bones is not None
+        m2 = _f32(next_means) if two else _empty()
+        bo2 = _f32(next_bones) if two else _empty()
+        world, quats, view, weights, norms, world2, blends = ops.skin_fwd(
+            m, sw, delta, bo, local, cam, rotations, weight_eps, quat_eps, grad, blend_norms, m2, bo2,
             torch.get_num_threads(),
         )  # fmt: skip
         ctx.mark_non_differentiable(view, norms)
         if grad:
-            ctx.save_for_backward(m, weights, bo, local)
+            ctx.save_for_backward(m, weights, bo, local, m2, bo2, blends)
         ctx.args = (skin_delta is not None, rotations, quat_eps)
-        return world, quats, view, norms
+        return world, quats, view, norms, world2
 
     @staticmethod
-    def backward(ctx, g_world, g_quats, _g_view, _g_norms):
-        m, weights, bo, local = ctx.saved_tensors
+    def backward(ctx, g_world, g_quats, _g_view, _g_norms, g_world2):
+        m, weights, bo, local, m2, bo2, blends = ctx.saved_tensors
         has_delta, rotations, quat_eps = ctx.args
+        two = bo2.numel() > 0
         ops = load_kernels().ops
         g_world = torch.zeros_like(m) if g_world is None else _f32(g_world)
         if rotations:
             g_quats = torch.zeros(m.shape[0], 4) if g_quats is None else _f32(g_quats)
         else:
             g_quats = _empty()
-        g_means, g_delta, g_bones, g_local = ops.skin_bwd(
-            m, weights, has_delta, bo, local, rotations, quat_eps, g_world, g_quats, torch.get_num_threads()
-        )
+        if two:
+            g_world2 = torch.zeros_like(m2) if g_world2 is None else _f32(g_world2)
+        else:
+            g_world2 = _empty()
+        g_means, g_delta, g_bones, g_local, g_means2, g_bones2 = ops.skin_bwd(
+            m, weights, has_delta, bo, local, rotations, quat_eps, g_world, g_quats, m2, bo2, g_world2,
+            blends, ctx.needs_input_grad[3], ctx.needs_input_grad[12], torch.get_num_threads(),
+        )  # fmt: skip
         return (
             g_means,
             None,
@@ -106,7 +123,17 @@ class _Skin(torch.autograd.Function):
             None,
             None,
             None,
+            g_means2 if two else None,
+            g_bones2 if two else None,
         )
+
+
+def _bone_rows(transforms: torch.Tensor, quats: torch.Tensor | None, b: int) -> torch.Tensor:
+    """(B, 16) the kernel's bones: each transform's top three rows, then its quaternion (zeros
+    where none is given: a second frame's are never read)."""
+    rows = transforms.reshape(b, -1, 4)[:, :3, :].reshape(b, 12)
+    quats = rows.new_zeros(b, 4) if quats is None else quats.reshape(b, 4)
+    return torch.cat([rows, quats], dim=1)
 
 
 def skin(
@@ -122,6 +149,8 @@ def skin(
     camera_center: torch.Tensor | None = None,
     rotations: bool = True,
     blend_norms: bool = False,
+    next_bone_transforms: torch.Tensor | None = None,
+    next_means: torch.Tensor | None = None,
 ) -> SkinnedPoints:
     """Skin ``means (N, 3)`` with ``skin_weights (N, B)`` by ``bone_transforms (B, 4, 4)`` (or
     (B, 3, 4)) whose rotations are ``bone_quats (B, 4)`` (wxyz, one hemisphere along the chain).
@@ -133,6 +162,8 @@ def skin(
     ``rotations=False`` returns the centres only (cheaper). ``blend_norms``: also return the squared
     norm of each point's blended bone quaternion (``sum_b w_b q_b``, before it is normalised; needs
     rotations): the joint squeeze, stg_node.avatar.rigid.joint_shrink.
+    ``next_bone_transforms`` (like ``bone_transforms``): also skin ``next_means (N, 3)`` (default:
+    ``means``) by these bones with the same weights, centres only (``SkinnedPoints.next_means``).
     """
     n = means.shape[0]
     b = skin_weights.shape[1] if skin_weights.dim() == 2 else -1
@@ -158,13 +189,29 @@ def skin(
         raise ValueError("local_quats, camera_center and blend_norms need rotations=True")
     if skin_weights.requires_grad:
         raise ValueError("skin() does not differentiate skin_weights (learn skin_delta instead)")
-    rows = bone_transforms.reshape(b, -1, 4)[:, :3, :].reshape(b, 12)
-    bones = torch.cat([rows, bone_quats.reshape(b, 4)], dim=1)
+    next_bones = None
+    if next_bone_transforms is not None:
+        if (
+            next_bone_transforms.shape[-2:] not in ((4, 4), (3, 4))
+            or next_bone_transforms.reshape(-1, *next_bone_transforms.shape[-2:]).shape[0] != b
+        ):
+            raise ValueError(
+                f"next_bone_transforms must be ({b}, 4, 4) or ({b}, 3, 4), got "
+                f"{tuple(next_bone_transforms.shape)}"
+            )
+        next_means = means if next_means is None else next_means
+        if next_means.shape != (n, 3):
+            raise ValueError(f"next_means must be ({n}, 3), got {tuple(next_means.shape)}")
+        next_bones = _bone_rows(next_bone_transforms, None, b)
+    elif next_means is not None:
+        raise ValueError("next_means needs next_bone_transforms")
+    bones = _bone_rows(bone_transforms, bone_quats, b)
     camera = None if camera_center is None else camera_center.reshape(3)
     grad = torch.is_grad_enabled() and any(
-        t is not None and t.requires_grad for t in (means, skin_delta, bones, local_quats)
+        t is not None and t.requires_grad
+        for t in (means, skin_delta, bones, local_quats, next_means, next_bones)
     )
-    world, quats, view, norms = _Skin.apply(
+    world, quats, view, norms, next_world = _Skin.apply(
         means,
         skin_weights,
         skin_delta,
@@ -176,29 +223,83 @@ def skin(
         float(quat_eps),
         grad,
         bool(blend_norms),
+        next_means if next_bones is not None else None,
+        next_bones,
     )
     return SkinnedPoints(
         world,
         quats if rotations else None,
         view if camera is not None else None,
         norms if blend_norms else None,
+        next_world if next_bones is not None else None,
     )
+
+
+class _Normals(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, quats, scales, means, camera):
+        ops = load_kernels().ops
+        q, sc, m, cam = _f32(quats), _f32(scales), _f32(means), _f32(camera.reshape(3))
+        ctx.save_for_backward(q, sc, m, cam)
+        return ops.gaussian_normals_fwd(q, sc, m, cam, torch.get_num_threads())
+
+    @staticmethod
+    def backward(ctx, g_normals):
+        q, sc, m, cam = ctx.saved_tensors
+        ops = load_kernels().ops
+        g_quats = ops.gaussian_normals_bwd(q, sc, m, cam, _f32(g_normals), torch.get_num_threads())
+        return g_quats, None, None, None
 
 
 def gaussian_normals(
     quats: torch.Tensor, scales: torch.Tensor, means: torch.Tensor, camera_center: torch.Tensor
 ) -> torch.Tensor:
-    """(M, 3) shading normals of posed Gaussians, no gradient: stg_node.avatar.shading's
-    ``gaussian_normals`` (its torch reference) in one pass per point instead of a dozen ops over
-    (M, 3) tensors; the same operations in the same order (a last bit apart where torch's own
-    kernels fuse a multiply-add)."""
+    """(M, 3) shading normals of posed Gaussians: stg_node.avatar.shading's ``gaussian_normals``
+    (its torch reference) in one pass per point instead of a dozen ops over (M, 3) tensors; the
+    same operations in the same order (a last bit apart where torch's own kernels fuse a
+    multiply-add). Differentiable with respect to ``quats`` only, as the reference (the axis and
+    the sign are constants for the gradient)."""
     n = quats.shape[0]
     if quats.shape != (n, 4) or scales.shape != (n, 3) or means.shape != (n, 3) or camera_center.numel() != 3:
         raise ValueError(
             f"gaussian_normals needs quats (M, 4), scales (M, 3), means (M, 3), a camera centre (3,); got "
             f"{tuple(quats.shape)}, {tuple(scales.shape)}, {tuple(means.shape)}, {tuple(camera_center.shape)}"
         )
-    ops = load_kernels().ops
-    return ops.gaussian_normals_fwd(
-        _f32(quats), _f32(scales), _f32(means), _f32(camera_center.reshape(3)), torch.get_num_threads()
-    )
+    return _Normals.apply(quats, scales, means, camera_center)
+
+
+class _PixelMotion(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, points, next_points, viewmat, K):
+        ops = load_kernels().ops
+        a, b, v, k = _f32(points), _f32(next_points), _f32(viewmat), _f32(K)
+        ctx.save_for_backward(a, b, v, k)
+        return ops.pixel_motion_fwd(a, b, v, k, torch.get_num_threads())
+
+    @staticmethod
+    def backward(ctx, g_motion):
+        a, b, v, k = ctx.saved_tensors
+        g_a, g_b = load_kernels().ops.pixel_motion_bwd(a, b, v, k, _f32(g_motion), torch.get_num_threads())
+        return g_a, g_b, None, None
+
+
+def pixel_motion(
+    points: torch.Tensor, next_points: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor
+) -> torch.Tensor:
+    """(N, 2) image motion of world ``points`` (N, 3) to ``next_points`` (N, 3) under one pinhole camera
+    (``viewmat`` (4, 4) world -> camera, ``K`` (3, 3)): ``project(next_points) - project(points)``
+    as stg_node.avatar.model.Camera3.project (its torch reference; depths clamped below at 1e-6) in
+    one pass per point, differentiable with respect to both point sets (not the camera)."""
+    n = points.shape[0]
+    if points.shape != (n, 3) or next_points.shape != (n, 3):
+        raise ValueError(
+            "pixel_motion needs points and next_points (N, 3), got "
+            f"{tuple(points.shape)}, {tuple(next_points.shape)}"
+        )
+    if viewmat.shape != (4, 4) or K.shape != (3, 3):
+        raise ValueError(
+            f"pixel_motion needs viewmat (4, 4) and K (3, 3), got {tuple(viewmat.shape)}, {tuple(K.shape)}"
+        )
+    if viewmat.requires_grad or K.requires_grad:
+        raise ValueError("pixel_motion does not differentiate the camera")
+    return _PixelMotion.apply(points, next_points, viewmat, K)

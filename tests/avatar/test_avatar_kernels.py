@@ -80,6 +80,54 @@ def test_pose_with_kernels_matches_the_torch_path_in_values_and_gradients(traine
         torch.testing.assert_close(fast_grads[name], want, atol=2e-4 * scale, rtol=1e-3, msg=name)
 
 
+def test_the_next_frames_centres_in_the_pose_pass_match_posed_means(trained, tiny_frames):
+    """AvatarModel.pose's next_frame (the flow loss's next frame, skinned in the pose's own kernel
+    pass): the centres posed_means gives for the same rows (moving rows carry their own offsets at
+    the next time), with the kernels and with the torch path, and the gradients of a loss over both
+    frames' centres and the orientations the same either way."""
+    frame, nxt = tiny_frames[3], tiny_frames[4]
+    model = trained.model
+    camera = Camera3.from_camera(frame.camera)
+    u, u_next = model.time_axis(frame.time) + 0.01, model.time_axis(nxt.time) + 0.01
+    params = list(model.parameters()) + [trained.pose_deltas]
+    results = []
+    for reference in (True, False):
+        for p in params:
+            p.grad = None
+        with kernels.reference() if reference else _no_block():
+            body, next_body = trained.body_state(frame), trained.body_state(nxt)
+            next_bones, next_state = model.bones(next_body), model.spacetime(u_next)
+            assert next_state.offsets is not None  # the moving rows' own centres at the next time
+            posed = model.pose(body, u, camera.center, camera=camera, next_frame=(next_bones, next_state))
+            with torch.no_grad():
+                want = model.posed_means(next_bones, u_next, state=next_state)[posed.index]
+        torch.testing.assert_close(posed.next_means.detach(), want, atol=2e-6, rtol=1e-5)
+        gen = torch.Generator().manual_seed(1)
+        loss = sum(
+            (t * torch.randn(t.shape, generator=gen)).sum()
+            for t in (posed.means, posed.quats, posed.next_means)
+        )
+        loss.backward()
+        results.append(
+            {
+                n: p.grad.clone()
+                for n, p in [*model.named_parameters(), ("pose", trained.pose_deltas)]
+                if p.grad is not None
+            }
+        )
+    ref_grads, fast_grads = results
+    assert set(fast_grads) == set(ref_grads) and "table.params.skin_delta" in ref_grads
+    for name, want in ref_grads.items():
+        scale = max(float(want.abs().max()), 1e-6)
+        torch.testing.assert_close(fast_grads[name], want, atol=2e-4 * scale, rtol=1e-3, msg=name)
+
+
+def _no_block():
+    import contextlib
+
+    return contextlib.nullcontext()
+
+
 def test_culling_before_colour_changes_no_pixel(trained, tiny_frames):
     """A close-up camera sees a part of the body: the rows it cannot see are dropped before
     colour, and the image is the one rendered from every row."""

@@ -173,3 +173,39 @@ def test_joint_shrink_is_floored_and_posing_applies_it():
     weights = torch.zeros(1, 24, dtype=torch.float64)
     weights[0, :2] = 0.5
     assert joint_shrink(weights, bones).item() == pytest.approx(JOINT_SHRINK_FLOOR)
+
+
+@pytest.mark.parametrize("seed", [0, 7])
+def test_hand_written_kinematics_backward_matches_torch_autograd_in_float64(body, seed):
+    """Skeleton.bones with a gradient (stg_node.avatar.kinematics: numpy forward, the chain rule by
+    hand) against the torch path under kernels.reference(), in float64: the transforms and
+    quaternions, and the gradients of the pose, root rotation and translation of a loss over both,
+    two frames at once, at the rest pose (the small-angle series), human and large joint angles.
+    The quaternions' gradient treats every change of a bone rotation as a rotation's, exact for
+    the float32-stored big-pose inverse to its orthogonality (~1e-7)."""
+    from stg_node.avatar import kernels
+
+    poses, Rh, Th, betas = _random_pose(seed)
+    skeleton = Skeleton.from_body(body, betas).double()
+    gen = torch.Generator().manual_seed(seed)
+    g_transforms = torch.randn(2, 24, 4, 4, generator=gen, dtype=torch.float64)
+    g_quats = torch.randn(2, 24, 4, generator=gen, dtype=torch.float64)
+    for scale in (0.0, 1.0, 6.0):
+        p = torch.cat([poses * scale, poses.flip(1) * scale]).reshape(2, 72)  # (B, 72) as the trainer's
+        rh, th = torch.cat([Rh, -Rh]), torch.cat([Th, 2 * Th])
+        results = []
+        for reference in (True, False):
+            ins = [t.clone().requires_grad_(True) for t in (p, rh, th)]
+            if reference:
+                with kernels.reference():
+                    bones = skeleton.bones(*ins)
+            else:
+                bones = skeleton.bones(*ins)
+            loss = (bones.transforms * g_transforms).sum() + (bones.quats * g_quats).sum()
+            results.append((bones, torch.autograd.grad(loss, ins)))
+        (want, want_grads), (got, got_grads) = results
+        torch.testing.assert_close(got.transforms, want.transforms, atol=1e-12, rtol=0)
+        torch.testing.assert_close(got.quats, want.quats, atol=1e-12, rtol=0)
+        for name, a, b in zip(("poses", "Rh", "Th"), got_grads, want_grads, strict=True):
+            assert a.shape == b.shape and a.dtype == torch.float64
+            torch.testing.assert_close(a, b, atol=1e-6 * float(b.abs().max()), rtol=0, msg=name)

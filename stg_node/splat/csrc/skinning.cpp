@@ -102,8 +102,9 @@ inline float local_rotation(const SkinShape& s, const float* l, float* ln) {
 void skin_forward(const SkinShape& s, const float* means, const float* skin_weights,
                   const float* skin_delta, const float* bones, const float* local_quats,
                   const float* camera, float* world, float* quats, float* view, float* weights,
-                  float* blend_norm2) {
+                  float* blend_norm2, float* blends, const SecondFrame& second) {
     const int B = s.bones;
+    const int frames = second.bones != nullptr ? 2 : 1;
 #pragma omp parallel num_threads(s.threads)
     {
         std::vector<float> wbuf(B);
@@ -113,11 +114,21 @@ void skin_forward(const SkinShape& s, const float* means, const float* skin_weig
             point_weights(s, skin_weights + i * B, s.has_delta ? skin_delta + i * B : nullptr, w);
             float bl[kBoneStride];
             blend_bones(B, w, bones, bl);
+            if (blends != nullptr) std::copy(bl, bl + kBoneStride, blends + i * frames * kBoneStride);
             const float* x = means + i * 3;
             float p[3];
             for (int r = 0; r < 3; ++r)
                 p[r] = bl[r * 4] * x[0] + bl[r * 4 + 1] * x[1] + bl[r * 4 + 2] * x[2] + bl[r * 4 + 3];
             for (int r = 0; r < 3; ++r) world[i * 3 + r] = p[r];
+            if (second.bones != nullptr) {  // the other frame, same weights
+                float bl2[kBoneStride];
+                blend_bones(B, w, second.bones, bl2);
+                if (blends != nullptr) std::copy(bl2, bl2 + kBoneStride, blends + (i * 2 + 1) * kBoneStride);
+                const float* x2 = second.means + i * 3;
+                for (int r = 0; r < 3; ++r)
+                    second.world[i * 3 + r] =
+                        bl2[r * 4] * x2[0] + bl2[r * 4 + 1] * x2[1] + bl2[r * 4 + 2] * x2[2] + bl2[r * 4 + 3];
+            }
             if (!s.rotations) continue;
             const float* qr = bl + 12;
             if (blend_norm2 != nullptr)
@@ -149,20 +160,27 @@ void skin_forward(const SkinShape& s, const float* means, const float* skin_weig
 void skin_backward(const SkinShape& s, const float* means, const float* weights,
                    const float* bones, const float* local_quats, const float* g_world,
                    const float* g_quats, float* g_means, float* g_delta, float* g_bones,
-                   float* g_local_quats) {
+                   float* g_local_quats, const float* blends, const SecondFrame& second) {
     const int B = s.bones;
     const int threads = std::max(1, s.threads);
-    // bones transposed (16 x B): dL/dw_b = <bones[b], g16> for all b as 16 axpys over b.
-    std::vector<float> bones_t(static_cast<size_t>(kBoneStride) * B);
+    const bool two = second.bones != nullptr;
+    const int frames = two ? 2 : 1;
+    // bones transposed (16 x B per frame): dL/dw_b = <bones[b], g16> for all b as 16 axpys over b.
+    std::vector<float> bones_t(static_cast<size_t>(frames) * kBoneStride * B);
     for (int b = 0; b < B; ++b)
-        for (int k = 0; k < kBoneStride; ++k) bones_t[k * B + b] = bones[b * kBoneStride + k];
+        for (int k = 0; k < kBoneStride; ++k) {
+            bones_t[k * B + b] = bones[b * kBoneStride + k];
+            if (two) bones_t[(kBoneStride + k) * B + b] = second.bones[b * kBoneStride + k];
+        }
+    // accumulators: frame f's bone b at (f * B + b) * 16
+    const size_t acc_size = static_cast<size_t>(frames) * B * kBoneStride;
     std::vector<std::vector<double>> totals(threads);
 #pragma omp parallel num_threads(threads)
     {
         const int tid = omp_get_thread_num();
         std::vector<double>& total = totals[tid];
-        total.assign(static_cast<size_t>(B) * kBoneStride, 0.0);
-        std::vector<float> acc(static_cast<size_t>(B) * kBoneStride, 0.0f);
+        total.assign(acc_size, 0.0);
+        std::vector<float> acc(acc_size, 0.0f);
         std::vector<float> gw(B);
         int since_flush = 0;
         auto flush = [&]() {
@@ -175,8 +193,12 @@ void skin_backward(const SkinShape& s, const float* means, const float* weights,
 #pragma omp for schedule(static)
         for (int64_t i = 0; i < s.n; ++i) {
             const float* w = weights + i * B;
-            float bl[kBoneStride];
-            blend_bones(B, w, bones, bl);
+            float own[kBoneStride];
+            const float* bl = own;
+            if (blends != nullptr)
+                bl = blends + i * frames * kBoneStride;
+            else
+                blend_bones(B, w, bones, own);
             const float* x = means + i * 3;
             const float* gp = g_world + i * 3;
             // world = M x + t: dL/dx = M^T g, dL/dM = g x^T, dL/dt = g
@@ -231,19 +253,58 @@ void skin_backward(const SkinShape& s, const float* means, const float* weights,
                     for (int k = 0; k < 4; ++k) g16[12 + k] = gq[k] * inv;
                 }
             }
-            // dL/dw_b = <bones[b], g16>; dL/dbones[b] += w_b g16
-            std::fill(gw.begin(), gw.end(), 0.0f);
-            for (int k = 0; k < kBoneStride; ++k) {
-                const float gk = g16[k];
-                const float* col = bones_t.data() + static_cast<size_t>(k) * B;
+            // dL/dw_b = <bones[b], g16> (only the correction takes it); dL/dbones[b] += w_b g16
+            if (s.has_delta) {
+                std::fill(gw.begin(), gw.end(), 0.0f);
+                for (int k = 0; k < kBoneStride; ++k) {
+                    const float gk = g16[k];
+                    const float* col = bones_t.data() + static_cast<size_t>(k) * B;
 #pragma omp simd
-                for (int b = 0; b < B; ++b) gw[b] = STG_MADD(gk, col[b], gw[b]);
+                    for (int b = 0; b < B; ++b) gw[b] = STG_MADD(gk, col[b], gw[b]);
+                }
             }
-            for (int b = 0; b < B; ++b) {
-                const float wb = w[b];
-                float* a = acc.data() + static_cast<size_t>(b) * kBoneStride;
+            if (s.bone_grads) {
+                for (int b = 0; b < B; ++b) {
+                    const float wb = w[b];
+                    float* a = acc.data() + static_cast<size_t>(b) * kBoneStride;
 #pragma omp simd
-                for (int k = 0; k < kBoneStride; ++k) a[k] = STG_MADD(wb, g16[k], a[k]);
+                    for (int k = 0; k < kBoneStride; ++k) a[k] = STG_MADD(wb, g16[k], a[k]);
+                }
+            }
+            if (two) {  // the other frame: centres only, the same weights
+                float own2[kBoneStride];
+                const float* bl2 = own2;
+                if (blends != nullptr)
+                    bl2 = blends + (i * 2 + 1) * kBoneStride;
+                else
+                    blend_bones(B, w, second.bones, own2);
+                const float* x2 = second.means + i * 3;
+                const float* gp2 = second.g_world + i * 3;
+                for (int k = 0; k < 3; ++k)
+                    second.g_means[i * 3 + k] = bl2[k] * gp2[0] + bl2[4 + k] * gp2[1] + bl2[8 + k] * gp2[2];
+                float h16[12];
+                for (int r = 0; r < 3; ++r) {
+                    h16[r * 4] = gp2[r] * x2[0];
+                    h16[r * 4 + 1] = gp2[r] * x2[1];
+                    h16[r * 4 + 2] = gp2[r] * x2[2];
+                    h16[r * 4 + 3] = gp2[r];
+                }
+                if (s.has_delta) {
+                    for (int k = 0; k < 12; ++k) {
+                        const float hk = h16[k];
+                        const float* col = bones_t.data() + static_cast<size_t>(kBoneStride + k) * B;
+#pragma omp simd
+                        for (int b = 0; b < B; ++b) gw[b] = STG_MADD(hk, col[b], gw[b]);
+                    }
+                }
+                if (s.next_bone_grads) {
+                    for (int b = 0; b < B; ++b) {
+                        const float wb = w[b];
+                        float* a = acc.data() + static_cast<size_t>(B + b) * kBoneStride;
+#pragma omp simd
+                        for (int k = 0; k < 12; ++k) a[k] = STG_MADD(wb, h16[k], a[k]);
+                    }
+                }
             }
             if (++since_flush == kFlushEvery) flush();
             if (s.has_delta) {
@@ -257,36 +318,128 @@ void skin_backward(const SkinShape& s, const float* means, const float* weights,
         }
         flush();
     }
-    for (int k = 0; k < B * kBoneStride; ++k) {
+    for (size_t k = 0; k < acc_size; ++k) {
         double sum = 0.0;
         for (int t = 0; t < threads; ++t)
             if (!totals[t].empty()) sum += totals[t][k];
-        g_bones[k] = static_cast<float>(sum);
+        const size_t first = static_cast<size_t>(B) * kBoneStride;
+        if (k < first)
+            g_bones[k] = static_cast<float>(sum);
+        else
+            second.g_bones[k - first] = static_cast<float>(sum);  // its quaternions' entries are 0
     }
 }
+
+namespace {
+
+// One Gaussian's shading normal (stg_node.avatar.shading.gaussian_normals): its shortest axis a of
+// scales (the first of equal ones, as torch.argmin) turned by q (v + 2 (w (u x v) + u x (u x v))),
+// written to nrm before the flip; returns the sign that makes it face the camera from the centre p.
+inline float turned_axis(const float* sc, const float* q, const float* p, const float* camera, float* a,
+                         float* nrm) {
+    int k = 0;
+    if (sc[1] < sc[k]) k = 1;
+    if (sc[2] < sc[k]) k = 2;
+    a[0] = a[1] = a[2] = 0.0f;
+    a[k] = 1.0f;
+    const float w = q[0], u[3] = {q[1], q[2], q[3]};
+    const float uv[3] = {u[1] * a[2] - u[2] * a[1], u[2] * a[0] - u[0] * a[2], u[0] * a[1] - u[1] * a[0]};
+    const float uuv[3] = {u[1] * uv[2] - u[2] * uv[1], u[2] * uv[0] - u[0] * uv[2], u[0] * uv[1] - u[1] * uv[0]};
+    for (int r = 0; r < 3; ++r) nrm[r] = a[r] + 2.0f * (w * uv[r] + uuv[r]);
+    const float t[3] = {camera[0] - p[0], camera[1] - p[1], camera[2] - p[2]};
+    const float dot = nrm[0] * t[0] + nrm[1] * t[1] + nrm[2] * t[2];
+    return dot < 0.0f ? -1.0f : 1.0f;
+}
+
+}  // namespace
 
 void gaussian_normals(int64_t n, const float* quats, const float* scales, const float* means,
                       const float* camera, float* normals, int threads) {
 #pragma omp parallel for schedule(static) num_threads(threads)
     for (int64_t i = 0; i < n; ++i) {
-        const float* sc = scales + i * 3;
-        int k = 0;  // argmin, the first of equal ones (as torch.argmin)
-        if (sc[1] < sc[k]) k = 1;
-        if (sc[2] < sc[k]) k = 2;
-        float a[3] = {0.0f, 0.0f, 0.0f};
-        a[k] = 1.0f;
-        const float* q = quats + i * 4;
-        const float w = q[0], u[3] = {q[1], q[2], q[3]};
-        const float uv[3] = {u[1] * a[2] - u[2] * a[1], u[2] * a[0] - u[0] * a[2], u[0] * a[1] - u[1] * a[0]};
-        const float uuv[3] = {u[1] * uv[2] - u[2] * uv[1], u[2] * uv[0] - u[0] * uv[2],
-                              u[0] * uv[1] - u[1] * uv[0]};
-        float nrm[3];
-        for (int r = 0; r < 3; ++r) nrm[r] = a[r] + 2.0f * (w * uv[r] + uuv[r]);
-        const float* p = means + i * 3;
-        const float t[3] = {camera[0] - p[0], camera[1] - p[1], camera[2] - p[2]};
-        const float dot = nrm[0] * t[0] + nrm[1] * t[1] + nrm[2] * t[2];
-        const float sign = dot < 0.0f ? -1.0f : 1.0f;
+        float a[3], nrm[3];
+        const float sign = turned_axis(scales + i * 3, quats + i * 4, means + i * 3, camera, a, nrm);
         for (int r = 0; r < 3; ++r) normals[i * 3 + r] = nrm[r] * sign;
+    }
+}
+
+void gaussian_normals_backward(int64_t n, const float* quats, const float* scales, const float* means,
+                               const float* camera, const float* g_normals, float* g_quats, int threads) {
+#pragma omp parallel for schedule(static) num_threads(threads)
+    for (int64_t i = 0; i < n; ++i) {
+        float a[3], nrm[3];  // the forward's axis and sign, found again
+        const float* q = quats + i * 4;
+        const float sign = turned_axis(scales + i * 3, q, means + i * 3, camera, a, nrm);
+        const float w = q[0], u[3] = {q[1], q[2], q[3]};
+        const float ua[3] = {u[1] * a[2] - u[2] * a[1], u[2] * a[0] - u[0] * a[2], u[0] * a[1] - u[1] * a[0]};
+        // n = sign (a + 2 (w (u x a) + u (u.a) - a (u.u)))
+        const float* gn = g_normals + i * 3;
+        const float g[3] = {sign * gn[0], sign * gn[1], sign * gn[2]};
+        const float ag[3] = {a[1] * g[2] - a[2] * g[1], a[2] * g[0] - a[0] * g[2], a[0] * g[1] - a[1] * g[0]};
+        const float u_a = u[0] * a[0] + u[1] * a[1] + u[2] * a[2];
+        const float u_g = u[0] * g[0] + u[1] * g[1] + u[2] * g[2];
+        const float a_g = a[0] * g[0] + a[1] * g[1] + a[2] * g[2];
+        float* out = g_quats + i * 4;
+        out[0] = 2.0f * (ua[0] * g[0] + ua[1] * g[1] + ua[2] * g[2]);
+        for (int r = 0; r < 3; ++r) out[1 + r] = 2.0f * (w * ag[r] + u_a * g[r] + u_g * a[r] - 2.0f * a_g * u[r]);
+    }
+}
+
+namespace {
+
+// Pixel of world point x (camera = K (R x + t)), its depth clamped below at kMinDepth, and the
+// rows of d pixel / d x (2 x 3) when jac is not nullptr.
+constexpr float kMinDepth = 1e-6f;
+
+inline void project_point(const float* view, const float* K, const float* x, float* pix, float* jac) {
+    float c[3];
+    for (int r = 0; r < 3; ++r) c[r] = view[r * 4] * x[0] + view[r * 4 + 1] * x[1] + view[r * 4 + 2] * x[2] + view[r * 4 + 3];
+    float p[3];
+    for (int r = 0; r < 3; ++r) p[r] = K[r * 3] * c[0] + K[r * 3 + 1] * c[1] + K[r * 3 + 2] * c[2];
+    const bool clamped = !(p[2] > kMinDepth);
+    const float z = clamped ? kMinDepth : p[2];
+    pix[0] = p[0] / z;
+    pix[1] = p[1] / z;
+    if (jac == nullptr) return;
+    // d pix / d p = [1/z, 0, -pix0/z; 0, 1/z, -pix1/z] (no depth term where clamped); times K R
+    const float dz0 = clamped ? 0.0f : -pix[0] / z, dz1 = clamped ? 0.0f : -pix[1] / z;
+    const float inv = 1.0f / z;
+    float kr[9];  // K R
+    for (int r = 0; r < 3; ++r)
+        for (int k = 0; k < 3; ++k)
+            kr[r * 3 + k] = K[r * 3] * view[k] + K[r * 3 + 1] * view[4 + k] + K[r * 3 + 2] * view[8 + k];
+    for (int k = 0; k < 3; ++k) {
+        jac[k] = inv * kr[k] + dz0 * kr[6 + k];
+        jac[3 + k] = inv * kr[3 + k] + dz1 * kr[6 + k];
+    }
+}
+
+}  // namespace
+
+void pixel_motion(int64_t n, const float* from, const float* to, const float* view, const float* K, float* motion,
+                  int threads) {
+#pragma omp parallel for schedule(static) num_threads(threads)
+    for (int64_t i = 0; i < n; ++i) {
+        float a[2], b[2];
+        project_point(view, K, from + i * 3, a, nullptr);
+        project_point(view, K, to + i * 3, b, nullptr);
+        motion[i * 2] = b[0] - a[0];
+        motion[i * 2 + 1] = b[1] - a[1];
+    }
+}
+
+void pixel_motion_backward(int64_t n, const float* from, const float* to, const float* view, const float* K,
+                           const float* g_motion, float* g_from, float* g_to, int threads) {
+#pragma omp parallel for schedule(static) num_threads(threads)
+    for (int64_t i = 0; i < n; ++i) {
+        float pix[2], ja[6], jb[6];
+        project_point(view, K, from + i * 3, pix, ja);
+        project_point(view, K, to + i * 3, pix, jb);
+        const float* g = g_motion + i * 2;
+        for (int k = 0; k < 3; ++k) {
+            g_to[i * 3 + k] = g[0] * jb[k] + g[1] * jb[3 + k];
+            g_from[i * 3 + k] = -(g[0] * ja[k] + g[1] * ja[3 + k]);
+        }
     }
 }
 

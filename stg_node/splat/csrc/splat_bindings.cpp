@@ -464,10 +464,11 @@ at::Tensor sphere_visibility_fwd(const at::Tensor& points, const at::Tensor& nor
 // ---- skinning (skinning.h); an absent optional tensor is passed as an empty one ----
 bool given(const at::Tensor& t) { return t.defined() && t.numel() > 0; }
 
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> skin_fwd(
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> skin_fwd(
     const at::Tensor& means, const at::Tensor& skin_weights, const at::Tensor& skin_delta,
     const at::Tensor& bones, const at::Tensor& local_quats, const at::Tensor& camera, bool rotations,
-    double weight_eps, double quat_eps, bool save_weights, bool blend_norms, int64_t threads) {
+    double weight_eps, double quat_eps, bool save_weights, bool blend_norms, const at::Tensor& next_means,
+    const at::Tensor& next_bones, int64_t threads) {
     const int64_t n = means.size(0);
     check_cpu_float(means, "means", n, 3);
     TORCH_CHECK(bones.dim() == 2 && bones.size(1) == stg_skin::kBoneStride, "bones must be [B, ",
@@ -485,13 +486,26 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> skin_fwd(
     }
     TORCH_CHECK(rotations || (!has_local && !has_camera && !blend_norms),
                 "local rotations, the view and the blend norms need rotations");
+    const bool two = given(next_bones);
+    if (two) {
+        check_cpu_float(next_bones, "next_bones", B, stg_skin::kBoneStride);
+        check_cpu_float(next_means, "next_means", n, 3);
+    }
     TORCH_CHECK(threads >= 1, "threads must be >= 1");
     const auto f32 = means.options();
+    at::Tensor next_world = at::empty({two ? n : 0, 3}, f32);
+    stg_skin::SecondFrame second;
+    if (two) {
+        second.bones = next_bones.data_ptr<float>();
+        second.means = next_means.data_ptr<float>();
+        second.world = next_world.data_ptr<float>();
+    }
     at::Tensor world = at::empty({n, 3}, f32);
     at::Tensor quats = at::empty({rotations ? n : 0, 4}, f32);
     at::Tensor view = at::empty({has_camera ? n : 0, 3}, f32);
     at::Tensor weights = at::empty({save_weights ? n : 0, B}, f32);
     at::Tensor norms = at::empty({blend_norms ? n : 0}, f32);
+    at::Tensor blends = at::empty({save_weights ? n : 0, two ? 2 : 1, stg_skin::kBoneStride}, f32);
     const stg_skin::SkinShape shape{n,         static_cast<int>(B),
                                     has_delta, rotations,
                                     has_local, static_cast<float>(weight_eps),
@@ -503,8 +517,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> skin_fwd(
                            rotations ? quats.data_ptr<float>() : nullptr,
                            has_camera ? view.data_ptr<float>() : nullptr,
                            save_weights ? weights.data_ptr<float>() : nullptr,
-                           blend_norms ? norms.data_ptr<float>() : nullptr);
-    return {world, quats, view, weights, norms};
+                           blend_norms ? norms.data_ptr<float>() : nullptr,
+                           save_weights ? blends.data_ptr<float>() : nullptr, second);
+    return {world, quats, view, weights, norms, next_world, blends};
 }
 
 at::Tensor gaussian_normals_fwd(const at::Tensor& quats, const at::Tensor& scales, const at::Tensor& means,
@@ -522,10 +537,67 @@ at::Tensor gaussian_normals_fwd(const at::Tensor& quats, const at::Tensor& scale
     return normals;
 }
 
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> skin_bwd(
+at::Tensor gaussian_normals_bwd(const at::Tensor& quats, const at::Tensor& scales, const at::Tensor& means,
+                                const at::Tensor& camera, const at::Tensor& g_normals, int64_t threads) {
+    const int64_t n = quats.size(0);
+    check_cpu_float(quats, "quats", n, 4);
+    check_cpu_float(scales, "scales", n, 3);
+    check_cpu_float(means, "means", n, 3);
+    check_cpu_float(g_normals, "grad normals", n, 3);
+    TORCH_CHECK(camera.numel() == 3, "camera must hold 3 values, got ", camera.numel());
+    check_cpu_float(camera, "camera", camera.size(0), 0);
+    TORCH_CHECK(threads >= 1, "threads must be >= 1");
+    at::Tensor g_quats = at::empty({n, 4}, quats.options());
+    stg_skin::gaussian_normals_backward(n, quats.data_ptr<float>(), scales.data_ptr<float>(),
+                                        means.data_ptr<float>(), camera.data_ptr<float>(),
+                                        g_normals.data_ptr<float>(), g_quats.data_ptr<float>(),
+                                        static_cast<int>(threads));
+    return g_quats;
+}
+
+void check_camera(const at::Tensor& view, const at::Tensor& K) {
+    TORCH_CHECK(view.numel() == 16, "viewmat must be 4x4, got ", view.sizes());
+    TORCH_CHECK(K.numel() == 9, "K must be 3x3, got ", K.sizes());
+    check_cpu_float(view, "viewmat", view.size(0), 0);
+    check_cpu_float(K, "K", K.size(0), 0);
+}
+
+at::Tensor pixel_motion_fwd(const at::Tensor& from, const at::Tensor& to, const at::Tensor& view, const at::Tensor& K,
+                            int64_t threads) {
+    const int64_t n = from.size(0);
+    check_cpu_float(from, "from", n, 3);
+    check_cpu_float(to, "to", n, 3);
+    check_camera(view, K);
+    TORCH_CHECK(threads >= 1, "threads must be >= 1");
+    at::Tensor motion = at::empty({n, 2}, from.options());
+    stg_skin::pixel_motion(n, from.data_ptr<float>(), to.data_ptr<float>(), view.data_ptr<float>(), K.data_ptr<float>(),
+                           motion.data_ptr<float>(), static_cast<int>(threads));
+    return motion;
+}
+
+std::tuple<at::Tensor, at::Tensor> pixel_motion_bwd(const at::Tensor& from, const at::Tensor& to,
+                                                    const at::Tensor& view, const at::Tensor& K,
+                                                    const at::Tensor& g_motion, int64_t threads) {
+    const int64_t n = from.size(0);
+    check_cpu_float(from, "from", n, 3);
+    check_cpu_float(to, "to", n, 3);
+    check_cpu_float(g_motion, "grad motion", n, 2);
+    check_camera(view, K);
+    TORCH_CHECK(threads >= 1, "threads must be >= 1");
+    at::Tensor g_from = at::empty({n, 3}, from.options());
+    at::Tensor g_to = at::empty({n, 3}, from.options());
+    stg_skin::pixel_motion_backward(n, from.data_ptr<float>(), to.data_ptr<float>(), view.data_ptr<float>(),
+                                    K.data_ptr<float>(), g_motion.data_ptr<float>(), g_from.data_ptr<float>(),
+                                    g_to.data_ptr<float>(), static_cast<int>(threads));
+    return {g_from, g_to};
+}
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> skin_bwd(
     const at::Tensor& means, const at::Tensor& weights, bool has_delta, const at::Tensor& bones,
     const at::Tensor& local_quats, bool rotations, double quat_eps, const at::Tensor& g_world,
-    const at::Tensor& g_quats, int64_t threads) {
+    const at::Tensor& g_quats, const at::Tensor& next_means, const at::Tensor& next_bones,
+    const at::Tensor& g_next_world, const at::Tensor& blends, bool bone_grads, bool next_bone_grads,
+    int64_t threads) {
     const int64_t n = means.size(0);
     check_cpu_float(means, "means", n, 3);
     const int64_t B = bones.size(0);
@@ -536,20 +608,45 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> skin_bwd(
     if (has_local) check_cpu_float(local_quats, "local_quats", n, 4);
     if (rotations) check_cpu_float(g_quats, "grad quats", n, 4);
     TORCH_CHECK(rotations || !has_local, "local rotations need rotations");
+    const bool two = given(next_bones);
+    if (two) {
+        check_cpu_float(next_bones, "next_bones", B, stg_skin::kBoneStride);
+        check_cpu_float(next_means, "next_means", n, 3);
+        check_cpu_float(g_next_world, "grad next world", n, 3);
+    }
     TORCH_CHECK(threads >= 1, "threads must be >= 1");
     const auto f32 = means.options();
+    at::Tensor g_next_means = at::empty({two ? n : 0, 3}, f32);
+    at::Tensor g_next_bones = at::empty({two ? B : 0, stg_skin::kBoneStride}, f32);
+    stg_skin::SecondFrame second;
+    if (two) {
+        second.bones = next_bones.data_ptr<float>();
+        second.means = next_means.data_ptr<float>();
+        second.g_world = g_next_world.data_ptr<float>();
+        second.g_means = g_next_means.data_ptr<float>();
+        second.g_bones = g_next_bones.data_ptr<float>();
+    }
     at::Tensor g_means = at::empty({n, 3}, f32);
     at::Tensor g_delta = at::empty({has_delta ? n : 0, B}, f32);
     at::Tensor g_bones = at::empty({B, stg_skin::kBoneStride}, f32);
     at::Tensor g_local = at::empty({has_local ? n : 0, 4}, f32);
-    const stg_skin::SkinShape shape{n, static_cast<int>(B), has_delta, rotations, has_local, 0.0f,
-                                    static_cast<float>(quat_eps), static_cast<int>(threads)};
+    const bool has_blends = given(blends);
+    if (has_blends) check_cpu_float(blends, "blends", n, 0);
+    TORCH_CHECK(!has_blends || blends.numel() == n * (two ? 2 : 1) * stg_skin::kBoneStride, "blends must be [",
+                n, ", ", two ? 2 : 1, ", ", stg_skin::kBoneStride, "], got ", blends.sizes());
+    stg_skin::SkinShape shape{n, static_cast<int>(B), has_delta, rotations, has_local, 0.0f,
+                              static_cast<float>(quat_eps), static_cast<int>(threads)};
+    shape.bone_grads = bone_grads;
+    shape.next_bone_grads = next_bone_grads;
+    if (!bone_grads) g_bones.zero_();
+    if (two && !next_bone_grads) g_next_bones.zero_();
     stg_skin::skin_backward(shape, means.data_ptr<float>(), weights.data_ptr<float>(), bones.data_ptr<float>(),
                             has_local ? local_quats.data_ptr<float>() : nullptr, g_world.data_ptr<float>(),
                             rotations ? g_quats.data_ptr<float>() : nullptr, g_means.data_ptr<float>(),
                             has_delta ? g_delta.data_ptr<float>() : nullptr, g_bones.data_ptr<float>(),
-                            has_local ? g_local.data_ptr<float>() : nullptr);
-    return {g_means, g_delta, g_bones, g_local};
+                            has_local ? g_local.data_ptr<float>() : nullptr,
+                            has_blends ? blends.data_ptr<float>() : nullptr, second);
+    return {g_means, g_delta, g_bones, g_local, g_next_means, g_next_bones};
 }
 
 // ---- small MLP (small_mlp.h) ----
@@ -695,14 +792,26 @@ TORCH_LIBRARY(STG_SPLAT_NS, m) {
     m.def(
         "skin_fwd(Tensor means, Tensor skin_weights, Tensor skin_delta, Tensor bones, Tensor local_quats, "
         "Tensor camera, bool rotations, float weight_eps, float quat_eps, bool save_weights, bool blend_norms, "
-        "int threads) -> (Tensor, Tensor, Tensor, Tensor, Tensor)",
+        "Tensor next_means, Tensor next_bones, int threads) -> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, "
+        "Tensor)",
         &skin_fwd);
     m.def("gaussian_normals_fwd(Tensor quats, Tensor scales, Tensor means, Tensor camera, int threads) -> Tensor",
           &gaussian_normals_fwd);
     m.def(
+        "gaussian_normals_bwd(Tensor quats, Tensor scales, Tensor means, Tensor camera, Tensor g_normals, "
+        "int threads) -> Tensor",
+        &gaussian_normals_bwd);
+    m.def("pixel_motion_fwd(Tensor from, Tensor to, Tensor viewmat, Tensor K, int threads) -> Tensor",
+          &pixel_motion_fwd);
+    m.def(
+        "pixel_motion_bwd(Tensor from, Tensor to, Tensor viewmat, Tensor K, Tensor g_motion, int threads) -> "
+        "(Tensor, Tensor)",
+        &pixel_motion_bwd);
+    m.def(
         "skin_bwd(Tensor means, Tensor weights, bool has_delta, Tensor bones, Tensor local_quats, "
-        "bool rotations, float quat_eps, Tensor g_world, Tensor g_quats, int threads) -> "
-        "(Tensor, Tensor, Tensor, Tensor)",
+        "bool rotations, float quat_eps, Tensor g_world, Tensor g_quats, Tensor next_means, Tensor next_bones, "
+        "Tensor g_next_world, Tensor blends, bool bone_grads, bool next_bone_grads, int threads) -> (Tensor, "
+        "Tensor, Tensor, Tensor, Tensor, Tensor)",
         &skin_bwd);
     m.def(
         "mlp_fwd(Tensor x, Tensor[] weights, Tensor[] biases, int[] acts, bool keep_hidden, int threads) -> "
