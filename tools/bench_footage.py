@@ -99,6 +99,11 @@ to ``--out/results/EXPERIMENT.json``; a run folder that is already finished is n
   the pipeline costs without pose errors). Scored on every held-out frame of the training camera
   against the true image and mask (``same_camera``), and on novel views, per body part; the gap
   to ``truth`` per part.
+- ``decompose``: where the tracked run's gap goes (``--runs`` gap, closeup; default gap), with
+  no new training: the tracked avatar rendered with the one similarity for the sequence, then
+  each frame's pelvis at the true one, the true global orientation, the true joint rotations;
+  what each step gains, per body part, and what the truth run still scores above the last (the
+  avatar learnt on the tracked poses). Trains the ``gap``/``closeup`` runs it needs if missing.
 - ``framing``: renders RUN_DIR's default orbit (and follow camera) and reports the share of
   frames with the avatar whole and at least 30 % of the image tall.
 
@@ -1204,6 +1209,71 @@ def gap_by_part(truth: dict, row: dict) -> dict:
     return result
 
 
+#: decompose's steps: each row renders the tracked run's avatar with more of the truth put in.
+DECOMPOSE_STEPS = {
+    "score": {},
+    "similarity": {"align": "similarity"},
+    "true-root": {"root": "true"},
+    "true-root-orientation": {"root": "true", "swap": "orientation"},
+    "true-root-pose": {"root": "true", "swap": "pose"},
+}
+
+
+def decompose(args) -> dict:
+    """Where the tracked run's gap goes, without training anything new: the ``gap`` subject's
+    tracked and truth runs (trained if missing) and, with ``--runs closeup``, the closeup
+    subject's. The tracked avatar is rendered with, in turn, the one similarity for the sequence
+    in place of the camera's extrinsics (the world's gauge), each frame's pelvis at the true one
+    (the single camera's depth), the true global orientation as well, and the true joint rotations
+    as well (the tracked shape kept). What the last row still lacks from the truth run is the
+    avatar itself: what it learnt from the tracked training poses."""
+    which = wanted_runs(args.runs or "gap", ("gap", "closeup"), "decompose")
+    rows = {}
+    for subject_name in which:
+        if subject_name == "gap":
+            data = subject(args.out, f"mixed_{args.size}", num_frames=args.frames, size=args.size)
+            video = [*camera_video_args(data), "--train-frames", f"0:{round(0.8 * args.frames)}",
+                     "--size", str(args.size)]  # fmt: skip
+            truth = train(args.out, f"gap_truth_{args.size}", args, "--data", str(data), "--format",
+                          "synthetic", "--size", str(args.size))  # fmt: skip
+            tracked = train(args.out, f"gap_tracked_{args.size}", args, *video)
+            splits = {"novel_view": {}, "novel_pose": {}}
+        else:
+            data = closeup_subject(args)
+            tag = f"{args.size}_{args.frames}_{args.closeup_m:g}m_s{args.seed}"
+            truth = train(args.out, f"closeup_truth_{tag}", args, "--data", str(data), "--format",
+                          "synthetic", "--size", str(args.size))  # fmt: skip
+            frames = ["--train-frames", f"0:{round(0.8 * args.frames)}", "--size", str(args.size)]
+            tracked = train(args.out, f"closeup_tracked_{tag}", args, *camera_video_args(data), *frames)
+            splits = {"novel_view": {}, "held_out_same_camera": {"same_camera": True}}
+        result = {}
+        for split, kw in splits.items():
+            name = "novel_pose" if split == "held_out_same_camera" else split
+            baseline = score(truth, data, name, **kw)
+            steps = {step: score(tracked, data, name, **kw, **extra) for step, extra in DECOMPOSE_STEPS.items()}
+            result[split] = decomposition(baseline, steps)
+        rows[subject_name] = result
+    return rows
+
+
+def decomposition(truth: dict, steps: dict) -> dict:
+    """The truth run's score, each step's, and what each step gains over the one before (PSNR and
+    per part); ``avatar``: what the truth run still scores above the last step."""
+    names = list(steps)
+    gains = {}
+    for before, after in zip(names, names[1:]):
+        gains[after] = {
+            "psnr": steps[after]["psnr"] - steps[before]["psnr"],
+            "parts": {p: steps[after]["parts_psnr"][p] - steps[before]["parts_psnr"][p] for p in steps[after]["parts_psnr"]},
+        }
+    last = steps[names[-1]]
+    gains["avatar"] = {
+        "psnr": truth["psnr"] - last["psnr"],
+        "parts": {p: truth["parts_psnr"][p] - last["parts_psnr"][p] for p in truth["parts_psnr"]},
+    }
+    return {"truth": truth, "steps": steps, "gains": gains, "gap_db": truth["psnr"] - steps[names[0]]["psnr"]}
+
+
 TWIST_MOTIONS = ("mixed", "dance", "wave", "reach", "walk")
 
 
@@ -1286,6 +1356,7 @@ EXPERIMENTS = {
     "errors": errors,
     "twist": twist,
     "closeup": closeup,
+    "decompose": decompose,
 }
 
 

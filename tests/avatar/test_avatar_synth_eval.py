@@ -11,6 +11,7 @@ from stg_node.avatar.synth_eval import (
     WorldAlignment,
     _joints,
     _root_at_truth,
+    _swapped,
     similarity_alignment,
     tracked_alignment,
 )
@@ -76,6 +77,46 @@ def test_the_true_root_diagnostic_puts_the_tracked_pelvis_on_the_true_one_and_ke
     before = _joints(body, [tracked])[0]
     after = _joints(body, [moved])[0]
     np.testing.assert_allclose(after - after[0], before - before[0], atol=1e-5)  # a translation only
+
+
+def _truth_and_tracked(seed: int):
+    rng = np.random.default_rng(seed)
+    truth = SmplParams(
+        poses=rng.normal(scale=0.3, size=(24, 3)).astype(np.float32),
+        Rh=np.array([0.2, -0.5, 0.1], np.float32),
+        Th=np.array([0.1, 0.3, -0.4], np.float32),
+        betas=np.zeros(10, np.float32),
+    )
+    tracked = SmplParams(
+        poses=rng.normal(scale=0.3, size=(24, 3)).astype(np.float32),  # every joint wrong
+        Rh=np.array([-0.3, 0.2, 0.0], np.float32),
+        Th=np.array([0.4, -0.2, 3.3], np.float32),
+        betas=np.zeros(10, np.float32),
+    )
+    align = WorldAlignment(Rotation.random(random_state=seed).as_matrix(), np.array([0.1, 0.2, 3.0]), 1.0)
+    return truth, tracked, align
+
+
+def test_the_true_pose_swap_at_the_true_root_is_the_true_body_in_the_runs_world():
+    """swap="pose" with root="true" on the true shape: every joint lands where the alignment maps
+    the true body's (a rigid map at scale 1: the same body, moved)."""
+    body = load_body_model()
+    truth, tracked, align = _truth_and_tracked(5)
+    moved = _root_at_truth(body, _swapped(tracked, truth, align, "pose"), truth, align)
+    expected = (align.R @ _joints(body, [truth])[0].T).T + align.t
+    np.testing.assert_allclose(_joints(body, [moved])[0], expected, atol=1e-4)
+    np.testing.assert_array_equal(moved.betas, tracked.betas)
+
+
+def test_the_orientation_swap_turns_the_body_and_keeps_the_tracked_joint_rotations():
+    body = load_body_model()
+    truth, tracked, align = _truth_and_tracked(6)
+    swapped = _swapped(tracked, truth, align, "orientation")
+    np.testing.assert_array_equal(swapped.poses[1:], tracked.poses[1:])
+    joints, true_joints = _joints(body, [swapped])[0], _joints(body, [truth])[0]
+    for j in (1, 2, 3):  # hips and spine hang on the pelvis alone: placed by the orientation
+        np.testing.assert_allclose(joints[j] - joints[0], align.R @ (true_joints[j] - true_joints[0]), atol=1e-4)
+    assert _swapped(tracked, truth, align, "none") is tracked
 
 
 def test_the_similarity_alignment_recovers_a_known_similarity_and_moves_cameras_with_it():
