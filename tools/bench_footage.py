@@ -252,7 +252,11 @@ def pose_variants(video_data: Path, data: Path, out: Path) -> dict[str, Path]:
     """Folder datasets in the tracker's world (its images, masks and camera) with the poses swapped:
     ``tracked`` as tracked; ``true-orientation``: the tracked joint rotations, shape and pelvis
     position with the true global orientation; ``true``: the true parameters (pose, shape,
-    orientation, position) in the training camera's frame. Each is ``out/NAME``."""
+    orientation, position) in the training camera's frame; ``true-depth``: the tracked parameters
+    with each frame's body slid along the camera ray through its pelvis to the true pelvis depth
+    (times the sequence's one depth-ratio scale, the gauge the scoring fixes): the picture in
+    the training camera unchanged at the pelvis, the single camera's depth error gone. Each is
+    ``out/NAME``."""
     import dataclasses
     import os
     import shutil
@@ -261,7 +265,7 @@ def pose_variants(video_data: Path, data: Path, out: Path) -> dict[str, Path]:
     import numpy as np
 
     from stg_node.avatar.data_spec import DataSpec
-    from stg_node.avatar.synth_eval import _joints
+    from stg_node.avatar.synth_eval import _joints, tracked_alignment
     from stg_node.body import load_body_model
     from stg_node.body.motion import load_smpl_params
     from stg_node.safe_load import load_npz
@@ -273,8 +277,13 @@ def pose_variants(video_data: Path, data: Path, out: Path) -> dict[str, Path]:
     R1, t1 = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64).reshape(3)
     body = load_body_model()
     variants = {
-        name: {k: v.copy() for k, v in tracked.items()} for name in ("tracked", "true-orientation", "true")
+        name: {k: v.copy() for k, v in tracked.items()}
+        for name in ("tracked", "true-orientation", "true", "true-depth")
     }
+    frames = tracked["frames"].astype(int)
+    tracked_joints = _joints(body, [sequence[i] for i in range(len(sequence))])
+    true_sequence = _joints(body, [truth.smpl(int(f)) for f in frames])
+    gauge = tracked_alignment(camera, true_sequence, tracked_joints).scale  # the scoring's depth ratio
     for i, frame in enumerate(tracked["frames"].astype(int)):
         true = truth.smpl(int(frame))
         poses = np.asarray(true.poses, np.float64).reshape(24, 3).copy()
@@ -292,6 +301,9 @@ def pose_variants(video_data: Path, data: Path, out: Path) -> dict[str, Path]:
         row = variants["true-orientation"]
         row["Rh"][i] = Rh
         row["Th"][i] = _joints(body, [mine])[0, 0] - _joints(body, [turned])[0, 0]  # the tracked pelvis kept
+        pelvis = tracked_joints[i, 0]
+        slide = gauge * true_joints[0, 2] / pelvis[2] - 1.0  # along the pelvis's ray to the true depth
+        variants["true-depth"]["Th"][i] = np.asarray(mine.Th) + pelvis * slide
     folders = {}
     for name, rows in variants.items():
         folder = out / name
@@ -1227,9 +1239,12 @@ def decompose(args) -> dict:
     (the single camera's depth), the true global orientation as well, and the true joint rotations
     as well (the tracked shape kept). What the last row still lacks from the truth run is the
     avatar itself: what it learnt from the tracked training poses."""
-    which = wanted_runs(args.runs or "gap", ("gap", "closeup"), "decompose")
+    which = wanted_runs(args.runs or "gap", ("gap", "closeup", "gap-trained"), "decompose")
     rows = {}
     for subject_name in which:
+        if subject_name == "gap-trained":
+            rows[subject_name] = decompose_trained(args)
+            continue
         if subject_name == "gap":
             data = subject(args.out, f"mixed_{args.size}", num_frames=args.frames, size=args.size)
             video = [*camera_video_args(data), "--train-frames", f"0:{round(0.8 * args.frames)}",
@@ -1250,9 +1265,35 @@ def decompose(args) -> dict:
         for split, kw in splits.items():
             name = "novel_pose" if split == "held_out_same_camera" else split
             baseline = score(truth, data, name, **kw)
-            steps = {step: score(tracked, data, name, **kw, **extra) for step, extra in DECOMPOSE_STEPS.items()}
+            steps = {step: score(tracked, data, name, **kw, **more) for step, more in DECOMPOSE_STEPS.items()}
             result[split] = decomposition(baseline, steps)
         rows[subject_name] = result
+    return rows
+
+
+TRAINED_STEPS = ("tracked", "true-depth", "true-orientation", "true")
+
+
+def decompose_trained(args) -> dict:
+    """``decompose --runs gap-trained``: the same question answered by training, free of what an
+    avatar learnt on the tracked poses does when rendered with others. The tracked run's own
+    folder (its images, masks, camera) trained as ``--format video`` trains, with the tracked
+    poses, with each frame's depth made true (``pose_variants``' ``true-depth``), with the true
+    global orientation, and with the true parameters; novel views and novel poses."""
+    out = args.out
+    data = subject(out, f"mixed_{args.size}", num_frames=args.frames, size=args.size)
+    frames = ["--train-frames", f"0:{round(0.8 * args.frames)}", "--size", str(args.size)]
+    video = [*camera_video_args(data), *frames]
+    tracked_run = train(out, f"gap_tracked_{args.size}", args, *video)
+    truth = train(out, f"gap_truth_{args.size}", args, "--data", str(data), "--format", "synthetic",
+                  "--size", str(args.size))  # fmt: skip
+    folders = pose_variants(tracked_run / "video_data", data, out / "decompose" / f"data_{args.size}")
+    rows = {"truth": {split: score(truth, data, split) for split in ("novel_view", "novel_pose")}}
+    for name in wanted_runs(args.steps, TRAINED_STEPS, "decompose --steps"):
+        run = train(out, f"decompose_{name.replace('-', '_')}_{args.size}_s{args.seed}", args, "--data",
+                    str(folders[name]), "--format", "folder", *frames, *as_video_trains())  # fmt: skip
+        rows[name] = {split: score(run, data, split) for split in ("novel_view", "novel_pose")}
+        rows[name]["gap_db"] = gap_by_part(rows["truth"], rows[name])
     return rows
 
 
@@ -1261,10 +1302,11 @@ def decomposition(truth: dict, steps: dict) -> dict:
     per part); ``avatar``: what the truth run still scores above the last step."""
     names = list(steps)
     gains = {}
-    for before, after in zip(names, names[1:]):
+    for before, after in zip(names, names[1:], strict=False):
+        mine, theirs = steps[after], steps[before]
         gains[after] = {
-            "psnr": steps[after]["psnr"] - steps[before]["psnr"],
-            "parts": {p: steps[after]["parts_psnr"][p] - steps[before]["parts_psnr"][p] for p in steps[after]["parts_psnr"]},
+            "psnr": mine["psnr"] - theirs["psnr"],
+            "parts": {p: mine["parts_psnr"][p] - theirs["parts_psnr"][p] for p in mine["parts_psnr"]},
         }
     last = steps[names[-1]]
     gains["avatar"] = {
@@ -1390,6 +1432,9 @@ def build_parser() -> argparse.ArgumentParser:
         "refine: truth and any of REFINE_VARIANTS; size: far,close-fixed,close-gs,close; "
         "chains: true torso, true limbs, true torso world limbs "
         "(names without commas)",
+    )
+    p.add_argument(
+        "--steps", default=None, help="decompose --runs gap-trained: which of " + ",".join(TRAINED_STEPS)
     )
     p.add_argument("--json", action="store_true", help="print the results as one JSON object")
     p.add_argument("--iters", type=int, default=None, help="override the iterations (smoke tests)")
