@@ -302,8 +302,7 @@ def pose_variants(video_data: Path, data: Path, out: Path) -> dict[str, Path]:
         row["Rh"][i] = Rh
         row["Th"][i] = _joints(body, [mine])[0, 0] - _joints(body, [turned])[0, 0]  # the tracked pelvis kept
         pelvis = tracked_joints[i, 0]
-        slide = gauge * true_joints[0, 2] / pelvis[2] - 1.0  # along the pelvis's ray to the true depth
-        variants["true-depth"]["Th"][i] = np.asarray(mine.Th) + pelvis * slide
+        variants["true-depth"]["Th"][i] = slid_to_depth(mine.Th, pelvis, gauge * true_joints[0, 2])
     folders = {}
     for name, rows in variants.items():
         folder = out / name
@@ -315,6 +314,15 @@ def pose_variants(video_data: Path, data: Path, out: Path) -> dict[str, Path]:
         np.savez(folder / "poses.npz", **rows)
         folders[name] = folder
     return folders
+
+
+def slid_to_depth(Th, pelvis, depth: float):
+    """The translation ``Th`` that moves a body (camera frame) along the ray through its ``pelvis``
+    until the pelvis is ``depth`` away: the pelvis's pixel unchanged, its distance changed."""
+    import numpy as np
+
+    pelvis = np.asarray(pelvis, np.float64)
+    return np.asarray(Th, np.float64) + pelvis * (depth / pelvis[2] - 1.0)
 
 
 def sources(args) -> dict:

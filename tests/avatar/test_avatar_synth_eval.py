@@ -216,3 +216,44 @@ def test_bench_footage_gap_by_part_is_truth_minus_the_run_per_split_and_part():
     assert gap["held_out_same_camera"]["psnr"] == pytest.approx(3.5)
     assert gap["held_out_same_camera"]["lpips"] == pytest.approx(0.04)
     assert gap["held_out_same_camera"]["parts"] == {"arms": pytest.approx(2.0)}
+
+
+def _bench_footage():
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tools"))
+    import bench_footage
+
+    return bench_footage
+
+
+def test_bench_footage_true_depth_slides_the_body_along_its_pelvis_ray():
+    """decompose's true-depth variant: the pelvis lands at the asked depth on the same pixel, and the
+    whole body moves by one translation (its pose and shape untouched)."""
+    body = load_body_model()
+    truth, tracked, _ = _truth_and_tracked(7)
+    pelvis = _joints(body, [tracked])[0, 0]
+    Th = _bench_footage().slid_to_depth(tracked.Th, pelvis, 2.5)
+    moved = SmplParams(poses=tracked.poses, Rh=tracked.Rh, Th=Th.astype(np.float32), betas=tracked.betas)
+    new_pelvis = _joints(body, [moved])[0, 0]
+    assert new_pelvis[2] == pytest.approx(2.5, abs=1e-5)
+    np.testing.assert_allclose(new_pelvis[:2] / new_pelvis[2], pelvis[:2] / pelvis[2], atol=1e-6)
+
+
+def test_bench_footage_decomposition_adds_up_to_the_gap():
+    """Each step's gain over the one before, plus what the truth run still scores above the last
+    step, sums to the whole gap (overall and per part)."""
+    steps = {
+        "score": {"psnr": 24.0, "parts_psnr": {"arms": 12.0}},
+        "true-root": {"psnr": 25.5, "parts_psnr": {"arms": 12.5}},
+        "true-root-pose": {"psnr": 27.0, "parts_psnr": {"arms": 15.0}},
+    }
+    truth = {"psnr": 31.0, "parts_psnr": {"arms": 17.0}}
+    result = _bench_footage().decomposition(truth, steps)
+    assert result["gap_db"] == pytest.approx(7.0)
+    assert list(result["gains"]) == ["true-root", "true-root-pose", "avatar"]
+    assert result["gains"]["true-root"]["psnr"] == pytest.approx(1.5)
+    assert result["gains"]["avatar"]["psnr"] == pytest.approx(4.0)
+    assert sum(g["psnr"] for g in result["gains"].values()) == pytest.approx(result["gap_db"])
+    assert sum(g["parts"]["arms"] for g in result["gains"].values()) == pytest.approx(5.0)
