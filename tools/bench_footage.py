@@ -1247,11 +1247,11 @@ def decompose(args) -> dict:
     (the single camera's depth), the true global orientation as well, and the true joint rotations
     as well (the tracked shape kept). What the last row still lacks from the truth run is the
     avatar itself: what it learnt from the tracked training poses."""
-    which = wanted_runs(args.runs or "gap", ("gap", "closeup", "gap-trained"), "decompose")
+    which = wanted_runs(args.runs or "gap", ("gap", "closeup", "gap-trained", "closeup-trained"), "decompose")
     rows = {}
     for subject_name in which:
-        if subject_name == "gap-trained":
-            rows[subject_name] = decompose_trained(args)
+        if subject_name.endswith("-trained"):
+            rows[subject_name] = decompose_trained(args, subject_name.removesuffix("-trained"))
             continue
         if subject_name == "gap":
             data = subject(args.out, f"mixed_{args.size}", num_frames=args.frames, size=args.size)
@@ -1282,25 +1282,43 @@ def decompose(args) -> dict:
 TRAINED_STEPS = ("tracked", "true-depth", "true-orientation", "true")
 
 
-def decompose_trained(args) -> dict:
-    """``decompose --runs gap-trained``: the same question answered by training, free of what an
-    avatar learnt on the tracked poses does when rendered with others. The tracked run's own
-    folder (its images, masks, camera) trained as ``--format video`` trains, with the tracked
-    poses, with each frame's depth made true (``pose_variants``' ``true-depth``), with the true
-    global orientation, and with the true parameters; novel views and novel poses."""
+def decompose_trained(args, subject_name: str = "gap") -> dict:
+    """``decompose --runs gap-trained`` (or ``closeup-trained``): the same question answered by
+    training, free of what an avatar learnt on the tracked poses does when rendered with others.
+    The tracked run's own folder (its images, masks, camera) trained as ``--format video`` trains,
+    with the tracked poses, with each frame's depth made true (``pose_variants``' ``true-depth``),
+    with the true global orientation, and with the true parameters; scored as the subject's
+    experiment scores (gap: novel views and novel poses; closeup: the held-out frames of the
+    training camera and novel views)."""
     out = args.out
-    data = subject(out, f"mixed_{args.size}", num_frames=args.frames, size=args.size)
     frames = ["--train-frames", f"0:{round(0.8 * args.frames)}", "--size", str(args.size)]
-    video = [*camera_video_args(data), *frames]
-    tracked_run = train(out, f"gap_tracked_{args.size}", args, *video)
-    truth = train(out, f"gap_truth_{args.size}", args, "--data", str(data), "--format", "synthetic",
-                  "--size", str(args.size))  # fmt: skip
-    folders = pose_variants(tracked_run / "video_data", data, out / "decompose" / f"data_{args.size}")
-    rows = {"truth": {split: score(truth, data, split) for split in ("novel_view", "novel_pose")}}
+    if subject_name == "gap":
+        data = subject(out, f"mixed_{args.size}", num_frames=args.frames, size=args.size)
+        tracked_run = train(out, f"gap_tracked_{args.size}", args, *camera_video_args(data), *frames)
+        truth = train(out, f"gap_truth_{args.size}", args, "--data", str(data), "--format", "synthetic",
+                      "--size", str(args.size))  # fmt: skip
+        tag = f"{args.size}_s{args.seed}"
+
+        def scores(run: Path) -> dict:
+            return {split: score(run, data, split) for split in ("novel_view", "novel_pose")}
+    else:
+        data = closeup_subject(args)
+        tag = f"{args.size}_{args.frames}_{args.closeup_m:g}m_s{args.seed}"
+        tracked_run = train(out, f"closeup_tracked_{tag}", args, *camera_video_args(data), *frames)
+        truth = train(out, f"closeup_truth_{tag}", args, "--data", str(data), "--format", "synthetic",
+                      "--size", str(args.size))  # fmt: skip
+
+        def scores(run: Path) -> dict:
+            return closeup_scores(run, data)
+
+    where = out / "decompose" / f"data_{subject_name}_{tag}"
+    folders = pose_variants(tracked_run / "video_data", data, where)
+    rows = {"truth": scores(truth)}
     for name in wanted_runs(args.steps, TRAINED_STEPS, "decompose --steps"):
-        run = train(out, f"decompose_{name.replace('-', '_')}_{args.size}_s{args.seed}", args, "--data",
-                    str(folders[name]), "--format", "folder", *frames, *as_video_trains())  # fmt: skip
-        rows[name] = {split: score(run, data, split) for split in ("novel_view", "novel_pose")}
+        slug = name.replace("-", "_")
+        run = train(out, f"decompose_{subject_name}_{slug}_{tag}", args, "--data", str(folders[name]),
+                    "--format", "folder", *frames, *as_video_trains())  # fmt: skip
+        rows[name] = scores(run)
         rows[name]["gap_db"] = gap_by_part(rows["truth"], rows[name])
     return rows
 
