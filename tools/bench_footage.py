@@ -104,6 +104,11 @@ to ``--out/results/EXPERIMENT.json``; a run folder that is already finished is n
   each frame's pelvis at the true one, the true global orientation, the true joint rotations;
   what each step gains, per body part, and what the truth run still scores above the last (the
   avatar learnt on the tracked poses). Trains the ``gap``/``closeup`` runs it needs if missing.
+  ``--runs gap-trained`` / ``closeup-trained``: the same question answered by training (an
+  avatar learnt on tracked poses drawn with others is a confounded witness): the tracked run's
+  own folder trained as ``--format video`` trains with the tracked poses, each frame at the true
+  depth along its pelvis's ray, the true global orientation, the true parameters (``--steps``
+  picks), scored as ``gap`` / ``closeup`` score, with the gap to the truth run per part.
 - ``framing``: renders RUN_DIR's default orbit (and follow camera) and reports the share of
   frames with the avatar whole and at least 30 % of the image tall.
 
