@@ -257,3 +257,10 @@ def test_bench_footage_decomposition_adds_up_to_the_gap():
     assert result["gains"]["avatar"]["psnr"] == pytest.approx(4.0)
     assert sum(g["psnr"] for g in result["gains"].values()) == pytest.approx(result["gap_db"])
     assert sum(g["parts"]["arms"] for g in result["gains"].values()) == pytest.approx(5.0)
+
+
+def test_an_unknown_swap_is_refused_before_anything_is_loaded(tmp_path):
+    from stg_node.avatar.synth_eval import evaluate_on_synth
+
+    with pytest.raises(ValueError, match="swap must be one of"):
+        evaluate_on_synth(tmp_path / "no_run", tmp_path / "no_subject", swap="shape")
