@@ -99,6 +99,16 @@ to ``--out/results/EXPERIMENT.json``; a run folder that is already finished is n
   the pipeline costs without pose errors). Scored on every held-out frame of the training camera
   against the true image and mask (``same_camera``), and on novel views, per body part; the gap
   to ``truth`` per part.
+- ``decompose``: where the tracked run's gap goes (``--runs`` gap, closeup; default gap), with
+  no new training: the tracked avatar rendered with the one similarity for the sequence, then
+  each frame's pelvis at the true one, the true global orientation, the true joint rotations;
+  what each step gains, per body part, and what the truth run still scores above the last (the
+  avatar learnt on the tracked poses). Trains the ``gap``/``closeup`` runs it needs if missing.
+  ``--runs gap-trained`` / ``closeup-trained``: the same question answered by training (an
+  avatar learnt on tracked poses drawn with others is a confounded witness): the tracked run's
+  own folder trained as ``--format video`` trains with the tracked poses, each frame at the true
+  depth along its pelvis's ray, the true global orientation, the true parameters (``--steps``
+  picks), scored as ``gap`` / ``closeup`` score, with the gap to the truth run per part.
 - ``framing``: renders RUN_DIR's default orbit (and follow camera) and reports the share of
   frames with the avatar whole and at least 30 % of the image tall.
 
@@ -247,7 +257,11 @@ def pose_variants(video_data: Path, data: Path, out: Path) -> dict[str, Path]:
     """Folder datasets in the tracker's world (its images, masks and camera) with the poses swapped:
     ``tracked`` as tracked; ``true-orientation``: the tracked joint rotations, shape and pelvis
     position with the true global orientation; ``true``: the true parameters (pose, shape,
-    orientation, position) in the training camera's frame. Each is ``out/NAME``."""
+    orientation, position) in the training camera's frame; ``true-depth``: the tracked parameters
+    with each frame's body slid along the camera ray through its pelvis to the true pelvis depth
+    (times the sequence's one depth-ratio scale, the gauge the scoring fixes): the picture in
+    the training camera unchanged at the pelvis, the single camera's depth error gone. Each is
+    ``out/NAME``."""
     import dataclasses
     import os
     import shutil
@@ -256,7 +270,7 @@ def pose_variants(video_data: Path, data: Path, out: Path) -> dict[str, Path]:
     import numpy as np
 
     from stg_node.avatar.data_spec import DataSpec
-    from stg_node.avatar.synth_eval import _joints
+    from stg_node.avatar.synth_eval import _joints, tracked_alignment
     from stg_node.body import load_body_model
     from stg_node.body.motion import load_smpl_params
     from stg_node.safe_load import load_npz
@@ -268,8 +282,13 @@ def pose_variants(video_data: Path, data: Path, out: Path) -> dict[str, Path]:
     R1, t1 = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64).reshape(3)
     body = load_body_model()
     variants = {
-        name: {k: v.copy() for k, v in tracked.items()} for name in ("tracked", "true-orientation", "true")
+        name: {k: v.copy() for k, v in tracked.items()}
+        for name in ("tracked", "true-orientation", "true", "true-depth")
     }
+    frames = tracked["frames"].astype(int)
+    tracked_joints = _joints(body, [sequence[i] for i in range(len(sequence))])
+    true_sequence = _joints(body, [truth.smpl(int(f)) for f in frames])
+    gauge = tracked_alignment(camera, true_sequence, tracked_joints).scale  # the scoring's depth ratio
     for i, frame in enumerate(tracked["frames"].astype(int)):
         true = truth.smpl(int(frame))
         poses = np.asarray(true.poses, np.float64).reshape(24, 3).copy()
@@ -287,6 +306,8 @@ def pose_variants(video_data: Path, data: Path, out: Path) -> dict[str, Path]:
         row = variants["true-orientation"]
         row["Rh"][i] = Rh
         row["Th"][i] = _joints(body, [mine])[0, 0] - _joints(body, [turned])[0, 0]  # the tracked pelvis kept
+        pelvis = tracked_joints[i, 0]
+        variants["true-depth"]["Th"][i] = slid_to_depth(mine.Th, pelvis, gauge * true_joints[0, 2])
     folders = {}
     for name, rows in variants.items():
         folder = out / name
@@ -298,6 +319,15 @@ def pose_variants(video_data: Path, data: Path, out: Path) -> dict[str, Path]:
         np.savez(folder / "poses.npz", **rows)
         folders[name] = folder
     return folders
+
+
+def slid_to_depth(Th, pelvis, depth: float):
+    """The translation ``Th`` that moves a body (camera frame) along the ray through its ``pelvis``
+    until the pelvis is ``depth`` away: the pelvis's pixel unchanged, its distance changed."""
+    import numpy as np
+
+    pelvis = np.asarray(pelvis, np.float64)
+    return np.asarray(Th, np.float64) + pelvis * (depth / pelvis[2] - 1.0)
 
 
 def sources(args) -> dict:
@@ -1204,6 +1234,119 @@ def gap_by_part(truth: dict, row: dict) -> dict:
     return result
 
 
+#: decompose's steps: each row renders the tracked run's avatar with more of the truth put in.
+DECOMPOSE_STEPS = {
+    "score": {},
+    "similarity": {"align": "similarity"},
+    "true-root": {"root": "true"},
+    "true-root-orientation": {"root": "true", "swap": "orientation"},
+    "true-root-pose": {"root": "true", "swap": "pose"},
+}
+
+
+def decompose(args) -> dict:
+    """Where the tracked run's gap goes, without training anything new: the ``gap`` subject's
+    tracked and truth runs (trained if missing) and, with ``--runs closeup``, the closeup
+    subject's. The tracked avatar is rendered with, in turn, the one similarity for the sequence
+    in place of the camera's extrinsics (the world's gauge), each frame's pelvis at the true one
+    (the single camera's depth), the true global orientation as well, and the true joint rotations
+    as well (the tracked shape kept). What the last row still lacks from the truth run is the
+    avatar itself: what it learnt from the tracked training poses."""
+    which = wanted_runs(args.runs or "gap", ("gap", "closeup", "gap-trained", "closeup-trained"), "decompose")
+    rows = {}
+    for subject_name in which:
+        if subject_name.endswith("-trained"):
+            rows[subject_name] = decompose_trained(args, subject_name.removesuffix("-trained"))
+            continue
+        if subject_name == "gap":
+            data = subject(args.out, f"mixed_{args.size}", num_frames=args.frames, size=args.size)
+            video = [*camera_video_args(data), "--train-frames", f"0:{round(0.8 * args.frames)}",
+                     "--size", str(args.size)]  # fmt: skip
+            truth = train(args.out, f"gap_truth_{args.size}", args, "--data", str(data), "--format",
+                          "synthetic", "--size", str(args.size))  # fmt: skip
+            tracked = train(args.out, f"gap_tracked_{args.size}", args, *video)
+            splits = {"novel_view": {}, "novel_pose": {}}
+        else:
+            data = closeup_subject(args)
+            tag = f"{args.size}_{args.frames}_{args.closeup_m:g}m_s{args.seed}"
+            truth = train(args.out, f"closeup_truth_{tag}", args, "--data", str(data), "--format",
+                          "synthetic", "--size", str(args.size))  # fmt: skip
+            frames = ["--train-frames", f"0:{round(0.8 * args.frames)}", "--size", str(args.size)]
+            tracked = train(args.out, f"closeup_tracked_{tag}", args, *camera_video_args(data), *frames)
+            splits = {"novel_view": {}, "held_out_same_camera": {"same_camera": True}}
+        result = {}
+        for split, kw in splits.items():
+            name = "novel_pose" if split == "held_out_same_camera" else split
+            baseline = score(truth, data, name, **kw)
+            steps = {step: score(tracked, data, name, **kw, **more) for step, more in DECOMPOSE_STEPS.items()}
+            result[split] = decomposition(baseline, steps)
+        rows[subject_name] = result
+    return rows
+
+
+TRAINED_STEPS = ("tracked", "true-depth", "true-orientation", "true")
+
+
+def decompose_trained(args, subject_name: str = "gap") -> dict:
+    """``decompose --runs gap-trained`` (or ``closeup-trained``): the same question answered by
+    training, free of what an avatar learnt on the tracked poses does when rendered with others.
+    The tracked run's own folder (its images, masks, camera) trained as ``--format video`` trains,
+    with the tracked poses, with each frame's depth made true (``pose_variants``' ``true-depth``),
+    with the true global orientation, and with the true parameters; scored as the subject's
+    experiment scores (gap: novel views and novel poses; closeup: the held-out frames of the
+    training camera and novel views)."""
+    out = args.out
+    frames = ["--train-frames", f"0:{round(0.8 * args.frames)}", "--size", str(args.size)]
+    if subject_name == "gap":
+        data = subject(out, f"mixed_{args.size}", num_frames=args.frames, size=args.size)
+        tracked_run = train(out, f"gap_tracked_{args.size}", args, *camera_video_args(data), *frames)
+        truth = train(out, f"gap_truth_{args.size}", args, "--data", str(data), "--format", "synthetic",
+                      "--size", str(args.size))  # fmt: skip
+        tag = f"{args.size}_s{args.seed}"
+
+        def scores(run: Path) -> dict:
+            return {split: score(run, data, split) for split in ("novel_view", "novel_pose")}
+    else:
+        data = closeup_subject(args)
+        tag = f"{args.size}_{args.frames}_{args.closeup_m:g}m_s{args.seed}"
+        tracked_run = train(out, f"closeup_tracked_{tag}", args, *camera_video_args(data), *frames)
+        truth = train(out, f"closeup_truth_{tag}", args, "--data", str(data), "--format", "synthetic",
+                      "--size", str(args.size))  # fmt: skip
+
+        def scores(run: Path) -> dict:
+            return closeup_scores(run, data)
+
+    where = out / "decompose" / f"data_{subject_name}_{tag}"
+    folders = pose_variants(tracked_run / "video_data", data, where)
+    rows = {"truth": scores(truth)}
+    for name in wanted_runs(args.steps, TRAINED_STEPS, "decompose --steps"):
+        slug = name.replace("-", "_")
+        run = train(out, f"decompose_{subject_name}_{slug}_{tag}", args, "--data", str(folders[name]),
+                    "--format", "folder", *frames, *as_video_trains())  # fmt: skip
+        rows[name] = scores(run)
+        rows[name]["gap_db"] = gap_by_part(rows["truth"], rows[name])
+    return rows
+
+
+def decomposition(truth: dict, steps: dict) -> dict:
+    """The truth run's score, each step's, and what each step gains over the one before (PSNR and
+    per part); ``avatar``: what the truth run still scores above the last step."""
+    names = list(steps)
+    gains = {}
+    for before, after in zip(names, names[1:], strict=False):
+        mine, theirs = steps[after], steps[before]
+        gains[after] = {
+            "psnr": mine["psnr"] - theirs["psnr"],
+            "parts": {p: mine["parts_psnr"][p] - theirs["parts_psnr"][p] for p in mine["parts_psnr"]},
+        }
+    last = steps[names[-1]]
+    gains["avatar"] = {
+        "psnr": truth["psnr"] - last["psnr"],
+        "parts": {p: truth["parts_psnr"][p] - last["parts_psnr"][p] for p in truth["parts_psnr"]},
+    }
+    return {"truth": truth, "steps": steps, "gains": gains, "gap_db": truth["psnr"] - steps[names[0]]["psnr"]}
+
+
 TWIST_MOTIONS = ("mixed", "dance", "wave", "reach", "walk")
 
 
@@ -1286,6 +1429,7 @@ EXPERIMENTS = {
     "errors": errors,
     "twist": twist,
     "closeup": closeup,
+    "decompose": decompose,
 }
 
 
@@ -1319,6 +1463,9 @@ def build_parser() -> argparse.ArgumentParser:
         "refine: truth and any of REFINE_VARIANTS; size: far,close-fixed,close-gs,close; "
         "chains: true torso, true limbs, true torso world limbs "
         "(names without commas)",
+    )
+    p.add_argument(
+        "--steps", default=None, help="decompose --runs gap-trained: which of " + ",".join(TRAINED_STEPS)
     )
     p.add_argument("--json", action="store_true", help="print the results as one JSON object")
     p.add_argument("--iters", type=int, default=None, help="override the iterations (smoke tests)")

@@ -154,6 +154,27 @@ def _root_at_truth(body, smpl, true_smpl, alignment: WorldAlignment):
     return dataclasses.replace(smpl, Th=(np.asarray(smpl.Th, np.float64) + shift).astype(np.float32))
 
 
+#: ``swap`` diagnostics: which of the true parameters replace the tracked ones at render time.
+SWAPS = ("none", "orientation", "pose")
+
+
+def _swapped(smpl, true_smpl, alignment: WorldAlignment, swap: str):
+    """``smpl`` with the true global orientation (mapped into the run's world) and, for ``pose``, the
+    true joint rotations too; the tracked shape kept (the avatar is built on it)."""
+    from stg_node.data.synth.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+
+    if swap == "none":
+        return smpl
+    true_R = axis_angle_to_matrix(np.asarray(true_smpl.Rh, np.float64).reshape(3))
+    Rh = matrix_to_axis_angle(alignment.R @ true_R).reshape(np.shape(smpl.Rh)).astype(np.float32)
+    poses = np.array(smpl.poses, np.float32)
+    true_poses = np.asarray(true_smpl.poses, np.float32).reshape(poses.shape)
+    if swap == "pose":
+        poses = true_poses.copy()
+    poses[0] = true_poses[0]  # the root joint's rotation is part of the orientation
+    return dataclasses.replace(smpl, Rh=Rh, poses=poses)
+
+
 def evaluate_on_synth(
     run_dir: str | Path,
     synth_dir: str | Path,
@@ -169,6 +190,7 @@ def evaluate_on_synth(
     show_progress: bool = True,
     resample: float = 1.0,
     same_camera: bool = False,
+    swap: str = "none",
 ) -> dict:
     """A run scored on an stg-synth subject's ``split`` (module docstring): PSNR / SSIM / LPIPS under
     ``protocol`` (``full``: the whole image, as stg-eval; ``bbox``: the person's box), PSNR per body
@@ -180,7 +202,10 @@ def evaluate_on_synth(
     at the same resolution of the person (tools/bench_footage.py size). ``same_camera`` (novel_pose
     only): every held-out frame of the training camera and no other camera, as ``stg-eval
     --split novel_pose`` scores a video run (the frames after the training range, same camera),
-    in place of the benchmark's every 30th frame of every camera."""
+    in place of the benchmark's every 30th frame of every camera. ``swap`` (a tracked run, a
+    diagnostic like ``root="true"``, never the score): ``orientation`` renders each frame with the
+    true global orientation, ``pose`` with the true orientation and joint rotations (the tracked
+    shape and, unless ``root="true"``, the tracked position kept; no learnt correction)."""
     from stg_node.avatar.data_spec import DataSpec
     from stg_node.avatar.loading import corrected, load_run_renderer
     from stg_node.body import load_body_model
@@ -194,6 +219,8 @@ def evaluate_on_synth(
         raise ValueError(f"root must be tracked or true, got {root!r}")
     if align not in ("camera", "similarity"):
         raise ValueError(f"align must be camera or similarity, got {align!r}")
+    if swap not in SWAPS:
+        raise ValueError(f"swap must be one of {SWAPS}, got {swap!r}")
     if not 0.0 < resample <= 1.0:
         raise ValueError(f"resample must be in (0, 1], got {resample}")
     if same_camera and split != "novel_pose":
@@ -234,7 +261,9 @@ def evaluate_on_synth(
                 continue
         else:
             smpl = sample.smpl
-        if split == "novel_view":
+        if tracked and swap != "none":
+            smpl = _swapped(smpl, sample.smpl, alignment, swap)
+        elif split == "novel_view":
             smpl = corrected(smpl, corrections.get(sample.index))
         if tracked and root == "true":
             smpl = _root_at_truth(body, smpl, sample.smpl, alignment)
@@ -252,6 +281,7 @@ def evaluate_on_synth(
     return {
         "split": split,
         "root": root,
+        "swap": swap if tracked else "none",
         "align": align if tracked else "identity",
         "protocol": protocol,
         "resample": resample,

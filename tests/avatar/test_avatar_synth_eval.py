@@ -11,6 +11,7 @@ from stg_node.avatar.synth_eval import (
     WorldAlignment,
     _joints,
     _root_at_truth,
+    _swapped,
     similarity_alignment,
     tracked_alignment,
 )
@@ -76,6 +77,47 @@ def test_the_true_root_diagnostic_puts_the_tracked_pelvis_on_the_true_one_and_ke
     before = _joints(body, [tracked])[0]
     after = _joints(body, [moved])[0]
     np.testing.assert_allclose(after - after[0], before - before[0], atol=1e-5)  # a translation only
+
+
+def _truth_and_tracked(seed: int):
+    rng = np.random.default_rng(seed)
+    truth = SmplParams(
+        poses=rng.normal(scale=0.3, size=(24, 3)).astype(np.float32),
+        Rh=np.array([0.2, -0.5, 0.1], np.float32),
+        Th=np.array([0.1, 0.3, -0.4], np.float32),
+        betas=np.zeros(10, np.float32),
+    )
+    tracked = SmplParams(
+        poses=rng.normal(scale=0.3, size=(24, 3)).astype(np.float32),  # every joint wrong
+        Rh=np.array([-0.3, 0.2, 0.0], np.float32),
+        Th=np.array([0.4, -0.2, 3.3], np.float32),
+        betas=np.zeros(10, np.float32),
+    )
+    align = WorldAlignment(Rotation.random(random_state=seed).as_matrix(), np.array([0.1, 0.2, 3.0]), 1.0)
+    return truth, tracked, align
+
+
+def test_the_true_pose_swap_at_the_true_root_is_the_true_body_in_the_runs_world():
+    """swap="pose" with root="true" on the true shape: every joint lands where the alignment maps
+    the true body's (a rigid map at scale 1: the same body, moved)."""
+    body = load_body_model()
+    truth, tracked, align = _truth_and_tracked(5)
+    moved = _root_at_truth(body, _swapped(tracked, truth, align, "pose"), truth, align)
+    expected = (align.R @ _joints(body, [truth])[0].T).T + align.t
+    np.testing.assert_allclose(_joints(body, [moved])[0], expected, atol=1e-4)
+    np.testing.assert_array_equal(moved.betas, tracked.betas)
+
+
+def test_the_orientation_swap_turns_the_body_and_keeps_the_tracked_joint_rotations():
+    body = load_body_model()
+    truth, tracked, align = _truth_and_tracked(6)
+    swapped = _swapped(tracked, truth, align, "orientation")
+    np.testing.assert_array_equal(swapped.poses[1:], tracked.poses[1:])
+    joints, true_joints = _joints(body, [swapped])[0], _joints(body, [truth])[0]
+    for j in (1, 2, 3):  # hips and spine hang on the pelvis alone: placed by the orientation
+        expected = align.R @ (true_joints[j] - true_joints[0])
+        np.testing.assert_allclose(joints[j] - joints[0], expected, atol=1e-4)
+    assert _swapped(tracked, truth, align, "none") is tracked
 
 
 def test_the_similarity_alignment_recovers_a_known_similarity_and_moves_cameras_with_it():
@@ -174,3 +216,51 @@ def test_bench_footage_gap_by_part_is_truth_minus_the_run_per_split_and_part():
     assert gap["held_out_same_camera"]["psnr"] == pytest.approx(3.5)
     assert gap["held_out_same_camera"]["lpips"] == pytest.approx(0.04)
     assert gap["held_out_same_camera"]["parts"] == {"arms": pytest.approx(2.0)}
+
+
+def _bench_footage():
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tools"))
+    import bench_footage
+
+    return bench_footage
+
+
+def test_bench_footage_true_depth_slides_the_body_along_its_pelvis_ray():
+    """decompose's true-depth variant: the pelvis lands at the asked depth on the same pixel, and the
+    whole body moves by one translation (its pose and shape untouched)."""
+    body = load_body_model()
+    truth, tracked, _ = _truth_and_tracked(7)
+    pelvis = _joints(body, [tracked])[0, 0]
+    Th = _bench_footage().slid_to_depth(tracked.Th, pelvis, 2.5)
+    moved = SmplParams(poses=tracked.poses, Rh=tracked.Rh, Th=Th.astype(np.float32), betas=tracked.betas)
+    new_pelvis = _joints(body, [moved])[0, 0]
+    assert new_pelvis[2] == pytest.approx(2.5, abs=1e-5)
+    np.testing.assert_allclose(new_pelvis[:2] / new_pelvis[2], pelvis[:2] / pelvis[2], atol=1e-6)
+
+
+def test_bench_footage_decomposition_adds_up_to_the_gap():
+    """Each step's gain over the one before, plus what the truth run still scores above the last
+    step, sums to the whole gap (overall and per part)."""
+    steps = {
+        "score": {"psnr": 24.0, "parts_psnr": {"arms": 12.0}},
+        "true-root": {"psnr": 25.5, "parts_psnr": {"arms": 12.5}},
+        "true-root-pose": {"psnr": 27.0, "parts_psnr": {"arms": 15.0}},
+    }
+    truth = {"psnr": 31.0, "parts_psnr": {"arms": 17.0}}
+    result = _bench_footage().decomposition(truth, steps)
+    assert result["gap_db"] == pytest.approx(7.0)
+    assert list(result["gains"]) == ["true-root", "true-root-pose", "avatar"]
+    assert result["gains"]["true-root"]["psnr"] == pytest.approx(1.5)
+    assert result["gains"]["avatar"]["psnr"] == pytest.approx(4.0)
+    assert sum(g["psnr"] for g in result["gains"].values()) == pytest.approx(result["gap_db"])
+    assert sum(g["parts"]["arms"] for g in result["gains"].values()) == pytest.approx(5.0)
+
+
+def test_an_unknown_swap_is_refused_before_anything_is_loaded(tmp_path):
+    from stg_node.avatar.synth_eval import evaluate_on_synth
+
+    with pytest.raises(ValueError, match="swap must be one of"):
+        evaluate_on_synth(tmp_path / "no_run", tmp_path / "no_subject", swap="shape")
