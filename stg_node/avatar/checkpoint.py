@@ -4,7 +4,8 @@ What the model needs is the published snapshot (snapshot.py); a checkpoint adds,
 arrays and meta: the Adam moments of every column and dense module, the densification
 strategy's state dict, the isometry loss's state, the per-frame pose corrections, the
 adaptive-weight averages, the counters, the caller's ``notes``, the per-frame exposure gains,
-the colours carried by the colour MLP's turns, and the TrainConfig (the frame store's bound
+the colours carried by the colour MLP's turns, the training cameras' statistics columns (a rig
+that reconnects in another order keeps each camera's column), and the TrainConfig (the frame store's bound
 ``max_frames`` with it) with what the trainer decided about the non-rigid part (JSON bytes) and
 the subject's betas (to rebuild the canonical mesh). Frames are not saved: ``stg-train --resume``
 re-reads them from the dataset, the online trainer from the stream.
@@ -64,6 +65,7 @@ class TrainingState:
     notes: dict[str, float] = field(default_factory=dict)  # the caller's figures (e.g. wall time)
     exposure: dict[str, np.ndarray] = field(default_factory=dict)  # per-frame exposure gains (exposure.py)
     color_turns: dict[str, np.ndarray] = field(default_factory=dict)  # carried colours (color_cache.py)
+    camera_slots: dict[str, int] = field(default_factory=dict)  # training camera name -> statistics column
 
 
 def _np(t: torch.Tensor) -> np.ndarray:
@@ -100,7 +102,12 @@ def save(path: str | Path, state: TrainingState) -> Path:
         "train.frames_seen": float(state.frames_seen),
     }
     arrays["train.config_json"] = json_to_array(
-        {"config": state.config.to_dict(), "body_model": state.body_model, "nonrigid": state.nonrigid}
+        {
+            "config": state.config.to_dict(),
+            "body_model": state.body_model,
+            "nonrigid": state.nonrigid,
+            "camera_slots": state.camera_slots,
+        }
     )
     arrays["train.betas"] = _np(state.betas).reshape(-1)
     _adam_arrays("train.adam", state.table_adam, arrays, meta)
@@ -185,4 +192,5 @@ def load(path: str | Path, *, device="cpu") -> TrainingState:
         color_turns={
             k[len("train.color_turns.") :]: v for k, v in arrays.items() if k.startswith("train.color_turns.")
         },
+        camera_slots={str(k): int(v) for k, v in (stored.get("camera_slots") or {}).items()},
     )

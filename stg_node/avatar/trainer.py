@@ -170,7 +170,9 @@ class Trainer:
         self.color_turns = TrainingColorTurns(turns) if turns > 1 else None
         self.profile: StepProfile | None = None  # set to a StepProfile to time the phases of each step
         self.decision: nonrigid.Decision | None = None  # what "auto" chose for the non-rigid part
-        # Training camera name -> its column in the per-camera motion statistics (order of arrival).
+        # Training camera name -> its column in the per-camera motion statistics (order of first
+        # arrival; checkpointed, so a resumed rig keeps each camera's column whatever order it
+        # reconnects in).
         self.camera_slots: dict[str, int] = {}
         #: Numbers the caller keeps with the checkpoint, written and restored in the same file (the
         #: trainer node's wall time): nothing beside a checkpoint can disagree with it after a kill.
@@ -810,6 +812,7 @@ class Trainer:
             notes=dict(self.notes),
             exposure=self.exposure.state_arrays(),
             color_turns={} if self.color_turns is None else self.color_turns.state_arrays(),
+            camera_slots=dict(self.camera_slots),
         )
         return checkpoint.save(path, state)
 
@@ -861,6 +864,17 @@ class Trainer:
         self.skipped_steps = state.skipped_steps
         self.model_version = state.model_version
         self.decision = nonrigid.Decision.from_dict(state.nonrigid)
+        self._restore_camera_slots(state.camera_slots)
+
+    def _restore_camera_slots(self, saved: dict[str, int]) -> None:
+        """The checkpoint's camera columns win over the order frames came back in; a camera the
+        checkpoint never saw gets the next free column."""
+        arrived = sorted(self.camera_slots, key=self.camera_slots.get)
+        self.camera_slots = dict(saved)
+        for name in arrived:
+            self.camera_slots.setdefault(name, len(self.camera_slots))
+        if len(self.camera_slots) > 1 and self.color_turns is not None:
+            self._end_color_turns()
 
     # --- reporting -------------------------------------------------------------------------------
     def stats(self) -> dict:

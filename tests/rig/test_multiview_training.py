@@ -171,6 +171,30 @@ def test_each_training_camera_keeps_its_own_missed_flow_column(ring):
     assert torch.equal(state["resid_w"], state["resid_cam"].amax(dim=1))
 
 
+def test_a_resumed_rig_keeps_each_cameras_column_whatever_order_it_reconnects_in(ring, tmp_path):
+    """The columns of the per-camera statistics are the checkpoint's: a rig whose cameras come
+    back in another order (camera 5's frames first) must not hand camera 1's missed flow to
+    camera 5. A camera the checkpoint never saw takes the next free column."""
+    import torch
+
+    from stg_node.avatar import Trainer, preset
+
+    config = preset("fast").replace(iterations=40, **{"loss.flow_every": 1})
+    trainer = Trainer(config, seed=0)
+    trainer.add_frames(DataSpec(str(ring), "synthetic", size=96, train_cameras=("1", "5")).open("train"))
+    for _ in range(12):
+        trainer.step()
+    path = trainer.save(tmp_path / "rig.ckpt")
+    before = trainer.densify_state["resid_cam"].clone()
+
+    resumed = Trainer.load(path)
+    frames = list(DataSpec(str(ring), "synthetic", size=96, train_cameras=("1", "3", "5")).open("train"))
+    resumed.add_frames(sorted(frames, key=lambda s: s.camera.name != "5"))  # camera 5 first
+    assert resumed.camera_slots == {"1": 0, "5": 1, "3": 2}
+    assert resumed.color_turns is None  # still a rig: every row's colour
+    assert torch.equal(resumed.densify_state["resid_cam"], before)
+
+
 @pytest.mark.parametrize("cameras, applied", [(("1",), True), (("1", "5"), False)])
 def test_the_line_of_sight_prior_holds_only_a_single_cameras_motion(ring, cameras, applied):
     """loss.line_of_sight keeps motion off the training camera's rays, the depth one camera cannot
