@@ -112,6 +112,8 @@ ROW_STATE = (
 # Per-Gaussian, per-training-camera entries (n, cameras): motion seen in pixels depends on the view
 # (across one camera's image is along another's rays), so it is kept per camera, never averaged.
 CAMERA_STATE = ("resid_cam",)
+# The row statistics the sightings kernel updates in place (float32 CPU: it applies).
+STATISTICS_IN_KERNEL = ("grad_sum", "vis_count", "front_count", "m_per_px", "flow_w", "resid_w")
 COUNT_PREFIX = "count."
 
 
@@ -278,25 +280,26 @@ class DensifyStrategy:
         """``_accumulate_torch`` in one C++ pass; False (nothing done) where the kernel does not apply."""
         info, c = inputs.info, self.config
         radii, means2d, depths = info["radii"], info["means2d"], info.get("depths")
-        flow = valid = None
+        flow = valid = rendered_flow = None
         if inputs.flow is not None:
             flow = torch.from_numpy(inputs.flow.forward)
             valid = torch.from_numpy(inputs.flow.valid_forward)
+            rendered_flow = inputs.rendered_flow
+        in_front = inputs.rendered_depth is not None and depths is not None and c.occlusion_m > 0
         if (
             radii.dtype != torch.int32
             or radii.dim() > 2
             or (depths is not None and depths.numel() != means2d.shape[0])
             or (flow is not None and (flow.dtype != torch.float32 or valid.dtype != torch.bool))
-            or not densify_kernels_apply(means2d, grad, depths, inputs.rendered_depth, inputs.rendered_flow, flow)
-            or not all(densify_kernels_apply(state[k]) for k in ("grad_sum", "vis_count", "front_count"))
+            or not densify_kernels_apply(means2d, grad, depths, inputs.rendered_depth if in_front else None)
+            or not densify_kernels_apply(flow, rendered_flow)
+            or not all(densify_kernels_apply(state[k]) for k in STATISTICS_IN_KERNEL)
         ):
             return False
-        for name in ("m_per_px", "flow_w", "resid_w"):
-            if not densify_kernels_apply(state[name]):
-                return False
-        if inputs.flow is not None and inputs.rendered_flow is not None:
-            self._camera_residuals(state, inputs.camera_slot)
-        in_front = inputs.rendered_depth is not None and depths is not None and c.occlusion_m > 0
+        slot = 0
+        if rendered_flow is not None:
+            slot = inputs.camera_slot
+            self._camera_residuals(state, slot)
         x0, y0, w, h = inputs.crop
         accumulate_sightings(
             state,
@@ -309,14 +312,14 @@ class DensifyStrategy:
             region_px=c.region_px,
             error_threshold=c.error_threshold,
             depths=depths,
-            focal=float(inputs.camera.K[0, 0]),
+            focal=float(inputs.camera.K[0, 0]) if depths is not None else 1.0,
             rendered_depth=inputs.rendered_depth if in_front else None,
             occlusion_m=c.occlusion_m,
             flow=flow,
             valid=valid,
             crop_origin=(x0, y0),
-            rendered_flow=inputs.rendered_flow if inputs.flow is not None else None,
-            camera_slot=inputs.camera_slot,
+            rendered_flow=rendered_flow,
+            camera_slot=slot,
             decay=W_DECAY,
         )
         return True
