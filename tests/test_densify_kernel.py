@@ -28,7 +28,9 @@ def fresh_state(dtype, cameras: int, gen) -> dict:
     state = {}
     for name in STATS:
         v = torch.rand(ROWS, generator=gen, dtype=torch.float64) * 3
-        state[name] = torch.where(torch.rand(ROWS, generator=gen, dtype=torch.float64) < 0.3, 0.0, v).to(dtype)
+        state[name] = torch.where(torch.rand(ROWS, generator=gen, dtype=torch.float64) < 0.3, 0.0, v).to(
+            dtype
+        )
     state["resid_cam"] = torch.rand(ROWS, cameras, generator=gen, dtype=torch.float64).to(dtype)
     return state
 
@@ -47,7 +49,12 @@ def sightings(gen, *, indexed: bool, depth: bool, flow: bool, rendered_flow: boo
     if depth:
         info["depths"] = (1.0 + 2.0 * torch.rand(n, generator=gen)).float()
     frame = SimpleNamespace(
-        forward=(4 * np.random.default_rng(int(torch.randint(1 << 30, (1,), generator=gen))).standard_normal((50, 60, 2))).astype(np.float32),
+        forward=(
+            4
+            * np.random.default_rng(int(torch.randint(1 << 30, (1,), generator=gen))).standard_normal(
+                (50, 60, 2)
+            )
+        ).astype(np.float32),
         valid_forward=np.random.default_rng(3).random((50, 60)) > 0.3,
     )
     return DensifyInputs(
@@ -89,15 +96,33 @@ def as_double(inputs: DensifyInputs) -> DensifyInputs:
 
 
 CASES = [
-    dict(indexed=False, depth=False, flow=False, rendered_flow=False, radii_2d=False, slot=0, clone_on_error=False),
-    dict(indexed=True, depth=True, flow=True, rendered_flow=True, radii_2d=True, slot=0, clone_on_error=False),
-    dict(indexed=True, depth=True, flow=True, rendered_flow=False, radii_2d=True, slot=0, clone_on_error=True),
-    dict(indexed=False, depth=False, flow=True, rendered_flow=True, radii_2d=False, slot=1, clone_on_error=True),
-    dict(indexed=True, depth=True, flow=True, rendered_flow=True, radii_2d=True, slot=2, clone_on_error=False),
+    dict(
+        indexed=False,
+        depth=False,
+        flow=False,
+        rendered_flow=False,
+        radii_2d=False,
+        slot=0,
+        clone_on_error=False,
+    ),
+    dict(
+        indexed=True, depth=True, flow=True, rendered_flow=True, radii_2d=True, slot=0, clone_on_error=False
+    ),
+    dict(
+        indexed=True, depth=True, flow=True, rendered_flow=False, radii_2d=True, slot=0, clone_on_error=True
+    ),
+    dict(
+        indexed=False, depth=False, flow=True, rendered_flow=True, radii_2d=False, slot=1, clone_on_error=True
+    ),
+    dict(
+        indexed=True, depth=True, flow=True, rendered_flow=True, radii_2d=True, slot=2, clone_on_error=False
+    ),
 ]
 
 
-@pytest.mark.parametrize("case", CASES, ids=lambda c: "-".join(k for k, v in c.items() if v is True) or "plain")
+@pytest.mark.parametrize(
+    "case", CASES, ids=lambda c: "-".join(k for k, v in c.items() if v is True) or "plain"
+)
 def test_sightings_kernel_matches_torch(case):
     case = dict(case)
     clone_on_error = case.pop("clone_on_error")
@@ -116,7 +141,17 @@ def test_sightings_kernel_matches_torch(case):
         assert state["resid_cam"].shape == oracle["resid_cam"].shape == (ROWS, 3)
     for name in (*STATS, "resid_cam"):
         torch.testing.assert_close(state[name].double(), oracle[name], rtol=2e-6, atol=1e-6, msg=name)
-    moved = sum(int((state[n].double() != fresh_state(torch.float32, 2, torch.Generator().manual_seed(7))[n].double()[: state[n].shape[0]]).any()) for n in ("grad_sum", "vis_count"))
+    moved = sum(
+        int(
+            (
+                state[n].double()
+                != fresh_state(torch.float32, 2, torch.Generator().manual_seed(7))[n].double()[
+                    : state[n].shape[0]
+                ]
+            ).any()
+        )
+        for n in ("grad_sum", "vis_count")
+    )
     assert moved == 2  # the sightings changed the statistics
 
 
@@ -161,7 +196,9 @@ def test_motion_help_kernel_matches_torch(count, moving_share, with_delta):
     bases64 = SimpleNamespace(count=count, at=lambda _u: motions64)
     DensifyStrategy._accumulate_help_torch(table, bases64, gate, grad.double(), expect, SimpleNamespace(u=u))
     got = {"help_dot": dot.clone(), "help_norm": norm.clone()}
-    densify_ops.motion_help(weights, delta, 1e-4, bases.at(u).detach(), means, grad, gate, got["help_dot"], got["help_norm"])
+    densify_ops.motion_help(
+        weights, delta, 1e-4, bases.at(u).detach(), means, grad, gate, got["help_dot"], got["help_norm"]
+    )
     for name in got:
         torch.testing.assert_close(got[name].double(), expect[name], rtol=1e-5, atol=1e-6, msg=name)
     assert torch.equal(got["help_dot"][gate], dot[gate])  # moving rows untouched

@@ -411,25 +411,49 @@ void check_edges(const at::Tensor& x, const at::Tensor& c, const at::Tensor& a, 
                 hi, "]");
 }
 
-// The mean edge-length residual as a float64 scalar.
-at::Tensor edge_length_fwd(const at::Tensor& x, const at::Tensor& c, const at::Tensor& a, const at::Tensor& b) {
+// The mean edge-length residual as a float64 scalar, and with keep the (2, E) lengths the backward
+// reads (else an empty tensor).
+std::tuple<at::Tensor, at::Tensor> edge_length_fwd(const at::Tensor& x, const at::Tensor& c, const at::Tensor& a,
+                                                   const at::Tensor& b, bool keep) {
     check_edges(x, c, a, b);
     at::Tensor value = at::empty({}, x.options().dtype(at::kDouble));
-    *value.data_ptr<double>() = stg_edge::edge_length_forward(x.data_ptr<float>(), c.data_ptr<float>(),
-                                                              a.data_ptr<int64_t>(), b.data_ptr<int64_t>(), a.size(0));
-    return value;
+    at::Tensor lengths = keep ? at::empty({2, a.size(0)}, x.options()) : at::empty({0}, x.options());
+    *value.data_ptr<double>() =
+        stg_edge::edge_length_forward(x.data_ptr<float>(), c.data_ptr<float>(), a.data_ptr<int64_t>(),
+                                      b.data_ptr<int64_t>(), a.size(0), keep ? lengths.data_ptr<float>() : nullptr);
+    return {value, lengths};
 }
 
-// (grad_x, grad_c) of grad * mean; an unwanted one comes back empty.
+// (grad_x, grad_c) of grad * mean; an unwanted one comes back empty. lengths: the forward's (keep).
 std::tuple<at::Tensor, at::Tensor> edge_length_bwd(const at::Tensor& x, const at::Tensor& c, const at::Tensor& a,
-                                                   const at::Tensor& b, double grad, bool want_x, bool want_c) {
+                                                   const at::Tensor& b, const at::Tensor& lengths, double grad,
+                                                   bool want_x, bool want_c) {
     check_edges(x, c, a, b);
+    TORCH_CHECK(lengths.device().is_cpu() && lengths.scalar_type() == at::kFloat && lengths.is_contiguous() &&
+                    lengths.numel() == 2 * a.size(0),
+                "lengths must be the forward's contiguous (2, E) float32 tensor (keep), got ", lengths.sizes());
     at::Tensor gx = want_x ? at::zeros_like(x) : at::empty({0}, x.options());
     at::Tensor gc = want_c ? at::zeros_like(c) : at::empty({0}, c.options());
     stg_edge::edge_length_backward(x.data_ptr<float>(), c.data_ptr<float>(), a.data_ptr<int64_t>(),
                                    b.data_ptr<int64_t>(), a.size(0), grad, want_x ? gx.data_ptr<float>() : nullptr,
-                                   want_c ? gc.data_ptr<float>() : nullptr);
+                                   want_c ? gc.data_ptr<float>() : nullptr, lengths.data_ptr<float>());
     return {gx, gc};
+}
+
+// ---- whether a step's gradients are all finite (the trainer's skip test) ----
+// One read-only pass over float32 tensors, exponent bits only: an integer OR vectorises where a
+// float sum may not, and nothing is written (torch's batched test writes a product of every one).
+bool all_finite(at::TensorList tensors) {
+    for (const at::Tensor& t : tensors) {
+        TORCH_CHECK(t.device().is_cpu() && t.scalar_type() == at::kFloat && t.is_contiguous(),
+                    "all_finite takes contiguous float32 CPU tensors, got ", t.scalar_type(), " ", t.sizes());
+        const uint32_t* bits = reinterpret_cast<const uint32_t*>(t.data_ptr<float>());
+        const int64_t n = t.numel();
+        uint32_t bad = 0;
+        for (int64_t i = 0; i < n; ++i) bad |= static_cast<uint32_t>((bits[i] & 0x7f800000u) == 0x7f800000u);
+        if (bad != 0) return false;
+    }
+    return true;
 }
 
 // ---- the densification statistics (densify_stats.h) ----
@@ -789,8 +813,10 @@ TORCH_LIBRARY(STG_SPLAT_NS, m) {
         "densify_motion_help(Tensor skin_weights, Tensor skin_delta, float weight_eps, Tensor motions, "
         "Tensor means, Tensor grad, Tensor moving, Tensor(a!) help_dot, Tensor(b!) help_norm) -> ()",
         &densify_motion_help);
-    m.def("edge_length_fwd(Tensor x, Tensor c, Tensor a, Tensor b) -> Tensor", &edge_length_fwd);
-    m.def("edge_length_bwd(Tensor x, Tensor c, Tensor a, Tensor b, float grad, bool want_x, bool want_c) -> "
+    m.def("all_finite(Tensor[] tensors) -> bool", &all_finite);
+    m.def("edge_length_fwd(Tensor x, Tensor c, Tensor a, Tensor b, bool keep) -> (Tensor, Tensor)", &edge_length_fwd);
+    m.def("edge_length_bwd(Tensor x, Tensor c, Tensor a, Tensor b, Tensor lengths, float grad, bool want_x, "
+          "bool want_c) -> "
           "(Tensor, Tensor)",
           &edge_length_bwd);
     m.def("count_intersections(Tensor bbox, Tensor visible, int width, int height, int max_per_chunk) -> Tensor",
