@@ -37,7 +37,8 @@ The 1-minute load average is printed with every row.
    mid scale of tools/tradeoff.py (256 px, iterations / 3, Gaussian budgets / 2; seed 0) in each
    tree, scored on the benchmark's held-out views and its novel poses (PSNR, SSIM), with its
    training CPU time.
-   Target (issue 24): within 0.1 dB of the baseline. ``--quality-scale quick`` for a smoke run.
+   Target (issue 24): no more than 0.1 dB below the baseline (a gain is reported, not missed).
+   ``--quality-scale quick`` for a smoke run.
 
 With ``--device cuda`` the step and render cases run on the GPU (cuda splatting backend, gsplat),
 this tree only: the figures are wall times with the device synchronised around each timed call,
@@ -423,6 +424,15 @@ def section_step(args, trees) -> list[dict]:
     return rows
 
 
+def quality_verdict(delta: float, delta_pose: float, tolerance: float = 0.1) -> str:
+    """A faster step must not cost quality; one that scores higher is not a miss (it is
+    reported as better, so a reader knows the result did change)."""
+    worst, best = min(delta, delta_pose), max(delta, delta_pose)
+    if worst < -tolerance:
+        return "MISSED"
+    return "OK, better" if best > tolerance else "OK"
+
+
 def section_quality(args, trees) -> dict:
     spec = {"case": "quality", "data": str(args.data), "scale": args.quality_scale}
     res = interleaved(spec, trees, 1)  # training is deterministic: one run per tree
@@ -440,10 +450,10 @@ def section_quality(args, trees) -> dict:
         new, old = res["new"], res["baseline"]
         delta = new["psnr"] - old["psnr"]
         delta_pose = new["pose_psnr"] - old["pose_psnr"]
-        ok = "OK" if max(abs(delta), abs(delta_pose)) <= 0.1 else "MISSED"
+        ok = quality_verdict(delta, delta_pose)
         print(
             f"quality: this tree {delta:+.3f} dB (novel views), {delta_pose:+.3f} dB (novel poses) "
-            f"against the baseline (target within 0.1 dB: {ok}); "
+            f"against the baseline (target no more than 0.1 dB below: {ok}); "
             f"training CPU time {_ratio(new['train_cpu_s'], old['train_cpu_s'])} faster",
             flush=True,
         )
