@@ -165,6 +165,10 @@ def test_sightings_kernel_declines_what_it_cannot_take():
     assert not strategy._accumulate_kernel(state, inputs, inputs.info["means2d"].absgrad)
     for k in before:
         assert torch.equal(state[k], before[k])
+    # a strided statistic (written in place: no contiguous copy may stand in for it)
+    state = fresh_state(torch.float32, 1, gen)
+    state["flow_w"] = torch.zeros(ROWS, 2)[:, 0]
+    assert not strategy._accumulate_kernel(state, inputs, inputs.info["means2d"].absgrad)
 
 
 class Table(dict):

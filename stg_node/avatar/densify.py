@@ -299,7 +299,8 @@ class DensifyStrategy:
         slot = 0
         if rendered_flow is not None:
             slot = inputs.camera_slot
-            self._camera_residuals(state, slot)
+            if not densify_kernels_apply(self._camera_residuals(state, slot)):
+                return False
         x0, y0, w, h = inputs.crop
         accumulate_sightings(
             state,

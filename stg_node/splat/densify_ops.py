@@ -23,8 +23,9 @@ def _or_empty(t: torch.Tensor | None, dtype=torch.float32) -> torch.Tensor:
 
 
 def densify_kernels_apply(*tensors: torch.Tensor | None) -> bool:
-    """Whether the kernels take these tensors: float32 CPU ones, and kernels that build here."""
-    return kernels_take(*tensors)
+    """Whether the kernels take these tensors: contiguous float32 CPU ones (the statistics are
+    written in place, so no copy may stand in for them), and kernels that build here."""
+    return all(t is None or t.is_contiguous() for t in tensors) and kernels_take(*tensors)
 
 
 def accumulate_sightings(
