@@ -56,21 +56,14 @@ struct SightingState {
 // docstring and comments give the why). Table rows must be unique (a rendered subset).
 void accumulate_sightings(const Sightings& in, const SightingState& state);
 
-// Shared motion bases' help statistics (densify.DensifyStrategy._accumulate_help), in two passes
-// around one matrix product the caller makes (BLAS): the coefficients a Gaussian that starts to
-// move gets from the bases, then its motion and the two sums.
-//
-// motion_coefficients: each row's blended skinning weights (skin_weights (N, 24) corrected by
-// skin_delta, null: unchanged; rigid.blend_weights) into blended (N, 24), summed over the bones of
-// each of the count bases into coef (N, count) (motion_basis.initial_coefficients); coef may be
-// blended itself when count is 24.
-void motion_coefficients(int64_t rows, const float* skin_weights, const float* skin_delta, float weight_eps,
-                         int64_t count, float* blended, float* coef);
-
-// motion_help: with mixed (N, 3, 4) = coef @ the bases' motions at this time, for every row with
-// moving[i] false the offset m_i = mixed_i [p_i; 1] of its centre p_i (means (N, 3)), and adds
-// <g_i, m_i> into help_dot and |g_i| |m_i| into help_norm (grad (N, 3)).
-void motion_help(int64_t rows, const float* mixed, const float* means, const float* grad, const bool* moving,
+// Shared motion bases' help statistics (densify.DensifyStrategy._accumulate_help): for every row
+// with moving[i] false, the motion m_i it would get from the bases at this time (its blended
+// skinning weights, rigid.blend_weights, summed per basis, motion_basis.initial_coefficients; the
+// bases' affine motions mixed by them and applied to its centre), and adds <g_i, m_i> into
+// help_dot and |g_i| |m_i| into help_norm. skin_weights, skin_delta (null: the body's weights
+// unchanged) (N, 24); motions (count, 3, 4); means, grad (N, 3).
+void motion_help(int64_t rows, const float* skin_weights, const float* skin_delta, float weight_eps,
+                 const float* motions, int64_t count, const float* means, const float* grad, const bool* moving,
                  float* help_dot, float* help_norm);
 
 }  // namespace stg_densify

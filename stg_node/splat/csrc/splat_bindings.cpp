@@ -563,14 +563,9 @@ void densify_motion_help(const at::Tensor& skin_weights, const at::Tensor& skin_
     float* dot = optional_ptr<float>(help_dot, at::kFloat, "help_dot", rows);
     float* norm = optional_ptr<float>(help_norm, at::kFloat, "help_norm", rows);
     TORCH_CHECK(pmove && dot && norm, "moving, help_dot and help_norm must be present");
-    const int64_t count = motions.size(0);
-    at::Tensor blended = at::empty({rows, 24}, means.options());
-    at::Tensor coef = count == 24 ? blended : at::empty({rows, count}, means.options());
-    stg_densify::motion_coefficients(rows, skin_weights.data_ptr<float>(), pd, static_cast<float>(weight_eps), count,
-                                     blended.data_ptr<float>(), coef.data_ptr<float>());
-    const at::Tensor mixed = at::mm(coef, motions.reshape({count, 12})).contiguous();  // (rows, 12), BLAS
-    stg_densify::motion_help(rows, mixed.data_ptr<float>(), means.data_ptr<float>(), grad.data_ptr<float>(), pmove,
-                             dot, norm);
+    stg_densify::motion_help(rows, skin_weights.data_ptr<float>(), pd, static_cast<float>(weight_eps),
+                             motions.data_ptr<float>(), motions.size(0), means.data_ptr<float>(), grad.data_ptr<float>(),
+                             pmove, dot, norm);
 }
 
 // ---- the spheres' occlusion of each point's hemisphere (sphere_occlusion.h) ----
