@@ -50,9 +50,10 @@ import torch.nn.functional as F
 from stg_node.avatar.config import DensifyConfig
 from stg_node.avatar.gaussians import MOTION_COLUMNS, new_columns, sample_surface, surface_skin_weights
 from stg_node.avatar.model import conjugate, rotate
-from stg_node.avatar.motion_basis import MotionBases, initial_coefficients
-from stg_node.avatar.rigid import blend, blend_rotation, blend_weights
+from stg_node.avatar.motion_basis import NUM_BONES, MotionBases, initial_coefficients
+from stg_node.avatar.rigid import SKIN_WEIGHT_EPS, blend, blend_rotation, blend_weights
 from stg_node.body import lbs
+from stg_node.splat.densify_ops import accumulate_sightings, densify_kernels_apply, motion_help
 
 log = logging.getLogger(__name__)
 
@@ -111,6 +112,8 @@ ROW_STATE = (
 # Per-Gaussian, per-training-camera entries (n, cameras): motion seen in pixels depends on the view
 # (across one camera's image is along another's rays), so it is kept per camera, never averaged.
 CAMERA_STATE = ("resid_cam",)
+# The row statistics the sightings kernel updates in place (float32 CPU: it applies).
+STATISTICS_IN_KERNEL = ("grad_sum", "vis_count", "front_count", "m_per_px", "flow_w", "resid_w")
 COUNT_PREFIX = "count."
 
 
@@ -259,17 +262,78 @@ class DensifyStrategy:
 
     @torch.no_grad()
     def _accumulate(self, state: dict, inputs: DensifyInputs) -> None:
+        """This step's sightings into the interval's statistics: the C++ kernel in one pass where it
+        applies (float32 CPU, densify_ops), else the torch reference."""
+        means2d = inputs.info["means2d"]
+        grad = getattr(means2d, "absgrad", None)
+        if grad is None:
+            grad = means2d.grad
+        if grad is None:
+            return
+        if not self._accumulate_kernel(state, inputs, grad):
+            self._accumulate_torch(state, inputs, grad)
+        state["steps_seen"] += 1
+        if "alive_count" in state:
+            state["alive_count"] += 1
+
+    def _accumulate_kernel(self, state: dict, inputs: DensifyInputs, grad: torch.Tensor) -> bool:
+        """``_accumulate_torch`` in one C++ pass; False (nothing done) where the kernel does not apply."""
+        info, c = inputs.info, self.config
+        radii, means2d, depths = info["radii"], info["means2d"], info.get("depths")
+        flow = valid = rendered_flow = None
+        if inputs.flow is not None:
+            flow = torch.from_numpy(inputs.flow.forward)
+            valid = torch.from_numpy(inputs.flow.valid_forward)
+            rendered_flow = inputs.rendered_flow
+        in_front = inputs.rendered_depth is not None and depths is not None and c.occlusion_m > 0
+        if (
+            radii.dtype != torch.int32
+            or radii.dim() > 2
+            or (depths is not None and depths.numel() != means2d.shape[0])
+            or (flow is not None and (flow.dtype != torch.float32 or valid.dtype != torch.bool))
+            or not densify_kernels_apply(means2d, grad, depths, inputs.rendered_depth if in_front else None)
+            or not densify_kernels_apply(flow, rendered_flow)
+            or not all(densify_kernels_apply(state[k]) for k in STATISTICS_IN_KERNEL)
+        ):
+            return False
+        slot = 0
+        if rendered_flow is not None:
+            slot = inputs.camera_slot
+            if not densify_kernels_apply(self._camera_residuals(state, slot)):
+                return False
+        x0, y0, w, h = inputs.crop
+        accumulate_sightings(
+            state,
+            radii=radii,
+            means2d=means2d,
+            grad=grad,
+            index=inputs.index,
+            crop_size=(w, h),
+            tiles=self._tile_errors(inputs) if c.clone_on_error else None,
+            region_px=c.region_px,
+            error_threshold=c.error_threshold,
+            depths=depths,
+            focal=float(inputs.camera.K[0, 0]) if depths is not None else 1.0,
+            rendered_depth=inputs.rendered_depth if in_front else None,
+            occlusion_m=c.occlusion_m,
+            flow=flow,
+            valid=valid,
+            crop_origin=(x0, y0),
+            rendered_flow=rendered_flow,
+            camera_slot=slot,
+            decay=W_DECAY,
+        )
+        return True
+
+    @torch.no_grad()
+    def _accumulate_torch(self, state: dict, inputs: DensifyInputs, grad: torch.Tensor) -> None:
+        """The sightings in torch (any device and dtype): the kernel's reference."""
         info = inputs.info
         radii = info["radii"]
         visible = (radii > 0).all(dim=-1) if radii.dim() == 2 else radii > 0
         rows = visible.nonzero().squeeze(1)
         table_rows = rows if inputs.index is None else inputs.index[rows]
         means2d = info["means2d"]
-        grad = getattr(means2d, "absgrad", None)
-        if grad is None:
-            grad = means2d.grad
-        if grad is None:
-            return
         pixels = float(inputs.crop[2] * inputs.crop[3])
         vis_count = state["vis_count"]
         pull = grad[rows].norm(dim=-1) * pixels
@@ -277,9 +341,6 @@ class DensifyStrategy:
             pull = pull * self._error_weight(inputs, means2d.detach()[rows])
         state["grad_sum"].index_add_(0, table_rows, pull)
         vis_count.index_add_(0, table_rows, torch.ones_like(table_rows, dtype=vis_count.dtype))
-        state["steps_seen"] += 1
-        if "alive_count" in state:
-            state["alive_count"] += 1
         x0, y0, w, h = inputs.crop
         xy = means2d.detach()[rows]
         px = xy[:, 0].round().long().clamp(0, w - 1)
@@ -363,6 +424,23 @@ class DensifyStrategy:
         grad = table["means"].grad
         if bases is None or gate is None or grad is None:
             return
+        table_delta = table.get("skin_delta")
+        motions = bases.at(inputs.u).detach()
+        if (
+            table["skin_weights"].shape[1] == NUM_BONES
+            and densify_kernels_apply(table["skin_weights"], table_delta, motions, table["means"], grad)
+            and densify_kernels_apply(state["help_dot"], state["help_norm"])
+        ):  # one C++ pass over the rows (densify_ops); the torch below is its reference
+            motion_help(
+                table["skin_weights"], table_delta, SKIN_WEIGHT_EPS, motions, table["means"], grad, gate,
+                state["help_dot"], state["help_norm"],
+            )
+            return
+        self._accumulate_help_torch(table, bases, gate, grad, state, inputs)
+
+    @staticmethod
+    def _accumulate_help_torch(table, bases, gate, grad, state: dict, inputs: DensifyInputs) -> None:
+        """``_accumulate_help`` in torch (any device and dtype): the kernel's reference."""
         static = ~gate
         table_delta = table.get("skin_delta")
         if 2 * int(static.sum()) > table.num:

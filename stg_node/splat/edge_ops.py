@@ -5,7 +5,8 @@ csrc/edge_loss.cpp): the as-isometric-as-possible term of ``stg_node.avatar.isom
 ``| |x_a - x_b| - |c_a - c_b| |``: how far the posed distances ``x`` of neighbouring points drift
 from their canonical ones ``c``. Autograd over the same maths is a chain of gathers, two norms,
 slices and index-adds over (E, 6) tensors (~5 ms forward and backward for 96k edges at 20k
-Gaussians); the kernel makes one pass over the edges each way and scatters the gradients into
+Gaussians); the kernel makes one pass over the edges each way (the forward keeps the lengths, so
+the backward gathers no point twice) and scatters the gradients into
 both ends in edge order (the same result every run). ``edge_length_loss_torch`` is the torch
 implementation: any device and dtype, and the kernel's test oracle (tests/splat/test_edge_ops.py).
 
@@ -39,14 +40,16 @@ class _EdgeLength(torch.autograd.Function):
     def forward(ctx, x, c, a, b):
         x32, c32 = x.detach().contiguous(), c.detach().contiguous()
         a64, b64 = a.to(torch.int64).contiguous(), b.to(torch.int64).contiguous()
-        ctx.save_for_backward(x32, c32, a64, b64)
-        return load_kernels().ops.edge_length_fwd(x32, c32, a64, b64).to(x.dtype)
+        keep = any(ctx.needs_input_grad[:2])  # the lengths, for the backward: no second gather
+        value, lengths = load_kernels().ops.edge_length_fwd(x32, c32, a64, b64, keep)
+        ctx.save_for_backward(x32, c32, a64, b64, lengths)
+        return value.to(x.dtype)
 
     @staticmethod
     def backward(ctx, grad):
-        x32, c32, a64, b64 = ctx.saved_tensors
+        x32, c32, a64, b64, lengths = ctx.saved_tensors
         want_x, want_c = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
-        gx, gc = load_kernels().ops.edge_length_bwd(x32, c32, a64, b64, float(grad), want_x, want_c)
+        gx, gc = load_kernels().ops.edge_length_bwd(x32, c32, a64, b64, lengths, float(grad), want_x, want_c)
         return (gx if want_x else None), (gc if want_c else None), None, None
 
 

@@ -1,9 +1,9 @@
 // CPU edge-length loss (see edge_loss.h for the contract). Forward: one pass over the edges.
-// Backward: the lengths are recomputed rather than stored by the forward pass (no gradient may
-// come), turned into the two differences' factors in a vectorised pass, and the gradients are
+// Backward: the lengths the forward pass kept (when asked to: a gradient will come), turned into the two differences' factors in a vectorised pass, and the gradients are
 // scattered into the two ends of every edge in edge order, so the result is the same every run.
 #include "edge_loss.h"
 
+#include <algorithm>
 #include <cmath>
 #include <cstddef>
 #include <vector>
@@ -29,30 +29,31 @@ inline Edge edge_at(const float* x, const float* c, int64_t i, int64_t j) {
 
 }  // namespace
 
-double edge_length_forward(const float* x, const float* c, const int64_t* a, const int64_t* b, int64_t edges) {
+double edge_length_forward(const float* x, const float* c, const int64_t* a, const int64_t* b, int64_t edges,
+                           float* lengths) {
     double total = 0.0;
     for (int64_t e = 0; e < edges; ++e) {
         const Edge d = edge_at(x, c, a[e], b[e]);
         total += std::fabs(static_cast<double>(d.lx) - static_cast<double>(d.lc));
+        if (lengths != nullptr) {
+            lengths[e] = d.lx;
+            lengths[edges + e] = d.lc;
+        }
     }
     return edges > 0 ? total / static_cast<double>(edges) : 0.0;
 }
 
 void edge_length_backward(const float* x, const float* c, const int64_t* a, const int64_t* b, int64_t edges,
-                          double g, float* grad_x, float* grad_c) {
+                          double g, float* grad_x, float* grad_c, const float* lengths) {
     if (edges <= 0) return;
     const float scale = static_cast<float>(g / static_cast<double>(edges));
-    // Three passes: the two lengths of every edge (gathers), the factors of the two differences
-    // (independent elements: the divisions vectorise, where one edge at a time they cost five
-    // times the gathers), then the scatter into both ends in edge order (the same sums every run).
+    // Two passes over the forward's lengths: the factors of the two differences (independent
+    // elements: the divisions vectorise, where one edge at a time they cost five times the
+    // gathers), then the scatter into both ends in edge order (the same sums every run).
     std::vector<float> buffer(static_cast<std::size_t>(2 * edges));
     float* __restrict fx = buffer.data();
     float* __restrict fc = fx + edges;
-    for (int64_t e = 0; e < edges; ++e) {
-        const Edge d = edge_at(x, c, a[e], b[e]);
-        fx[e] = d.lx;
-        fc[e] = d.lc;
-    }
+    std::copy(lengths, lengths + 2 * edges, fx);
 #pragma omp simd
     for (int64_t e = 0; e < edges; ++e) {
         const float lx = fx[e], lc = fc[e];

@@ -11,12 +11,16 @@
 namespace stg_edge {
 
 // Mean over the E edges (a_e, b_e) of | |x_a - x_b| - |c_a - c_b| |, summed in double in edge order.
-double edge_length_forward(const float* x, const float* c, const int64_t* a, const int64_t* b, int64_t edges);
+// lengths (2 E floats), when not null, receives |x_a - x_b| then |c_a - c_b| of every edge: what the
+// backward would otherwise gather again.
+double edge_length_forward(const float* x, const float* c, const int64_t* a, const int64_t* b, int64_t edges,
+                           float* lengths = nullptr);
 
 // Adds g * d(mean)/dx into grad_x and g * d(mean)/dc into grad_c (either may be null: not wanted),
 // both (M, 3) and zeroed by the caller. Where a length is 0 its derivative is 0, and where the two
 // lengths are equal |.| has derivative 0 (torch's conventions for norm and abs).
+// lengths: the forward's (2 E floats).
 void edge_length_backward(const float* x, const float* c, const int64_t* a, const int64_t* b, int64_t edges,
-                          double g, float* grad_x, float* grad_c);
+                          double g, float* grad_x, float* grad_c, const float* lengths);
 
 }  // namespace stg_edge

@@ -12,6 +12,7 @@
 #include <tuple>
 #include <vector>
 
+#include "densify_stats.h"
 #include "edge_loss.h"
 #include "image_filter.h"
 #include "skinning.h"
@@ -410,25 +411,161 @@ void check_edges(const at::Tensor& x, const at::Tensor& c, const at::Tensor& a, 
                 hi, "]");
 }
 
-// The mean edge-length residual as a float64 scalar.
-at::Tensor edge_length_fwd(const at::Tensor& x, const at::Tensor& c, const at::Tensor& a, const at::Tensor& b) {
+// The mean edge-length residual as a float64 scalar, and with keep the (2, E) lengths the backward
+// reads (else an empty tensor).
+std::tuple<at::Tensor, at::Tensor> edge_length_fwd(const at::Tensor& x, const at::Tensor& c, const at::Tensor& a,
+                                                   const at::Tensor& b, bool keep) {
     check_edges(x, c, a, b);
     at::Tensor value = at::empty({}, x.options().dtype(at::kDouble));
-    *value.data_ptr<double>() = stg_edge::edge_length_forward(x.data_ptr<float>(), c.data_ptr<float>(),
-                                                              a.data_ptr<int64_t>(), b.data_ptr<int64_t>(), a.size(0));
-    return value;
+    at::Tensor lengths = keep ? at::empty({2, a.size(0)}, x.options()) : at::empty({0}, x.options());
+    *value.data_ptr<double>() =
+        stg_edge::edge_length_forward(x.data_ptr<float>(), c.data_ptr<float>(), a.data_ptr<int64_t>(),
+                                      b.data_ptr<int64_t>(), a.size(0), keep ? lengths.data_ptr<float>() : nullptr);
+    return {value, lengths};
 }
 
-// (grad_x, grad_c) of grad * mean; an unwanted one comes back empty.
+// (grad_x, grad_c) of grad * mean; an unwanted one comes back empty. lengths: the forward's (keep).
 std::tuple<at::Tensor, at::Tensor> edge_length_bwd(const at::Tensor& x, const at::Tensor& c, const at::Tensor& a,
-                                                   const at::Tensor& b, double grad, bool want_x, bool want_c) {
+                                                   const at::Tensor& b, const at::Tensor& lengths, double grad,
+                                                   bool want_x, bool want_c) {
     check_edges(x, c, a, b);
+    TORCH_CHECK(lengths.device().is_cpu() && lengths.scalar_type() == at::kFloat && lengths.is_contiguous() &&
+                    lengths.numel() == 2 * a.size(0),
+                "lengths must be the forward's contiguous (2, E) float32 tensor (keep), got ", lengths.sizes());
     at::Tensor gx = want_x ? at::zeros_like(x) : at::empty({0}, x.options());
     at::Tensor gc = want_c ? at::zeros_like(c) : at::empty({0}, c.options());
     stg_edge::edge_length_backward(x.data_ptr<float>(), c.data_ptr<float>(), a.data_ptr<int64_t>(),
                                    b.data_ptr<int64_t>(), a.size(0), grad, want_x ? gx.data_ptr<float>() : nullptr,
-                                   want_c ? gc.data_ptr<float>() : nullptr);
+                                   want_c ? gc.data_ptr<float>() : nullptr, lengths.data_ptr<float>());
     return {gx, gc};
+}
+
+// ---- whether a step's gradients are all finite (the trainer's skip test) ----
+// One read-only pass over float32 tensors, exponent bits only: an integer OR vectorises where a
+// float sum may not, and nothing is written (torch's batched test writes a product of every one).
+bool all_finite(at::TensorList tensors) {
+    for (const at::Tensor& t : tensors) {
+        TORCH_CHECK(t.device().is_cpu() && t.scalar_type() == at::kFloat && t.is_contiguous(),
+                    "all_finite takes contiguous float32 CPU tensors, got ", t.scalar_type(), " ", t.sizes());
+        const uint32_t* bits = reinterpret_cast<const uint32_t*>(t.data_ptr<float>());
+        const int64_t n = t.numel();
+        uint32_t bad = 0;
+        for (int64_t i = 0; i < n; ++i) bad |= static_cast<uint32_t>((bits[i] & 0x7f800000u) == 0x7f800000u);
+        if (bad != 0) return false;
+    }
+    return true;
+}
+
+// ---- the densification statistics (densify_stats.h) ----
+// An empty tensor stands for "absent" (the header's null); present ones are checked here.
+template <typename T>
+T* optional_ptr(const at::Tensor& t, at::ScalarType type, const char* name, int64_t numel) {
+    if (t.numel() == 0) return nullptr;
+    TORCH_CHECK(t.device().is_cpu() && t.scalar_type() == type && t.is_contiguous(), name,
+                " must be a contiguous CPU tensor of ", type, ", got ", t.scalar_type(), " ", t.sizes());
+    TORCH_CHECK(t.numel() == numel, name, " must have ", numel, " elements, got ", t.numel());
+    return t.data_ptr<T>();
+}
+
+// Adds one step's sightings into the state tensors in place (densify.DensifyStrategy._accumulate).
+void densify_accumulate(const at::Tensor& radii, const at::Tensor& means2d, const at::Tensor& grad,
+                        const at::Tensor& index, int64_t w, int64_t h, double pixels, const at::Tensor& tiles,
+                        int64_t region, double error_threshold, const at::Tensor& depths, double focal,
+                        const at::Tensor& rendered_depth, double occlusion_m, const at::Tensor& flow,
+                        const at::Tensor& valid, int64_t x0, int64_t y0, const at::Tensor& rendered_flow, double decay,
+                        const at::Tensor& grad_sum, const at::Tensor& vis_count, const at::Tensor& front_count,
+                        const at::Tensor& m_per_px, const at::Tensor& flow_w, const at::Tensor& resid_w,
+                        const at::Tensor& resid_cam, int64_t slot) {
+    const int64_t n = means2d.size(0);
+    TORCH_CHECK(w > 0 && h > 0, "the crop must be non-empty, got ", w, "x", h);
+    TORCH_CHECK(radii.device().is_cpu() && radii.scalar_type() == at::kInt && radii.is_contiguous() &&
+                    radii.size(0) == n && radii.dim() <= 2,
+                "radii must be a contiguous (n,) or (n, k) int32 CPU tensor, got ", radii.sizes());
+    check_cpu_float(means2d, "means2d", n, 2);
+    check_cpu_float(grad, "grad", n, 2);
+    const int64_t rows = grad_sum.numel();
+    stg_densify::Sightings in;
+    in.n = n;
+    in.radii = radii.data_ptr<int32_t>();
+    in.radii_cols = radii.dim() == 2 ? radii.size(1) : 1;
+    in.means2d = means2d.data_ptr<float>();
+    in.grad = grad.data_ptr<float>();
+    in.index = optional_ptr<int64_t>(index, at::kLong, "index", n);
+    const int64_t* idx = in.index;
+    for (int64_t i = 0; idx != nullptr && i < n; ++i) {
+        TORCH_CHECK(idx[i] >= 0 && idx[i] < rows, "index holds row ", idx[i], " of a ", rows, "-row state");
+    }
+    TORCH_CHECK(idx != nullptr || n <= rows, n, " rendered rows for a ", rows, "-row state");
+    in.w = w;
+    in.h = h;
+    in.pixels = static_cast<float>(pixels);
+    TORCH_CHECK(region >= 1, "region must be >= 1");
+    in.region = region;
+    in.tiles_h = (h + region - 1) / region;
+    in.tiles_w = (w + region - 1) / region;
+    in.tiles = optional_ptr<float>(tiles, at::kFloat, "tiles", in.tiles_h * in.tiles_w);
+    in.error_threshold = static_cast<float>(error_threshold);
+    in.depths = optional_ptr<float>(depths, at::kFloat, "depths", n);
+    in.focal = static_cast<float>(focal);
+    in.rendered_depth = optional_ptr<float>(rendered_depth, at::kFloat, "rendered_depth", h * w);
+    in.occlusion_m = static_cast<float>(occlusion_m);
+    if (flow.numel() > 0) {
+        TORCH_CHECK(flow.dim() == 3 && flow.size(2) == 2, "flow must be (H, W, 2), got ", flow.sizes());
+        TORCH_CHECK(x0 >= 0 && y0 >= 0 && x0 + w <= flow.size(1) && y0 + h <= flow.size(0), "the crop (", x0, ", ",
+                    y0, ", ", w, ", ", h, ") must lie in the flow's frame ", flow.sizes());
+        in.flow = optional_ptr<float>(flow, at::kFloat, "flow", flow.numel());
+        in.valid = optional_ptr<bool>(valid, at::kBool, "valid", flow.size(0) * flow.size(1));
+        TORCH_CHECK(in.valid != nullptr, "flow needs its validity");
+        in.frame_w = flow.size(1);
+        in.x0 = x0;
+        in.y0 = y0;
+        in.rendered_flow = optional_ptr<float>(rendered_flow, at::kFloat, "rendered_flow", h * w * 2);
+    }
+    in.decay = static_cast<float>(decay);
+    stg_densify::SightingState st;
+    st.grad_sum = optional_ptr<float>(grad_sum, at::kFloat, "grad_sum", rows);
+    st.vis_count = optional_ptr<float>(vis_count, at::kFloat, "vis_count", rows);
+    st.front_count = optional_ptr<float>(front_count, at::kFloat, "front_count", rows);
+    TORCH_CHECK(st.grad_sum && st.vis_count && st.front_count, "the counts must be present");
+    if (in.depths != nullptr) {
+        st.m_per_px = optional_ptr<float>(m_per_px, at::kFloat, "m_per_px", rows);
+        TORCH_CHECK(st.m_per_px != nullptr, "depths need m_per_px");
+    }
+    if (in.flow != nullptr) {
+        st.flow_w = optional_ptr<float>(flow_w, at::kFloat, "flow_w", rows);
+        TORCH_CHECK(st.flow_w != nullptr, "flow needs flow_w");
+    }
+    if (in.rendered_flow != nullptr) {
+        TORCH_CHECK(resid_cam.dim() == 2 && resid_cam.size(0) == rows && slot >= 0 && slot < resid_cam.size(1),
+                    "resid_cam must be (", rows, ", cameras > ", slot, "), got ", resid_cam.sizes());
+        st.resid_cam = optional_ptr<float>(resid_cam, at::kFloat, "resid_cam", resid_cam.numel());
+        st.resid_w = optional_ptr<float>(resid_w, at::kFloat, "resid_w", rows);
+        TORCH_CHECK(st.resid_w != nullptr, "rendered_flow needs resid_w");
+        st.cameras = resid_cam.size(1);
+        st.slot = slot;
+    }
+    stg_densify::accumulate_sightings(in, st);
+}
+
+// Adds the shared motion bases' help statistics of the rows not moving (motion_help in the header).
+void densify_motion_help(const at::Tensor& skin_weights, const at::Tensor& skin_delta, double weight_eps,
+                         const at::Tensor& motions, const at::Tensor& means, const at::Tensor& grad,
+                         const at::Tensor& moving, const at::Tensor& help_dot, const at::Tensor& help_norm) {
+    const int64_t rows = means.size(0);
+    check_cpu_float(skin_weights, "skin_weights", rows, 24);
+    check_cpu_float(means, "means", rows, 3);
+    check_cpu_float(grad, "grad", rows, 3);
+    TORCH_CHECK(motions.dim() == 3 && motions.size(1) == 3 && motions.size(2) == 4 && motions.size(0) >= 1,
+                "motions must be (count, 3, 4), got ", motions.sizes());
+    optional_ptr<float>(motions, at::kFloat, "motions", motions.numel());
+    const float* pd = optional_ptr<float>(skin_delta, at::kFloat, "skin_delta", rows * 24);
+    const bool* pmove = optional_ptr<bool>(moving, at::kBool, "moving", rows);
+    float* dot = optional_ptr<float>(help_dot, at::kFloat, "help_dot", rows);
+    float* norm = optional_ptr<float>(help_norm, at::kFloat, "help_norm", rows);
+    TORCH_CHECK(pmove && dot && norm, "moving, help_dot and help_norm must be present");
+    stg_densify::motion_help(rows, skin_weights.data_ptr<float>(), pd, static_cast<float>(weight_eps),
+                             motions.data_ptr<float>(), motions.size(0), means.data_ptr<float>(), grad.data_ptr<float>(),
+                             pmove, dot, norm);
 }
 
 // ---- the spheres' occlusion of each point's hemisphere (sphere_occlusion.h) ----
@@ -757,8 +894,21 @@ TORCH_LIBRARY(STG_SPLAT_NS, m) {
     m.def("sphere_visibility(Tensor points, Tensor normals, Tensor group, Tensor centres, Tensor radii2, "
           "Tensor mask, int threads) -> Tensor",
           &sphere_visibility_fwd);
-    m.def("edge_length_fwd(Tensor x, Tensor c, Tensor a, Tensor b) -> Tensor", &edge_length_fwd);
-    m.def("edge_length_bwd(Tensor x, Tensor c, Tensor a, Tensor b, float grad, bool want_x, bool want_c) -> "
+    m.def(
+        "densify_accumulate(Tensor radii, Tensor means2d, Tensor grad, Tensor index, int w, int h, float pixels, "
+        "Tensor tiles, int region, float error_threshold, Tensor depths, float focal, Tensor rendered_depth, "
+        "float occlusion_m, Tensor flow, Tensor valid, int x0, int y0, Tensor rendered_flow, float decay, "
+        "Tensor(a!) grad_sum, Tensor(b!) vis_count, Tensor(c!) front_count, Tensor(d!) m_per_px, "
+        "Tensor(e!) flow_w, Tensor(f!) resid_w, Tensor(g!) resid_cam, int slot) -> ()",
+        &densify_accumulate);
+    m.def(
+        "densify_motion_help(Tensor skin_weights, Tensor skin_delta, float weight_eps, Tensor motions, "
+        "Tensor means, Tensor grad, Tensor moving, Tensor(a!) help_dot, Tensor(b!) help_norm) -> ()",
+        &densify_motion_help);
+    m.def("all_finite(Tensor[] tensors) -> bool", &all_finite);
+    m.def("edge_length_fwd(Tensor x, Tensor c, Tensor a, Tensor b, bool keep) -> (Tensor, Tensor)", &edge_length_fwd);
+    m.def("edge_length_bwd(Tensor x, Tensor c, Tensor a, Tensor b, Tensor lengths, float grad, bool want_x, "
+          "bool want_c) -> "
           "(Tensor, Tensor)",
           &edge_length_bwd);
     m.def("count_intersections(Tensor bbox, Tensor visible, int width, int height, int max_per_chunk) -> Tensor",
