@@ -54,6 +54,7 @@ ON = {"nonrigid": "on"}
 BEFORE = {"densify.flow_seed_missed": False, "densify.motion_min_px": 0.0}
 LOS = {"loss.line_of_sight": 0.1}
 NOISE = {"time_noise_frames": 1.0}
+KEEP_UNSEEN = {"densify.unseen_cell_m": 0.0}  # before round 8: surface never seen kept its initial density
 # (name, label, subject, changes to the fast preset)
 ROWS = [
     ("lbs", "LBS only", "dance", {"model.spacetime": False, "densify.flow_guided": False}),
@@ -87,6 +88,17 @@ ROWS = [
         "still subject, LBS only",
         "still",
         {"model.spacetime": False, "densify.flow_guided": False},
+    ),
+    # Surface never seen keeps a coarse cover (densify.unseen_cell_m, issue 22, round 8): the rule
+    # against the same code without it, on subjects that turn and on a still one that never does.
+    ("auto_keep_unseen", "default, unseen surface kept dense", "dance", KEEP_UNSEEN),
+    ("still_keep_unseen", "still subject, unseen surface kept dense", "still", KEEP_UNSEEN),
+    ("still_facing_auto", "still subject never turning, default", "still_facing", {}),
+    (
+        "still_facing_keep_unseen",
+        "still subject never turning, unseen surface kept dense",
+        "still_facing",
+        KEEP_UNSEEN,
     ),
     ("mixed_auto", "mixed subject, default", "mixed", {}),
     ("mixed_on", "mixed subject, forced on", "mixed", ON),  # does the part pay where the trial says off?
