@@ -213,6 +213,7 @@ ITERATION_KEYS = (
     "checkpoint_every",
     "log_every",
     "nonrigid_decide_iter",
+    "densify.unseen_after_views",
 )
 GAUSSIAN_KEYS = ("model.num_gaussians", "model.max_gaussians", "densify.flow_max_new")
 # Settings in pixels of the 512 x 512 benchmark (scaled with the image width), and whether integer.

@@ -226,13 +226,17 @@ class DensifyConfig:
     # sees: at most this far (m) behind the rendered depth there (densify._in_front; issue 25); 0: every
     # Gaussian under the pixel counts (the behaviour before).
     occlusion_m: float = 0.04
-    # Surface no training view shows (issue 22): at each density step, Gaussians that were not the
-    # surface seen (densify._in_front) in any of the last unseen_after_views depth-rendered steps they
-    # existed in are thinned to one per unseen_cell_m cube of the canonical space (the most opaque,
-    # widened along the surface to cover its cube): there is no detail to learn there, only a cover
-    # for the silhouette and the prior's colour. A subject filmed from one side keeps about 40 % of
-    # its surface unseen; one that turns, 4 % (tools/surface_coverage.py). 0: off.
-    unseen_cell_m: float = 0.05
+    # Surface no training view shows (issue 22): at each density step, Gaussians that were the surface
+    # seen (densify._in_front) in none of the unseen_after_views or more depth-rendered steps (the flow
+    # term's) they existed in are thinned to one per unseen_cell_m cube of the canonical space (the
+    # cube's opacity-weighted mean, its most opaque row's opacity, sized to the cube): there is no
+    # detail to learn there, only a cover for the silhouette and the prior's colour. A subject filmed
+    # from one side keeps about 40 % of its surface unseen; one that turns, 4 % (tools/surface_coverage.py).
+    # 0: off.
+    # Off by default: on the study's subjects (all turn) it thins < 0.1 %; on a still subject that never
+    # turns 6-7 %, but its novel views lose 0.08 dB (0.5 dB on their garment pixels): docs/BENCHMARKS.md,
+    # "The non-rigid part", round 8. 0.05 (m) is the setting measured.
+    unseen_cell_m: float = 0.0
     unseen_after_views: int = 50
     new_time_scale: float = 0.25  # temporal scale (units) of Gaussians added along the flow
     resample_fraction: float = 0.3  # re-sample body parts whose density fell below this x initial

@@ -113,6 +113,10 @@ ROW_STATE = (
 # Per-Gaussian, per-training-camera entries (n, cameras): motion seen in pixels depends on the view
 # (across one camera's image is along another's rays), so it is kept per camera, never averaged.
 CAMERA_STATE = ("resid_cam",)
+# What a cover of surface never seen takes from its cube's rows (opacity-weighted means): _thin_unseen.
+MERGED_COLUMNS = ("means", "features", "sh", "skin_weights", "skin_delta")
+
+
 COUNT_PREFIX = "count."
 
 
@@ -297,7 +301,7 @@ class DensifyStrategy:
         state["front_count"].index_add_(
             0, table_rows[front], torch.ones_like(table_rows[front], dtype=vis_count.dtype)
         )
-        if self._depth_tested(info, inputs) and "front_total" in state:
+        if self.config.unseen_cell_m > 0 and self._depth_tested(info, inputs) and "front_total" in state:
             state["depth_total"] += 1
             state["front_total"].index_add_(
                 0, table_rows[front], torch.ones_like(table_rows[front], dtype=vis_count.dtype)
@@ -611,14 +615,16 @@ class DensifyStrategy:
     def _thin_unseen(self, model, state: dict) -> torch.Tensor:
         """(n,) bool: rows to drop so surface no training view shows keeps one Gaussian per cube.
 
-        A row is *unseen* when it existed in at least ``unseen_after_views`` depth-tested steps and was
-        the surface seen in none (state ``depth_total``, ``front_total``). Unseen rows are grouped by
-        the ``unseen_cell_m`` cube of the canonical space their centre lies in; the most opaque of each
-        cube stays and its two larger axes widen to at least half the cube (neighbouring covers then
-        overlap as the initial samples did), the others go. The thin axis, the orientation, the colour
-        and the skinning stay: the silhouette and the prior's colour are what such a cover keeps. A
-        cover later seen gets the image's gradient and is split as any large Gaussian. Idempotent: a
-        cube already reduced to one widened row is left as it is.
+        A row is *unseen* when it existed in at least ``unseen_after_views`` depth-tested steps (those
+        that render depth: the flow term's, every ``loss.flow_every``-th) and was the surface seen in
+        none (state ``depth_total``, ``front_total``; :meth:`_in_front`). Unseen rows are grouped by
+        the ``unseen_cell_m`` cube of the canonical space their centre lies in; each cube keeps one
+        row, its most opaque, which takes the cube's opacity-weighted mean centre, appearance and
+        skinning, keeps its own opacity, and widens its two larger axes to at least
+        ``model.init_scale_factor`` times the cube (as the initial samples are sized to their
+        spacing); the others go. The thin axis and the orientation stay: the silhouette and the
+        prior's colour are what such a cover keeps. A cover later seen gets the image's gradient and
+        is split as any large Gaussian. Idempotent: a cube reduced to one cover is left as it is.
         """
         c = self.config
         table = model.table
@@ -637,9 +643,21 @@ class DensifyStrategy:
         first = torch.ones_like(g, dtype=torch.bool)
         first[1:] = g[1:] != g[:-1]
         drop[rows[order[~first]]] = True
-        kept = rows[order[first]]
+        kept = rows[order[first]]  # kept[g]: the cover of cube g (unique's ids are sorted, as ``order``)
+        # The cover stands for its cube: its centre, appearance and skinning are the opacity-weighted
+        # means of the cube's rows (one row's colour alone would carry that sample's deviation).
+        weight = table.opacities().detach()[rows].clamp_min(1e-6)
+        total = torch.zeros(kept.shape[0], device=weight.device).index_add_(0, group, weight)
+        for name in MERGED_COLUMNS:
+            if name in table:
+                col = table[name].data
+                flat = col[rows].reshape(rows.shape[0], -1) * weight[:, None]
+                summed = torch.zeros((kept.shape[0], flat.shape[1]), device=flat.device, dtype=flat.dtype)
+                summed.index_add_(0, group, flat)
+                col[kept] = (summed / total[:, None]).reshape(col[kept].shape)
+        # Sized to the cube as the initial samples are to their spacing (model.init_scale_factor).
         log_scales = table["log_scales"].data
-        widened = log_scales[kept].clamp_min(math.log(0.5 * c.unseen_cell_m))
+        widened = log_scales[kept].clamp_min(math.log(model.config.init_scale_factor * c.unseen_cell_m))
         thin_axis = log_scales[kept].argmin(dim=1, keepdim=True)
         widened.scatter_(1, thin_axis, log_scales[kept].gather(1, thin_axis))
         log_scales[kept] = widened

@@ -34,9 +34,9 @@ def _one_density_step(tiny_frames, monkeypatch, cell_m: float):
     """A density step on a hand-made table: nothing clones, splits, prunes or re-samples but the rule.
 
     Every row sits alone in its own cube 1 m apart and was seen, except: rows 0-2 share a cube, were
-    never seen over 6 depth-tested steps and have opacities 0.2, 0.6, 0.4; rows 3-4 share another
+    never seen over 6 steps and have opacities 0.2, 0.6, 0.4; rows 3-4 share another
     cube, never seen (opacities 0.5, 0.5); row 5 is in rows 0-2's cube but was seen once; row 6 is in
-    rows 3-4's cube, never seen, but has existed for only 2 depth-tested steps (too young to judge).
+    rows 3-4's cube, never seen, but has existed for only 2 steps (too young to judge).
     """
     config = small_config(
         **{
@@ -82,7 +82,7 @@ def _one_density_step(tiny_frames, monkeypatch, cell_m: float):
     state["depth_total"][6] = 2.0
     monkeypatch.setattr(strategy, "_accumulate", lambda state, inputs: None)  # the sums above stand
     monkeypatch.setattr(strategy, "_accumulate_help", lambda model, state, inputs: None)
-    before = {name: table[name].detach().clone() for name in ("means", "log_scales")}
+    before = {name: table[name].detach().clone() for name in ("means", "log_scales", "features")}
     iteration = 12  # > start_iter, (12 - 4) % 8 == 0, before densification stops
     assert strategy.active(iteration)
     report = strategy.step_post_backward(model, trainer.optimizer, state, _density_step_inputs(iteration))
@@ -91,21 +91,31 @@ def _one_density_step(tiny_frames, monkeypatch, cell_m: float):
 
 def test_unseen_surface_keeps_one_gaussian_per_cube(tiny_frames, monkeypatch):
     """Rows 0 and 2 go (row 1, the most opaque, covers cube A), one of rows 3-4 goes (a tie: the first
-    stays); rows 5 (seen) and 6 (too young) stay, as every other row. The covers widen their two larger
-    axes to half the cube (0.05 m) and keep their thin one; the rows that stay are otherwise untouched."""
+    stays); rows 5 (seen) and 6 (too young) stay, as every other row. A cover takes its cube's
+    opacity-weighted mean centre and appearance, keeps its opacity, widens its two larger axes to
+    0.6 x the cube (model.init_scale_factor) and keeps its thin one; the other rows are untouched."""
     report, before, table, state = _one_density_step(tiny_frames, monkeypatch, CELL)
     assert report["unseen_thinned"] == 3 and report["pruned"] == 0
     n = before["means"].shape[0]
     kept = [r for r in range(n) if r not in (0, 2, 4)]
     assert table.num == n - 3
-    assert torch.equal(table["means"].detach(), before["means"][kept])
+    covers = [0, 1]  # rows 1 and 3 of the old table
+    others = [i for i, r in enumerate(kept) if r not in (1, 3)]
+    assert torch.equal(table["means"].detach()[others], before["means"][kept][others])
+    # a cover's centre and appearance: the opacity-weighted means of its cube's unseen rows
+    weights = {0: 0.2, 1: 0.6, 2: 0.4, 3: 0.5, 4: 0.5}
+    for cover, cube in zip(covers, ((0, 1, 2), (3, 4)), strict=True):
+        w = torch.tensor([weights[r] for r in cube])
+        for name in ("means", "features"):
+            expected = (before[name][list(cube)] * w[:, None]).sum(0) / w.sum()
+            assert torch.allclose(table[name].detach()[cover], expected, atol=1e-6), name
     assert state["front_total"].shape[0] == n - 3  # the state follows the rows
     scales = table["log_scales"].detach().exp()
-    half = 0.5 * CELL
-    for cover in (0, 1):  # rows 1 and 3 of the old table
-        assert scales[cover].tolist() == pytest.approx([half, half, 0.002], rel=1e-5)
-    untouched = [i for i, r in enumerate(kept) if r not in (1, 3)]
-    assert torch.equal(table["log_scales"].detach()[untouched], before["log_scales"][kept][untouched])
+    side = 0.6 * CELL  # model.init_scale_factor x the cube, as the initial samples to their spacing
+    for cover in covers:
+        assert scales[cover].tolist() == pytest.approx([side, side, 0.002], rel=1e-5)
+    assert table.opacities().detach()[covers].tolist() == pytest.approx([0.6, 0.5], rel=1e-5)  # their own
+    assert torch.equal(table["log_scales"].detach()[others], before["log_scales"][kept][others])
     assert math.isclose(float(scales[2, 0]), 0.01, rel_tol=1e-5)  # row 5: seen, its size kept
 
 
