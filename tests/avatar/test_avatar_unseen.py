@@ -136,7 +136,7 @@ def test_the_rule_is_idempotent(tiny_frames, monkeypatch):
     _, _, table, state = _one_density_step(tiny_frames, monkeypatch, CELL)
     config = small_config(**{"densify.unseen_cell_m": CELL, "densify.unseen_after_views": AFTER})
     logs = table["log_scales"].detach().clone()
-    model = SimpleNamespace(table=table, device=logs.device)  # what _thin_unseen reads
+    model = SimpleNamespace(table=table, device=logs.device, config=config.model)  # what _thin_unseen reads
     drop = DensifyStrategy(config.densify, 100)._thin_unseen(model, state)
     assert not bool(drop.any())
     assert torch.equal(table["log_scales"].detach(), logs)
