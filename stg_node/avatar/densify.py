@@ -115,8 +115,6 @@ ROW_STATE = (
 CAMERA_STATE = ("resid_cam",)
 # What a cover of surface never seen takes from its cube's rows (opacity-weighted means): _thin_unseen.
 MERGED_COLUMNS = ("means", "features", "sh", "skin_weights", "skin_delta")
-
-
 COUNT_PREFIX = "count."
 
 
