@@ -233,7 +233,7 @@ class DensifyConfig:
     # detail to learn there, only a cover for the silhouette and the prior's colour. A subject filmed
     # from one side keeps about 40 % of its surface unseen; one that turns, 4 % (tools/surface_coverage.py).
     # 0: off.
-    # Off by default: on the study's subjects (all turn) it thins < 0.1 %; on a still subject that never
+    # Off by default: on the study's subjects (all turn) it thins 0.2 % or less; on a still subject that never
     # turns 6 %, but its novel views lose 0.15 dB (0.76 dB on their garment pixels): docs/BENCHMARKS.md,
     # "The non-rigid part", round 8. 0.05 (m) is the setting measured.
     unseen_cell_m: float = 0.0
