@@ -54,6 +54,7 @@ ON = {"nonrigid": "on"}
 BEFORE = {"densify.flow_seed_missed": False, "densify.motion_min_px": 0.0}
 LOS = {"loss.line_of_sight": 0.1}
 NOISE = {"time_noise_frames": 1.0}
+UNSEEN_COVER = {"densify.unseen_cell_m": 0.05}  # surface never seen thinned to a coarse cover (round 8)
 # (name, label, subject, changes to the fast preset)
 ROWS = [
     ("lbs", "LBS only", "dance", {"model.spacetime": False, "densify.flow_guided": False}),
@@ -87,6 +88,17 @@ ROWS = [
         "still subject, LBS only",
         "still",
         {"model.spacetime": False, "densify.flow_guided": False},
+    ),
+    # Surface never seen thinned to a coarse cover (densify.unseen_cell_m, off by default; issue 22,
+    # round 8), on subjects that turn and on a still one that never does, against the default rows.
+    ("auto_unseen_cover", "default + unseen surface as a coarse cover", "dance", UNSEEN_COVER),
+    ("still_unseen_cover", "still subject + unseen surface as a coarse cover", "still", UNSEEN_COVER),
+    ("still_facing_auto", "still subject never turning, default", "still_facing", {}),
+    (
+        "still_facing_unseen_cover",
+        "still subject never turning + unseen surface as a coarse cover",
+        "still_facing",
+        UNSEEN_COVER,
     ),
     ("mixed_auto", "mixed subject, default", "mixed", {}),
     ("mixed_on", "mixed subject, forced on", "mixed", ON),  # does the part pay where the trial says off?

@@ -137,6 +137,12 @@ SUBJECTS = {
         train_yaw_deg=60.0,
         title="room light, never turning (train and test facing the camera +-30 deg)",
     ),
+    # A near-still subject that never turns (issue 22): from one camera its back is never seen.
+    "still_facing": Subject(
+        "still",
+        train_yaw_deg=60.0,
+        title="still, never turning (training frames face the camera +-30 deg): its back never seen",
+    ),
     "room_new_motions": Subject(
         "turn",
         "room",
@@ -207,6 +213,7 @@ ITERATION_KEYS = (
     "checkpoint_every",
     "log_every",
     "nonrigid_decide_iter",
+    "densify.unseen_after_views",
 )
 GAUSSIAN_KEYS = ("model.num_gaussians", "model.max_gaussians", "densify.flow_max_new")
 # Settings in pixels of the 512 x 512 benchmark (scaled with the image width), and whether integer.

@@ -36,7 +36,7 @@ PREDATING_DEFAULTS = {
         "occlusion": False,
     },
     "loss": {"isometry": 0.0, "flow_every": 1},
-    "densify": {"flow_seed_missed": False, "motion_min_px": 0.0, "occlusion_m": 0.0},
+    "densify": {"flow_seed_missed": False, "motion_min_px": 0.0, "occlusion_m": 0.0, "unseen_cell_m": 0.0},
     "nonrigid": "on",  # runs stored before the trial kept their non-rigid part
     "lr_exposure": 0.0,  # no exposure correction before real footage had one
     "color_every": 1,  # the colour MLP on every row every step before issue 24's turns
@@ -226,6 +226,18 @@ class DensifyConfig:
     # sees: at most this far (m) behind the rendered depth there (densify._in_front; issue 25); 0: every
     # Gaussian under the pixel counts (the behaviour before).
     occlusion_m: float = 0.04
+    # Surface no training view shows (issue 22): at each density step, Gaussians that were the surface
+    # seen (densify._in_front) in none of the unseen_after_views or more depth-rendered steps (the flow
+    # term's) they existed in are thinned to one per unseen_cell_m cube of the canonical space (the
+    # cube's opacity-weighted mean, its most opaque row's opacity, sized to the cube): there is no
+    # detail to learn there, only a cover for the silhouette and the prior's colour. A subject filmed
+    # from one side keeps about 40 % of its surface unseen; one that turns, 4 % (tools/surface_coverage.py).
+    # 0: off.
+    # Off by default: on the study's subjects (all turn) it thins 0.2 % or less; on a still subject that never
+    # turns 6 %, but its novel views lose 0.15 dB (0.76 dB on their garment pixels): docs/BENCHMARKS.md,
+    # "The non-rigid part", round 8. 0.05 (m) is the setting measured.
+    unseen_cell_m: float = 0.0
+    unseen_after_views: int = 50
     new_time_scale: float = 0.25  # temporal scale (units) of Gaussians added along the flow
     resample_fraction: float = 0.3  # re-sample body parts whose density fell below this x initial
     # Temporal split: a dynamic Gaussian that the image still pulls on is replaced by copies on
@@ -319,6 +331,11 @@ class TrainConfig:
             )
         if self.pose_warmup_boost <= 0:
             raise ValueError(f"pose_warmup_boost must be > 0, got {self.pose_warmup_boost}")
+        if self.densify.unseen_cell_m < 0 or self.densify.unseen_after_views < 1:
+            raise ValueError(
+                "densify.unseen_cell_m must be >= 0 (0: off) and densify.unseen_after_views >= 1, got "
+                f"{self.densify.unseen_cell_m} and {self.densify.unseen_after_views}"
+            )
 
     def replace(self, **changes) -> TrainConfig:
         """A copy with top-level fields or dotted sub-fields changed: replace(**{"model.color": "sh"})."""

@@ -108,12 +108,16 @@ ROW_STATE = (
     "was_dynamic",
     "m_per_px",
     "alive_count",
+    "depth_total",
+    "front_total",
 )
 # Per-Gaussian, per-training-camera entries (n, cameras): motion seen in pixels depends on the view
 # (across one camera's image is along another's rays), so it is kept per camera, never averaged.
 CAMERA_STATE = ("resid_cam",)
 # The row statistics the sightings kernel updates in place (float32 CPU: it applies).
 STATISTICS_IN_KERNEL = ("grad_sum", "vis_count", "front_count", "m_per_px", "flow_w", "resid_w")
+# What a cover of surface never seen takes from its cube's rows (opacity-weighted means): _thin_unseen.
+MERGED_COLUMNS = ("means", "features", "sh", "skin_weights", "skin_delta")
 COUNT_PREFIX = "count."
 
 
@@ -162,13 +166,17 @@ class DensifyStrategy:
             # steps of the current interval the row existed in: what its visibility is a fraction of
             # (a row added along the flow mid-interval is judged on the steps it was there for)
             "alive_count": torch.zeros(n, device=dev),
+            # over the row's whole life (never reset): the depth-tested steps it existed in, and those in
+            # which it was the surface seen (_in_front); 0 of >= unseen_after_views: surface never shown
+            "depth_total": torch.zeros(n, device=dev),
+            "front_total": torch.zeros(n, device=dev),
             "steps_seen": torch.zeros(1, device=dev),  # scalars are 1-element tensors (as stored)
             "initial_part_counts": self._part_counts(model),
         }
 
     @staticmethod
     def _resize(state: dict, keep: torch.Tensor | None = None, added: int = 0) -> None:
-        for name in ROW_STATE + tuple(n for n in CAMERA_STATE if n in state):
+        for name in (n for n in ROW_STATE + CAMERA_STATE if n in state):
             t = state[name]
             if keep is not None:
                 t = t[keep]
@@ -214,6 +222,9 @@ class DensifyStrategy:
             state["front_count"] = state["vis_count"].clone()
         if "alive_count" not in state:  # likewise: every row there for the whole interval
             state["alive_count"] = torch.full_like(state["vis_count"], float(state["steps_seen"]))
+        for name in ("depth_total", "front_total"):  # likewise: sightings counted from now on
+            if name not in state:
+                state[name] = torch.zeros_like(state["vis_count"])
         self._accumulate(state, inputs)
         self._accumulate_help(model, state, inputs)
         report: dict[str, int] = {}
@@ -287,7 +298,8 @@ class DensifyStrategy:
             rendered_flow = inputs.rendered_flow
         in_front = inputs.rendered_depth is not None and depths is not None and c.occlusion_m > 0
         if (
-            radii.dtype != torch.int32
+            c.unseen_cell_m > 0  # the opt-in unseen-surface counters live in the torch path only
+            or radii.dtype != torch.int32
             or radii.dim() > 2
             or (depths is not None and depths.numel() != means2d.shape[0])
             or (flow is not None and (flow.dtype != torch.float32 or valid.dtype != torch.bool))
@@ -349,6 +361,11 @@ class DensifyStrategy:
         state["front_count"].index_add_(
             0, table_rows[front], torch.ones_like(table_rows[front], dtype=vis_count.dtype)
         )
+        if self.config.unseen_cell_m > 0 and self._depth_tested(info, inputs) and "front_total" in state:
+            state["depth_total"] += 1
+            state["front_total"].index_add_(
+                0, table_rows[front], torch.ones_like(table_rows[front], dtype=vis_count.dtype)
+            )
         depths = info.get("depths")
         if depths is not None:  # what a pixel spans at the Gaussian: depth / focal length
             span = depths.detach()[rows].reshape(-1) / float(inputs.camera.K[0, 0])
@@ -568,10 +585,18 @@ class DensifyStrategy:
         side is another's visible one, and the occluder's motion would open its gate and seed
         Gaussians behind the surface that the other cameras then see.
         """
-        if inputs.rendered_depth is None or info.get("depths") is None or self.config.occlusion_m <= 0:
+        if not self._depth_tested(info, inputs):
             return torch.ones(rows.shape[0], dtype=torch.bool, device=rows.device)
         depth = info["depths"].detach()[rows].reshape(-1)
         return depth <= inputs.rendered_depth[py, px] + self.config.occlusion_m
+
+    def _depth_tested(self, info: dict, inputs: DensifyInputs) -> bool:
+        """Whether this step can tell the surface seen from what hides behind it (:meth:`_in_front`)."""
+        return (
+            inputs.rendered_depth is not None
+            and info.get("depths") is not None
+            and self.config.occlusion_m > 0
+        )
 
     def _seed_motion(self, state: dict, rows: torch.Tensor, inputs: DensifyInputs) -> torch.Tensor:
         """(len(rows),) bool: rows on motion a flow-guided seed needs: flow the model's own rendered
@@ -650,14 +675,70 @@ class DensifyStrategy:
         prune |= old & (opacity < c.prune_opacity)
         prune |= old & (score < c.prune_score) & (alive >= c.interval)
         prune |= model.table.scales().max(dim=1).values > c.prune_scale_m
+        thinned = self._thin_unseen(model, state) & ~prune
+        prune |= thinned
+        if bool(thinned.any()):
+            report["unseen_thinned"] = int(thinned.sum())
         if bool(prune.all()):
             prune[opacity.argmax()] = False  # never prune the model away entirely
         if bool(prune.any()):
             optimizer.keep(~prune)
             self._resize(state, keep=~prune)
-            report["pruned"] = int(prune.sum()) - int(split.numel())
+            report["pruned"] = int(prune.sum()) - int(split.numel()) - report.get("unseen_thinned", 0)
         report["resampled"] = self._resample(model, optimizer, state, inputs)
         return report  # the caller starts the next interval (_reset_interval) after the gate round
+
+    @torch.no_grad()
+    def _thin_unseen(self, model, state: dict) -> torch.Tensor:
+        """(n,) bool: rows to drop so surface no training view shows keeps one Gaussian per cube.
+
+        A row is *unseen* when it existed in at least ``unseen_after_views`` depth-tested steps (those
+        that render depth: the flow term's, every ``loss.flow_every``-th) and was the surface seen in
+        none (state ``depth_total``, ``front_total``; :meth:`_in_front`). Unseen rows are grouped by
+        the ``unseen_cell_m`` cube of the canonical space their centre lies in; each cube keeps one
+        row, its most opaque, which takes the cube's opacity-weighted mean centre, appearance and
+        skinning, keeps its own opacity, and widens its two larger axes to at least
+        ``model.init_scale_factor`` times the cube (as the initial samples are sized to their
+        spacing); the others go. The thin axis and the orientation stay: the silhouette and the
+        prior's colour are what such a cover keeps. A cover later seen gets the image's gradient and
+        is split as any large Gaussian. Idempotent: a cube reduced to one cover is left as it is.
+        """
+        c = self.config
+        table = model.table
+        drop = torch.zeros(table.num, dtype=torch.bool, device=model.device)
+        if c.unseen_cell_m <= 0 or "front_total" not in state:
+            return drop
+        unseen = (state["depth_total"] >= c.unseen_after_views) & (state["front_total"] == 0)
+        rows = unseen.nonzero().squeeze(1)
+        if rows.numel() == 0:
+            return drop
+        cube = torch.floor(table["means"].detach()[rows] / c.unseen_cell_m).long()
+        _, group = torch.unique(cube, dim=0, return_inverse=True)
+        by_opacity = torch.argsort(table.opacities().detach()[rows], descending=True, stable=True)
+        order = by_opacity[torch.argsort(group[by_opacity], stable=True)]  # by cube, most opaque first
+        g = group[order]
+        first = torch.ones_like(g, dtype=torch.bool)
+        first[1:] = g[1:] != g[:-1]
+        drop[rows[order[~first]]] = True
+        kept = rows[order[first]]  # kept[g]: the cover of cube g (unique's ids are sorted, as ``order``)
+        # The cover stands for its cube: its centre, appearance and skinning are the opacity-weighted
+        # means of the cube's rows (one row's colour alone would carry that sample's deviation).
+        weight = table.opacities().detach()[rows].clamp_min(1e-6)
+        total = torch.zeros(kept.shape[0], device=weight.device).index_add_(0, group, weight)
+        for name in MERGED_COLUMNS:
+            if name in table:
+                col = table[name].data
+                flat = col[rows].reshape(rows.shape[0], -1) * weight[:, None]
+                summed = torch.zeros((kept.shape[0], flat.shape[1]), device=flat.device, dtype=flat.dtype)
+                summed.index_add_(0, group, flat)
+                col[kept] = (summed / total[:, None]).reshape(col[kept].shape)
+        # Sized to the cube as the initial samples are to their spacing (model.init_scale_factor).
+        log_scales = table["log_scales"].data
+        widened = log_scales[kept].clamp_min(math.log(model.config.init_scale_factor * c.unseen_cell_m))
+        thin_axis = log_scales[kept].argmin(dim=1, keepdim=True)
+        widened.scatter_(1, thin_axis, log_scales[kept].gather(1, thin_axis))
+        log_scales[kept] = widened
+        return drop
 
     @torch.no_grad()
     def _temporal_split_rows(
