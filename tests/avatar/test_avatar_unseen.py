@@ -145,3 +145,17 @@ def test_the_rule_is_idempotent(tiny_frames, monkeypatch):
 def test_a_negative_cube_is_refused():
     with pytest.raises(ValueError, match="unseen_cell_m"):
         small_config(**{"densify.unseen_cell_m": -0.1}).validate()
+
+
+def test_training_steps_count_each_rows_sightings_with_the_rule_on(tiny_frames):
+    """With the rule on, the steps themselves feed its counters (on a CPU the sightings kernel does
+    not keep them, so the step takes the torch path): rows the camera sees as the surface count as
+    seen, and every depth-tested step counts for all rows."""
+    config = small_config(**{"densify.start_iter": 1, "densify.unseen_cell_m": CELL})
+    trainer = Trainer(config, seed=0)
+    trainer.add_frames(tiny_frames)
+    for _ in range(4):
+        trainer.step()
+    state = trainer.densify_state
+    assert float(state["depth_total"].max()) > 0
+    assert 0 < int((state["front_total"] > 0).sum()) < trainer.model.table.num
