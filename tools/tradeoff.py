@@ -387,6 +387,11 @@ SHADING_ABLATIONS = (
     ("no_isometry", "no as-isometric-as-possible term", {"loss.isometry": 0.0}),
     ("sphere_init", "spherical initial Gaussians instead of discs", {"model.init_flatness": 1.0}),
     ("sh_light", "free second-order SH light instead of distant lights", {"model.light_model": "sh"}),
+    (
+        "camera_normals",
+        "normals flipped towards the camera instead of outward",
+        {"model.normal_sign": "camera"},
+    ),
 )
 
 

@@ -406,7 +406,8 @@ class AvatarModel(nn.Module):
         else:
             colors = sh_color(rows(table["sh"]), view_canonical, degree)
         if self.shading is not None:
-            normals = gaussian_normals(quats, scales, means, camera_center)
+            outward = cfg.normal_sign == "outward" and cfg.init_flatness < 1.0  # discs know their side
+            normals = gaussian_normals(quats, scales, means, camera_center, outward)
             root = None
             if light is not None and light.mode == "baked":
                 root = lbs.axis_angle_to_matrix(body.Rh[0]) @ lbs.axis_angle_to_matrix(body.poses[0, 0])

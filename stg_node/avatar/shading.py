@@ -205,25 +205,63 @@ def parse_light(text: str | None) -> LightSpec:
 
 
 def gaussian_normals(
-    quats: torch.Tensor, scales: torch.Tensor, means: torch.Tensor, camera_center: torch.Tensor
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    means: torch.Tensor,
+    camera_center: torch.Tensor,
+    outward: bool = False,
 ) -> torch.Tensor:
     """(M, 3) unit world normals: each Gaussian's shortest axis turned by its world rotation
     ``quats`` (M, 4, unit wxyz), flipped to face ``camera_center`` (3,). Without gradient the
     fused kernel (stg_node.splat.skin_ops.gaussian_normals: the same operations in one pass,
-    equal to float rounding)."""
+    equal to float rounding).
+
+    ``outward``: a Gaussian whose shortest axis is its local z axis keeps that axis's sign (the
+    disc initialisation points it out of the body: :func:`outward_normals`); the others are
+    flipped to face the camera as above."""
+    if outward:
+        return outward_normals(quats, scales, means, camera_center)
     wants_grad = torch.is_grad_enabled() and (quats.requires_grad or means.requires_grad)
     if not wants_grad and kernels.use_kernels(quats, scales, means, camera_center):
         from stg_node.splat import skin_ops
 
         return skin_ops.gaussian_normals(quats, scales, means, camera_center)
+    normal = shortest_axes(quats, scales)
+    toward = (camera_center.reshape(1, 3) - means).detach()
+    sign = torch.where((normal.detach() * toward).sum(dim=1, keepdim=True) < 0, -1.0, 1.0)
+    return normal * sign
+
+
+def outward_normals(
+    quats: torch.Tensor, scales: torch.Tensor, means: torch.Tensor, camera_center: torch.Tensor
+) -> torch.Tensor:
+    """(M, 3) unit world normals signed by the body rather than by the camera.
+
+    A disc initialised on the body surface (``model.init_flatness`` < 1, gaussians.new_columns)
+    has its local +z axis along the surface's outward normal, and learning turns it continuously:
+    while z stays the shortest axis, +z is where the surface faces. Flipping every normal towards
+    the camera instead gives a Gaussian at a silhouette (its normal nearly across the line of
+    sight) a sign that depends on the viewer, and the shade of the side facing away from the light:
+    the albedo learns to undo that for the training camera and orientation only, and a turned body
+    shows it (docs/AVATAR.md, "Which way a normal points"). Gaussians whose shortest axis is
+    another one (re-sampled spheres, a disc that grew thin along x or y) have no side of their
+    own and are flipped to face the camera."""
+    normal = shortest_axes(quats, scales)
+    shortest = scales.detach().argmin(dim=1, keepdim=True)
+    toward = (camera_center.reshape(1, 3) - means).detach()
+    facing = (normal.detach() * toward).sum(dim=1, keepdim=True) >= 0
+    sign = torch.where((shortest == 2) | facing, 1.0, -1.0).to(normal.dtype)
+    return normal * sign
+
+
+def shortest_axes(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
+    """(M, 3) unit shortest axis of each Gaussian (rotation ``quats`` (M, 4, unit wxyz), ``scales``
+    (M, 3)) in the frame of its rotation, without a sign of its own."""
     axis = torch.zeros_like(scales)
     axis.scatter_(1, scales.detach().argmin(dim=1, keepdim=True), 1.0)
     w, u = quats[:, :1], quats[:, 1:]
     uv = torch.linalg.cross(u, axis)
-    normal = axis + 2.0 * (w * uv + torch.linalg.cross(u, uv))  # rotate(quats, axis)
-    toward = (camera_center.reshape(1, 3) - means).detach()
-    sign = torch.where((normal.detach() * toward).sum(dim=1, keepdim=True) < 0, -1.0, 1.0)
-    return normal * sign
+    return axis + 2.0 * (w * uv + torch.linalg.cross(u, uv))  # rotate(quats, axis)
 
 
 def polar_rotation(matrix: np.ndarray) -> np.ndarray:
