@@ -327,6 +327,7 @@ class AvatarModel(nn.Module):
         color_cache: ColorCache | None = None,
         light: LightSpec | None = None,
         color_turns: tuple[TrainingColorTurns, int] | None = None,
+        outward_normals: bool = False,
     ) -> PosedGaussians:
         """World-space Gaussians for one body pose at normalised time ``u``, seen from ``camera_center``.
 
@@ -335,7 +336,10 @@ class AvatarModel(nn.Module):
         only, ignored when gradients are on).
         ``light``: how a model with shading is lit (default: its learned light, shading.py).
         ``color_turns``: (turns, iteration) in training: the colour MLP on this step's turn of the
-        rows only, the others' colours carried (color_cache.TrainingColorTurns)."""
+        rows only, the others' colours carried (color_cache.TrainingColorTurns).
+        ``outward_normals``: shading normals keep the side the disc initialisation gave them
+        (shading.outward_normals; the trainer's choice, ``model.normal_sign``); else every normal
+        faces the camera (renders)."""
         cfg = self.config
         table = self.table
         bones = bones or self.bones(body)
@@ -406,7 +410,7 @@ class AvatarModel(nn.Module):
         else:
             colors = sh_color(rows(table["sh"]), view_canonical, degree)
         if self.shading is not None:
-            outward = cfg.normal_sign == "outward" and cfg.init_flatness < 1.0  # discs know their side
+            outward = outward_normals and cfg.init_flatness < 1.0  # only discs know their side
             normals = gaussian_normals(quats, scales, means, camera_center, outward)
             root = None
             if light is not None and light.mode == "baked":

@@ -400,6 +400,7 @@ class Trainer:
             state=state,
             camera=camera,
             color_turns=None if self.color_turns is None else (self.color_turns, it),
+            outward_normals=c.model.normal_sign == "outward",
         )
         timer.mark("pose")
 

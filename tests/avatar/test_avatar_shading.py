@@ -453,3 +453,48 @@ def test_models_and_configurations_from_before_shading_load_as_they_were_made(ti
     assert config.model.shading is False and config.model.init_flatness == 1.0
     assert config.loss.isometry == 0.0
     assert TrainConfig.from_dict(trainer.config.to_dict()) == trainer.config  # today's round-trips
+
+
+def test_training_shades_outward_normals_and_renders_face_the_viewer(tiny_frames, monkeypatch):
+    """model.normal_sign decides the sign of the normals training lights (outward by default,
+    towards the training camera as before with "camera"); renders face every normal to the viewer;
+    a configuration or snapshot from before the setting trained with normals facing the camera."""
+    import dataclasses
+
+    from avatar_helpers import small_config
+
+    from stg_node.avatar import model as model_module
+    from stg_node.avatar.config import TrainConfig
+    from stg_node.avatar.renderer import AvatarRenderer
+    from stg_node.avatar.snapshot import model_from_snapshot
+    from stg_node.avatar.trainer import Trainer
+
+    seen = []
+    real = model_module.gaussian_normals
+
+    def spy(quats, scales, means, camera_center, outward=False):
+        seen.append(outward)
+        return real(quats, scales, means, camera_center, outward)
+
+    monkeypatch.setattr(model_module, "gaussian_normals", spy)
+    signs = {}
+    for sign in ("outward", "camera"):
+        trainer = Trainer(small_config(iterations=2).replace(**{"model.normal_sign": sign}), seed=0)
+        trainer.add_frames(tiny_frames[:2])
+        seen.clear()
+        trainer.step()
+        signs[sign] = set(seen)
+    assert signs == {"outward": {True}, "camera": {False}}
+    assert small_config().model.normal_sign == "outward"
+    frame = tiny_frames[0]
+    seen.clear()
+    AvatarRenderer(trainer.model).render(frame.camera, frame.smpl, frame.time)
+    assert seen == [False]
+    # What an older model or configuration (no such setting) was trained with.
+    msg = trainer.snapshot()
+    old_meta = {k: v for k, v in msg.meta.items() if k != "model.normal_sign"}
+    assert "model.normal_sign" in msg.meta
+    assert model_from_snapshot(dataclasses.replace(msg, meta=old_meta)).config.normal_sign == "camera"
+    data = trainer.config.to_dict()
+    del data["model"]["normal_sign"]
+    assert TrainConfig.from_dict(data).model.normal_sign == "camera"
