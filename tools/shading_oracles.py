@@ -10,13 +10,21 @@ novel views and novel poses as stg-eval does (whole image, masked ground truth):
 - ``learned``: the avatar as it renders (stg-eval's score);
 - ``true_light``: the learned albedo and normals under the subject's true light (``--light``
   given, normalised to a mean irradiance of 1 as the learned one is);
+- ``true_normals``: every Gaussian's normal replaced by the true posed surface's at its nearest
+  vertex, under the learned light (``true_normals_light``: and under the true light);
 - ``true_shade``: the learned albedo times the true shade (true light on the true surface's
   normals): what is left is the albedo and the geometry;
 - ``true_albedo``: the true albedo (scaled by the light's mean) times the learned shade (the
   avatar's render over its albedo render): what is left is the light and the normals;
 - ``albedo_only``: the learned albedo against the true one (a score of the albedo alone).
 
+A factor whose oracle closes the gap between the splits carries it. Per body part as stg-eval
+(stg_node.data.synth.body_parts). Only for lights fixed in the world without a sky term.
+
 Usage: python tools/shading_oracles.py RUN --lit DIR --flat DIR [--json OUT]
+(e.g. ``--lit runs/tradeoff_mid/data/room_turn_held_out_125f_256px_v4e10_s0 --flat
+runs/tradeoff_mid/data/flat_turn_held_out_125f_256px_v4e10_s0``: the trade-off tool's room and flat
+subjects share motion, cameras and masks.)
 """
 
 from __future__ import annotations
@@ -61,7 +69,7 @@ def true_surface_normals(lit_root: Path, frame: int, faces):
     normals = vertex_normals(vertices, torch.as_tensor(np.asarray(faces), dtype=torch.int64)).float()
     original = model_module.gaussian_normals
 
-    def replaced(quats, scales, means, camera_center):
+    def replaced(quats, scales, means, camera_center, outward=False):
         nearest = torch.cat([torch.cdist(m, vertices).argmin(dim=1) for m in means.detach().split(4096)])
         return normals[nearest]
 
