@@ -415,12 +415,12 @@ OCCLUSION_ABLATIONS = (
 )
 
 
-# Shading normals flipped towards the training camera in training (the sign before issue 21's
-# round 8; model.normal_sign) instead of the side the disc initialisation gave them, on each lit
-# condition with a held-out turn and on flat light (it must not cost there).
-CAMERA_NORMALS = {"model.normal_sign": "camera"}
+# Shading normals with the side the disc initialisation gave them in training
+# (model.normal_sign=outward, shading.outward_normals) instead of facing the training camera (the
+# default), on each lit condition with a held-out turn and on flat light.
+OUTWARD_NORMALS = {"model.normal_sign": "outward"}
 NORMAL_SIGN_ABLATIONS = tuple(
-    (subject, "camera_normals", "normals facing the training camera in training", CAMERA_NORMALS)
+    (subject, "outward_normals", "outward normals in training", OUTWARD_NORMALS)
     for subject in ("room_turn_held_out", "env_turn_held_out", "flat_turn_held_out")
 )
 

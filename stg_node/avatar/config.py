@@ -84,7 +84,7 @@ class ModelConfig:
     # shading.outward_normals), or "camera", flipped towards the training camera (the earlier
     # behaviour). Renders flip every normal towards the viewer either way (docs/AVATAR.md, "Which way
     # a normal points").
-    normal_sign: str = "outward"
+    normal_sign: str = "camera"
     init_flatness: float = 0.3  # initial Gaussians: discs along the surface, normal axis x this (1 = spheres)
     max_scale_ratio: float = 10.0  # largest / smallest axis of a rendered Gaussian at most this (0 = no cap)
     # A Gaussian between bones that bend apart shrinks as linear blend skinning squeezes the surface

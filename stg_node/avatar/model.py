@@ -421,7 +421,10 @@ class AvatarModel(nn.Module):
                 visible = self.shading.occlusion.visibility(
                     means, normals, bone if index is None else bone[index], bones.transforms[0]
                 )
-            colors = self.shading(colors, normals, light, root, visible)
+            away = None  # discs seen from behind: their shade must not teach the light (shading.py)
+            if outward:
+                away = (normals.detach() * (camera_center.reshape(1, 3) - means).detach()).sum(dim=1) < 0
+            colors = self.shading(colors, normals, light, root, visible, away)
         return PosedGaussians(means, quats, scales, rows(opacity), colors, index, canonical)
 
     def _skin(self, canonical, bones: PosedBones, local_quats, camera_center, rows, blend_norms=False):

@@ -377,11 +377,14 @@ class Shading(nn.Module):
         light: LightSpec | None = None,
         root_rotation: torch.Tensor | None = None,
         visible: torch.Tensor | None = None,
+        away: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """Shaded colours (M, 3) of ``albedo`` (M, 3) with world ``normals`` (M, 3) under ``light``.
 
         ``root_rotation`` (3, 3): the body's world orientation this frame (the ``baked`` mode).
         ``visible`` (M,): the share of each Gaussian's sky the body leaves open (occlusion.py).
+        ``away`` (M,) bool: rows whose normal faces away from the camera (training with outward
+        normals): their shade passes no gradient to the light or to their normals.
         """
         mode = "learned" if light is None else light.mode
         if mode == "albedo":
@@ -395,4 +398,7 @@ class Shading(nn.Module):
                 raise ValueError("the baked light needs the body's root orientation")
             # The normal as it would point had the body kept its mean training orientation.
             normals = normals @ root_rotation.to(normals) @ self.reference.T.to(normals)
-        return albedo * self.light.irradiance(normals)
+        light = self.light.irradiance(normals)
+        if away is not None:  # these rows' shade teaches the light nothing (outward_normals)
+            light = torch.where(away[:, None], light.detach(), light)
+        return albedo * light

@@ -156,6 +156,28 @@ def test_outward_normals_keep_the_disc_side_wherever_the_camera_is():
     np.testing.assert_allclose(outward_normals(quats, thin_x, w, eye).numpy(), towards.numpy(), atol=1e-5)
 
 
+def test_discs_seen_from_behind_teach_the_light_nothing():
+    """With outward normals a disc seen from behind is shaded by its own side, but its shade passes
+    no gradient to the light (or its normal): the light cannot learn to darken what the camera sees
+    of backs and silhouettes. The albedo still learns from it."""
+    shading = Shading("distant", 2)
+    normals = torch.nn.functional.normalize(
+        torch.randn(40, 3, generator=torch.Generator().manual_seed(1)), dim=1
+    )
+    normals.requires_grad_(True)
+    away = torch.zeros(40, dtype=torch.bool)
+    away[:20] = True
+    albedo = torch.rand(40, 3, requires_grad=True)
+    colors = shading(albedo, normals, away=away)
+    np.testing.assert_allclose(colors.detach().numpy(), shading(albedo, normals).detach().numpy())
+    colors[:20].sum().backward()
+    assert all(float(p.grad.abs().max()) == 0.0 for p in shading.light.parameters())
+    assert float(normals.grad[:20].abs().max()) == 0.0 and float(albedo.grad[:20].abs().min()) > 0.0
+    colors = shading(albedo, normals, away=away)
+    colors[20:].sum().backward()
+    assert all(float(p.grad.abs().max()) > 0.0 for p in shading.light.parameters())
+
+
 def test_outward_normals_light_the_silhouette_as_the_surface_there():
     """A sphere lit from the side (+x, no ambient), seen along +y: at the right-hand silhouette the
     surface faces the light. Discs just beyond the silhouette still show there; flipped towards the
@@ -456,8 +478,8 @@ def test_models_and_configurations_from_before_shading_load_as_they_were_made(ti
 
 
 def test_training_shades_outward_normals_and_renders_face_the_viewer(tiny_frames, monkeypatch):
-    """model.normal_sign decides the sign of the normals training lights (outward by default,
-    towards the training camera as before with "camera"); renders face every normal to the viewer;
+    """model.normal_sign decides the sign of the normals training lights (towards the training
+    camera by default, the disc's own side with "outward"); renders face every normal to the viewer;
     a configuration or snapshot from before the setting trained with normals facing the camera."""
     import dataclasses
 
@@ -485,7 +507,7 @@ def test_training_shades_outward_normals_and_renders_face_the_viewer(tiny_frames
         trainer.step()
         signs[sign] = set(seen)
     assert signs == {"outward": {True}, "camera": {False}}
-    assert small_config().model.normal_sign == "outward"
+    assert small_config().model.normal_sign == "camera"
     frame = tiny_frames[0]
     seen.clear()
     AvatarRenderer(trainer.model).render(frame.camera, frame.smpl, frame.time)
