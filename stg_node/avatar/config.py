@@ -79,11 +79,10 @@ class ModelConfig:
     shading: bool = True
     light_model: str = "distant"  # the learned light: ambient + light_count distant lights, or free SH
     light_count: int = 2
-    # Which way a Gaussian's shading normal points in training: "outward", the side its disc was
-    # initialised with on the body surface (while its local z axis is the shortest;
-    # shading.outward_normals), or "camera", flipped towards the training camera (the earlier
-    # behaviour). Renders flip every normal towards the viewer either way (docs/AVATAR.md, "Which way
-    # a normal points").
+    # Which way a Gaussian's shading normal points in training: "camera", flipped towards the
+    # training camera (the default), or "outward", the side its disc was initialised with on the
+    # body surface (while its local z axis is the shortest; shading.outward_normals). Renders flip
+    # every normal towards the viewer either way (docs/AVATAR.md, "Which way a normal points").
     normal_sign: str = "camera"
     init_flatness: float = 0.3  # initial Gaussians: discs along the surface, normal axis x this (1 = spheres)
     max_scale_ratio: float = 10.0  # largest / smallest axis of a rendered Gaussian at most this (0 = no cap)

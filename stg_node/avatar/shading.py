@@ -17,9 +17,10 @@ everything else:
   rotation). Gaussians start as flat discs along the body surface (``model.init_flatness``) so the
   shortest axis is the surface normal from the start. Its sign: in renders, flipped to face the
   camera (for a surface seen from outside the visible side faces the viewer); in training, with
-  ``model.normal_sign = outward`` (the default), the side the disc was initialised with
-  (:func:`outward_normals`), so the albedo does not learn to undo the flips of the training
-  camera's silhouettes, which a turned body would show.
+  ``model.normal_sign = outward`` (off by default: flat light is worse with it), the side the disc
+  was initialised with (:func:`outward_normals`), so the albedo does not learn to undo the flips
+  of the training camera's silhouettes, which a turned body would show; a disc seen from behind
+  then teaches the light nothing (``away`` in :meth:`Shading.forward`).
 - **Light**, fixed in the world and learned from the training clip with everything else; its
   mean over all directions is held at ``E = 1``, so brightness and colour of the surface stay in
   the albedo and albedo and light cannot trade a common scale. Two models (``model.light_model``):
