@@ -52,6 +52,10 @@ def test_grid_holds_every_preset_and_ablation_the_issue_names():
     assert rows["still_fast"].subject == "still" and rows["still_fast"].preset == "fast"
     assert {r.subject for r in rows.values()} == {"dance", "still", "mixed", *tradeoff.CONDITIONS}
     assert set(tradeoff.CONDITIONS) <= set(tradeoff.SUBJECTS)
+    assert base.model.normal_sign == "camera"
+    for subject in ("room", "env", "flat"):
+        row = rows[f"{subject}_turn_held_out_outward_normals"]
+        assert row.config(tradeoff.FULL).model.normal_sign == "outward" and row.group == "normal_sign"
     held = tradeoff.SUBJECTS["room_turn_held_out"]
     assert (held.shading, held.train_yaw_deg, held.test_yaw_deg) == ("room", 60.0, 150.0)
     assert tradeoff.subject_frames("room_new_motions", tradeoff.FULL) == (200, 0.5)

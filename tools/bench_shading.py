@@ -44,6 +44,7 @@ CONFIGS = {
     "sphere_init": {"model.init_flatness": 1.0},
     "no_joint_shrink": {"model.joint_shrink": False},
     "occlusion": {"model.occlusion": True},  # what the body casts on itself (occlusion.py; the default)
+    "outward_normals": {"model.normal_sign": "outward"},  # outward normals in training (shading.py)
 }
 
 

@@ -422,6 +422,16 @@ OCCLUSION_ABLATIONS = (
 )
 
 
+# Shading normals with the side the disc initialisation gave them in training
+# (model.normal_sign=outward, shading.outward_normals) instead of facing the training camera (the
+# default), on each lit condition with a held-out turn and on flat light.
+OUTWARD_NORMALS = {"model.normal_sign": "outward"}
+NORMAL_SIGN_ABLATIONS = tuple(
+    (subject, "outward_normals", "outward normals in training", OUTWARD_NORMALS)
+    for subject in ("room_turn_held_out", "env_turn_held_out", "flat_turn_held_out")
+)
+
+
 def condition_rows(base: str) -> list[Configuration]:
     """The ``base`` preset on each benchmark condition that separates geometry from shading, the colour
     before shading (``baked``) on each, and shading's ablations on the room-light held-out turn."""
@@ -450,7 +460,11 @@ def condition_rows(base: str) -> list[Configuration]:
                 changes,
             )
         )
-    for group, ablations in (("needles", NEEDLE_ABLATIONS), ("occlusion", OCCLUSION_ABLATIONS)):
+    for group, ablations in (
+        ("needles", NEEDLE_ABLATIONS),
+        ("occlusion", OCCLUSION_ABLATIONS),
+        ("normal_sign", NORMAL_SIGN_ABLATIONS),
+    ):
         for subject, suffix, label, changes in ablations:
             rows.append(
                 Configuration(

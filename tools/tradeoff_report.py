@@ -23,6 +23,7 @@ GROUP_TITLES = {
     "shading": "ablations of shading on the room-light subject with a held-out turn ({base} preset)",
     "needles": "streaks under extrapolated poses: the joint shrink ({base} preset)",
     "occlusion": "what the body casts on itself: the ambient-occlusion term ({base} preset)",
+    "normal_sign": "shading normals outward in training instead of facing the camera ({base} preset)",
 }
 PARTS = ("head", "torso", "arms", "hands", "legs", "feet")  # stg_node.data.synth.body_parts.PARTS
 LBS_CLAIM_DB = 1.5  # the bar for full model vs LBS only (the paper: 31.46 vs 25.59 dB)

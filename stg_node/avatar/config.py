@@ -23,6 +23,7 @@ NONRIGID_MODES = ("auto", "on", "off")
 # What switching the non-rigid part off sets: LBS only (no spacetime terms, no flow-guided densification).
 LBS_ONLY = {"model.spacetime": False, "densify.flow_guided": False}
 LIGHT_MODELS = ("distant", "sh")  # the learned light: an ambient term and distant lights, or free SH
+NORMAL_SIGNS = ("outward", "camera")  # which way a shading normal points (shading.gaussian_normals)
 # What settings added later mean for a model or configuration written before they existed: the
 # behaviour it was trained with (snapshot.model_config_from_meta, TrainConfig.from_dict).
 # A group's entries are a dict; a top-level setting's entry is its value.
@@ -34,6 +35,7 @@ PREDATING_DEFAULTS = {
         "motion_basis": 0,
         "joint_shrink": False,
         "occlusion": False,
+        "normal_sign": "camera",
     },
     "loss": {"isometry": 0.0, "flow_every": 1},
     "densify": {"flow_seed_missed": False, "motion_min_px": 0.0, "occlusion_m": 0.0, "unseen_cell_m": 0.0},
@@ -77,6 +79,11 @@ class ModelConfig:
     shading: bool = True
     light_model: str = "distant"  # the learned light: ambient + light_count distant lights, or free SH
     light_count: int = 2
+    # Which way a Gaussian's shading normal points in training: "camera", flipped towards the
+    # training camera (the default), or "outward", the side its disc was initialised with on the
+    # body surface (while its local z axis is the shortest; shading.outward_normals). Renders flip
+    # every normal towards the viewer either way (docs/AVATAR.md, "Which way a normal points").
+    normal_sign: str = "camera"
     init_flatness: float = 0.3  # initial Gaussians: discs along the surface, normal axis x this (1 = spheres)
     max_scale_ratio: float = 10.0  # largest / smallest axis of a rendered Gaussian at most this (0 = no cap)
     # A Gaussian between bones that bend apart shrinks as linear blend skinning squeezes the surface
@@ -92,6 +99,8 @@ class ModelConfig:
             raise ValueError(f"light_model must be one of {LIGHT_MODELS}, got {self.light_model!r}")
         if not 1 <= self.light_count <= 4:
             raise ValueError(f"light_count must be 1..4, got {self.light_count}")
+        if self.normal_sign not in NORMAL_SIGNS:
+            raise ValueError(f"normal_sign must be one of {NORMAL_SIGNS}, got {self.normal_sign!r}")
         if not 0.0 < self.init_flatness <= 1.0:
             raise ValueError(f"init_flatness must be in (0, 1], got {self.init_flatness}")
         if self.max_scale_ratio != 0 and self.max_scale_ratio < 1.0:

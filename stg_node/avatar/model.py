@@ -339,6 +339,7 @@ class AvatarModel(nn.Module):
         light: LightSpec | None = None,
         color_turns: tuple[TrainingColorTurns, int] | None = None,
         next_frame: tuple[PosedBones, spacetime.SpacetimeState] | None = None,
+        outward_normals: bool = False,
     ) -> PosedGaussians:
         """World-space Gaussians for one body pose at normalised time ``u``, seen from ``camera_center``.
 
@@ -350,7 +351,11 @@ class AvatarModel(nn.Module):
         rows only, the others' colours carried (color_cache.TrainingColorTurns).
         ``next_frame``: (bones, spacetime terms) of another frame whose centres of the same rows are
         wanted too (``PosedGaussians.next_means``: the flow loss's next frame, as :meth:`posed_means`
-        gives them): skinned in the same kernel pass, the weights computed once."""
+        gives them): skinned in the same kernel pass, the weights computed once.
+
+        ``outward_normals``: shading normals keep the side the disc initialisation gave them
+        (shading.outward_normals; the trainer's choice, ``model.normal_sign``); else every normal
+        faces the camera (renders)."""
         cfg = self.config
         table = self.table
         bones = bones or self.bones(body)
@@ -440,7 +445,8 @@ class AvatarModel(nn.Module):
         else:
             colors = sh_color(rows(table["sh"]), view_canonical, degree)
         if self.shading is not None:
-            normals = gaussian_normals(quats, scales, means, camera_center)
+            outward = outward_normals and cfg.init_flatness < 1.0  # only discs know their side
+            normals = gaussian_normals(quats, scales, means, camera_center, outward)
             root = None
             if light is not None and light.mode == "baked":
                 root = lbs.axis_angle_to_matrix(body.Rh[0]) @ lbs.axis_angle_to_matrix(body.poses[0, 0])
@@ -450,7 +456,10 @@ class AvatarModel(nn.Module):
                 visible = self.shading.occlusion.visibility(
                     means, normals, bone if index is None else bone[index], bones.transforms[0]
                 )
-            colors = self.shading(colors, normals, light, root, visible)
+            away = None  # discs seen from behind: their shade must not teach the light (shading.py)
+            if outward:
+                away = (normals.detach() * (camera_center.reshape(1, 3) - means).detach()).sum(dim=1) < 0
+            colors = self.shading(colors, normals, light, root, visible, away)
         return PosedGaussians(means, quats, scales, rows(opacity), colors, index, canonical, next_means)
 
     def _skin(

@@ -14,9 +14,13 @@ fixed in the world (the dataset's frame, the room), learned from the training cl
 everything else:
 
 - **Normal**: the Gaussian's shortest axis, turned by its posed rotation (skinning, then its own
-  rotation), flipped to face the camera: for a surface seen from outside the visible side faces
-  the viewer, and a splat's axis has no sign of its own. Gaussians start as flat discs along the
-  body surface (``model.init_flatness``) so the shortest axis is the surface normal from the start.
+  rotation). Gaussians start as flat discs along the body surface (``model.init_flatness``) so the
+  shortest axis is the surface normal from the start. Its sign: in renders, flipped to face the
+  camera (for a surface seen from outside the visible side faces the viewer); in training, with
+  ``model.normal_sign = outward`` (off by default: flat light is worse with it), the side the disc
+  was initialised with (:func:`outward_normals`), so the albedo does not learn to undo the flips
+  of the training camera's silhouettes, which a turned body would show; a disc seen from behind
+  then teaches the light nothing (``away`` in :meth:`Shading.forward`).
 - **Light**, fixed in the world and learned from the training clip with everything else; its
   mean over all directions is held at ``E = 1``, so brightness and colour of the surface stay in
   the albedo and albedo and light cannot trade a common scale. Two models (``model.light_model``):
@@ -205,25 +209,63 @@ def parse_light(text: str | None) -> LightSpec:
 
 
 def gaussian_normals(
-    quats: torch.Tensor, scales: torch.Tensor, means: torch.Tensor, camera_center: torch.Tensor
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    means: torch.Tensor,
+    camera_center: torch.Tensor,
+    outward: bool = False,
 ) -> torch.Tensor:
     """(M, 3) unit world normals: each Gaussian's shortest axis turned by its world rotation
     ``quats`` (M, 4, unit wxyz), flipped to face ``camera_center`` (3,). Where the kernels run,
     the fused kernel (stg_node.splat.skin_ops.gaussian_normals: the same operations in one pass,
     equal to float rounding, its backward written out); the gradient reaches ``quats`` only (the
-    axis and the sign are constants for it)."""
+    axis and the sign are constants for it).
+
+    ``outward``: a Gaussian whose shortest axis is its local z axis keeps that axis's sign (the
+    disc initialisation points it out of the body: :func:`outward_normals`); the others are
+    flipped to face the camera as above."""
+    if outward:
+        return outward_normals(quats, scales, means, camera_center)
     if kernels.use_kernels(quats, scales, means, camera_center):
         from stg_node.splat import skin_ops
 
         return skin_ops.gaussian_normals(quats, scales, means, camera_center)
+    normal = shortest_axes(quats, scales)
+    toward = (camera_center.reshape(1, 3) - means).detach()
+    sign = torch.where((normal.detach() * toward).sum(dim=1, keepdim=True) < 0, -1.0, 1.0)
+    return normal * sign
+
+
+def outward_normals(
+    quats: torch.Tensor, scales: torch.Tensor, means: torch.Tensor, camera_center: torch.Tensor
+) -> torch.Tensor:
+    """(M, 3) unit world normals signed by the body rather than by the camera.
+
+    A disc initialised on the body surface (``model.init_flatness`` < 1, gaussians.new_columns)
+    has its local +z axis along the surface's outward normal, and learning turns it continuously:
+    while z stays the shortest axis, +z is where the surface faces. Flipping every normal towards
+    the camera instead gives a Gaussian at a silhouette (its normal nearly across the line of
+    sight) a sign that depends on the viewer, and the shade of the side facing away from the light:
+    the albedo learns to undo that for the training camera and orientation only, and a turned body
+    shows it (docs/AVATAR.md, "Which way a normal points"). Gaussians whose shortest axis is
+    another one (re-sampled spheres, a disc that grew thin along x or y) have no side of their
+    own and are flipped to face the camera."""
+    normal = shortest_axes(quats, scales)
+    shortest = scales.detach().argmin(dim=1, keepdim=True)
+    toward = (camera_center.reshape(1, 3) - means).detach()
+    facing = (normal.detach() * toward).sum(dim=1, keepdim=True) >= 0
+    sign = torch.where((shortest == 2) | facing, 1.0, -1.0).to(normal.dtype)
+    return normal * sign
+
+
+def shortest_axes(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
+    """(M, 3) unit shortest axis of each Gaussian (rotation ``quats`` (M, 4, unit wxyz), ``scales``
+    (M, 3)) in the frame of its rotation, without a sign of its own."""
     axis = torch.zeros_like(scales)
     axis.scatter_(1, scales.detach().argmin(dim=1, keepdim=True), 1.0)
     w, u = quats[:, :1], quats[:, 1:]
     uv = torch.linalg.cross(u, axis)
-    normal = axis + 2.0 * (w * uv + torch.linalg.cross(u, uv))  # rotate(quats, axis)
-    toward = (camera_center.reshape(1, 3) - means).detach()
-    sign = torch.where((normal.detach() * toward).sum(dim=1, keepdim=True) < 0, -1.0, 1.0)
-    return normal * sign
+    return axis + 2.0 * (w * uv + torch.linalg.cross(u, uv))  # rotate(quats, axis)
 
 
 def polar_rotation(matrix: np.ndarray) -> np.ndarray:
@@ -336,11 +378,14 @@ class Shading(nn.Module):
         light: LightSpec | None = None,
         root_rotation: torch.Tensor | None = None,
         visible: torch.Tensor | None = None,
+        away: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """Shaded colours (M, 3) of ``albedo`` (M, 3) with world ``normals`` (M, 3) under ``light``.
 
         ``root_rotation`` (3, 3): the body's world orientation this frame (the ``baked`` mode).
         ``visible`` (M,): the share of each Gaussian's sky the body leaves open (occlusion.py).
+        ``away`` (M,) bool: rows whose normal faces away from the camera (training with outward
+        normals): their shade passes no gradient to the light or to their normals.
         """
         mode = "learned" if light is None else light.mode
         if mode == "albedo":
@@ -354,4 +399,7 @@ class Shading(nn.Module):
                 raise ValueError("the baked light needs the body's root orientation")
             # The normal as it would point had the body kept its mean training orientation.
             normals = normals @ root_rotation.to(normals) @ self.reference.T.to(normals)
-        return albedo * self.light.irradiance(normals)
+        light = self.light.irradiance(normals)
+        if away is not None:  # these rows' shade teaches the light nothing (outward_normals)
+            light = torch.where(away[:, None], light.detach(), light)
+        return albedo * light

@@ -42,6 +42,7 @@ import torch
 from stg_node.avatar.config import (
     COLOR_MODES,
     LIGHT_MODELS,
+    NORMAL_SIGNS,
     PREDATING_DEFAULTS,
     SKIN_INIT,
     ModelConfig,
@@ -59,6 +60,7 @@ _STRING_CHOICES = {
     "color": COLOR_MODES,
     "skin_init": SKIN_INIT,
     "light_model": LIGHT_MODELS,
+    "normal_sign": NORMAL_SIGNS,
 }
 
 

@@ -417,6 +417,7 @@ class Trainer:
             camera=camera,
             color_turns=None if self.color_turns is None else (self.color_turns, it),
             next_frame=next_frame,
+            outward_normals=c.model.normal_sign == "outward",
         )
         timer.mark("pose")
 

@@ -21,6 +21,7 @@ from stg_node.avatar.shading import (
     directional_irradiance,
     gaussian_normals,
     irradiance,
+    outward_normals,
     parse_light,
 )
 
@@ -119,6 +120,94 @@ def test_a_lambertian_sphere_of_gaussian_discs_renders_the_closed_form_shading()
     centre = image[30:34, 30:34].reshape(-1, 3).mean(0) / alpha[30:34, 30:34].mean()
     expected = 0.5 * _closed_form_irradiance(np.array([[0.0, -1.0, 0.0]]))[0]
     np.testing.assert_allclose(centre.numpy(), expected, rtol=0.02)
+
+
+def _sphere_of_discs(n: int = 6000):
+    w = torch.as_tensor(_sphere_directions(n), dtype=torch.float32)
+    scales = torch.tensor([0.05, 0.05, 0.005]).expand(n, 3).clone()  # discs: z is the thin axis
+    return w, quaternion_z_to(w), scales
+
+
+def test_outward_normals_keep_the_disc_side_wherever_the_camera_is():
+    """Discs tangent to a sphere, +z out (as the initialisation lays them on the body): outward
+    normals are the sphere's outward normals on both sides and stay so when the sphere turns; a
+    Gaussian whose shortest axis is not z has no side of its own and faces the camera."""
+    w, quats, scales = _sphere_of_discs(500)
+    eye = torch.tensor([0.0, -4.0, 0.0])
+    np.testing.assert_allclose(outward_normals(quats, scales, w, eye).numpy(), w.numpy(), atol=1e-5)
+    np.testing.assert_allclose(
+        gaussian_normals(quats, scales, w, eye, outward=True).numpy(), w.numpy(), atol=1e-5
+    )
+    turn = Rotation.from_euler("z", 150, degrees=True)
+    turned_quats = torch.as_tensor(
+        (turn * Rotation.from_quat(quats[:, [1, 2, 3, 0]].numpy())).as_quat()[:, [3, 0, 1, 2]],
+        dtype=torch.float32,
+    )
+    turned = w @ torch.as_tensor(turn.as_matrix(), dtype=torch.float32).T
+    np.testing.assert_allclose(
+        outward_normals(turned_quats, scales, turned, eye).numpy(), turned.numpy(), atol=1e-5
+    )
+    # Thin along x instead: the disc's side is unknown, so it is flipped towards the camera.
+    thin_x = torch.tensor([0.005, 0.05, 0.05]).expand(len(w), 3)
+    axes = torch.as_tensor(
+        Rotation.from_quat(quats[:, [1, 2, 3, 0]].numpy()).as_matrix()[:, :, 0], dtype=torch.float32
+    )
+    towards = torch.where(((eye - w) * axes).sum(1, keepdim=True) >= 0, axes, -axes)
+    np.testing.assert_allclose(outward_normals(quats, thin_x, w, eye).numpy(), towards.numpy(), atol=1e-5)
+
+
+def test_discs_seen_from_behind_teach_the_light_nothing():
+    """With outward normals a disc seen from behind is shaded by its own side, but its shade passes
+    no gradient to the light (or its normal): the light cannot learn to darken what the camera sees
+    of backs and silhouettes. The albedo still learns from it."""
+    shading = Shading("distant", 2)
+    normals = torch.nn.functional.normalize(
+        torch.randn(40, 3, generator=torch.Generator().manual_seed(1)), dim=1
+    )
+    normals.requires_grad_(True)
+    away = torch.zeros(40, dtype=torch.bool)
+    away[:20] = True
+    albedo = torch.rand(40, 3, requires_grad=True)
+    colors = shading(albedo, normals, away=away)
+    np.testing.assert_allclose(colors.detach().numpy(), shading(albedo, normals).detach().numpy())
+    colors[:20].sum().backward()
+    assert all(float(p.grad.abs().max()) == 0.0 for p in shading.light.parameters())
+    assert float(normals.grad[:20].abs().max()) == 0.0 and float(albedo.grad[:20].abs().min()) > 0.0
+    colors = shading(albedo, normals, away=away)
+    colors[20:].sum().backward()
+    assert all(float(p.grad.abs().max()) > 0.0 for p in shading.light.parameters())
+
+
+def test_outward_normals_light_the_silhouette_as_the_surface_there():
+    """A sphere lit from the side (+x, no ambient), seen along +y: at the right-hand silhouette the
+    surface faces the light. Discs just beyond the silhouette still show there; flipped towards the
+    camera they face away from the light and darken the rim, outward they stay lit."""
+    from stg_node.splat import rasterize
+
+    w, quats, scales = _sphere_of_discs(6000)
+    eye = torch.tensor([0.0, -4.0, 0.0])
+    light = LightSpec.distant((0.0, 0.0, 0.0), [(1.0, 0.0, 0.0)], [(1.0, 1.0, 1.0)])
+    view = torch.eye(4)
+    view[:3, :3] = torch.tensor([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])
+    view[:3, 3] = -view[:3, :3] @ eye
+    focal = 50.0
+    K = torch.tensor([[focal, 0, 31.5], [0, focal, 31.5], [0, 0, 1.0]])
+    rims = {}
+    for outward in (True, False):
+        normals = gaussian_normals(quats, scales, w, eye, outward=outward)
+        colors = Shading()(torch.full((len(w), 3), 0.5), normals, light)
+        opacities = torch.full((len(w),), 0.99)
+        image, alpha, _ = rasterize(w, quats, scales, opacities, colors, view, K, 64, 64, backend="torch")
+        # The rim: the right-most covered pixel of each row through the middle, where the surface
+        # seen faces +x, across the line of sight.
+        values = []
+        for row in range(29, 35):
+            last = int((alpha[row, :, 0] > 0.5).nonzero().max())
+            values.append(float(image[row, last, 0] / alpha[row, last, 0]))
+        rims[outward] = float(np.mean(values))
+    # Albedo 0.5 x cos(angle between the rim's normal and +x), the angle under 30 degrees.
+    assert rims[True] > 0.5 * math.cos(math.radians(30))
+    assert rims[False] < rims[True] - 0.03
 
 
 @pytest.mark.parametrize("light_model", ["distant", "sh"])
@@ -386,3 +475,48 @@ def test_models_and_configurations_from_before_shading_load_as_they_were_made(ti
     assert config.model.shading is False and config.model.init_flatness == 1.0
     assert config.loss.isometry == 0.0
     assert TrainConfig.from_dict(trainer.config.to_dict()) == trainer.config  # today's round-trips
+
+
+def test_training_shades_outward_normals_and_renders_face_the_viewer(tiny_frames, monkeypatch):
+    """model.normal_sign decides the sign of the normals training lights (towards the training
+    camera by default, the disc's own side with "outward"); renders face every normal to the viewer;
+    a configuration or snapshot from before the setting trained with normals facing the camera."""
+    import dataclasses
+
+    from avatar_helpers import small_config
+
+    from stg_node.avatar import model as model_module
+    from stg_node.avatar.config import TrainConfig
+    from stg_node.avatar.renderer import AvatarRenderer
+    from stg_node.avatar.snapshot import model_from_snapshot
+    from stg_node.avatar.trainer import Trainer
+
+    seen = []
+    real = model_module.gaussian_normals
+
+    def spy(quats, scales, means, camera_center, outward=False):
+        seen.append(outward)
+        return real(quats, scales, means, camera_center, outward)
+
+    monkeypatch.setattr(model_module, "gaussian_normals", spy)
+    signs = {}
+    for sign in ("outward", "camera"):
+        trainer = Trainer(small_config(iterations=2).replace(**{"model.normal_sign": sign}), seed=0)
+        trainer.add_frames(tiny_frames[:2])
+        seen.clear()
+        trainer.step()
+        signs[sign] = set(seen)
+    assert signs == {"outward": {True}, "camera": {False}}
+    assert small_config().model.normal_sign == "camera"
+    frame = tiny_frames[0]
+    seen.clear()
+    AvatarRenderer(trainer.model).render(frame.camera, frame.smpl, frame.time)
+    assert seen == [False]
+    # What an older model or configuration (no such setting) was trained with.
+    msg = trainer.snapshot()
+    old_meta = {k: v for k, v in msg.meta.items() if k != "model.normal_sign"}
+    assert "model.normal_sign" in msg.meta
+    assert model_from_snapshot(dataclasses.replace(msg, meta=old_meta)).config.normal_sign == "camera"
+    data = trainer.config.to_dict()
+    del data["model"]["normal_sign"]
+    assert TrainConfig.from_dict(data).model.normal_sign == "camera"
