@@ -29,6 +29,7 @@ using stg_math::v8_store;
 using stg_math::v8f;
 
 constexpr int kBlock = 64;  // rows per block
+constexpr float kPi = 3.14159265358979323846f;
 
 // C[RT x 8CT] (+)= A[RT x K] B[K x 8CT], strides in floats.
 template <int RT, int CT>
@@ -156,6 +157,39 @@ PaddedWeights pad_weights(const MlpShape& s, const float* const* weights, const 
     return p;
 }
 
+// One raw row -> its encoded row (see MlpShape), padding columns [dims[0], ld) set to zero.
+void encode_row(const MlpShape& s, const float* raw, float* dst, int ld) {
+    const int c = s.enc_cols, f = s.enc_freqs, d0 = s.dims[0];
+    float* sines = dst + c;
+    float* cosines = sines + c * f;
+    for (int i = 0; i < c; ++i) {
+        dst[i] = raw[i];
+        for (int k = 0; k < f; ++k) {
+            // the scale 2^k pi rounded to float, then the product in float: as torch forms it
+            const float angle = raw[i] * std::ldexp(kPi, k);
+            sines[i * f + k] = std::sin(angle);
+            cosines[i * f + k] = std::cos(angle);
+        }
+    }
+    std::copy(raw + c, raw + raw_width(s), cosines + c * f);
+    std::fill(dst + d0, dst + ld, 0.0f);
+}
+
+// dL/d(raw row) from dL/d(encoded row) `g` and the encoded row `e` (its sines and cosines):
+// dL/dx_i = g_i + sum_k 2^k pi (g_sin_ik cos_ik - g_cos_ik sin_ik); the rest passes through.
+void encode_row_backward(const MlpShape& s, const float* e, const float* g, float* g_raw) {
+    const int c = s.enc_cols, f = s.enc_freqs, cf = c * f;
+    for (int i = 0; i < c; ++i) {
+        float sum = g[i];
+        for (int k = 0; k < f; ++k) {
+            const int j = c + i * f + k;
+            sum += std::ldexp(kPi, k) * (g[j] * e[j + cf] - g[j + cf] * e[j]);
+        }
+        g_raw[i] = sum;
+    }
+    std::copy(g + c + 2 * cf, g + s.dims[0], g_raw + c);
+}
+
 }  // namespace
 
 void mlp_forward(const MlpShape& s, const float* x, const float* const* weights,
@@ -169,12 +203,21 @@ void mlp_forward(const MlpShape& s, const float* x, const float* const* weights,
     {
         // two ping-pong buffers for the layers whose outputs are not kept
         std::vector<float> buf0(static_cast<size_t>(kBlock) * widest), buf1(buf0.size());
+        // the block's encoded input rows, when the kernel encodes its input
+        std::vector<float> enc(s.enc_cols > 0 ? static_cast<size_t>(kBlock) * padded(s.dims[0]) : 0);
+        const int raw0 = raw_width(s);
 #pragma omp for schedule(static)
         for (int64_t blk = 0; blk < blocks; ++blk) {
             const int64_t r0 = blk * kBlock;
             const int rows = static_cast<int>(std::min<int64_t>(kBlock, s.rows - r0));
-            const float* in = x + r0 * s.dims[0];
-            int64_t ld_in = s.dims[0];
+            const float* in = x + r0 * raw0;
+            int64_t ld_in = raw0;
+            if (s.enc_cols > 0) {
+                const int ld = padded(s.dims[0]);
+                for (int r = 0; r < rows; ++r) encode_row(s, x + (r0 + r) * raw0, enc.data() + r * ld, ld);
+                in = enc.data();
+                ld_in = ld;
+            }
             for (int l = 0; l < L; ++l) {
                 const int dout = s.dims[l + 1], ld = padded(dout);
                 float* y;
@@ -200,7 +243,7 @@ void mlp_backward(const MlpShape& s, const float* x, const float* const* weights
                   float* const* g_weights, float* const* g_biases) {
     const int L = s.layers;
     const int threads = std::max(1, s.threads);
-    const int d0 = s.dims[0], dl = s.dims[L];
+    const int d0 = s.dims[0], dl = s.dims[L], raw0 = raw_width(s);
     const PaddedWeights p = pad_weights(s, weights, nullptr, false, true);
     // Rows with a non-zero output gradient; the others contribute nothing.
     std::vector<int64_t> active;
@@ -210,7 +253,7 @@ void mlp_backward(const MlpShape& s, const float* x, const float* const* weights
         bool any = false;
         for (int j = 0; j < dl; ++j) any |= g[j] != 0.0f;
         if (any) active.push_back(r);
-        else if (g_x != nullptr) std::fill(g_x + r * d0, g_x + (r + 1) * d0, 0.0f);
+        else if (g_x != nullptr) std::fill(g_x + r * raw0, g_x + (r + 1) * raw0, 0.0f);
     }
     const int64_t n_active = static_cast<int64_t>(active.size());
     const int64_t blocks = (n_active + kBlock - 1) / kBlock;
@@ -244,6 +287,10 @@ void mlp_backward(const MlpShape& s, const float* x, const float* const* weights
                 const int ld = padded(d0);
                 for (int r = 0; r < rows; ++r) {
                     float* dst = h[0].data() + static_cast<size_t>(r) * ld;
+                    if (s.enc_cols > 0) {
+                        encode_row(s, x + idx[r] * raw0, dst, ld);
+                        continue;
+                    }
                     std::copy(x + idx[r] * d0, x + (idx[r] + 1) * d0, dst);
                     std::fill(dst + d0, dst + ld, 0.0f);
                 }
@@ -281,9 +328,13 @@ void mlp_backward(const MlpShape& s, const float* x, const float* const* weights
                 // gh = gz W_l (rows x padded(din))
                 gemm(rows, ldi, dout, gz.data(), ldo, p.wp[l].data(), ldi, gh.data(), ldi, false);
                 if (l == 0) {
-                    for (int r = 0; r < rows; ++r)
-                        std::copy(gh.data() + static_cast<size_t>(r) * ldi,
-                                  gh.data() + static_cast<size_t>(r) * ldi + din, g_x + idx[r] * d0);
+                    for (int r = 0; r < rows; ++r) {
+                        const float* g = gh.data() + static_cast<size_t>(r) * ldi;
+                        if (s.enc_cols > 0)
+                            encode_row_backward(s, h[0].data() + static_cast<size_t>(r) * ldi, g, g_x + idx[r] * raw0);
+                        else
+                            std::copy(g, g + din, g_x + idx[r] * d0);
+                    }
                     break;
                 }
                 // gz for the layer below: gh * act'_{l-1}(its output, = h[l])
