@@ -22,9 +22,8 @@ tensor built and differentiated op by op in torch. :func:`encode_inputs` is its 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import math
+from dataclasses import dataclass
 
 import torch
 from torch import nn
