@@ -157,18 +157,43 @@ PaddedWeights pad_weights(const MlpShape& s, const float* const* weights, const 
     return p;
 }
 
+// sin and cos of a (|a| well under 1e6) in double, without a libm call: the quadrant by the
+// nearest multiple of pi/2, then Taylor polynomials on [-pi/4, pi/4] (error under 1e-13).
+inline void sincos_double(double a, double* sin_out, double* cos_out) {
+    const double q = std::nearbyint(a * 0.63661977236758134308);  // 2 / pi
+    const double r = a - q * 1.57079632679489661923;
+    const double r2 = r * r;
+    const double sr =
+        r * (1.0 + r2 * (-1.0 / 6 + r2 * (1.0 / 120 + r2 * (-1.0 / 5040 + r2 * (1.0 / 362880 +
+        r2 * (-1.0 / 39916800 + r2 * (1.0 / 6227020800.0)))))));
+    const double cr = 1.0 + r2 * (-1.0 / 2 + r2 * (1.0 / 24 + r2 * (-1.0 / 720 + r2 * (1.0 / 40320 +
+                      r2 * (-1.0 / 3628800 + r2 * (1.0 / 479001600.0 + r2 * (-1.0 / 87178291200.0)))))));
+    // a = r + quadrant pi/2: (sin, cos) = (sr, cr), (cr, -sr), (-sr, -cr), (-cr, sr)
+    const int64_t quadrant = static_cast<int64_t>(q) & 3;
+    const double s = (quadrant & 1) ? cr : sr;
+    const double c = (quadrant & 1) ? sr : cr;
+    *sin_out = (quadrant & 2) ? -s : s;
+    *cos_out = ((quadrant + 1) & 2) ? -c : c;
+}
+
 // One raw row -> its encoded row (see MlpShape), padding columns [dims[0], ld) set to zero.
+// torch's angle 2^k pi x is float(x * float(pi)) times 2^k exactly, so each frequency's sine and
+// cosine follow from the first's by the double-angle formulas, carried in double and rounded once
+// (one polynomial per column instead of 2 x freqs libm calls).
 void encode_row(const MlpShape& s, const float* raw, float* dst, int ld) {
     const int c = s.enc_cols, f = s.enc_freqs, d0 = s.dims[0];
     float* sines = dst + c;
     float* cosines = sines + c * f;
     for (int i = 0; i < c; ++i) {
         dst[i] = raw[i];
+        double sn, cs;
+        sincos_double(static_cast<double>(raw[i] * kPi), &sn, &cs);
         for (int k = 0; k < f; ++k) {
-            // the scale 2^k pi rounded to float, then the product in float: as torch forms it
-            const float angle = raw[i] * std::ldexp(kPi, k);
-            sines[i * f + k] = std::sin(angle);
-            cosines[i * f + k] = std::cos(angle);
+            sines[i * f + k] = static_cast<float>(sn);
+            cosines[i * f + k] = static_cast<float>(cs);
+            const double doubled_sin = 2.0 * sn * cs;
+            cs = (cs - sn) * (cs + sn);
+            sn = doubled_sin;
         }
     }
     std::copy(raw + c, raw + raw_width(s), cosines + c * f);
