@@ -157,8 +157,9 @@ PaddedWeights pad_weights(const MlpShape& s, const float* const* weights, const 
     return p;
 }
 
-// sin and cos of a (|a| well under 1e6) in double, without a libm call: the quadrant by the
-// nearest multiple of pi/2, then Taylor polynomials on [-pi/4, pi/4] (error under 1e-13).
+// sin and cos of a (|a| well under 1e6) in double, without a libm call or a branch (loops over it
+// vectorise): the quadrant by the nearest multiple of pi/2, then Taylor polynomials on
+// [-pi/4, pi/4] (error under 1e-13).
 inline void sincos_double(double a, double* sin_out, double* cos_out) {
     const double q = std::nearbyint(a * 0.63661977236758134308);  // 2 / pi
     const double r = a - q * 1.57079632679489661923;
@@ -169,35 +170,47 @@ inline void sincos_double(double a, double* sin_out, double* cos_out) {
     const double cr = 1.0 + r2 * (-1.0 / 2 + r2 * (1.0 / 24 + r2 * (-1.0 / 720 + r2 * (1.0 / 40320 +
                       r2 * (-1.0 / 3628800 + r2 * (1.0 / 479001600.0 + r2 * (-1.0 / 87178291200.0)))))));
     // a = r + quadrant pi/2: (sin, cos) = (sr, cr), (cr, -sr), (-sr, -cr), (-cr, sr)
-    const int64_t quadrant = static_cast<int64_t>(q) & 3;
-    const double s = (quadrant & 1) ? cr : sr;
-    const double c = (quadrant & 1) ? sr : cr;
-    *sin_out = (quadrant & 2) ? -s : s;
-    *cos_out = ((quadrant + 1) & 2) ? -c : c;
+    const double quadrant = q - 4.0 * std::floor(q * 0.25);  // 0, 1, 2 or 3
+    const bool odd = quadrant == 1.0 || quadrant == 3.0;
+    const double s = odd ? cr : sr;
+    const double c = odd ? sr : cr;
+    *sin_out = quadrant >= 2.0 ? -s : s;
+    *cos_out = (quadrant == 1.0 || quadrant == 2.0) ? -c : c;
 }
 
-// One raw row -> its encoded row (see MlpShape), padding columns [dims[0], ld) set to zero.
-// torch's angle 2^k pi x is float(x * float(pi)) times 2^k exactly, so each frequency's sine and
-// cosine follow from the first's by the double-angle formulas, carried in double and rounded once
-// (one polynomial per column instead of 2 x freqs libm calls).
-void encode_row(const MlpShape& s, const float* raw, float* dst, int ld) {
-    const int c = s.enc_cols, f = s.enc_freqs, d0 = s.dims[0];
-    float* sines = dst + c;
-    float* cosines = sines + c * f;
+// `rows` raw rows (row r at raw + row(r) * raw_width) -> their encoded rows (see MlpShape) at
+// dst (stride ld), padding columns [dims[0], ld) set to zero. torch's angle 2^k pi x is
+// float(x * float(pi)) times 2^k exactly, so each frequency's sine and cosine follow from the
+// first's by the double-angle formulas, carried in double and rounded once (one polynomial per
+// value, over the block's rows at once, instead of 2 x freqs libm calls).
+template <typename RowOf>
+void encode_rows(const MlpShape& s, const float* raw, int rows, RowOf row, float* dst, int ld) {
+    const int c = s.enc_cols, f = s.enc_freqs, d0 = s.dims[0], raw0 = raw_width(s), cf = c * f;
+    double sn[kBlock], cs[kBlock];
     for (int i = 0; i < c; ++i) {
-        dst[i] = raw[i];
-        double sn, cs;
-        sincos_double(static_cast<double>(raw[i] * kPi), &sn, &cs);
+#pragma omp simd
+        for (int r = 0; r < rows; ++r)
+            sincos_double(static_cast<double>(raw[row(r) * raw0 + i] * kPi), &sn[r], &cs[r]);
         for (int k = 0; k < f; ++k) {
-            sines[i * f + k] = static_cast<float>(sn);
-            cosines[i * f + k] = static_cast<float>(cs);
-            const double doubled_sin = 2.0 * sn * cs;
-            cs = (cs - sn) * (cs + sn);
-            sn = doubled_sin;
+            const int j = c + i * f + k;
+#pragma omp simd
+            for (int r = 0; r < rows; ++r) {
+                float* e = dst + static_cast<int64_t>(r) * ld;
+                e[j] = static_cast<float>(sn[r]);
+                e[j + cf] = static_cast<float>(cs[r]);
+                const double doubled_sin = 2.0 * sn[r] * cs[r];
+                cs[r] = (cs[r] - sn[r]) * (cs[r] + sn[r]);
+                sn[r] = doubled_sin;
+            }
         }
     }
-    std::copy(raw + c, raw + raw_width(s), cosines + c * f);
-    std::fill(dst + d0, dst + ld, 0.0f);
+    for (int r = 0; r < rows; ++r) {
+        const float* in = raw + row(r) * raw0;
+        float* e = dst + static_cast<int64_t>(r) * ld;
+        std::copy(in, in + c, e);
+        std::copy(in + c, in + raw0, e + c + 2 * cf);
+        std::fill(e + d0, e + ld, 0.0f);
+    }
 }
 
 // dL/d(raw row) from dL/d(encoded row) `g` and the encoded row `e` (its sines and cosines):
@@ -206,9 +219,10 @@ void encode_row_backward(const MlpShape& s, const float* e, const float* g, floa
     const int c = s.enc_cols, f = s.enc_freqs, cf = c * f;
     for (int i = 0; i < c; ++i) {
         float sum = g[i];
-        for (int k = 0; k < f; ++k) {
+        float scale = kPi;  // 2^k pi
+        for (int k = 0; k < f; ++k, scale *= 2.0f) {
             const int j = c + i * f + k;
-            sum += std::ldexp(kPi, k) * (g[j] * e[j + cf] - g[j + cf] * e[j]);
+            sum += scale * (g[j] * e[j + cf] - g[j + cf] * e[j]);
         }
         g_raw[i] = sum;
     }
@@ -239,7 +253,7 @@ void mlp_forward(const MlpShape& s, const float* x, const float* const* weights,
             int64_t ld_in = raw0;
             if (s.enc_cols > 0) {
                 const int ld = padded(s.dims[0]);
-                for (int r = 0; r < rows; ++r) encode_row(s, x + (r0 + r) * raw0, enc.data() + r * ld, ld);
+                encode_rows(s, x, rows, [r0](int r) { return r0 + r; }, enc.data(), ld);
                 in = enc.data();
                 ld_in = ld;
             }
@@ -310,14 +324,14 @@ void mlp_backward(const MlpShape& s, const float* x, const float* const* weights
             // gather: h[0] = x rows (padded), h[l] = hidden[l-1] rows
             {
                 const int ld = padded(d0);
-                for (int r = 0; r < rows; ++r) {
-                    float* dst = h[0].data() + static_cast<size_t>(r) * ld;
-                    if (s.enc_cols > 0) {
-                        encode_row(s, x + idx[r] * raw0, dst, ld);
-                        continue;
+                if (s.enc_cols > 0) {
+                    encode_rows(s, x, rows, [idx](int r) { return idx[r]; }, h[0].data(), ld);
+                } else {
+                    for (int r = 0; r < rows; ++r) {
+                        float* dst = h[0].data() + static_cast<size_t>(r) * ld;
+                        std::copy(x + idx[r] * d0, x + (idx[r] + 1) * d0, dst);
+                        std::fill(dst + d0, dst + ld, 0.0f);
                     }
-                    std::copy(x + idx[r] * d0, x + (idx[r] + 1) * d0, dst);
-                    std::fill(dst + d0, dst + ld, 0.0f);
                 }
             }
             for (int l = 1; l < L; ++l) {
