@@ -23,17 +23,23 @@ def network(widths, activations, bias=True, seed=0):
     return nn.Sequential(*layers).double()
 
 
-def compare(net, rows=517, output_activation="identity", zero_rows=False, seed=1):
-    """Kernel (float32) against torch.nn (float64): outputs and every gradient."""
+def compare(net, rows=517, output_activation="identity", zero_rows=False, seed=1, encoding=None):
+    """Kernel (float32) against torch.nn (float64): outputs and every gradient. With an
+    ``encoding``, the raw rows (in [-1, 1], as a positional encoding expects them) go to both."""
     gen = torch.Generator().manual_seed(seed)
-    x = torch.randn(rows, net[0].in_features, generator=gen, dtype=torch.float64)
+    width = net[0].in_features
+    if encoding is None:
+        x = torch.randn(rows, width, generator=gen, dtype=torch.float64)
+    else:
+        width -= 2 * encoding.columns * encoding.freqs
+        x = torch.rand(rows, width, generator=gen, dtype=torch.float64) * 2.0 - 1.0
     layers64 = mlp_ops.layers_of(net, output_activation)
     out_dim = layers64[-1].weight.shape[0]
     g = torch.randn(rows, out_dim, generator=gen, dtype=torch.float64)
     if zero_rows:
         g[::3] = 0.0  # rows that drew nothing: skipped by the backward pass
     x64 = x.clone().requires_grad_(True)
-    ref = mlp_ops.mlp_torch(x64, layers64)
+    ref = mlp_ops.mlp_torch(x64, layers64, encoding)
     params64 = [x64] + list(net.parameters())
     ref_grads = torch.autograd.grad((ref * g).sum(), params64)
 
@@ -45,7 +51,7 @@ def compare(net, rows=517, output_activation="identity", zero_rows=False, seed=1
         i += 2 if layer.bias is not None else 1
         layers32.append(mlp_ops.Layer(w, b, layer.activation))
     x32 = x.float().requires_grad_(True)
-    out = mlp_ops.mlp(x32, layers32)
+    out = mlp_ops.mlp(x32, layers32, encoding)
     grads = torch.autograd.grad((out * g.float()).sum(), [x32] + net32)
     torch.testing.assert_close(out.double(), ref, atol=2e-5, rtol=1e-4)
     for got, want in zip(grads, ref_grads, strict=False):
@@ -83,6 +89,46 @@ def test_a_block_remainder_and_a_single_row():
     net = network((12, 16, 4), ("relu", "identity"))
     for rows in (1, 63, 64, 65, 130):
         compare(net, rows=rows, seed=rows)
+
+
+@pytest.mark.parametrize(
+    "columns, freqs, rest",
+    [
+        (3, 4, 32),  # the avatar's colour MLP: gamma(canonical centre), feature, SH basis
+        (3, 1, 0),  # nothing but the encoded columns
+        (2, 6, 5),  # widths that are no multiple of 8
+        (7, 3, 1),
+    ],
+)
+def test_the_kernels_input_encoding_matches_torch_in_float64(columns, freqs, rest):
+    """The sin/cos encoding built inside the kernel: the values and the gradients of the raw
+    inputs (the encoded and the passed-through columns), weights and biases, against float64
+    autograd through encode_inputs + torch.nn."""
+    encoding = mlp_ops.InputEncoding(columns, freqs)
+    net = network((encoding.width(columns + rest), 64, 64, 3), ("relu", "relu", "identity"), seed=columns)
+    compare(net, output_activation="sigmoid", encoding=encoding, zero_rows=True)
+    for rows in (1, 65):
+        compare(net, rows=rows, encoding=encoding, seed=rows)
+
+
+def test_the_input_encoding_is_the_colour_mlps():
+    """encode_inputs lays the columns out as the avatar's encoded_inputs does (one layout for the
+    kernel and the torch path, so a trained network reads the same inputs on either)."""
+    from stg_node.avatar.color import encoded_inputs
+
+    x, rest = torch.rand(9, 3) * 2 - 1, torch.randn(9, 5)
+    got = mlp_ops.encode_inputs(torch.cat([x, rest], 1), mlp_ops.InputEncoding(3, 4))
+    assert torch.equal(got, encoded_inputs(x, 4, rest))
+
+
+def test_an_input_encoding_that_does_not_fit_is_refused():
+    layer = mlp_ops.Layer(torch.randn(4, 11), torch.randn(4))
+    with pytest.raises(ValueError, match="columns"):
+        mlp_ops.mlp(torch.randn(5, 2), [layer], mlp_ops.InputEncoding(3, 1))
+    with pytest.raises(ValueError, match="weight"):
+        mlp_ops.mlp(torch.randn(5, 3), [layer], mlp_ops.InputEncoding(3, 2))  # 15 wide, not 11
+    with pytest.raises(ValueError, match="freqs"):
+        mlp_ops.InputEncoding(3, 0)
 
 
 def test_two_threads_give_the_one_thread_result():

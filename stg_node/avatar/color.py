@@ -173,7 +173,9 @@ class ColorMLP(nn.Module):
             if pose is not None:  # the same pose code in every row: folded into the first bias
                 start = x.shape[1] * (1 + 2 * freqs) + features.shape[1]
                 layers = mlp_ops.fold_constant_inputs(layers, slice(start, start + pose.shape[1]), pose[0])
-            return mlp_ops.mlp(encoded_inputs(x, freqs, features, basis), layers)
+            # the kernel builds gamma(x) itself, block by block (mlp_ops.InputEncoding)
+            encoding = mlp_ops.InputEncoding(x.shape[1], freqs) if freqs > 0 else None
+            return mlp_ops.mlp(torch.cat([x, features, basis], dim=-1), layers, encoding)
         parts = [positional_encoding(x, freqs), features]
         if pose is not None:
             parts.append(pose.expand(n, -1))

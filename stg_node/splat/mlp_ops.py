@@ -13,10 +13,16 @@ Any stack of ``torch.nn.Linear`` layers, each followed by one of ReLU, Sigmoid, 
 the tests compare against, in values and in gradients (inputs, weights and biases).
 :func:`mlp_kernel_applies` says whether the kernel takes a call (float32 CPU tensors, kernels
 built); callers keep the module itself for everything else.
+
+An :class:`InputEncoding` has the kernel build the network's input itself, block by block in the
+caches: the sin/cos positional encoding of the first columns (a NeRF-style gamma(x)) and the other
+columns passed through, so a caller hands it the raw rows instead of a (rows x encoded width)
+tensor built and differentiated op by op in torch. :func:`encode_inputs` is its reference.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -36,6 +42,36 @@ class Layer:
     weight: torch.Tensor
     bias: torch.Tensor | None
     activation: str = "identity"
+
+
+@dataclass(frozen=True)
+class InputEncoding:
+    """The first ``columns`` input columns x_i enter the network as
+    ``[x_i, sin(2^k pi x_i), cos(2^k pi x_i)]_{k<freqs}``, ordered
+    ``[x_0..x_{c-1}, sines, cosines, other columns]`` with sine and cosine (i, k) at ``i * freqs + k``."""
+
+    columns: int
+    freqs: int
+
+    def __post_init__(self):
+        if self.columns < 1 or self.freqs < 1:
+            raise ValueError(f"an input encoding needs columns >= 1 and freqs >= 1, got {self}")
+
+    def width(self, raw_width: int) -> int:
+        """The encoded width of ``raw_width`` raw columns."""
+        return raw_width + 2 * self.columns * self.freqs
+
+
+def encode_inputs(x: torch.Tensor, encoding: InputEncoding | None) -> torch.Tensor:
+    """The reference of the kernel's input encoding (plain torch ops, any dtype, differentiable)."""
+    if encoding is None:
+        return x
+    if encoding.columns > x.shape[-1]:
+        raise ValueError(f"an encoding of {encoding.columns} columns needs as many, got {x.shape[-1]}")
+    scales = (2.0 ** torch.arange(encoding.freqs, dtype=x.dtype, device=x.device)) * math.pi
+    head, tail = x[..., : encoding.columns], x[..., encoding.columns :]
+    angles = (head[..., None] * scales).flatten(-2)
+    return torch.cat([head, torch.sin(angles), torch.cos(angles), tail], dim=-1)
 
 
 def layers_of(net: nn.Module, output_activation: str = "identity") -> list[Layer] | None:
@@ -81,8 +117,9 @@ def fold_constant_inputs(layers: list[Layer], columns: slice, values: torch.Tens
     return [Layer(kept, bias, first.activation), *layers[1:]]
 
 
-def mlp_torch(x: torch.Tensor, layers: list[Layer]) -> torch.Tensor:
-    """The reference: the same layers with torch.nn.functional (any device and dtype)."""
+def mlp_torch(x: torch.Tensor, layers: list[Layer], encoding: InputEncoding | None = None) -> torch.Tensor:
+    """The reference: the same encoding and layers with torch (any device and dtype)."""
+    x = encode_inputs(x, encoding)
     functions = {"identity": lambda t: t, "relu": torch.relu, "sigmoid": torch.sigmoid, "tanh": torch.tanh}
     for layer in layers:
         x = functions[layer.activation](nn.functional.linear(x, layer.weight, layer.bias))
@@ -100,21 +137,21 @@ def _f32(t: torch.Tensor) -> torch.Tensor:
 
 class _Mlp(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, x, acts, grad, *params):
+    def forward(ctx, x, acts, enc, grad, *params):
         ops = load_kernels().ops
         count = len(acts)
         xs = _f32(x)
         weights = [_f32(w) for w in params[:count]]
         biases = [torch.empty(0) if b is None else _f32(b) for b in params[count:]]
-        out, hidden = ops.mlp_fwd(xs, weights, biases, list(acts), grad, torch.get_num_threads())
+        out, hidden = ops.mlp_fwd(xs, weights, biases, list(acts), *enc, grad, torch.get_num_threads())
         if grad:
             ctx.save_for_backward(xs, out, *weights, *biases, *hidden)
-        ctx.args = (acts, [b is not None for b in params[count:]])
+        ctx.args = (acts, enc, [b is not None for b in params[count:]])
         return out
 
     @staticmethod
     def backward(ctx, g_out):
-        acts, has_bias = ctx.args
+        acts, enc, has_bias = ctx.args
         count = len(acts)
         saved = ctx.saved_tensors
         xs, out = saved[0], saved[1]
@@ -124,17 +161,18 @@ class _Mlp(torch.autograd.Function):
         ops = load_kernels().ops
         want_gx = ctx.needs_input_grad[0]
         g_x, g_w, g_b = ops.mlp_bwd(
-            xs, weights, biases, list(acts), hidden, out, _f32(g_out), want_gx, torch.get_num_threads()
+            xs, weights, biases, list(acts), *enc, hidden, out, _f32(g_out), want_gx, torch.get_num_threads()
         )
-        grads_w = [g if ctx.needs_input_grad[3 + i] else None for i, g in enumerate(g_w)]
+        grads_w = [g if ctx.needs_input_grad[4 + i] else None for i, g in enumerate(g_w)]
         grads_b = [
-            g if has_bias[i] and ctx.needs_input_grad[3 + count + i] else None for i, g in enumerate(g_b)
+            g if has_bias[i] and ctx.needs_input_grad[4 + count + i] else None for i, g in enumerate(g_b)
         ]
-        return (g_x if want_gx else None, None, None, *grads_w, *grads_b)
+        return (g_x if want_gx else None, None, None, None, *grads_w, *grads_b)
 
 
-def mlp(x: torch.Tensor, layers: list[Layer]) -> torch.Tensor:
-    """``layers`` applied to the rows of ``x (N, in)`` with the C++ kernel -> ``(N, out)``.
+def mlp(x: torch.Tensor, layers: list[Layer], encoding: InputEncoding | None = None) -> torch.Tensor:
+    """``layers`` applied to the rows of ``x (N, in)`` with the C++ kernel -> ``(N, out)``; with an
+    ``encoding``, to the rows ``encode_inputs(x, encoding)``, built inside the kernel.
 
     Differentiable with respect to ``x`` and every weight and bias. Float32 CPU tensors (see
     :func:`mlp_kernel_applies`); computed in float32 like torch's own CPU path.
@@ -142,6 +180,12 @@ def mlp(x: torch.Tensor, layers: list[Layer]) -> torch.Tensor:
     if x.dim() != 2:
         raise ValueError(f"mlp takes (rows, features), got shape {tuple(x.shape)}")
     width = x.shape[1]
+    enc = (0, 0)
+    if encoding is not None:
+        if encoding.columns > width:
+            raise ValueError(f"an encoding of {encoding.columns} columns needs as many, got {width}")
+        enc = (encoding.columns, encoding.freqs)
+        width = encoding.width(width)
     for i, layer in enumerate(layers):
         if layer.weight.dim() != 2 or layer.weight.shape[1] != width:
             raise ValueError(f"layer {i}: weight must be (out, {width}), got {tuple(layer.weight.shape)}")
@@ -153,4 +197,4 @@ def mlp(x: torch.Tensor, layers: list[Layer]) -> torch.Tensor:
     acts = tuple(ACTIVATIONS[layer.activation] for layer in layers)
     params = [layer.weight for layer in layers] + [layer.bias for layer in layers]
     grad = torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in [x, *params])
-    return _Mlp.apply(x, acts, grad, *params)
+    return _Mlp.apply(x, acts, enc, grad, *params)

@@ -29,6 +29,7 @@ using stg_math::v8_store;
 using stg_math::v8f;
 
 constexpr int kBlock = 64;  // rows per block
+constexpr float kPi = 3.14159265358979323846f;
 
 // C[RT x 8CT] (+)= A[RT x K] B[K x 8CT], strides in floats.
 template <int RT, int CT>
@@ -156,6 +157,78 @@ PaddedWeights pad_weights(const MlpShape& s, const float* const* weights, const 
     return p;
 }
 
+// sin and cos of a (|a| well under 1e6) in double, without a libm call or a branch (loops over it
+// vectorise): the quadrant by the nearest multiple of pi/2, then Taylor polynomials on
+// [-pi/4, pi/4] (error under 1e-13).
+inline void sincos_double(double a, double* sin_out, double* cos_out) {
+    const double q = std::nearbyint(a * 0.63661977236758134308);  // 2 / pi
+    const double r = a - q * 1.57079632679489661923;
+    const double r2 = r * r;
+    const double sr =
+        r * (1.0 + r2 * (-1.0 / 6 + r2 * (1.0 / 120 + r2 * (-1.0 / 5040 + r2 * (1.0 / 362880 +
+        r2 * (-1.0 / 39916800 + r2 * (1.0 / 6227020800.0)))))));
+    const double cr = 1.0 + r2 * (-1.0 / 2 + r2 * (1.0 / 24 + r2 * (-1.0 / 720 + r2 * (1.0 / 40320 +
+                      r2 * (-1.0 / 3628800 + r2 * (1.0 / 479001600.0 + r2 * (-1.0 / 87178291200.0)))))));
+    // a = r + quadrant pi/2: (sin, cos) = (sr, cr), (cr, -sr), (-sr, -cr), (-cr, sr)
+    const double quadrant = q - 4.0 * std::floor(q * 0.25);  // 0, 1, 2 or 3
+    const bool odd = quadrant == 1.0 || quadrant == 3.0;
+    const double s = odd ? cr : sr;
+    const double c = odd ? sr : cr;
+    *sin_out = quadrant >= 2.0 ? -s : s;
+    *cos_out = (quadrant == 1.0 || quadrant == 2.0) ? -c : c;
+}
+
+// `rows` raw rows (row r at raw + row(r) * raw_width) -> their encoded rows (see MlpShape) at
+// dst (stride ld), padding columns [dims[0], ld) set to zero. torch's angle 2^k pi x is
+// float(x * float(pi)) times 2^k exactly, so each frequency's sine and cosine follow from the
+// first's by the double-angle formulas, carried in double and rounded once (one polynomial per
+// value, over the block's rows at once, instead of 2 x freqs libm calls).
+template <typename RowOf>
+void encode_rows(const MlpShape& s, const float* raw, int rows, RowOf row, float* dst, int ld) {
+    const int c = s.enc_cols, f = s.enc_freqs, d0 = s.dims[0], raw0 = raw_width(s), cf = c * f;
+    double sn[kBlock], cs[kBlock];
+    for (int i = 0; i < c; ++i) {
+#pragma omp simd
+        for (int r = 0; r < rows; ++r)
+            sincos_double(static_cast<double>(raw[row(r) * raw0 + i] * kPi), &sn[r], &cs[r]);
+        for (int k = 0; k < f; ++k) {
+            const int j = c + i * f + k;
+#pragma omp simd
+            for (int r = 0; r < rows; ++r) {
+                float* e = dst + static_cast<int64_t>(r) * ld;
+                e[j] = static_cast<float>(sn[r]);
+                e[j + cf] = static_cast<float>(cs[r]);
+                const double doubled_sin = 2.0 * sn[r] * cs[r];
+                cs[r] = (cs[r] - sn[r]) * (cs[r] + sn[r]);
+                sn[r] = doubled_sin;
+            }
+        }
+    }
+    for (int r = 0; r < rows; ++r) {
+        const float* in = raw + row(r) * raw0;
+        float* e = dst + static_cast<int64_t>(r) * ld;
+        std::copy(in, in + c, e);
+        std::copy(in + c, in + raw0, e + c + 2 * cf);
+        std::fill(e + d0, e + ld, 0.0f);
+    }
+}
+
+// dL/d(raw row) from dL/d(encoded row) `g` and the encoded row `e` (its sines and cosines):
+// dL/dx_i = g_i + sum_k 2^k pi (g_sin_ik cos_ik - g_cos_ik sin_ik); the rest passes through.
+void encode_row_backward(const MlpShape& s, const float* e, const float* g, float* g_raw) {
+    const int c = s.enc_cols, f = s.enc_freqs, cf = c * f;
+    for (int i = 0; i < c; ++i) {
+        float sum = g[i];
+        float scale = kPi;  // 2^k pi
+        for (int k = 0; k < f; ++k, scale *= 2.0f) {
+            const int j = c + i * f + k;
+            sum += scale * (g[j] * e[j + cf] - g[j + cf] * e[j]);
+        }
+        g_raw[i] = sum;
+    }
+    std::copy(g + c + 2 * cf, g + s.dims[0], g_raw + c);
+}
+
 }  // namespace
 
 void mlp_forward(const MlpShape& s, const float* x, const float* const* weights,
@@ -169,12 +242,21 @@ void mlp_forward(const MlpShape& s, const float* x, const float* const* weights,
     {
         // two ping-pong buffers for the layers whose outputs are not kept
         std::vector<float> buf0(static_cast<size_t>(kBlock) * widest), buf1(buf0.size());
+        // the block's encoded input rows, when the kernel encodes its input
+        std::vector<float> enc(s.enc_cols > 0 ? static_cast<size_t>(kBlock) * padded(s.dims[0]) : 0);
+        const int raw0 = raw_width(s);
 #pragma omp for schedule(static)
         for (int64_t blk = 0; blk < blocks; ++blk) {
             const int64_t r0 = blk * kBlock;
             const int rows = static_cast<int>(std::min<int64_t>(kBlock, s.rows - r0));
-            const float* in = x + r0 * s.dims[0];
-            int64_t ld_in = s.dims[0];
+            const float* in = x + r0 * raw0;
+            int64_t ld_in = raw0;
+            if (s.enc_cols > 0) {
+                const int ld = padded(s.dims[0]);
+                encode_rows(s, x, rows, [r0](int r) { return r0 + r; }, enc.data(), ld);
+                in = enc.data();
+                ld_in = ld;
+            }
             for (int l = 0; l < L; ++l) {
                 const int dout = s.dims[l + 1], ld = padded(dout);
                 float* y;
@@ -200,7 +282,7 @@ void mlp_backward(const MlpShape& s, const float* x, const float* const* weights
                   float* const* g_weights, float* const* g_biases) {
     const int L = s.layers;
     const int threads = std::max(1, s.threads);
-    const int d0 = s.dims[0], dl = s.dims[L];
+    const int d0 = s.dims[0], dl = s.dims[L], raw0 = raw_width(s);
     const PaddedWeights p = pad_weights(s, weights, nullptr, false, true);
     // Rows with a non-zero output gradient; the others contribute nothing.
     std::vector<int64_t> active;
@@ -210,7 +292,7 @@ void mlp_backward(const MlpShape& s, const float* x, const float* const* weights
         bool any = false;
         for (int j = 0; j < dl; ++j) any |= g[j] != 0.0f;
         if (any) active.push_back(r);
-        else if (g_x != nullptr) std::fill(g_x + r * d0, g_x + (r + 1) * d0, 0.0f);
+        else if (g_x != nullptr) std::fill(g_x + r * raw0, g_x + (r + 1) * raw0, 0.0f);
     }
     const int64_t n_active = static_cast<int64_t>(active.size());
     const int64_t blocks = (n_active + kBlock - 1) / kBlock;
@@ -242,10 +324,14 @@ void mlp_backward(const MlpShape& s, const float* x, const float* const* weights
             // gather: h[0] = x rows (padded), h[l] = hidden[l-1] rows
             {
                 const int ld = padded(d0);
-                for (int r = 0; r < rows; ++r) {
-                    float* dst = h[0].data() + static_cast<size_t>(r) * ld;
-                    std::copy(x + idx[r] * d0, x + (idx[r] + 1) * d0, dst);
-                    std::fill(dst + d0, dst + ld, 0.0f);
+                if (s.enc_cols > 0) {
+                    encode_rows(s, x, rows, [idx](int r) { return idx[r]; }, h[0].data(), ld);
+                } else {
+                    for (int r = 0; r < rows; ++r) {
+                        float* dst = h[0].data() + static_cast<size_t>(r) * ld;
+                        std::copy(x + idx[r] * d0, x + (idx[r] + 1) * d0, dst);
+                        std::fill(dst + d0, dst + ld, 0.0f);
+                    }
                 }
             }
             for (int l = 1; l < L; ++l) {
@@ -281,9 +367,13 @@ void mlp_backward(const MlpShape& s, const float* x, const float* const* weights
                 // gh = gz W_l (rows x padded(din))
                 gemm(rows, ldi, dout, gz.data(), ldo, p.wp[l].data(), ldi, gh.data(), ldi, false);
                 if (l == 0) {
-                    for (int r = 0; r < rows; ++r)
-                        std::copy(gh.data() + static_cast<size_t>(r) * ldi,
-                                  gh.data() + static_cast<size_t>(r) * ldi + din, g_x + idx[r] * d0);
+                    for (int r = 0; r < rows; ++r) {
+                        const float* g = gh.data() + static_cast<size_t>(r) * ldi;
+                        if (s.enc_cols > 0)
+                            encode_row_backward(s, h[0].data() + static_cast<size_t>(r) * ldi, g, g_x + idx[r] * raw0);
+                        else
+                            std::copy(g, g + din, g_x + idx[r] * d0);
+                    }
                     break;
                 }
                 // gz for the layer below: gh * act'_{l-1}(its output, = h[l])

@@ -26,7 +26,17 @@ struct MlpShape {
     const int* dims;   // L + 1 widths
     const int* acts;   // L activations (Activation)
     int threads;
+    // Optional input encoding (enc_cols = 0: none). The kernels then read `x` as the raw rows
+    // [rows x (dims[0] - 2 enc_cols enc_freqs)] and feed layer 0 the encoded rows
+    //   [x_0..x_{c-1}, sin(2^k pi x_i), cos(2^k pi x_i), x_c..]   (sin/cos indexed i * freqs + k)
+    // built per block in the caches: the positional encoding gamma() of the first enc_cols
+    // columns, the rest passed through. dL/dx is then with respect to the raw rows.
+    int enc_cols = 0;
+    int enc_freqs = 0;
 };
+
+// Width of the raw rows the kernels read: dims[0] less the sines and cosines they add.
+inline int raw_width(const MlpShape& s) { return s.dims[0] - 2 * s.enc_cols * s.enc_freqs; }
 
 // out [rows x dims[L]]. If `hidden` is not null, hidden[l] (l < L - 1) receives layer l's output
 // [rows x padded(dims[l+1])] for the backward pass.

@@ -792,15 +792,21 @@ struct MlpArgs {
     std::vector<const float*> weights, biases;
 };
 
-MlpArgs mlp_args(const at::Tensor& x, at::TensorList weights, at::TensorList biases, c10::ArrayRef<int64_t> acts) {
+// enc_cols, enc_freqs: the input encoding the kernels apply (small_mlp.h; 0: none); x holds the
+// raw rows, layer 0 takes the encoded width.
+MlpArgs mlp_args(const at::Tensor& x, at::TensorList weights, at::TensorList biases, c10::ArrayRef<int64_t> acts,
+                 int64_t enc_cols, int64_t enc_freqs) {
     const int64_t n = x.size(0);
     TORCH_CHECK(x.dim() == 2, "x must be [rows, width], got ", x.sizes());
     check_cpu_float(x, "x", n, x.size(1));
+    TORCH_CHECK(enc_cols >= 0 && enc_freqs >= 0 && enc_cols <= x.size(1) && (enc_cols == 0) == (enc_freqs == 0),
+                "encoding: need 0 <= enc_cols <= width and both zero or both positive, got ", enc_cols, ", ",
+                enc_freqs);
     const size_t L = weights.size();
     TORCH_CHECK(L >= 1 && biases.size() == L && acts.size() == L, "need as many weights, biases and "
                 "activations (>= 1), got ", L, ", ", biases.size(), ", ", acts.size());
     MlpArgs a;
-    a.dims.push_back(static_cast<int>(x.size(1)));
+    a.dims.push_back(static_cast<int>(x.size(1) + 2 * enc_cols * enc_freqs));
     for (size_t l = 0; l < L; ++l) {
         const at::Tensor& w = weights[l];
         TORCH_CHECK(w.dim() == 2 && w.size(1) == a.dims.back(), "layer ", l, ": weight must be [out, ",
@@ -818,8 +824,9 @@ MlpArgs mlp_args(const at::Tensor& x, at::TensorList weights, at::TensorList bia
 
 std::tuple<at::Tensor, std::vector<at::Tensor>> mlp_fwd(const at::Tensor& x, at::TensorList weights,
                                                         at::TensorList biases, c10::ArrayRef<int64_t> acts,
-                                                        bool keep_hidden, int64_t threads) {
-    const MlpArgs a = mlp_args(x, weights, biases, acts);
+                                                        int64_t enc_cols, int64_t enc_freqs, bool keep_hidden,
+                                                        int64_t threads) {
+    const MlpArgs a = mlp_args(x, weights, biases, acts, enc_cols, enc_freqs);
     TORCH_CHECK(threads >= 1, "threads must be >= 1");
     const int64_t n = x.size(0);
     const int L = static_cast<int>(a.acts.size());
@@ -832,7 +839,8 @@ std::tuple<at::Tensor, std::vector<at::Tensor>> mlp_fwd(const at::Tensor& x, at:
             hidden_ptr.push_back(hidden.back().data_ptr<float>());
         }
     }
-    const stg_mlp::MlpShape shape{n, L, a.dims.data(), a.acts.data(), static_cast<int>(threads)};
+    const stg_mlp::MlpShape shape{n, L, a.dims.data(), a.acts.data(), static_cast<int>(threads),
+                                  static_cast<int>(enc_cols), static_cast<int>(enc_freqs)};
     stg_mlp::mlp_forward(shape, x.data_ptr<float>(), a.weights.data(), a.biases.data(), out.data_ptr<float>(),
                          keep_hidden ? hidden_ptr.data() : nullptr);
     return {out, hidden};
@@ -840,8 +848,9 @@ std::tuple<at::Tensor, std::vector<at::Tensor>> mlp_fwd(const at::Tensor& x, at:
 
 std::tuple<at::Tensor, std::vector<at::Tensor>, std::vector<at::Tensor>> mlp_bwd(
     const at::Tensor& x, at::TensorList weights, at::TensorList biases, c10::ArrayRef<int64_t> acts,
-    at::TensorList hidden, const at::Tensor& out, const at::Tensor& g_out, bool want_gx, int64_t threads) {
-    const MlpArgs a = mlp_args(x, weights, biases, acts);
+    int64_t enc_cols, int64_t enc_freqs, at::TensorList hidden, const at::Tensor& out, const at::Tensor& g_out,
+    bool want_gx, int64_t threads) {
+    const MlpArgs a = mlp_args(x, weights, biases, acts, enc_cols, enc_freqs);
     TORCH_CHECK(threads >= 1, "threads must be >= 1");
     const int64_t n = x.size(0);
     const int L = static_cast<int>(a.acts.size());
@@ -853,7 +862,7 @@ std::tuple<at::Tensor, std::vector<at::Tensor>, std::vector<at::Tensor>> mlp_bwd
     }
     check_cpu_float(out, "out", n, a.dims.back());
     check_cpu_float(g_out, "grad out", n, a.dims.back());
-    at::Tensor g_x = at::empty({want_gx ? n : 0, a.dims[0]}, x.options());
+    at::Tensor g_x = at::empty({want_gx ? n : 0, x.size(1)}, x.options());
     std::vector<at::Tensor> g_w, g_b;
     std::vector<float*> g_w_ptr, g_b_ptr;
     for (int l = 0; l < L; ++l) {
@@ -862,7 +871,8 @@ std::tuple<at::Tensor, std::vector<at::Tensor>, std::vector<at::Tensor>> mlp_bwd
         g_w_ptr.push_back(g_w.back().data_ptr<float>());
         g_b_ptr.push_back(g_b.back().data_ptr<float>());
     }
-    const stg_mlp::MlpShape shape{n, L, a.dims.data(), a.acts.data(), static_cast<int>(threads)};
+    const stg_mlp::MlpShape shape{n, L, a.dims.data(), a.acts.data(), static_cast<int>(threads),
+                                  static_cast<int>(enc_cols), static_cast<int>(enc_freqs)};
     stg_mlp::mlp_backward(shape, x.data_ptr<float>(), a.weights.data(), hidden_ptr.data(), out.data_ptr<float>(),
                           g_out.data_ptr<float>(), want_gx ? g_x.data_ptr<float>() : nullptr, g_w_ptr.data(),
                           g_b_ptr.data());
@@ -964,11 +974,13 @@ TORCH_LIBRARY(STG_SPLAT_NS, m) {
         "Tensor, Tensor, Tensor, Tensor, Tensor)",
         &skin_bwd);
     m.def(
-        "mlp_fwd(Tensor x, Tensor[] weights, Tensor[] biases, int[] acts, bool keep_hidden, int threads) -> "
+        "mlp_fwd(Tensor x, Tensor[] weights, Tensor[] biases, int[] acts, int enc_cols, int enc_freqs, bool keep_hidden, "
+        "int threads) -> "
         "(Tensor, Tensor[])",
         &mlp_fwd);
     m.def(
-        "mlp_bwd(Tensor x, Tensor[] weights, Tensor[] biases, int[] acts, Tensor[] hidden, Tensor out, "
+        "mlp_bwd(Tensor x, Tensor[] weights, Tensor[] biases, int[] acts, int enc_cols, int enc_freqs, Tensor[] hidden, "
+        "Tensor out, "
         "Tensor g_out, bool want_gx, int threads) -> (Tensor, Tensor[], Tensor[])",
         &mlp_bwd);
 }
