@@ -152,13 +152,14 @@ def test_training_finds_the_jitter_it_was_given(jittered):
     log), the gains learnt in training follow them: slope about 1 on the truth, well correlated.
     The subject waves facing the camera: a body that turns shows sides of
     different brightness from frame to frame, which a half-trained avatar has not learnt yet and
-    the gains take in part (docs/AVATAR.md)."""
+    the gains take in part (docs/AVATAR.md). 700 steps: at 300 the correlation sat on its bar
+    (0.7990-0.8002 as float rounding moved with the kernels); at 700 it is 0.89 and the slope 0.98."""
     meta = json.loads((jittered / "synth.json").read_text())
     truth = {
         i: np.asarray(g) for i, g in enumerate(meta["filming"]["exposure_gains"][: meta["num_train_frames"]])
     }
     frames = [TrainFrame.from_sample(s) for s in DataSpec(str(jittered), "synthetic", size=96).open("train")]
-    config = small_config(iterations=300, exposure_start=30, lr_exposure=FOOTAGE_RATE)
+    config = small_config(iterations=700, exposure_start=30, lr_exposure=FOOTAGE_RATE)
     trainer = Trainer(config, seed=0)
     trainer.add_frames(frames)
     for _ in range(config.iterations):
