@@ -149,15 +149,19 @@ class ChildProcess:
 
     # -- standby copies -------------------------------------------------------------------------------
 
-    def hand_over(self, respawns: int) -> bool:
-        """Tell a standby copy to take over as respawn ``respawns``; False if it cannot hear it."""
+    def hand_over(self, respawns: int, name: str) -> bool:
+        """Tell a standby copy to take over as respawn ``respawns`` of node ``name``; False if it
+        cannot hear it. Its output carries ``name`` before the word is sent: the copy answers at
+        once ("taking over"), and a prefix changed only afterwards raced that line."""
         if not self.standby or not self.running:
             return False
+        standby_name, self.name = self.name, name
         try:
             self.popen.stdin.write(f"go {respawns}\n".encode())
             self.popen.stdin.flush()
             return True
         except (OSError, ValueError):  # it died meanwhile
+            self.name = standby_name
             return False
 
     def dismiss(self) -> None:
@@ -170,7 +174,7 @@ class ChildProcess:
 
     def adopt(self, spare: ChildProcess) -> int:
         """Make ``spare`` (a standby copy that was just handed over) this node's current run."""
-        spare.name = self.name  # its output from now on carries the node's own prefix
+        spare.name = self.name  # already so since hand_over; a copy adopted otherwise gets it here
         self.popen, self._pumps = spare.popen, spare._pumps
         self.runs.append(RunRecord(self.popen.pid, time.monotonic()))
         return self.popen.pid

@@ -224,7 +224,7 @@ class Launcher:
     def _take_over(self, state: NodeState) -> int | None:
         """Hand the node over to its standby copy; its pid, or None if there is none to take it."""
         spare, state.spare = state.spare, None
-        if spare is None or not spare.hand_over(state.respawns):
+        if spare is None or not spare.hand_over(state.respawns, state.proc.name):
             if spare is not None:
                 spare.dismiss()
                 spare.signal_group(signal.SIGKILL)

@@ -17,6 +17,7 @@ ROOT = Path(__file__).resolve().parents[2]
 __all__ = [
     "ROOT",
     "LaunchRun",
+    "LineReader",
     "NodeThread",
     "child_env",
     "ignore_sigint",
@@ -86,6 +87,34 @@ def spawn(args: list[str], **kwargs) -> subprocess.Popen:
         text=True,
         **kwargs,
     )
+
+
+class LineReader:
+    """A spawned process's output read line by line in a thread: a test waiting for a line that
+    never comes then fails at its deadline with what was printed, instead of blocking forever in
+    ``readline`` while the process lives on silently."""
+
+    def __init__(self, stream):
+        self._lines: list[str] = []
+        self._thread = threading.Thread(target=self._read, args=(stream,), daemon=True)
+        self._thread.start()
+
+    def _read(self, stream) -> None:
+        for line in iter(stream.readline, ""):
+            self._lines.append(line)
+
+    def text(self) -> str:
+        return "".join(self._lines)
+
+    def wait_for(self, found, timeout: float = 60.0) -> bool:
+        """True once ``found(text so far)`` holds, False at the deadline."""
+        return wait_until(lambda: found(self.text()), timeout=timeout)
+
+    def rest(self, proc: subprocess.Popen, timeout: float = 60.0) -> str:
+        """Everything once ``proc`` has exited (its output read to the end)."""
+        proc.wait(timeout=timeout)
+        self._thread.join(timeout=timeout)
+        return self.text()
 
 
 def describe_pids(pids) -> dict[int, str]:

@@ -11,7 +11,7 @@ import sys
 import threading
 from pathlib import Path
 
-from nodehelpers import describe_pids, ignore_sigint, launch_file, pid_alive, spawn, wait_until
+from nodehelpers import LineReader, describe_pids, ignore_sigint, launch_file, pid_alive, spawn, wait_until
 
 from stg_node.launch import LaunchFileError, read_launch
 from stg_node.launch.process import OutputSink
@@ -158,19 +158,17 @@ def test_sigint_on_the_launch_leaves_no_process_behind(tmp_path):
         """,
     )
     proc = spawn(["-m", "stg_node.cli.launch", str(path), "--no-color"], preexec_fn=ignore_sigint)
-    lines: list[str] = []
+    out = LineReader(proc.stdout)
 
-    def ready():
-        line = proc.stdout.readline()
-        lines.append(line)
-        return sum("grandchild" in x for x in lines) == 2 and any("node is ready" in x for x in lines)
+    def ready(text: str) -> bool:
+        return text.count("grandchild") == 2 and "node is ready" in text
 
-    assert wait_until(ready, timeout=60, step=0), "".join(lines)
-    pids = [int(p) for p in re.findall(r"(?:pid |grandchild )(\d+)", "".join(lines))]
+    assert out.wait_for(ready), out.text()
+    pids = [int(p) for p in re.findall(r"(?:pid |grandchild )(\d+)", out.text())]
     assert len(pids) >= 4  # two nodes, two grandchildren
     proc.send_signal(signal.SIGINT)
-    rest, _ = proc.communicate(timeout=30)
-    assert proc.returncode == 0, "".join(lines) + rest
+    text = out.rest(proc, timeout=30)
+    assert proc.returncode == 0, text
     assert wait_until(lambda: not any(pid_alive(p) for p in pids), timeout=30), describe_pids(pids)
 
 
@@ -187,17 +185,12 @@ def test_a_launcher_killed_outright_takes_its_nodes_with_it(tmp_path):
         """,
     )
     proc = spawn(["-m", "stg_node.cli.launch", str(path), "--no-color"])
-    lines: list[str] = []
-
-    def ready():
-        lines.append(proc.stdout.readline())
-        return sum("grandchild" in x for x in lines) == 2 and any("node is ready" in x for x in lines)
-
-    assert wait_until(ready, timeout=60, step=0), "".join(lines)
-    pids = [int(p) for p in re.findall(r"(?:started \w+: pid |grandchild )(\d+)", "".join(lines))]
-    assert len(pids) == 5, "".join(lines)  # three children, two grandchildren
+    out = LineReader(proc.stdout)
+    assert out.wait_for(lambda text: text.count("grandchild") == 2 and "node is ready" in text), out.text()
+    pids = [int(p) for p in re.findall(r"(?:started \w+: pid |grandchild )(\d+)", out.text())]
+    assert len(pids) == 5, out.text()  # three children, two grandchildren
     proc.kill()  # SIGKILL: no chance to clean up
-    proc.communicate(timeout=60)
+    out.rest(proc)
     assert wait_until(lambda: not any(pid_alive(p) for p in pids), timeout=60), describe_pids(pids)
 
 
@@ -209,35 +202,52 @@ def test_a_standby_copy_takes_over_when_the_node_dies(tmp_path):
         f"nodes:\n  - {{name: node, kind: {ECHO}, respawn: true, respawn_delay: 0.1, standby: true}}\n",
     )
     proc = spawn(["-m", "stg_node.cli.launch", str(path), "--no-color"], preexec_fn=ignore_sigint)
-    lines: list[str] = []
+    out = LineReader(proc.stdout)
 
     def seen(pattern: str) -> list[str]:
-        return re.findall(pattern, "".join(lines))
+        return re.findall(pattern, out.text())
 
     def until(pattern: str, count: int = 1) -> bool:
-        def found() -> bool:
-            lines.append(proc.stdout.readline())
-            return len(seen(pattern)) >= count
-
-        return wait_until(found, timeout=120, step=0)
+        return out.wait_for(lambda text: len(re.findall(pattern, text)) >= count, timeout=120)
 
     try:
-        assert until(r"\[node\*\] .*standing by \(pid (\d+)\)"), "".join(lines)
+        assert until(r"\[node\*\] .*standing by \(pid (\d+)\)"), out.text()
         first = int(seen(r"started node: pid (\d+)")[0])
         spare = int(seen(r"standing by \(pid (\d+)\)")[0])
         assert spare != first
         os.kill(first, signal.SIGKILL)
-        assert until(r"handed over to its standby copy node \(respawn 1\): pid (\d+)"), "".join(lines)
+        assert until(r"handed over to its standby copy node \(respawn 1\): pid (\d+)"), out.text()
         assert int(seen(r"handed over to its standby copy node \(respawn 1\): pid (\d+)")[0]) == spare
-        assert until(r"\[node\] .*taking over \(respawn 1\)"), "".join(lines)  # its own words, unprefixed
-        assert until(r"node is ready", 2), "".join(lines)
-        assert until(r"standing by \(pid (\d+)\)", 2), "".join(lines)  # and a new copy waits
+        assert until(r"\[node\] .*taking over \(respawn 1\)"), out.text()  # its own words, the node's prefix
+        assert until(r"node is ready", 2), out.text()
+        assert until(r"standing by \(pid (\d+)\)", 2), out.text()  # and a new copy waits
         pids = [first, spare, *map(int, seen(r"standing by \(pid (\d+)\)"))]
     finally:
         proc.send_signal(signal.SIGINT)
-        rest, _ = proc.communicate(timeout=60)
-    assert proc.returncode == 0, "".join(lines) + rest
+        text = out.rest(proc)
+    assert proc.returncode == 0, text
     assert wait_until(lambda: not any(pid_alive(p) for p in pids), timeout=30), describe_pids(pids)
+
+
+def test_a_copys_first_words_after_the_hand_over_carry_the_nodes_own_prefix():
+    """The copy answers "go" at once; its prefix must already be the node's when the word is sent
+    (renamed only afterwards, its "taking over" line raced the rename and sometimes came out as
+    [node*], which hung a test that read the launcher's output for [node])."""
+    from stg_node.launch.process import ChildProcess
+
+    out = io.StringIO()
+    script = "import sys; sys.stdin.readline(); print('took over', flush=True); sys.stdin.read()"
+    spare = ChildProcess(
+        "node*", [sys.executable, "-c", script], dict(os.environ), None, OutputSink(out), standby=True
+    )
+    spare.start()
+    try:
+        assert spare.hand_over(1, "node")
+        assert wait_until(lambda: "took over" in out.getvalue(), timeout=60), out.getvalue()
+        assert out.getvalue() == "[node] took over\n"
+    finally:
+        spare.dismiss()
+        spare.popen.wait(timeout=60)
 
 
 def test_standby_is_for_kind_nodes_that_respawn(tmp_path):
