@@ -1,4 +1,5 @@
-"""Shared pytest wiring: the `gpu` marker skips cleanly where CUDA (or gsplat) is missing."""
+"""Shared pytest wiring: the `gpu` marker skips cleanly where CUDA (or gsplat) is missing; slow
+tests get a longer per-test timeout than the default suite's."""
 
 from __future__ import annotations
 
@@ -15,7 +16,13 @@ def _cuda_reason() -> str | None:
     return None
 
 
+SLOW_TEST_TIMEOUT_S = 3600  # a slow test trains at full size: pyproject's per-test bound is for the rest
+
+
 def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if item.get_closest_marker("slow") and not item.get_closest_marker("timeout"):
+            item.add_marker(pytest.mark.timeout(SLOW_TEST_TIMEOUT_S))
     gpu_items = [item for item in items if item.get_closest_marker("gpu")]
     if not gpu_items:
         return
