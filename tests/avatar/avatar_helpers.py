@@ -50,3 +50,20 @@ def trained_held_out_psnr(frames, synth_folder, config, seed: int = 0) -> float:
     for _ in range(config.iterations):
         assert not trainer.step().skipped
     return held_out_psnr(trainer, synth_folder)
+
+
+def density_step_inputs(iteration: int):
+    """What a density step with no flow this step reads from the trainer (densify.step_post_backward)."""
+    from types import SimpleNamespace
+
+    import torch
+
+    return SimpleNamespace(
+        iteration=iteration,
+        flow=None,
+        grow_in_time=True,
+        motion_threshold_px=1.0,
+        time_range=(0.0, 1.0),
+        generator=torch.Generator().manual_seed(0),
+        rendered_flow=None,
+    )

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from avatar_helpers import small_config
+from avatar_helpers import density_step_inputs, small_config
 
 from stg_node.avatar import nonrigid
 from stg_node.avatar.trainer import Trainer
@@ -554,21 +554,6 @@ def test_a_gaussian_hidden_behind_the_surface_does_not_read_its_occluders_flow(o
     assert state["front_count"].tolist() == ([1.0, 1.0] if back_reads_flow else [1.0, 0.0])
 
 
-def _density_step_inputs(iteration: int):
-    """What a density step with no flow this step reads from the trainer (densify.step_post_backward)."""
-    from types import SimpleNamespace
-
-    return SimpleNamespace(
-        iteration=iteration,
-        flow=None,
-        grow_in_time=True,
-        motion_threshold_px=1.0,
-        time_range=(0.0, 1.0),
-        generator=torch.Generator().manual_seed(0),
-        rendered_flow=None,
-    )
-
-
 def test_a_gate_round_on_a_density_step_reads_the_interval_that_ends_there(tiny_frames, monkeypatch):
     """A density step and a gate round on one step (the fast preset's schedule: every density step):
     the gate round must see the ending interval's mean pull (grad_sum / front_count), not the zeros of
@@ -602,7 +587,7 @@ def test_a_gate_round_on_a_density_step_reads_the_interval_that_ends_there(tiny_
     monkeypatch.setattr(strategy, "_accumulate_help", lambda model, state, inputs: None)
     iteration = 8  # > start_iter, (8 - 4) % 4 == 0 for both schedules
     assert strategy.active(iteration)
-    inputs = _density_step_inputs(iteration)
+    inputs = density_step_inputs(iteration)
     report = strategy.step_post_backward(model, trainer.optimizer, state, inputs)
     assert report["cloned"] == 0 and report["split"] == 0 and report["pruned"] == 0
     assert model.table.motion_gate()[:2].tolist() == [True, False] and report["motion_on"] == 1
@@ -647,7 +632,7 @@ def test_a_row_is_judged_on_the_steps_it_existed_in(tiny_frames, monkeypatch):
     means = model.table["means"].detach().clone()
     iteration = 12  # > start_iter, (12 - 4) % 8 == 0, before densification stops (15)
     assert strategy.active(iteration)
-    inputs = _density_step_inputs(iteration)
+    inputs = density_step_inputs(iteration)
     report = strategy.step_post_backward(model, trainer.optimizer, state, inputs)
     assert report["pruned"] == 1 and report["cloned"] == 0
     assert torch.equal(model.table["means"].detach(), means[1:])  # row 0 went, the others stayed

@@ -7,27 +7,12 @@ import math
 
 import pytest
 import torch
-from avatar_helpers import small_config
+from avatar_helpers import density_step_inputs, small_config
 
 from stg_node.avatar.trainer import Trainer
 
 CELL = 0.1
 AFTER = 5
-
-
-def _density_step_inputs(iteration: int):
-    """What a density step with no flow this step reads from the trainer (densify.step_post_backward)."""
-    from types import SimpleNamespace
-
-    return SimpleNamespace(
-        iteration=iteration,
-        flow=None,
-        grow_in_time=True,
-        motion_threshold_px=1.0,
-        time_range=(0.0, 1.0),
-        generator=torch.Generator().manual_seed(0),
-        rendered_flow=None,
-    )
 
 
 def _one_density_step(tiny_frames, monkeypatch, cell_m: float):
@@ -85,7 +70,7 @@ def _one_density_step(tiny_frames, monkeypatch, cell_m: float):
     before = {name: table[name].detach().clone() for name in ("means", "log_scales", "features")}
     iteration = 12  # > start_iter, (12 - 4) % 8 == 0, before densification stops
     assert strategy.active(iteration)
-    report = strategy.step_post_backward(model, trainer.optimizer, state, _density_step_inputs(iteration))
+    report = strategy.step_post_backward(model, trainer.optimizer, state, density_step_inputs(iteration))
     return report, before, table, state
 
 
