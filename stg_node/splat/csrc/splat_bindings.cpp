@@ -659,8 +659,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
     return {world, quats, view, weights, norms, next_world, blends};
 }
 
-at::Tensor gaussian_normals_fwd(const at::Tensor& quats, const at::Tensor& scales, const at::Tensor& means,
-                                const at::Tensor& camera, int64_t threads) {
+// The normals kernels' inputs, checked once for the forward and the backward.
+static void check_normals_inputs(const at::Tensor& quats, const at::Tensor& scales, const at::Tensor& means,
+                                 const at::Tensor& camera, int64_t threads) {
     const int64_t n = quats.size(0);
     check_cpu_float(quats, "quats", n, 4);
     check_cpu_float(scales, "scales", n, 3);
@@ -668,6 +669,12 @@ at::Tensor gaussian_normals_fwd(const at::Tensor& quats, const at::Tensor& scale
     TORCH_CHECK(camera.numel() == 3, "camera must hold 3 values, got ", camera.numel());
     check_cpu_float(camera, "camera", camera.size(0), 0);
     TORCH_CHECK(threads >= 1, "threads must be >= 1");
+}
+
+at::Tensor gaussian_normals_fwd(const at::Tensor& quats, const at::Tensor& scales, const at::Tensor& means,
+                                const at::Tensor& camera, int64_t threads) {
+    const int64_t n = quats.size(0);
+    check_normals_inputs(quats, scales, means, camera, threads);
     at::Tensor normals = at::empty({n, 3}, quats.options());
     stg_skin::gaussian_normals(n, quats.data_ptr<float>(), scales.data_ptr<float>(), means.data_ptr<float>(),
                                camera.data_ptr<float>(), normals.data_ptr<float>(), static_cast<int>(threads));
@@ -677,13 +684,8 @@ at::Tensor gaussian_normals_fwd(const at::Tensor& quats, const at::Tensor& scale
 at::Tensor gaussian_normals_bwd(const at::Tensor& quats, const at::Tensor& scales, const at::Tensor& means,
                                 const at::Tensor& camera, const at::Tensor& g_normals, int64_t threads) {
     const int64_t n = quats.size(0);
-    check_cpu_float(quats, "quats", n, 4);
-    check_cpu_float(scales, "scales", n, 3);
-    check_cpu_float(means, "means", n, 3);
+    check_normals_inputs(quats, scales, means, camera, threads);
     check_cpu_float(g_normals, "grad normals", n, 3);
-    TORCH_CHECK(camera.numel() == 3, "camera must hold 3 values, got ", camera.numel());
-    check_cpu_float(camera, "camera", camera.size(0), 0);
-    TORCH_CHECK(threads >= 1, "threads must be >= 1");
     at::Tensor g_quats = at::empty({n, 4}, quats.options());
     stg_skin::gaussian_normals_backward(n, quats.data_ptr<float>(), scales.data_ptr<float>(),
                                         means.data_ptr<float>(), camera.data_ptr<float>(),
