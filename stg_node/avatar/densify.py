@@ -449,8 +449,15 @@ class DensifyStrategy:
             and densify_kernels_apply(state["help_dot"], state["help_norm"])
         ):  # one C++ pass over the rows (densify_ops); the torch below is its reference
             motion_help(
-                table["skin_weights"], table_delta, SKIN_WEIGHT_EPS, motions, table["means"], grad, gate,
-                state["help_dot"], state["help_norm"],
+                table["skin_weights"],
+                table_delta,
+                SKIN_WEIGHT_EPS,
+                motions,
+                table["means"],
+                grad,
+                gate,
+                state["help_dot"],
+                state["help_norm"],
             )
             return
         self._accumulate_help_torch(table, bases, gate, grad, state, inputs)
