@@ -860,17 +860,9 @@ class Trainer:
         self.skipped_steps = state.skipped_steps
         self.model_version = state.model_version
         self.decision = nonrigid.Decision.from_dict(state.nonrigid)
-        self._restore_camera_slots(state.camera_slots)
-
-    def _restore_camera_slots(self, saved: dict[str, int]) -> None:
-        """The checkpoint's camera columns win over the order frames came back in; a camera the
-        checkpoint never saw gets the next free column."""
-        arrived = sorted(self.camera_slots, key=self.camera_slots.get)
-        self.camera_slots = dict(saved)
-        for name in arrived:
-            self.camera_slots.setdefault(name, len(self.camera_slots))
-        if len(self.camera_slots) > 1 and self.color_turns is not None:
-            self._end_color_turns()
+        # Frames come back after this, in any order: each known camera keeps its column (add_frame
+        # numbers only new ones, and ends the colour turns for a rig).
+        self.camera_slots = dict(state.camera_slots)
 
     # --- reporting -------------------------------------------------------------------------------
     def stats(self) -> dict:
