@@ -644,6 +644,9 @@ class Trainer:
         self.densifier = DensifyStrategy(self.config.densify, self.config.iterations)
         DensifyStrategy._resize(self.densify_state, keep=keep)
         self.densify_state["was_dynamic"].zero_()
+        # The interval's screen gradients are the switched-off model's misfit (its rows snapped back to
+        # the rigid part): the rigid model is densified on statistics of its own (densify.step).
+        DensifyStrategy._reset_interval(self.densify_state)
         self.neighbours = NeighbourGraph()
 
     def nonrigid_report(self) -> dict:
