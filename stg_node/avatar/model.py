@@ -20,7 +20,7 @@ from stg_node.avatar import kernels, spacetime
 from stg_node.avatar.color import ColorMLP, sh_color
 from stg_node.avatar.color_cache import ColorCache, TrainingColorTurns
 from stg_node.avatar.config import ModelConfig
-from stg_node.avatar.gaussians import MOTION_COLUMNS, GaussianTable, cap_scale_ratio
+from stg_node.avatar.gaussians import MOTION_COLUMNS, GaussianTable
 from stg_node.avatar.motion_basis import MotionBases
 from stg_node.avatar.rigid import (
     QUAT_EPS,
@@ -32,6 +32,7 @@ from stg_node.avatar.rigid import (
     skin_with_kernel,
     squeeze_of_blend,
 )
+from stg_node.avatar.scale_ops import capped_scales
 from stg_node.avatar.shading import LightSpec, Shading, gaussian_normals
 from stg_node.avatar.spacetime import TimeAxis
 from stg_node.avatar.timecode import PoseTimeIndex, pose_key
@@ -250,7 +251,7 @@ class AvatarModel(nn.Module):
 
     def scales(self) -> torch.Tensor:
         """(N, 3) the Gaussians' scales as rendered: the table's, largest / smallest axis capped."""
-        return cap_scale_ratio(self.table.scales(), self.config.max_scale_ratio)
+        return capped_scales(self.table["log_scales"], self.config.max_scale_ratio)
 
     def _render_scales(self) -> torch.Tensor:
         """:meth:`scales` computed once for a model that does not change (a renderer's frames);

@@ -45,6 +45,7 @@ from stg_node.avatar.optim import TableOptimizer, all_finite
 from stg_node.avatar.pose_refine import PoseTrack, hold_unseen_rows, pose_warmup_factor, touched_slots
 from stg_node.avatar.rigid import Skeleton, skin
 from stg_node.avatar.rigidity import NeighbourGraph
+from stg_node.avatar.scale_ops import largest_scale
 from stg_node.avatar.spacetime import TimeAxis
 from stg_node.avatar.stream_window import forget_unheld_frames, window_to_frames
 from stg_node.body.canonical import big_pose_output
@@ -754,7 +755,7 @@ class Trainer:
         if self.model.motion_bases is not None and c.basis_smooth > 0:
             out["basis_smooth"] = self.model.motion_bases.roughness()
         if c.scale > 0:
-            out["scale"] = torch.relu(table.scales().max(dim=1).values - c.scale_max_m).mean() * 100.0
+            out["scale"] = torch.relu(largest_scale(table["log_scales"]) - c.scale_max_m).mean() * 100.0
         if c.opacity > 0:
             o = table.opacities()
             out["opacity"] = (-(o * (o + 1e-6).log() + (1 - o) * (1 - o + 1e-6).log())).mean()
