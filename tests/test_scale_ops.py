@@ -53,7 +53,8 @@ def test_largest_scale_matches_torch_max():
 
 def test_gradcheck():
     # random rows: no ties, where the maximum is smooth
-    x = (torch.randn(30, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(5)) - 2).requires_grad_()
+    gen = torch.Generator().manual_seed(5)
+    x = (torch.randn(30, 3, dtype=torch.float64, generator=gen) - 2).requires_grad_()
     assert torch.autograd.gradcheck(lambda t: capped_scales(t, 2.0), (x,))
     assert torch.autograd.gradcheck(largest_scale, (x,))
 
