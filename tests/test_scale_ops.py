@@ -76,3 +76,22 @@ def test_float32_forward_is_bit_identical():
     x = _log_scales(2000, seed=6).float()
     assert torch.equal(capped_scales(x, 10.0), cap_scale_ratio(x.exp(), 10.0))
     assert torch.equal(largest_scale(x), x.exp().max(dim=1).values)
+
+
+def test_no_gradient_in_gives_none_out():
+    """A consumer passing no gradient to the scales leaves the log column without one, as torch's
+    own nodes do (a zero tensor would differ from the reference path)."""
+
+    class Blocks(torch.autograd.Function):
+        @staticmethod
+        def forward(ctx, x):
+            return x.sum()
+
+        @staticmethod
+        def backward(ctx, grad):
+            return None
+
+    x = _log_scales(20).requires_grad_(True)
+    y = torch.ones((), requires_grad=True)
+    (Blocks.apply(capped_scales(x, 10.0)) + Blocks.apply(largest_scale(x)) + y).backward()
+    assert x.grad is None

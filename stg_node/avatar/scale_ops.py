@@ -42,6 +42,7 @@ def _row_sum(x: torch.Tensor) -> torch.Tensor:
 class _CappedScales(torch.autograd.Function):
     @staticmethod
     def forward(ctx, log_scales: torch.Tensor, max_ratio: float) -> torch.Tensor:
+        ctx.set_materialize_grads(False)  # no gradient in: none out (as torch's own nodes)
         scales = log_scales.exp()
         largest, one_hot = _row_max(scales)
         floor = (largest / max_ratio)[:, None]
@@ -50,7 +51,9 @@ class _CappedScales(torch.autograd.Function):
         return torch.maximum(scales, floor)
 
     @staticmethod
-    def backward(ctx, grad: torch.Tensor):
+    def backward(ctx, grad: torch.Tensor | None):
+        if grad is None:
+            return None, None
         scales, floor, one_hot = ctx.saved_tensors
         # torch.maximum's split: the axis where it is above the floor, the floor where below, half
         # each on a tie; the floor's share goes to the largest axis through the division.
@@ -66,13 +69,16 @@ class _CappedScales(torch.autograd.Function):
 class _LargestScale(torch.autograd.Function):
     @staticmethod
     def forward(ctx, log_scales: torch.Tensor) -> torch.Tensor:
+        ctx.set_materialize_grads(False)  # no gradient in: none out (as torch's own nodes)
         largest_log, one_hot = _row_max(log_scales)
         largest = largest_log.exp()  # exp is increasing: the same element as the max of exp
         ctx.save_for_backward(largest, one_hot)
         return largest
 
     @staticmethod
-    def backward(ctx, grad: torch.Tensor):
+    def backward(ctx, grad: torch.Tensor | None):
+        if grad is None:
+            return None
         largest, one_hot = ctx.saved_tensors
         return one_hot * (grad * largest)[:, None]
 
