@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from stg_node.avatar import kernels, spacetime
+from stg_node.avatar import kernels, kinematics, spacetime
 from stg_node.avatar.color import ColorMLP, sh_color
 from stg_node.avatar.color_cache import ColorCache, TrainingColorTurns
 from stg_node.avatar.config import ModelConfig
@@ -421,7 +421,12 @@ class AvatarModel(nn.Module):
         degree = cfg.sh_degree if sh_degree is None else min(sh_degree, cfg.sh_degree)
         if self.color_mlp is not None:
             if body.poses.requires_grad:  # pose refinement: keep the pose code differentiable
-                key = lbs.axis_angle_to_matrix(body.poses[0, 1:]).reshape(1, 23 * 9)
+                joints = body.poses[0, 1:]
+                uses_numpy = kernels.mode() != "torch" and joints.device.type == "cpu"
+                mats = (
+                    kinematics.rotation_matrices(joints) if uses_numpy else lbs.axis_angle_to_matrix(joints)
+                )
+                key = mats.reshape(1, 23 * 9)
             elif key is None:
                 key = torch.as_tensor(pose_key(body.poses.detach().cpu().numpy()), device=self.device)
             features = rows(table["features"])
