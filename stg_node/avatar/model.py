@@ -375,8 +375,8 @@ class AvatarModel(nn.Module):
             if not bool(keep.all()):
                 index = keep.nonzero().squeeze(1)
 
-        def rows(t):
-            return t if index is None or t is None else t[index]
+        def rows(t):  # index_select: t[index]'s rows, a cheaper gather (and an index_add backward)
+            return t if index is None or t is None else t.index_select(0, index)
 
         canonical = table["means"] if st.offsets is None else table["means"] + st.offsets
         canonical = rows(canonical)
@@ -415,9 +415,9 @@ class AvatarModel(nn.Module):
                 keep = seen.nonzero().squeeze(1)
                 index = keep if index is None else index[keep]
                 canonical, means, quats, view_canonical, scales = (
-                    t[keep] for t in (canonical, means, quats, view_canonical, scales)
+                    t.index_select(0, keep) for t in (canonical, means, quats, view_canonical, scales)
                 )
-                next_means = None if next_means is None else next_means[keep]
+                next_means = None if next_means is None else next_means.index_select(0, keep)
         degree = cfg.sh_degree if sh_degree is None else min(sh_degree, cfg.sh_degree)
         if self.color_mlp is not None:
             if body.poses.requires_grad:  # pose refinement: keep the pose code differentiable
