@@ -487,7 +487,7 @@ class Trainer:
         timer.mark("loss")
 
         self.optimizer.zero_grad()
-        skipped = not math.isfinite(float(total))
+        skipped = not math.isfinite(float(total.detach()))
         if not skipped:
             total.backward()
             skipped = not self._grads_finite()
