@@ -31,8 +31,12 @@ def compare(net, rows=517, output_activation="identity", zero_rows=False, seed=1
     if encoding is None:
         x = torch.randn(rows, width, generator=gen, dtype=torch.float64)
     else:
-        width -= 2 * encoding.columns * encoding.freqs
+        width -= encoding.width(0)
         x = torch.rand(rows, width, generator=gen, dtype=torch.float64) * 2.0 - 1.0
+        if encoding.view_degree is not None:  # the view direction: unit vectors
+            x[:, -3:] = torch.nn.functional.normalize(
+                torch.randn(rows, 3, generator=gen, dtype=torch.float64), dim=1
+            )
     layers64 = mlp_ops.layers_of(net, output_activation)
     out_dim = layers64[-1].weight.shape[0]
     g = torch.randn(rows, out_dim, generator=gen, dtype=torch.float64)
@@ -111,6 +115,46 @@ def test_the_kernels_input_encoding_matches_torch_in_float64(columns, freqs, res
         compare(net, rows=rows, encoding=encoding, seed=rows)
 
 
+@pytest.mark.parametrize(
+    "columns, freqs, rest, degree, active",
+    [
+        (3, 4, 16, 1, 1),  # the balanced colour MLP: gamma(centre), feature, SH(d) of degree 1
+        (3, 4, 24, 2, 1),  # the quality preset while its second band is still switched off
+        (3, 2, 5, 3, 3),  # every band of degree 3
+        (3, 2, 5, 3, 0),
+        (0, 0, 7, 2, 2),  # a view direction without a positional encoding
+        (0, 0, 0, 0, 0),  # nothing but the constant band
+    ],
+)
+def test_the_kernels_view_encoding_matches_torch_in_float64(columns, freqs, rest, degree, active):
+    """The SH basis of the view direction built inside the kernel: the values and the gradients of
+    the raw inputs (the direction's three columns through the basis's derivative, the others as
+    before), weights and biases, against float64 autograd through encode_inputs (sh.sh_basis) +
+    torch.nn; bands not switched on take no gradient."""
+    encoding = mlp_ops.InputEncoding(columns, freqs, view_degree=degree, view_active=active)
+    raw = columns + rest + 3
+    net = network((encoding.width(raw), 48, 3), ("relu", "identity"), seed=raw + degree)
+    x, grads = compare(net, output_activation="sigmoid", encoding=encoding, zero_rows=True)
+    if active == 0:  # the constant band alone: the direction takes no gradient
+        assert torch.equal(grads[0][:, -3:], torch.zeros_like(grads[0][:, -3:]))
+    for rows in (1, 65):
+        compare(net, rows=rows, encoding=encoding, seed=rows)
+
+
+def test_the_view_encoding_is_the_colour_mlps():
+    """The view columns as the colour MLP's torch path feeds them: SH(d) with the bands not yet on
+    set to zero."""
+    from stg_node.avatar.color import sh_basis
+
+    dirs = torch.nn.functional.normalize(torch.randn(9, 3), dim=1)
+    rest = torch.randn(9, 5)
+    got = mlp_ops.encode_inputs(
+        torch.cat([rest, dirs], 1), mlp_ops.InputEncoding(0, 0, view_degree=2, view_active=1)
+    )
+    want = torch.cat([rest, sh_basis(1, dirs), torch.zeros(9, 5)], 1)
+    assert torch.equal(got, want)
+
+
 def test_the_input_encoding_is_the_colour_mlps():
     """encode_inputs lays the columns out as the avatar's encoded_inputs does (one layout for the
     kernel and the torch path, so a trained network reads the same inputs on either)."""
@@ -129,6 +173,15 @@ def test_an_input_encoding_that_does_not_fit_is_refused():
         mlp_ops.mlp(torch.randn(5, 3), [layer], mlp_ops.InputEncoding(3, 2))  # 15 wide, not 11
     with pytest.raises(ValueError, match="freqs"):
         mlp_ops.InputEncoding(3, 0)
+    with pytest.raises(ValueError, match="view direction"):
+        mlp_ops.InputEncoding(0, 0)
+    with pytest.raises(ValueError, match="view_active"):
+        mlp_ops.InputEncoding(3, 1, view_degree=1, view_active=2)
+    with pytest.raises(ValueError, match="view_degree"):
+        mlp_ops.InputEncoding(3, 1, view_degree=4)
+    with_view = mlp_ops.InputEncoding(3, 1, view_degree=0)
+    with pytest.raises(ValueError, match="raw columns"):  # the direction's three columns are missing
+        mlp_ops.mlp(torch.randn(5, 4), [mlp_ops.Layer(torch.randn(4, 12), None)], with_view)
 
 
 def test_two_threads_give_the_one_thread_result():

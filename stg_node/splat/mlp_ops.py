@@ -16,8 +16,9 @@ built); callers keep the module itself for everything else.
 
 An :class:`InputEncoding` has the kernel build the network's input itself, block by block in the
 caches: the sin/cos positional encoding of the first columns (a NeRF-style gamma(x)) and the other
-columns passed through, so a caller hands it the raw rows instead of a (rows x encoded width)
-tensor built and differentiated op by op in torch. :func:`encode_inputs` is its reference.
+columns passed through, and the real SH basis of a view direction in the last three columns
+(sh.sh_basis), so a caller hands it the raw rows instead of a (rows x encoded width) tensor built
+and differentiated op by op in torch. :func:`encode_inputs` is its reference.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ import torch
 from torch import nn
 
 from .build import kernels_take, load_kernels
+from .sh import sh_basis
 
 # Activation codes of csrc/small_mlp.h (enum Activation).
 ACTIVATIONS = {"identity": 0, "relu": 1, "sigmoid": 2, "tanh": 3}
@@ -48,30 +50,79 @@ class Layer:
 class InputEncoding:
     """The first ``columns`` input columns x_i enter the network as
     ``[x_i, sin(2^k pi x_i), cos(2^k pi x_i)]_{k<freqs}``, ordered
-    ``[x_0..x_{c-1}, sines, cosines, other columns]`` with sine and cosine (i, k) at ``i * freqs + k``."""
+    ``[x_0..x_{c-1}, sines, cosines, other columns]`` with sine and cosine (i, k) at ``i * freqs + k``
+    (``columns = freqs = 0``: none).
+
+    ``view_degree`` (None: no view direction): the last three raw columns are a unit direction d,
+    and the encoded row ends with its SH basis ``sh_basis(view_degree, d)`` in place of d, the bands
+    above ``view_active`` (default: all) fed as zeros (bands a training schedule has not switched on
+    yet): ``[x_0..x_{c-1}, sines, cosines, other columns, SH(d)]``."""
 
     columns: int
     freqs: int
+    view_degree: int | None = None
+    view_active: int | None = None
 
     def __post_init__(self):
-        if self.columns < 1 or self.freqs < 1:
-            raise ValueError(f"an input encoding needs columns >= 1 and freqs >= 1, got {self}")
+        if self.columns < 0 or self.freqs < 0 or (self.columns == 0) != (self.freqs == 0):
+            raise ValueError(f"an input encoding needs columns and freqs both >= 1 (or both 0), got {self}")
+        if self.view_degree is None:
+            if self.columns == 0 or self.view_active is not None:
+                raise ValueError(f"an input encoding needs encoded columns or a view direction, got {self}")
+            return
+        if not 0 <= self.view_degree <= 3:
+            raise ValueError(f"view_degree must be 0..3, got {self.view_degree}")
+        if self.view_active is None:
+            object.__setattr__(self, "view_active", self.view_degree)
+        if not 0 <= self.view_active <= self.view_degree:
+            raise ValueError(
+                f"view_active must be 0..view_degree ({self.view_degree}), got {self.view_active}"
+            )
+
+    @property
+    def view_columns(self) -> int:
+        """Columns of the view direction's SH basis in the encoded row (0: none)."""
+        return 0 if self.view_degree is None else (self.view_degree + 1) ** 2
+
+    def raw_columns(self) -> int:
+        """The fewest raw columns the encoding reads: the encoded ones and the direction."""
+        return self.columns + (0 if self.view_degree is None else 3)
 
     def width(self, raw_width: int) -> int:
         """The encoded width of ``raw_width`` raw columns."""
-        return raw_width + 2 * self.columns * self.freqs
+        view = 0 if self.view_degree is None else self.view_columns - 3
+        return raw_width + 2 * self.columns * self.freqs + view
+
+    def kernel_args(self) -> tuple[int, int, int, int]:
+        """(enc_cols, enc_freqs, view_degree, view_active) as csrc/small_mlp.h takes them (-1: no view)."""
+        if self.view_degree is None:
+            return (self.columns, self.freqs, -1, -1)
+        return (self.columns, self.freqs, self.view_degree, self.view_active)
 
 
 def encode_inputs(x: torch.Tensor, encoding: InputEncoding | None) -> torch.Tensor:
     """The reference of the kernel's input encoding (plain torch ops, any dtype, differentiable)."""
     if encoding is None:
         return x
-    if encoding.columns > x.shape[-1]:
-        raise ValueError(f"an encoding of {encoding.columns} columns needs as many, got {x.shape[-1]}")
-    scales = (2.0 ** torch.arange(encoding.freqs, dtype=x.dtype, device=x.device)) * math.pi
-    head, tail = x[..., : encoding.columns], x[..., encoding.columns :]
-    angles = (head[..., None] * scales).flatten(-2)
-    return torch.cat([head, torch.sin(angles), torch.cos(angles), tail], dim=-1)
+    if encoding.raw_columns() > x.shape[-1]:
+        raise ValueError(
+            f"an encoding of {encoding.raw_columns()} raw columns needs as many, got {x.shape[-1]}"
+        )
+    head = x[..., : encoding.columns]
+    parts = [head]
+    if encoding.freqs > 0:
+        scales = (2.0 ** torch.arange(encoding.freqs, dtype=x.dtype, device=x.device)) * math.pi
+        angles = (head[..., None] * scales).flatten(-2)
+        parts += [torch.sin(angles), torch.cos(angles)]
+    if encoding.view_degree is None:
+        return torch.cat([*parts, x[..., encoding.columns :]], dim=-1)
+    basis = sh_basis(encoding.view_degree, x[..., -3:])
+    keep = (encoding.view_active + 1) ** 2
+    if keep < basis.shape[-1]:
+        basis = torch.cat(
+            [basis[..., :keep], basis.new_zeros(*basis.shape[:-1], basis.shape[-1] - keep)], dim=-1
+        )
+    return torch.cat([*parts, x[..., encoding.columns : -3], basis], dim=-1)
 
 
 def layers_of(net: nn.Module, output_activation: str = "identity") -> list[Layer] | None:
@@ -180,11 +231,13 @@ def mlp(x: torch.Tensor, layers: list[Layer], encoding: InputEncoding | None = N
     if x.dim() != 2:
         raise ValueError(f"mlp takes (rows, features), got shape {tuple(x.shape)}")
     width = x.shape[1]
-    enc = (0, 0)
+    enc = (0, 0, -1, -1)
     if encoding is not None:
-        if encoding.columns > width:
-            raise ValueError(f"an encoding of {encoding.columns} columns needs as many, got {width}")
-        enc = (encoding.columns, encoding.freqs)
+        if encoding.raw_columns() > width:
+            raise ValueError(
+                f"an encoding of {encoding.raw_columns()} raw columns needs as many, got {width}"
+            )
+        enc = encoding.kernel_args()
         width = encoding.width(width)
     for i, layer in enumerate(layers):
         if layer.weight.dim() != 2 or layer.weight.shape[1] != width:

@@ -178,14 +178,84 @@ inline void sincos_double(double a, double* sin_out, double* cos_out) {
     *cos_out = (quadrant == 1.0 || quadrant == 2.0) ? -c : c;
 }
 
+// The real SH basis of 3DGS (stg_node/splat/sh.py, its reference) of a unit direction (x, y, z):
+// the first `bands` of the (degree + 1)^2 values, the rest zero.
+constexpr float kShC0 = 0.28209479177387814f, kShC1 = 0.4886025119029199f;
+constexpr float kShC2[5] = {1.0925484305920792f, -1.0925484305920792f, 0.31539156525252005f,
+                            -1.0925484305920792f, 0.5462742152960396f};
+constexpr float kShC3[7] = {-0.5900435899266435f, 2.890611442640554f, -0.4570457994644658f, 0.3731763325901154f,
+                            -0.4570457994644658f, 1.445305721320277f, -0.5900435899266435f};
+
+inline void sh_basis(int degree, int bands, float x, float y, float z, float* out) {
+    float v[16];
+    v[0] = kShC0;
+    if (degree >= 1) {
+        v[1] = -kShC1 * y;
+        v[2] = kShC1 * z;
+        v[3] = -kShC1 * x;
+    }
+    const float xx = x * x, yy = y * y, zz = z * z;
+    if (degree >= 2) {
+        v[4] = kShC2[0] * (x * y);
+        v[5] = kShC2[1] * (y * z);
+        v[6] = kShC2[2] * (2.0f * zz - xx - yy);
+        v[7] = kShC2[3] * (x * z);
+        v[8] = kShC2[4] * (xx - yy);
+    }
+    if (degree >= 3) {
+        v[9] = kShC3[0] * y * (3.0f * xx - yy);
+        v[10] = kShC3[1] * (x * y) * z;
+        v[11] = kShC3[2] * y * (4.0f * zz - xx - yy);
+        v[12] = kShC3[3] * z * (2.0f * zz - 3.0f * xx - 3.0f * yy);
+        v[13] = kShC3[4] * x * (4.0f * zz - xx - yy);
+        v[14] = kShC3[5] * z * (xx - yy);
+        v[15] = kShC3[6] * x * (xx - 3.0f * yy);
+    }
+    const int k = (degree + 1) * (degree + 1);
+    for (int j = 0; j < k; ++j) out[j] = j < bands ? v[j] : 0.0f;
+}
+
+// dL/d(x, y, z) of sh_basis given dL/d(each value) `g` (the first `bands` count; the zeros take none).
+inline void sh_basis_backward(int bands, float x, float y, float z, const float* g, float* g_dir) {
+    float gx = 0.0f, gy = 0.0f, gz = 0.0f;
+    auto at = [&](int j) { return j < bands ? g[j] : 0.0f; };
+    if (bands > 1) {
+        gx -= kShC1 * at(3);
+        gy -= kShC1 * at(1);
+        gz += kShC1 * at(2);
+    }
+    const float xx = x * x, yy = y * y, zz = z * z;
+    if (bands > 4) {
+        gx += kShC2[0] * y * at(4) + kShC2[3] * z * at(7) + kShC2[2] * -2.0f * x * at(6) + kShC2[4] * 2.0f * x * at(8);
+        gy += kShC2[0] * x * at(4) + kShC2[1] * z * at(5) + kShC2[2] * -2.0f * y * at(6) - kShC2[4] * 2.0f * y * at(8);
+        gz += kShC2[1] * y * at(5) + kShC2[3] * x * at(7) + kShC2[2] * 4.0f * z * at(6);
+    }
+    if (bands > 9) {
+        const float g9 = at(9), g10 = at(10), g11 = at(11), g12 = at(12), g13 = at(13), g14 = at(14), g15 = at(15);
+        gx += kShC3[0] * 6.0f * x * y * g9 + kShC3[1] * y * z * g10 + kShC3[2] * -2.0f * x * y * g11 +
+              kShC3[3] * -6.0f * x * z * g12 + kShC3[4] * (4.0f * zz - 3.0f * xx - yy) * g13 +
+              kShC3[5] * 2.0f * x * z * g14 + kShC3[6] * 3.0f * (xx - yy) * g15;
+        gy += kShC3[0] * 3.0f * (xx - yy) * g9 + kShC3[1] * x * z * g10 + kShC3[2] * (4.0f * zz - xx - 3.0f * yy) * g11 +
+              kShC3[3] * -6.0f * y * z * g12 + kShC3[4] * -2.0f * x * y * g13 + kShC3[5] * -2.0f * y * z * g14 +
+              kShC3[6] * -6.0f * x * y * g15;
+        gz += kShC3[1] * x * y * g10 + kShC3[2] * 8.0f * y * z * g11 + kShC3[3] * (6.0f * zz - 3.0f * xx - 3.0f * yy) * g12 +
+              kShC3[4] * 8.0f * x * z * g13 + kShC3[5] * (xx - yy) * g14;
+    }
+    g_dir[0] = gx;
+    g_dir[1] = gy;
+    g_dir[2] = gz;
+}
+
 // `rows` raw rows (row r at raw + row(r) * raw_width) -> their encoded rows (see MlpShape) at
 // dst (stride ld), padding columns [dims[0], ld) set to zero. torch's angle 2^k pi x is
 // float(x * float(pi)) times 2^k exactly, so each frequency's sine and cosine follow from the
 // first's by the double-angle formulas, carried in double and rounded once (one polynomial per
-// value, over the block's rows at once, instead of 2 x freqs libm calls).
+// value, over the block's rows at once, instead of 2 x freqs libm calls). A view direction's SH
+// basis (MlpShape::view_degree) closes the row.
 template <typename RowOf>
 void encode_rows(const MlpShape& s, const float* raw, int rows, RowOf row, float* dst, int ld) {
     const int c = s.enc_cols, f = s.enc_freqs, d0 = s.dims[0], raw0 = raw_width(s), cf = c * f;
+    const int k_view = view_columns(s), raw_dir = raw0 - (s.view_degree < 0 ? 0 : 3);
     double sn[kBlock], cs[kBlock];
     for (int i = 0; i < c; ++i) {
 #pragma omp simd
@@ -204,18 +274,22 @@ void encode_rows(const MlpShape& s, const float* raw, int rows, RowOf row, float
             }
         }
     }
+    const int bands = (s.view_active + 1) * (s.view_active + 1);
     for (int r = 0; r < rows; ++r) {
         const float* in = raw + row(r) * raw0;
         float* e = dst + static_cast<int64_t>(r) * ld;
         std::copy(in, in + c, e);
-        std::copy(in + c, in + raw0, e + c + 2 * cf);
+        std::copy(in + c, in + raw_dir, e + c + 2 * cf);
+        if (k_view > 0) sh_basis(s.view_degree, bands, in[raw_dir], in[raw_dir + 1], in[raw_dir + 2], e + d0 - k_view);
         std::fill(e + d0, e + ld, 0.0f);
     }
 }
 
-// dL/d(raw row) from dL/d(encoded row) `g` and the encoded row `e` (its sines and cosines):
-// dL/dx_i = g_i + sum_k 2^k pi (g_sin_ik cos_ik - g_cos_ik sin_ik); the rest passes through.
-void encode_row_backward(const MlpShape& s, const float* e, const float* g, float* g_raw) {
+// dL/d(raw row) from dL/d(encoded row) `g`, the encoded row `e` (its sines and cosines) and the
+// raw row `raw_row` (its view direction):
+// dL/dx_i = g_i + sum_k 2^k pi (g_sin_ik cos_ik - g_cos_ik sin_ik); dL/dd through the SH basis;
+// the rest passes through.
+void encode_row_backward(const MlpShape& s, const float* raw_row, const float* e, const float* g, float* g_raw) {
     const int c = s.enc_cols, f = s.enc_freqs, cf = c * f;
     for (int i = 0; i < c; ++i) {
         float sum = g[i];
@@ -226,7 +300,14 @@ void encode_row_backward(const MlpShape& s, const float* e, const float* g, floa
         }
         g_raw[i] = sum;
     }
-    std::copy(g + c + 2 * cf, g + s.dims[0], g_raw + c);
+    const int k_view = view_columns(s), raw0 = raw_width(s);
+    const int raw_dir = raw0 - (k_view > 0 ? 3 : 0);
+    std::copy(g + c + 2 * cf, g + c + 2 * cf + (raw_dir - c), g_raw + c);
+    if (k_view > 0) {
+        const int bands = (s.view_active + 1) * (s.view_active + 1);
+        const float* d = raw_row + raw_dir;
+        sh_basis_backward(bands, d[0], d[1], d[2], g + s.dims[0] - k_view, g_raw + raw_dir);
+    }
 }
 
 }  // namespace
@@ -243,7 +324,7 @@ void mlp_forward(const MlpShape& s, const float* x, const float* const* weights,
         // two ping-pong buffers for the layers whose outputs are not kept
         std::vector<float> buf0(static_cast<size_t>(kBlock) * widest), buf1(buf0.size());
         // the block's encoded input rows, when the kernel encodes its input
-        std::vector<float> enc(s.enc_cols > 0 ? static_cast<size_t>(kBlock) * padded(s.dims[0]) : 0);
+        std::vector<float> enc(encodes(s) ? static_cast<size_t>(kBlock) * padded(s.dims[0]) : 0);
         const int raw0 = raw_width(s);
 #pragma omp for schedule(static)
         for (int64_t blk = 0; blk < blocks; ++blk) {
@@ -251,7 +332,7 @@ void mlp_forward(const MlpShape& s, const float* x, const float* const* weights,
             const int rows = static_cast<int>(std::min<int64_t>(kBlock, s.rows - r0));
             const float* in = x + r0 * raw0;
             int64_t ld_in = raw0;
-            if (s.enc_cols > 0) {
+            if (encodes(s)) {
                 const int ld = padded(s.dims[0]);
                 encode_rows(s, x, rows, [r0](int r) { return r0 + r; }, enc.data(), ld);
                 in = enc.data();
@@ -324,7 +405,7 @@ void mlp_backward(const MlpShape& s, const float* x, const float* const* weights
             // gather: h[0] = x rows (padded), h[l] = hidden[l-1] rows
             {
                 const int ld = padded(d0);
-                if (s.enc_cols > 0) {
+                if (encodes(s)) {
                     encode_rows(s, x, rows, [idx](int r) { return idx[r]; }, h[0].data(), ld);
                 } else {
                     for (int r = 0; r < rows; ++r) {
@@ -369,8 +450,9 @@ void mlp_backward(const MlpShape& s, const float* x, const float* const* weights
                 if (l == 0) {
                     for (int r = 0; r < rows; ++r) {
                         const float* g = gh.data() + static_cast<size_t>(r) * ldi;
-                        if (s.enc_cols > 0)
-                            encode_row_backward(s, h[0].data() + static_cast<size_t>(r) * ldi, g, g_x + idx[r] * raw0);
+                        if (encodes(s))
+                            encode_row_backward(s, x + idx[r] * raw0, h[0].data() + static_cast<size_t>(r) * ldi, g,
+                                                g_x + idx[r] * raw0);
                         else
                             std::copy(g, g + din, g_x + idx[r] * d0);
                     }

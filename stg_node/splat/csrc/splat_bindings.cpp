@@ -794,21 +794,28 @@ struct MlpArgs {
     std::vector<const float*> weights, biases;
 };
 
-// enc_cols, enc_freqs: the input encoding the kernels apply (small_mlp.h; 0: none); x holds the
+// enc_cols, enc_freqs: the input encoding the kernels apply (small_mlp.h; 0: none); view_degree,
+// view_active: the SH basis of a view direction in the last 3 raw columns (-1: none); x holds the
 // raw rows, layer 0 takes the encoded width.
 MlpArgs mlp_args(const at::Tensor& x, at::TensorList weights, at::TensorList biases, c10::ArrayRef<int64_t> acts,
-                 int64_t enc_cols, int64_t enc_freqs) {
+                 int64_t enc_cols, int64_t enc_freqs, int64_t view_degree, int64_t view_active) {
     const int64_t n = x.size(0);
     TORCH_CHECK(x.dim() == 2, "x must be [rows, width], got ", x.sizes());
     check_cpu_float(x, "x", n, x.size(1));
     TORCH_CHECK(enc_cols >= 0 && enc_freqs >= 0 && enc_cols <= x.size(1) && (enc_cols == 0) == (enc_freqs == 0),
                 "encoding: need 0 <= enc_cols <= width and both zero or both positive, got ", enc_cols, ", ",
                 enc_freqs);
+    TORCH_CHECK(view_degree >= -1 && view_degree <= 3 && (view_degree < 0 ? view_active == -1
+                : view_active >= 0 && view_active <= view_degree), "view direction: need -1 <= view_degree <= 3 "
+                "and 0 <= view_active <= view_degree (both -1: none), got ", view_degree, ", ", view_active);
+    const int64_t view_cols = view_degree < 0 ? 0 : (view_degree + 1) * (view_degree + 1);
+    TORCH_CHECK(view_degree < 0 || enc_cols + 3 <= x.size(1), "a view direction needs 3 raw columns after the ",
+                enc_cols, " encoded ones, got ", x.size(1));
     const size_t L = weights.size();
     TORCH_CHECK(L >= 1 && biases.size() == L && acts.size() == L, "need as many weights, biases and "
                 "activations (>= 1), got ", L, ", ", biases.size(), ", ", acts.size());
     MlpArgs a;
-    a.dims.push_back(static_cast<int>(x.size(1) + 2 * enc_cols * enc_freqs));
+    a.dims.push_back(static_cast<int>(x.size(1) + 2 * enc_cols * enc_freqs + (view_degree < 0 ? 0 : view_cols - 3)));
     for (size_t l = 0; l < L; ++l) {
         const at::Tensor& w = weights[l];
         TORCH_CHECK(w.dim() == 2 && w.size(1) == a.dims.back(), "layer ", l, ": weight must be [out, ",
@@ -826,9 +833,9 @@ MlpArgs mlp_args(const at::Tensor& x, at::TensorList weights, at::TensorList bia
 
 std::tuple<at::Tensor, std::vector<at::Tensor>> mlp_fwd(const at::Tensor& x, at::TensorList weights,
                                                         at::TensorList biases, c10::ArrayRef<int64_t> acts,
-                                                        int64_t enc_cols, int64_t enc_freqs, bool keep_hidden,
-                                                        int64_t threads) {
-    const MlpArgs a = mlp_args(x, weights, biases, acts, enc_cols, enc_freqs);
+                                                        int64_t enc_cols, int64_t enc_freqs, int64_t view_degree,
+                                                        int64_t view_active, bool keep_hidden, int64_t threads) {
+    const MlpArgs a = mlp_args(x, weights, biases, acts, enc_cols, enc_freqs, view_degree, view_active);
     TORCH_CHECK(threads >= 1, "threads must be >= 1");
     const int64_t n = x.size(0);
     const int L = static_cast<int>(a.acts.size());
@@ -841,8 +848,15 @@ std::tuple<at::Tensor, std::vector<at::Tensor>> mlp_fwd(const at::Tensor& x, at:
             hidden_ptr.push_back(hidden.back().data_ptr<float>());
         }
     }
-    const stg_mlp::MlpShape shape{n, L, a.dims.data(), a.acts.data(), static_cast<int>(threads),
-                                  static_cast<int>(enc_cols), static_cast<int>(enc_freqs)};
+    const stg_mlp::MlpShape shape{n,
+                                  L,
+                                  a.dims.data(),
+                                  a.acts.data(),
+                                  static_cast<int>(threads),
+                                  static_cast<int>(enc_cols),
+                                  static_cast<int>(enc_freqs),
+                                  static_cast<int>(view_degree),
+                                  static_cast<int>(view_active)};
     stg_mlp::mlp_forward(shape, x.data_ptr<float>(), a.weights.data(), a.biases.data(), out.data_ptr<float>(),
                          keep_hidden ? hidden_ptr.data() : nullptr);
     return {out, hidden};
@@ -850,9 +864,9 @@ std::tuple<at::Tensor, std::vector<at::Tensor>> mlp_fwd(const at::Tensor& x, at:
 
 std::tuple<at::Tensor, std::vector<at::Tensor>, std::vector<at::Tensor>> mlp_bwd(
     const at::Tensor& x, at::TensorList weights, at::TensorList biases, c10::ArrayRef<int64_t> acts,
-    int64_t enc_cols, int64_t enc_freqs, at::TensorList hidden, const at::Tensor& out, const at::Tensor& g_out,
-    bool want_gx, int64_t threads) {
-    const MlpArgs a = mlp_args(x, weights, biases, acts, enc_cols, enc_freqs);
+    int64_t enc_cols, int64_t enc_freqs, int64_t view_degree, int64_t view_active, at::TensorList hidden,
+    const at::Tensor& out, const at::Tensor& g_out, bool want_gx, int64_t threads) {
+    const MlpArgs a = mlp_args(x, weights, biases, acts, enc_cols, enc_freqs, view_degree, view_active);
     TORCH_CHECK(threads >= 1, "threads must be >= 1");
     const int64_t n = x.size(0);
     const int L = static_cast<int>(a.acts.size());
@@ -873,8 +887,15 @@ std::tuple<at::Tensor, std::vector<at::Tensor>, std::vector<at::Tensor>> mlp_bwd
         g_w_ptr.push_back(g_w.back().data_ptr<float>());
         g_b_ptr.push_back(g_b.back().data_ptr<float>());
     }
-    const stg_mlp::MlpShape shape{n, L, a.dims.data(), a.acts.data(), static_cast<int>(threads),
-                                  static_cast<int>(enc_cols), static_cast<int>(enc_freqs)};
+    const stg_mlp::MlpShape shape{n,
+                                  L,
+                                  a.dims.data(),
+                                  a.acts.data(),
+                                  static_cast<int>(threads),
+                                  static_cast<int>(enc_cols),
+                                  static_cast<int>(enc_freqs),
+                                  static_cast<int>(view_degree),
+                                  static_cast<int>(view_active)};
     stg_mlp::mlp_backward(shape, x.data_ptr<float>(), a.weights.data(), hidden_ptr.data(), out.data_ptr<float>(),
                           g_out.data_ptr<float>(), want_gx ? g_x.data_ptr<float>() : nullptr, g_w_ptr.data(),
                           g_b_ptr.data());
@@ -976,12 +997,14 @@ TORCH_LIBRARY(STG_SPLAT_NS, m) {
         "Tensor, Tensor, Tensor, Tensor, Tensor)",
         &skin_bwd);
     m.def(
-        "mlp_fwd(Tensor x, Tensor[] weights, Tensor[] biases, int[] acts, int enc_cols, int enc_freqs, bool keep_hidden, "
+        "mlp_fwd(Tensor x, Tensor[] weights, Tensor[] biases, int[] acts, int enc_cols, int enc_freqs, int view_degree, "
+        "int view_active, bool keep_hidden, "
         "int threads) -> "
         "(Tensor, Tensor[])",
         &mlp_fwd);
     m.def(
-        "mlp_bwd(Tensor x, Tensor[] weights, Tensor[] biases, int[] acts, int enc_cols, int enc_freqs, Tensor[] hidden, "
+        "mlp_bwd(Tensor x, Tensor[] weights, Tensor[] biases, int[] acts, int enc_cols, int enc_freqs, int view_degree, "
+        "int view_active, Tensor[] hidden, "
         "Tensor out, "
         "Tensor g_out, bool want_gx, int threads) -> (Tensor, Tensor[], Tensor[])",
         &mlp_bwd);
