@@ -141,6 +141,60 @@ def test_the_kernels_view_encoding_matches_torch_in_float64(columns, freqs, rest
         compare(net, rows=rows, encoding=encoding, seed=rows)
 
 
+@pytest.mark.parametrize("select", [False, True])
+def test_column_groups_and_selected_rows_match_torch_in_float64(select):
+    """The raw rows read from column groups where they lie, at selected table rows: the values and
+    each group's gradient (zero at the rows not evaluated, and for a group without a gradient none)
+    against float64 autograd through torch.cat + index_select + encode_inputs + torch.nn."""
+    encoding = mlp_ops.InputEncoding(3, 4, view_degree=1)
+    net = network((encoding.width(3 + 5 + 3), 32, 3), ("relu", "identity"), seed=5)
+    gen = torch.Generator().manual_seed(6)
+    table = 300
+    groups64 = [
+        torch.rand(table, 3, generator=gen, dtype=torch.float64) * 2 - 1,
+        torch.randn(table, 5, generator=gen, dtype=torch.float64),
+        torch.nn.functional.normalize(torch.randn(table, 3, generator=gen, dtype=torch.float64), dim=1),
+    ]
+    rows = torch.randperm(table, generator=gen)[:131] if select else None  # distinct, in no order
+    count = table if rows is None else rows.numel()
+    g = torch.randn(count, 3, generator=gen, dtype=torch.float64)
+    g[::4] = 0.0  # rows that drew nothing
+    layers64 = mlp_ops.layers_of(net, "sigmoid")
+    leaves64 = [t.clone().requires_grad_(i < 2) for i, t in enumerate(groups64)]  # no grad: directions
+    ref = mlp_ops.mlp_torch(leaves64, layers64, encoding, rows)
+    ref_grads = torch.autograd.grad((ref * g).sum(), [*leaves64[:2], *net.parameters()])
+    params32 = [p.detach().float().requires_grad_(True) for p in net.parameters()]
+    layers32 = [
+        mlp_ops.Layer(params32[2 * i], params32[2 * i + 1], layer.activation)
+        for i, layer in enumerate(layers64)
+    ]
+    leaves32 = [t.float().requires_grad_(i < 2) for i, t in enumerate(groups64)]
+    out = mlp_ops.mlp(leaves32, layers32, encoding, rows)
+    grads = torch.autograd.grad((out * g.float()).sum(), [*leaves32[:2], *params32])
+    torch.testing.assert_close(out.double(), ref, atol=2e-5, rtol=1e-4)
+    for got, want in zip(grads, ref_grads, strict=True):
+        torch.testing.assert_close(
+            got.double(), want, atol=3e-5 * max(float(want.abs().max()), 1.0), rtol=1e-4
+        )
+    if rows is not None:  # the rows not evaluated take no gradient
+        others = torch.ones(table, dtype=torch.bool)
+        others[rows] = False
+        assert torch.equal(grads[1][others], torch.zeros_like(grads[1][others]))
+
+
+def test_selected_rows_must_be_distinct_rows_of_the_table():
+    layer = mlp_ops.Layer(torch.randn(4, 3), torch.randn(4), "relu")
+    x = torch.randn(10, 3)
+    with pytest.raises(RuntimeError, match="twice"):
+        mlp_ops.mlp(x, [layer], rows=torch.tensor([1, 4, 1]))
+    with pytest.raises(RuntimeError, match="not a row"):
+        mlp_ops.mlp(x, [layer], rows=torch.tensor([1, 10]))
+    with pytest.raises(ValueError, match="int64"):
+        mlp_ops.mlp(x, [layer], rows=torch.tensor([1.0]))
+    with pytest.raises(ValueError, match="same rows"):
+        mlp_ops.mlp([x, torch.randn(9, 2)], [mlp_ops.Layer(torch.randn(4, 5), None)])
+
+
 def test_the_view_encoding_is_the_colour_mlps():
     """The view columns as the colour MLP's torch path feeds them: SH(d) with the bands not yet on
     set to zero."""

@@ -113,15 +113,27 @@ class ColorMLP(nn.Module):
         pose_key: torch.Tensor,
         view_dirs: torch.Tensor,
         sh_degree: int,
+        rows: torch.Tensor | None = None,
     ) -> torch.Tensor:
+        """Colours (M, 3) in [0, 1] of the Gaussians at ``rows`` (int64 (M,), distinct; None: every
+        row) of ``canonical_means`` (N, 3), ``features`` (N, F) and ``view_dirs`` (N, 3, unit, in the
+        canonical frame), under the pose ``pose_key`` (1, 207), with the view's SH bands up to
+        ``sh_degree``. The kernel reads the selected rows where they lie (a training step's turn of
+        the rows: no gathered copies) and hands their gradients back at their rows."""
+        layers = mlp_ops.layers_of(self.net, "sigmoid")
+        fused = layers is not None and kernels.use_kernels(canonical_means, features, *self.net.parameters())
+        if rows is not None and not fused:
+            canonical_means, features, view_dirs = (
+                t.index_select(0, rows) for t in (canonical_means, features, view_dirs)
+            )
+            rows = None
         lo, hi = self.bounds[0], self.bounds[1]
         x = (canonical_means - lo) / (hi - lo).clamp_min(1e-6) * 2.0 - 1.0
         freqs = self.config.pos_freqs
         n = canonical_means.shape[0]
         pose = None if self.pose_encoder is None else self.pose_encoder(pose_key)
         active = min(sh_degree, self.config.sh_degree)
-        layers = mlp_ops.layers_of(self.net, "sigmoid")
-        if layers is not None and kernels.use_kernels(canonical_means, features, *self.net.parameters()):
+        if fused:
             if pose is not None:  # the same pose code in every row: folded into the first bias
                 start = x.shape[1] * (1 + 2 * freqs) + features.shape[1]
                 layers = mlp_ops.fold_constant_inputs(layers, slice(start, start + pose.shape[1]), pose[0])
@@ -129,7 +141,7 @@ class ColorMLP(nn.Module):
             encoding = mlp_ops.InputEncoding(
                 x.shape[1] if freqs > 0 else 0, freqs, view_degree=self.config.sh_degree, view_active=active
             )
-            return mlp_ops.mlp(torch.cat([x, features, view_dirs], dim=-1), layers, encoding)
+            return mlp_ops.mlp([x, features, view_dirs], layers, encoding, rows)
         basis = sh_basis(self.config.sh_degree, view_dirs)
         if active < self.config.sh_degree:  # bands not yet switched on are fed as zeros
             keep = (active + 1) ** 2

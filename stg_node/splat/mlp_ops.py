@@ -24,6 +24,7 @@ and differentiated op by op in torch. :func:`encode_inputs` is its reference.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -168,8 +169,21 @@ def fold_constant_inputs(layers: list[Layer], columns: slice, values: torch.Tens
     return [Layer(kept, bias, first.activation), *layers[1:]]
 
 
-def mlp_torch(x: torch.Tensor, layers: list[Layer], encoding: InputEncoding | None = None) -> torch.Tensor:
-    """The reference: the same encoding and layers with torch (any device and dtype)."""
+def _groups(x: torch.Tensor | Sequence[torch.Tensor]) -> list[torch.Tensor]:
+    return [x] if isinstance(x, torch.Tensor) else list(x)
+
+
+def mlp_torch(
+    x: torch.Tensor | Sequence[torch.Tensor],
+    layers: list[Layer],
+    encoding: InputEncoding | None = None,
+    rows: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """The reference: the same inputs, encoding and layers with torch (any device and dtype)."""
+    groups = _groups(x)
+    x = groups[0] if len(groups) == 1 else torch.cat(groups, dim=-1)
+    if rows is not None:
+        x = x.index_select(0, rows)
     x = encode_inputs(x, encoding)
     functions = {"identity": lambda t: t, "relu": torch.relu, "sigmoid": torch.sigmoid, "tanh": torch.tanh}
     for layer in layers:
@@ -177,66 +191,104 @@ def mlp_torch(x: torch.Tensor, layers: list[Layer], encoding: InputEncoding | No
     return x
 
 
-def mlp_kernel_applies(x: torch.Tensor, layers: list[Layer]) -> bool:
+def mlp_kernel_applies(x: torch.Tensor | Sequence[torch.Tensor], layers: list[Layer]) -> bool:
     """Whether :func:`mlp` can take this call: float32 CPU tensors and the kernels build here."""
-    return kernels_take(x, *(t for layer in layers for t in (layer.weight, layer.bias)))
+    return kernels_take(*_groups(x), *(t for layer in layers for t in (layer.weight, layer.bias)))
 
 
 def _f32(t: torch.Tensor) -> torch.Tensor:
     return t.detach().to(torch.float32).contiguous()
 
 
+_NO_ROWS = torch.empty(0, dtype=torch.long)
+
+
 class _Mlp(torch.autograd.Function):
+    """Inputs: rows (or None), the activations, the encoding's kernel arguments, whether a graph is
+    kept, the number of column groups, then the groups, the weights and the biases."""
+
     @staticmethod
-    def forward(ctx, x, acts, enc, grad, *params):
+    def forward(ctx, rows, acts, enc, grad, count_x, *tensors):
         ops = load_kernels().ops
         count = len(acts)
-        xs = _f32(x)
+        xs = [_f32(t) for t in tensors[:count_x]]
+        params = tensors[count_x:]
         weights = [_f32(w) for w in params[:count]]
         biases = [torch.empty(0) if b is None else _f32(b) for b in params[count:]]
-        out, hidden = ops.mlp_fwd(xs, weights, biases, list(acts), *enc, grad, torch.get_num_threads())
+        select = rows is not None
+        index = rows.contiguous() if select else _NO_ROWS
+        threads = torch.get_num_threads()
+        out, hidden = ops.mlp_fwd(xs, index, select, weights, biases, list(acts), *enc, grad, threads)
         if grad:
-            ctx.save_for_backward(xs, out, *weights, *biases, *hidden)
-        ctx.args = (acts, enc, [b is not None for b in params[count:]])
+            ctx.save_for_backward(index, out, *xs, *weights, *biases, *hidden)
+        ctx.args = (acts, enc, select, count_x, [b is not None for b in params[count:]])
         return out
 
     @staticmethod
     def backward(ctx, g_out):
-        acts, enc, has_bias = ctx.args
+        acts, enc, select, count_x, has_bias = ctx.args
         count = len(acts)
         saved = ctx.saved_tensors
-        xs, out = saved[0], saved[1]
-        weights = list(saved[2 : 2 + count])
-        biases = list(saved[2 + count : 2 + 2 * count])
-        hidden = list(saved[2 + 2 * count :])
+        index, out = saved[0], saved[1]
+        xs = list(saved[2 : 2 + count_x])
+        weights = list(saved[2 + count_x : 2 + count_x + count])
+        biases = list(saved[2 + count_x + count : 2 + count_x + 2 * count])
+        hidden = list(saved[2 + count_x + 2 * count :])
         ops = load_kernels().ops
-        want_gx = ctx.needs_input_grad[0]
+        first = 5  # the tensors' place among forward's inputs
+        want_gx = [int(ctx.needs_input_grad[first + g]) for g in range(count_x)]
         g_x, g_w, g_b = ops.mlp_bwd(
-            xs, weights, biases, list(acts), *enc, hidden, out, _f32(g_out), want_gx, torch.get_num_threads()
+            xs,
+            index,
+            select,
+            weights,
+            biases,
+            list(acts),
+            *enc,
+            hidden,
+            out,
+            _f32(g_out),
+            want_gx,
+            torch.get_num_threads(),
         )
-        grads_w = [g if ctx.needs_input_grad[4 + i] else None for i, g in enumerate(g_w)]
+        grads_x = [g if want else None for g, want in zip(g_x, want_gx, strict=True)]
+        p0 = first + count_x
+        grads_w = [g if ctx.needs_input_grad[p0 + i] else None for i, g in enumerate(g_w)]
         grads_b = [
-            g if has_bias[i] and ctx.needs_input_grad[4 + count + i] else None for i, g in enumerate(g_b)
+            g if has_bias[i] and ctx.needs_input_grad[p0 + count + i] else None for i, g in enumerate(g_b)
         ]
-        return (g_x if want_gx else None, None, None, None, *grads_w, *grads_b)
+        return (None, None, None, None, None, *grads_x, *grads_w, *grads_b)
 
 
-def mlp(x: torch.Tensor, layers: list[Layer], encoding: InputEncoding | None = None) -> torch.Tensor:
+def mlp(
+    x: torch.Tensor | Sequence[torch.Tensor],
+    layers: list[Layer],
+    encoding: InputEncoding | None = None,
+    rows: torch.Tensor | None = None,
+) -> torch.Tensor:
     """``layers`` applied to the rows of ``x (N, in)`` with the C++ kernel -> ``(N, out)``; with an
     ``encoding``, to the rows ``encode_inputs(x, encoding)``, built inside the kernel.
+
+    ``x`` may be a sequence of column groups (each (N, in_g)), read as their concatenation without
+    building it; ``rows`` (int64 (M,), distinct) evaluates those rows only -> ``(M, out)``, read where
+    they lie (a per-step subset of a table: no gathered copy, and each group's gradient comes back
+    at its table rows, zero elsewhere). :func:`mlp_torch` is the same with torch.cat and
+    index_select.
 
     Differentiable with respect to ``x`` and every weight and bias. Float32 CPU tensors (see
     :func:`mlp_kernel_applies`); computed in float32 like torch's own CPU path.
     """
-    if x.dim() != 2:
-        raise ValueError(f"mlp takes (rows, features), got shape {tuple(x.shape)}")
-    width = x.shape[1]
+    groups = _groups(x)
+    if not groups or any(t.dim() != 2 or t.shape[0] != groups[0].shape[0] for t in groups):
+        shapes = [tuple(t.shape) for t in groups]
+        raise ValueError(f"mlp takes (rows, features) column groups of the same rows, got shapes {shapes}")
+    if rows is not None and (rows.dim() != 1 or rows.dtype != torch.long):
+        raise ValueError(f"rows must be a 1-D int64 index, got {rows.dtype} of shape {tuple(rows.shape)}")
+    width = sum(t.shape[1] for t in groups)
     enc = (0, 0, -1, -1)
     if encoding is not None:
         if encoding.raw_columns() > width:
-            raise ValueError(
-                f"an encoding of {encoding.raw_columns()} raw columns needs as many, got {width}"
-            )
+            raise ValueError(f"an encoding of {encoding.raw_columns()} raw columns got {width}")
         enc = encoding.kernel_args()
         width = encoding.width(width)
     for i, layer in enumerate(layers):
@@ -249,5 +301,5 @@ def mlp(x: torch.Tensor, layers: list[Layer], encoding: InputEncoding | None = N
             raise ValueError(f"layer {i}: unknown activation {layer.activation!r}")
     acts = tuple(ACTIVATIONS[layer.activation] for layer in layers)
     params = [layer.weight for layer in layers] + [layer.bias for layer in layers]
-    grad = torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in [x, *params])
-    return _Mlp.apply(x, acts, enc, grad, *params)
+    grad = torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in [*groups, *params])
+    return _Mlp.apply(rows, acts, enc, grad, len(groups), *groups, *params)

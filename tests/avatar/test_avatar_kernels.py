@@ -369,7 +369,8 @@ def test_colour_input_encoding_gradients_match_autograd_in_float64():
 def test_colour_mlp_kernel_is_its_torch_path(preset_name, active):
     """ColorMLP on the kernel (gamma(x) and SH(d) built inside it) against its torch path
     (kernels.reference()): colours and the gradients of centres, features, directions, pose code and
-    every weight; bands not switched on yet (``active`` < the preset's degree) fed as zeros."""
+    every weight; bands not switched on yet (``active`` < the preset's degree) fed as zeros; every
+    row, and a turn of the rows read where they lie (their gradients back at their rows)."""
     from stg_node.avatar import preset
     from stg_node.avatar.color import ColorMLP
 
@@ -386,22 +387,25 @@ def test_colour_mlp_kernel_is_its_torch_path(preset_name, active):
         torch.randn(1, 207, generator=gen) * 0.3,
         torch.nn.functional.normalize(torch.randn(n, 3, generator=gen), dim=1),
     ]
-    g = torch.randn(n, 3, generator=gen)
+    turn = torch.randperm(n, generator=gen)[:61]  # a training step's turn of the rows, in no order
 
-    def run():
-        leaves = [t.clone().requires_grad_(True) for t in inputs]
-        out = mlp(*leaves, active)
-        grads = torch.autograd.grad((out * g).sum(), [*leaves, *mlp.parameters()])
-        return out.detach(), grads
+    for rows in (None, turn):
+        g = torch.randn(n if rows is None else rows.numel(), 3, generator=gen)
 
-    out, grads = run()
-    with kernels.reference():
-        want, want_grads = run()
-    torch.testing.assert_close(out, want, atol=2e-6, rtol=1e-5)
-    for got, ref in zip(grads, want_grads, strict=True):
-        torch.testing.assert_close(got, ref, atol=2e-5 * max(float(ref.abs().max()), 1.0), rtol=1e-4)
-    if active == 0:  # the constant band alone: the directions take no gradient
-        assert torch.equal(grads[3], torch.zeros_like(grads[3]))
+        def run(rows=rows, g=g):
+            leaves = [t.clone().requires_grad_(True) for t in inputs]
+            out = mlp(*leaves, active, rows=rows)
+            grads = torch.autograd.grad((out * g).sum(), [*leaves, *mlp.parameters()])
+            return out.detach(), grads
+
+        out, grads = run()
+        with kernels.reference():
+            want, want_grads = run()
+        torch.testing.assert_close(out, want, atol=2e-6, rtol=1e-5)
+        for got, ref in zip(grads, want_grads, strict=True):
+            torch.testing.assert_close(got, ref, atol=2e-5 * max(float(ref.abs().max()), 1.0), rtol=1e-4)
+        if active == 0:  # the constant band alone: the directions take no gradient
+            assert torch.equal(grads[3], torch.zeros_like(grads[3]))
 
 
 def test_render_pose_follows_edits_of_the_scales(trained, tiny_frames):

@@ -310,9 +310,35 @@ void encode_row_backward(const MlpShape& s, const float* raw_row, const float* e
     }
 }
 
+// The raw rows rows_of(0..rows-1) (positions in the evaluated rows) gathered from the groups into
+// dst [rows x raw_width], contiguous.
+template <typename RowOf>
+void gather_raw(const RawRows& x, int raw0, int rows, RowOf row, float* dst) {
+    for (int r = 0; r < rows; ++r) {
+        const int64_t i = row(r);
+        const int64_t t = x.index != nullptr ? x.index[i] : i;
+        float* d = dst + static_cast<int64_t>(r) * raw0;
+        for (int g = 0; g < x.groups; ++g) {
+            const int w = x.widths[g];
+            std::copy(x.data[g] + t * w, x.data[g] + (t + 1) * w, d);
+            d += w;
+        }
+    }
+}
+
+// One evaluated row's dL/d(raw row) `g_raw` handed to the groups that want it, at its table row.
+void scatter_raw(const RawRows& x, int64_t i, const float* g_raw, float* const* g_groups) {
+    const int64_t t = x.index != nullptr ? x.index[i] : i;
+    for (int g = 0; g < x.groups; ++g) {
+        const int w = x.widths[g];
+        if (g_groups[g] != nullptr) std::copy(g_raw, g_raw + w, g_groups[g] + t * w);
+        g_raw += w;
+    }
+}
+
 }  // namespace
 
-void mlp_forward(const MlpShape& s, const float* x, const float* const* weights,
+void mlp_forward(const MlpShape& s, const RawRows& x, const float* const* weights,
                  const float* const* biases, float* out, float* const* hidden) {
     const int L = s.layers;
     const PaddedWeights p = pad_weights(s, weights, biases, true, false);
@@ -323,18 +349,20 @@ void mlp_forward(const MlpShape& s, const float* x, const float* const* weights,
     {
         // two ping-pong buffers for the layers whose outputs are not kept
         std::vector<float> buf0(static_cast<size_t>(kBlock) * widest), buf1(buf0.size());
-        // the block's encoded input rows, when the kernel encodes its input
-        std::vector<float> enc(encodes(s) ? static_cast<size_t>(kBlock) * padded(s.dims[0]) : 0);
+        // the block's raw rows, and its encoded input rows when the kernel encodes its input
         const int raw0 = raw_width(s);
+        std::vector<float> raw(static_cast<size_t>(kBlock) * raw0);
+        std::vector<float> enc(encodes(s) ? static_cast<size_t>(kBlock) * padded(s.dims[0]) : 0);
 #pragma omp for schedule(static)
         for (int64_t blk = 0; blk < blocks; ++blk) {
             const int64_t r0 = blk * kBlock;
             const int rows = static_cast<int>(std::min<int64_t>(kBlock, s.rows - r0));
-            const float* in = x + r0 * raw0;
+            gather_raw(x, raw0, rows, [r0](int r) { return r0 + r; }, raw.data());
+            const float* in = raw.data();
             int64_t ld_in = raw0;
             if (encodes(s)) {
                 const int ld = padded(s.dims[0]);
-                encode_rows(s, x, rows, [r0](int r) { return r0 + r; }, enc.data(), ld);
+                encode_rows(s, raw.data(), rows, [](int r) { return static_cast<int64_t>(r); }, enc.data(), ld);
                 in = enc.data();
                 ld_in = ld;
             }
@@ -358,14 +386,16 @@ void mlp_forward(const MlpShape& s, const float* x, const float* const* weights,
     }
 }
 
-void mlp_backward(const MlpShape& s, const float* x, const float* const* weights,
-                  const float* const* hidden, const float* out, const float* g_out, float* g_x,
+void mlp_backward(const MlpShape& s, const RawRows& x, const float* const* weights,
+                  const float* const* hidden, const float* out, const float* g_out, float* const* g_groups,
                   float* const* g_weights, float* const* g_biases) {
     const int L = s.layers;
     const int threads = std::max(1, s.threads);
     const int d0 = s.dims[0], dl = s.dims[L], raw0 = raw_width(s);
     const PaddedWeights p = pad_weights(s, weights, nullptr, false, true);
-    // Rows with a non-zero output gradient; the others contribute nothing.
+    bool want_gx = false;
+    for (int g = 0; g < x.groups; ++g) want_gx |= g_groups != nullptr && g_groups[g] != nullptr;
+    // Rows with a non-zero output gradient; the others contribute nothing (their dL/dx stays zero).
     std::vector<int64_t> active;
     active.reserve(s.rows);
     for (int64_t r = 0; r < s.rows; ++r) {
@@ -373,7 +403,6 @@ void mlp_backward(const MlpShape& s, const float* x, const float* const* weights
         bool any = false;
         for (int j = 0; j < dl; ++j) any |= g[j] != 0.0f;
         if (any) active.push_back(r);
-        else if (g_x != nullptr) std::fill(g_x + r * raw0, g_x + (r + 1) * raw0, 0.0f);
     }
     const int64_t n_active = static_cast<int64_t>(active.size());
     const int64_t blocks = (n_active + kBlock - 1) / kBlock;
@@ -397,20 +426,23 @@ void mlp_backward(const MlpShape& s, const float* x, const float* const* weights
         for (int l = 0; l < L; ++l) h[l].assign(static_cast<size_t>(kBlock) * padded(s.dims[l]), 0.0f);
         std::vector<float> gz(static_cast<size_t>(kBlock) * widest), gh(gz.size()),
             gzt(static_cast<size_t>(widest) * kBlock);
+        std::vector<float> raw(static_cast<size_t>(kBlock) * raw0), g_raw(raw0);
 #pragma omp for schedule(dynamic, 4)
         for (int64_t blk = 0; blk < blocks; ++blk) {
             const int64_t a0 = blk * kBlock;
             const int rows = static_cast<int>(std::min<int64_t>(kBlock, n_active - a0));
             const int64_t* idx = active.data() + a0;
-            // gather: h[0] = x rows (padded), h[l] = hidden[l-1] rows
+            // gather: h[0] = the raw rows, encoded or padded; h[l] = hidden[l-1] rows
+            gather_raw(x, raw0, rows, [idx](int r) { return idx[r]; }, raw.data());
             {
                 const int ld = padded(d0);
                 if (encodes(s)) {
-                    encode_rows(s, x, rows, [idx](int r) { return idx[r]; }, h[0].data(), ld);
+                    encode_rows(s, raw.data(), rows, [](int r) { return static_cast<int64_t>(r); }, h[0].data(), ld);
                 } else {
                     for (int r = 0; r < rows; ++r) {
                         float* dst = h[0].data() + static_cast<size_t>(r) * ld;
-                        std::copy(x + idx[r] * d0, x + (idx[r] + 1) * d0, dst);
+                        std::copy(raw.data() + static_cast<size_t>(r) * d0, raw.data() + static_cast<size_t>(r + 1) * d0,
+                                  dst);
                         std::fill(dst + d0, dst + ld, 0.0f);
                     }
                 }
@@ -444,17 +476,19 @@ void mlp_backward(const MlpShape& s, const float* x, const float* const* weights
                 for (int r = 0; r < rows; ++r)
                     for (int j = 0; j < dout; ++j) gzt[static_cast<size_t>(j) * kBlock + r] = gz[static_cast<size_t>(r) * ldo + j];
                 gemm(dout, ldi, rows, gzt.data(), kBlock, h[l].data(), ldi, dW[l].data(), ldi, true);
-                if (l == 0 && g_x == nullptr) break;
+                if (l == 0 && !want_gx) break;
                 // gh = gz W_l (rows x padded(din))
                 gemm(rows, ldi, dout, gz.data(), ldo, p.wp[l].data(), ldi, gh.data(), ldi, false);
                 if (l == 0) {
                     for (int r = 0; r < rows; ++r) {
                         const float* g = gh.data() + static_cast<size_t>(r) * ldi;
-                        if (encodes(s))
-                            encode_row_backward(s, x + idx[r] * raw0, h[0].data() + static_cast<size_t>(r) * ldi, g,
-                                                g_x + idx[r] * raw0);
-                        else
-                            std::copy(g, g + din, g_x + idx[r] * d0);
+                        if (encodes(s)) {
+                            encode_row_backward(s, raw.data() + static_cast<size_t>(r) * raw0,
+                                                h[0].data() + static_cast<size_t>(r) * ldi, g, g_raw.data());
+                            scatter_raw(x, idx[r], g_raw.data(), g_groups);
+                        } else {
+                            scatter_raw(x, idx[r], g, g_groups);
+                        }
                     }
                     break;
                 }

@@ -54,16 +54,27 @@ inline int raw_width(const MlpShape& s) {
     return s.dims[0] - 2 * s.enc_cols * s.enc_freqs - (s.view_degree < 0 ? 0 : view_columns(s) - 3);
 }
 
+// The raw rows the kernels read: row r is the concatenation of row index[r] (index null: row r)
+// of `groups` column groups, group g [table rows x widths[g]] row-major; the widths sum to
+// raw_width(). The rows of `index` must be distinct (the backward writes each one's gradient).
+struct RawRows {
+    int groups;
+    const float* const* data;
+    const int* widths;
+    const int64_t* index;
+};
+
 // out [rows x dims[L]]. If `hidden` is not null, hidden[l] (l < L - 1) receives layer l's output
 // [rows x padded(dims[l+1])] for the backward pass.
-void mlp_forward(const MlpShape& s, const float* x, const float* const* weights,
+void mlp_forward(const MlpShape& s, const RawRows& x, const float* const* weights,
                  const float* const* biases, float* out, float* const* hidden);
 
-// Given dL/dout [rows x dims[L]], writes dL/dx [rows x dims[0]] (if g_x is not null) and
-// dL/dW_l, dL/db_l (each may be null). `hidden` and `out` are what mlp_forward wrote. Rows whose
-// dL/dout is all zero are skipped (their dL/dx is zero).
-void mlp_backward(const MlpShape& s, const float* x, const float* const* weights,
-                  const float* const* hidden, const float* out, const float* g_out, float* g_x,
+// Given dL/dout [rows x dims[L]], writes dL/dx into the groups' gradients g_groups[g] (the
+// groups' shapes; null: not wanted), at the rows read (the others are left as they are, zero from
+// the caller), and dL/dW_l, dL/db_l (each may be null). `hidden` and `out` are what mlp_forward
+// wrote. Rows whose dL/dout is all zero are skipped (their dL/dx is zero).
+void mlp_backward(const MlpShape& s, const RawRows& x, const float* const* weights,
+                  const float* const* hidden, const float* out, const float* g_out, float* const* g_groups,
                   float* const* g_weights, float* const* g_biases);
 
 }  // namespace stg_mlp

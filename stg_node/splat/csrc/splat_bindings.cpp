@@ -790,32 +790,61 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
 
 // ---- small MLP (small_mlp.h) ----
 struct MlpArgs {
-    std::vector<int> dims, acts;
-    std::vector<const float*> weights, biases;
+    std::vector<int> dims, acts, widths;
+    std::vector<const float*> weights, biases, groups;
+    int64_t table_rows = 0, rows = 0;  // rows of the groups, rows evaluated
+    const int64_t* index = nullptr;    // the evaluated rows' table rows (null: every row in order)
+
+    stg_mlp::RawRows raw() const {
+        return {static_cast<int>(groups.size()), groups.data(), widths.data(), index};
+    }
 };
 
-// enc_cols, enc_freqs: the input encoding the kernels apply (small_mlp.h; 0: none); view_degree,
-// view_active: the SH basis of a view direction in the last 3 raw columns (-1: none); x holds the
-// raw rows, layer 0 takes the encoded width.
-MlpArgs mlp_args(const at::Tensor& x, at::TensorList weights, at::TensorList biases, c10::ArrayRef<int64_t> acts,
-                 int64_t enc_cols, int64_t enc_freqs, int64_t view_degree, int64_t view_active) {
-    const int64_t n = x.size(0);
-    TORCH_CHECK(x.dim() == 2, "x must be [rows, width], got ", x.sizes());
-    check_cpu_float(x, "x", n, x.size(1));
-    TORCH_CHECK(enc_cols >= 0 && enc_freqs >= 0 && enc_cols <= x.size(1) && (enc_cols == 0) == (enc_freqs == 0),
+// x: the raw rows' column groups (each [table rows, width], concatenated in order); with `select`,
+// `rows` (int64, distinct) are the table rows evaluated, else every row. enc_cols, enc_freqs: the
+// input encoding the kernels apply (small_mlp.h; 0: none); view_degree, view_active: the SH basis
+// of a view direction in the last 3 raw columns (-1: none). Layer 0 takes the encoded width.
+MlpArgs mlp_args(at::TensorList x, const at::Tensor& rows, bool select, at::TensorList weights, at::TensorList biases,
+                 c10::ArrayRef<int64_t> acts, int64_t enc_cols, int64_t enc_freqs, int64_t view_degree,
+                 int64_t view_active) {
+    TORCH_CHECK(!x.empty(), "x needs at least one column group");
+    MlpArgs a;
+    a.table_rows = x[0].size(0);
+    int64_t width = 0;
+    for (const at::Tensor& group : x) {
+        TORCH_CHECK(group.dim() == 2, "x's groups must be [rows, width], got ", group.sizes());
+        check_cpu_float(group, "x", a.table_rows, group.size(1));
+        a.groups.push_back(group.data_ptr<float>());
+        a.widths.push_back(static_cast<int>(group.size(1)));
+        width += group.size(1);
+    }
+    a.rows = a.table_rows;
+    if (select) {
+        TORCH_CHECK(rows.device().is_cpu() && rows.scalar_type() == at::kLong && rows.dim() == 1 &&
+                        rows.is_contiguous(), "rows must be a contiguous 1-D int64 CPU tensor");
+        a.rows = rows.numel();
+        a.index = rows.data_ptr<int64_t>();
+        std::vector<char> seen(static_cast<size_t>(a.table_rows), 0);
+        for (int64_t i = 0; i < a.rows; ++i) {
+            const int64_t t = a.index[i];
+            TORCH_CHECK(t >= 0 && t < a.table_rows, "rows: ", t, " is not a row of ", a.table_rows);
+            TORCH_CHECK(!seen[t], "rows: ", t, " appears twice (the rows must be distinct)");
+            seen[t] = 1;
+        }
+    }
+    TORCH_CHECK(enc_cols >= 0 && enc_freqs >= 0 && enc_cols <= width && (enc_cols == 0) == (enc_freqs == 0),
                 "encoding: need 0 <= enc_cols <= width and both zero or both positive, got ", enc_cols, ", ",
                 enc_freqs);
     TORCH_CHECK(view_degree >= -1 && view_degree <= 3 && (view_degree < 0 ? view_active == -1
                 : view_active >= 0 && view_active <= view_degree), "view direction: need -1 <= view_degree <= 3 "
                 "and 0 <= view_active <= view_degree (both -1: none), got ", view_degree, ", ", view_active);
     const int64_t view_cols = view_degree < 0 ? 0 : (view_degree + 1) * (view_degree + 1);
-    TORCH_CHECK(view_degree < 0 || enc_cols + 3 <= x.size(1), "a view direction needs 3 raw columns after the ",
-                enc_cols, " encoded ones, got ", x.size(1));
+    TORCH_CHECK(view_degree < 0 || enc_cols + 3 <= width, "a view direction needs 3 raw columns after the ",
+                enc_cols, " encoded ones, got ", width);
     const size_t L = weights.size();
     TORCH_CHECK(L >= 1 && biases.size() == L && acts.size() == L, "need as many weights, biases and "
                 "activations (>= 1), got ", L, ", ", biases.size(), ", ", acts.size());
-    MlpArgs a;
-    a.dims.push_back(static_cast<int>(x.size(1) + 2 * enc_cols * enc_freqs + (view_degree < 0 ? 0 : view_cols - 3)));
+    a.dims.push_back(static_cast<int>(width + 2 * enc_cols * enc_freqs + (view_degree < 0 ? 0 : view_cols - 3)));
     for (size_t l = 0; l < L; ++l) {
         const at::Tensor& w = weights[l];
         TORCH_CHECK(w.dim() == 2 && w.size(1) == a.dims.back(), "layer ", l, ": weight must be [out, ",
@@ -831,46 +860,56 @@ MlpArgs mlp_args(const at::Tensor& x, at::TensorList weights, at::TensorList bia
     return a;
 }
 
-std::tuple<at::Tensor, std::vector<at::Tensor>> mlp_fwd(const at::Tensor& x, at::TensorList weights,
-                                                        at::TensorList biases, c10::ArrayRef<int64_t> acts,
-                                                        int64_t enc_cols, int64_t enc_freqs, int64_t view_degree,
-                                                        int64_t view_active, bool keep_hidden, int64_t threads) {
-    const MlpArgs a = mlp_args(x, weights, biases, acts, enc_cols, enc_freqs, view_degree, view_active);
+stg_mlp::MlpShape mlp_shape(const MlpArgs& a, int64_t threads, int64_t enc_cols, int64_t enc_freqs,
+                            int64_t view_degree, int64_t view_active) {
     TORCH_CHECK(threads >= 1, "threads must be >= 1");
-    const int64_t n = x.size(0);
-    const int L = static_cast<int>(a.acts.size());
-    at::Tensor out = at::empty({n, a.dims.back()}, x.options());
+    return stg_mlp::MlpShape{a.rows,
+                             static_cast<int>(a.acts.size()),
+                             a.dims.data(),
+                             a.acts.data(),
+                             static_cast<int>(threads),
+                             static_cast<int>(enc_cols),
+                             static_cast<int>(enc_freqs),
+                             static_cast<int>(view_degree),
+                             static_cast<int>(view_active)};
+}
+
+std::tuple<at::Tensor, std::vector<at::Tensor>> mlp_fwd(at::TensorList x, const at::Tensor& rows, bool select,
+                                                        at::TensorList weights, at::TensorList biases,
+                                                        c10::ArrayRef<int64_t> acts, int64_t enc_cols,
+                                                        int64_t enc_freqs, int64_t view_degree, int64_t view_active,
+                                                        bool keep_hidden, int64_t threads) {
+    const MlpArgs a = mlp_args(x, rows, select, weights, biases, acts, enc_cols, enc_freqs, view_degree, view_active);
+    const stg_mlp::MlpShape shape = mlp_shape(a, threads, enc_cols, enc_freqs, view_degree, view_active);
+    const int64_t n = a.rows;
+    at::Tensor out = at::empty({n, a.dims.back()}, x[0].options());
     std::vector<at::Tensor> hidden;
     std::vector<float*> hidden_ptr;
     if (keep_hidden) {
-        for (int l = 0; l + 1 < L; ++l) {
-            hidden.push_back(at::empty({n, stg_mlp::padded(a.dims[l + 1])}, x.options()));
+        for (int l = 0; l + 1 < shape.layers; ++l) {
+            hidden.push_back(at::empty({n, stg_mlp::padded(a.dims[l + 1])}, x[0].options()));
             hidden_ptr.push_back(hidden.back().data_ptr<float>());
         }
     }
-    const stg_mlp::MlpShape shape{n,
-                                  L,
-                                  a.dims.data(),
-                                  a.acts.data(),
-                                  static_cast<int>(threads),
-                                  static_cast<int>(enc_cols),
-                                  static_cast<int>(enc_freqs),
-                                  static_cast<int>(view_degree),
-                                  static_cast<int>(view_active)};
-    stg_mlp::mlp_forward(shape, x.data_ptr<float>(), a.weights.data(), a.biases.data(), out.data_ptr<float>(),
+    stg_mlp::mlp_forward(shape, a.raw(), a.weights.data(), a.biases.data(), out.data_ptr<float>(),
                          keep_hidden ? hidden_ptr.data() : nullptr);
     return {out, hidden};
 }
 
-std::tuple<at::Tensor, std::vector<at::Tensor>, std::vector<at::Tensor>> mlp_bwd(
-    const at::Tensor& x, at::TensorList weights, at::TensorList biases, c10::ArrayRef<int64_t> acts,
-    int64_t enc_cols, int64_t enc_freqs, int64_t view_degree, int64_t view_active, at::TensorList hidden,
-    const at::Tensor& out, const at::Tensor& g_out, bool want_gx, int64_t threads) {
-    const MlpArgs a = mlp_args(x, weights, biases, acts, enc_cols, enc_freqs, view_degree, view_active);
-    TORCH_CHECK(threads >= 1, "threads must be >= 1");
-    const int64_t n = x.size(0);
-    const int L = static_cast<int>(a.acts.size());
+// want_gx: per column group, whether (1) or not (0) its gradient is wanted (an empty tensor in its
+// place if not; rows not evaluated get zero).
+std::tuple<std::vector<at::Tensor>, std::vector<at::Tensor>, std::vector<at::Tensor>> mlp_bwd(
+    at::TensorList x, const at::Tensor& rows, bool select, at::TensorList weights, at::TensorList biases,
+    c10::ArrayRef<int64_t> acts, int64_t enc_cols, int64_t enc_freqs, int64_t view_degree, int64_t view_active,
+    at::TensorList hidden, const at::Tensor& out, const at::Tensor& g_out, c10::ArrayRef<int64_t> want_gx,
+    int64_t threads) {
+    const MlpArgs a = mlp_args(x, rows, select, weights, biases, acts, enc_cols, enc_freqs, view_degree, view_active);
+    const stg_mlp::MlpShape shape = mlp_shape(a, threads, enc_cols, enc_freqs, view_degree, view_active);
+    const int64_t n = a.rows;
+    const int L = shape.layers;
     TORCH_CHECK(static_cast<int>(hidden.size()) == L - 1, "need ", L - 1, " hidden outputs, got ", hidden.size());
+    TORCH_CHECK(want_gx.size() == x.size(), "want_gx: one flag per column group (", x.size(), "), got ",
+                want_gx.size());
     std::vector<const float*> hidden_ptr;
     for (int l = 0; l + 1 < L; ++l) {
         check_cpu_float(hidden[l], "hidden", n, stg_mlp::padded(a.dims[l + 1]));
@@ -878,27 +917,22 @@ std::tuple<at::Tensor, std::vector<at::Tensor>, std::vector<at::Tensor>> mlp_bwd
     }
     check_cpu_float(out, "out", n, a.dims.back());
     check_cpu_float(g_out, "grad out", n, a.dims.back());
-    at::Tensor g_x = at::empty({want_gx ? n : 0, x.size(1)}, x.options());
+    std::vector<at::Tensor> g_x;
+    std::vector<float*> g_x_ptr;
+    for (size_t g = 0; g < x.size(); ++g) {
+        g_x.push_back(want_gx[g] ? at::zeros_like(x[g]) : at::empty({0}, x[g].options()));
+        g_x_ptr.push_back(want_gx[g] ? g_x.back().data_ptr<float>() : nullptr);
+    }
     std::vector<at::Tensor> g_w, g_b;
     std::vector<float*> g_w_ptr, g_b_ptr;
     for (int l = 0; l < L; ++l) {
-        g_w.push_back(at::empty({a.dims[l + 1], a.dims[l]}, x.options()));
-        g_b.push_back(at::empty({a.dims[l + 1]}, x.options()));
+        g_w.push_back(at::empty({a.dims[l + 1], a.dims[l]}, x[0].options()));
+        g_b.push_back(at::empty({a.dims[l + 1]}, x[0].options()));
         g_w_ptr.push_back(g_w.back().data_ptr<float>());
         g_b_ptr.push_back(g_b.back().data_ptr<float>());
     }
-    const stg_mlp::MlpShape shape{n,
-                                  L,
-                                  a.dims.data(),
-                                  a.acts.data(),
-                                  static_cast<int>(threads),
-                                  static_cast<int>(enc_cols),
-                                  static_cast<int>(enc_freqs),
-                                  static_cast<int>(view_degree),
-                                  static_cast<int>(view_active)};
-    stg_mlp::mlp_backward(shape, x.data_ptr<float>(), a.weights.data(), hidden_ptr.data(), out.data_ptr<float>(),
-                          g_out.data_ptr<float>(), want_gx ? g_x.data_ptr<float>() : nullptr, g_w_ptr.data(),
-                          g_b_ptr.data());
+    stg_mlp::mlp_backward(shape, a.raw(), a.weights.data(), hidden_ptr.data(), out.data_ptr<float>(),
+                          g_out.data_ptr<float>(), g_x_ptr.data(), g_w_ptr.data(), g_b_ptr.data());
     return {g_x, g_w, g_b};
 }
 
@@ -997,15 +1031,15 @@ TORCH_LIBRARY(STG_SPLAT_NS, m) {
         "Tensor, Tensor, Tensor, Tensor, Tensor)",
         &skin_bwd);
     m.def(
-        "mlp_fwd(Tensor x, Tensor[] weights, Tensor[] biases, int[] acts, int enc_cols, int enc_freqs, int view_degree, "
-        "int view_active, bool keep_hidden, "
+        "mlp_fwd(Tensor[] x, Tensor rows, bool select, Tensor[] weights, Tensor[] biases, int[] acts, int enc_cols, "
+        "int enc_freqs, int view_degree, int view_active, bool keep_hidden, "
         "int threads) -> "
         "(Tensor, Tensor[])",
         &mlp_fwd);
     m.def(
-        "mlp_bwd(Tensor x, Tensor[] weights, Tensor[] biases, int[] acts, int enc_cols, int enc_freqs, int view_degree, "
-        "int view_active, Tensor[] hidden, "
+        "mlp_bwd(Tensor[] x, Tensor rows, bool select, Tensor[] weights, Tensor[] biases, int[] acts, int enc_cols, "
+        "int enc_freqs, int view_degree, int view_active, Tensor[] hidden, "
         "Tensor out, "
-        "Tensor g_out, bool want_gx, int threads) -> (Tensor, Tensor[], Tensor[])",
+        "Tensor g_out, int[] want_gx, int threads) -> (Tensor[], Tensor[], Tensor[])",
         &mlp_bwd);
 }
