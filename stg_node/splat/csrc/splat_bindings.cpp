@@ -8,6 +8,7 @@
 #include <torch/library.h>
 
 #include <algorithm>
+#include <cmath>
 #include <string>
 #include <tuple>
 #include <vector>
@@ -17,6 +18,7 @@
 #include "image_filter.h"
 #include "skinning.h"
 #include "small_mlp.h"
+#include "distant_shading.h"
 #include "sphere_occlusion.h"
 #include "splat_kernels.h"
 
@@ -936,6 +938,135 @@ std::tuple<std::vector<at::Tensor>, std::vector<at::Tensor>, std::vector<at::Ten
     return {g_x, g_w, g_b};
 }
 
+// ---- shading under distant lights (distant_shading.h) ----
+// The learned light from its parameters (stg_node/avatar/shading.py, DistantLights.parts: its
+// reference), in double, and the chain rule back to them: a = softplus(ambient), c =
+// softplus(colours), d = directions / max(|directions|, 1e-9), m = a + sum_l c_l / 4; the occlusion
+// strength k = sigmoid(strength_logit).
+struct LearnedLight {
+    int count = 0;
+    std::vector<double> a, c, d, m, norms;
+    std::vector<float> af, cf, df, mf;
+    double k = 0.0;
+
+    stg_shade::Lights lights() const { return {count, af.data(), cf.data(), df.data(), mf.data()}; }
+};
+
+double softplus(double x) { return x > 20.0 ? x : std::log1p(std::exp(x)); }  // torch's threshold 20
+double softplus_slope(double x) { return x > 20.0 ? 1.0 : 1.0 / (1.0 + std::exp(-x)); }
+
+LearnedLight learned_light(const at::Tensor& ambient, const at::Tensor& colors, const at::Tensor& directions,
+                           const at::Tensor& strength_logit) {
+    const int64_t K = colors.size(0);
+    TORCH_CHECK(colors.dim() == 2 && K >= 1 && K <= 8, "shading: 1 to 8 lights, got ", colors.sizes());
+    check_cpu_float(colors, "light colours", K, 3);
+    check_cpu_float(directions, "light directions", K, 3);
+    TORCH_CHECK(ambient.numel() == 3, "shading: the ambient term needs 3 values, got ", ambient.numel());
+    check_cpu_float(ambient, "ambient", ambient.size(0), 0);
+    LearnedLight L;
+    L.count = static_cast<int>(K);
+    const float* amb = ambient.data_ptr<float>();
+    const float* col = colors.data_ptr<float>();
+    const float* dir = directions.data_ptr<float>();
+    for (int j = 0; j < 3; ++j) L.a.push_back(softplus(amb[j]));
+    L.m = L.a;
+    for (int64_t l = 0; l < K; ++l) {
+        const double n = std::sqrt(static_cast<double>(dir[3 * l]) * dir[3 * l] +
+                                   static_cast<double>(dir[3 * l + 1]) * dir[3 * l + 1] +
+                                   static_cast<double>(dir[3 * l + 2]) * dir[3 * l + 2]);
+        L.norms.push_back(n);
+        for (int j = 0; j < 3; ++j) {
+            L.c.push_back(softplus(col[3 * l + j]));
+            L.m[j] += L.c.back() / 4.0;
+            L.d.push_back(dir[3 * l + j] / std::max(n, 1e-9));
+        }
+    }
+    if (given(strength_logit)) {
+        TORCH_CHECK(strength_logit.numel() == 1, "shading: one occlusion strength, got ", strength_logit.numel());
+        check_cpu_float(strength_logit, "strength", strength_logit.size(0), 0);
+        L.k = 1.0 / (1.0 + std::exp(-static_cast<double>(strength_logit.data_ptr<float>()[0])));
+    }
+    const auto to_float = [](const std::vector<double>& v) { return std::vector<float>(v.begin(), v.end()); };
+    L.af = to_float(L.a);
+    L.cf = to_float(L.c);
+    L.df = to_float(L.d);
+    L.mf = to_float(L.m);
+    return L;
+}
+
+const float* shade_visible(const at::Tensor& visible, int64_t n) {
+    if (!given(visible)) return nullptr;
+    TORCH_CHECK(visible.dim() == 1, "visible must be [rows], got ", visible.sizes());
+    check_cpu_float(visible, "visible", n, 0);
+    return visible.data_ptr<float>();
+}
+
+// visible: (M,) or empty (no occlusion factor, and strength_logit empty).
+at::Tensor shade_fwd(const at::Tensor& albedo, const at::Tensor& normals, const at::Tensor& visible,
+                     const at::Tensor& strength_logit, const at::Tensor& ambient, const at::Tensor& colors,
+                     const at::Tensor& directions, int64_t threads) {
+    const int64_t n = albedo.size(0);
+    check_cpu_float(albedo, "albedo", n, 3);
+    check_cpu_float(normals, "normals", n, 3);
+    TORCH_CHECK(threads >= 1, "threads must be >= 1");
+    const LearnedLight L = learned_light(ambient, colors, directions, strength_logit);
+    at::Tensor out = at::empty({n, 3}, albedo.options());
+    stg_shade::shade_forward(albedo.data_ptr<float>(), normals.data_ptr<float>(), shade_visible(visible, n),
+                             static_cast<float>(L.k), n, L.lights(), out.data_ptr<float>(), static_cast<int>(threads));
+    return out;
+}
+
+// away: (M,) bool or empty. Returns dL/dalbedo, dL/dnormals (empty where not wanted), dL/dstrength_logit,
+// dL/dambient, dL/dcolors, dL/ddirections (the parameters' shapes, float32).
+std::vector<at::Tensor> shade_bwd(const at::Tensor& albedo, const at::Tensor& normals, const at::Tensor& visible,
+                                  const at::Tensor& strength_logit, const at::Tensor& ambient,
+                                  const at::Tensor& colors, const at::Tensor& directions, const at::Tensor& away,
+                                  const at::Tensor& g_out, bool want_albedo, bool want_normals, int64_t threads) {
+    const int64_t n = albedo.size(0);
+    check_cpu_float(albedo, "albedo", n, 3);
+    check_cpu_float(normals, "normals", n, 3);
+    check_cpu_float(g_out, "grad out", n, 3);
+    TORCH_CHECK(threads >= 1, "threads must be >= 1");
+    const LearnedLight L = learned_light(ambient, colors, directions, strength_logit);
+    const int K = L.count;
+    const bool* away_ptr = nullptr;
+    if (given(away)) {
+        TORCH_CHECK(away.device().is_cpu() && away.scalar_type() == at::kBool && away.dim() == 1 && away.size(0) == n &&
+                        away.is_contiguous(), "away must be a contiguous [", n, "] bool CPU tensor");
+        away_ptr = away.data_ptr<bool>();
+    }
+    at::Tensor g_albedo = at::empty({want_albedo ? n : 0, 3}, albedo.options());
+    at::Tensor g_normals = at::empty({want_normals ? n : 0, 3}, albedo.options());
+    double g_k = 0.0, g_a[3], g_m[3];
+    std::vector<double> g_c(3 * K), g_d(3 * K);
+    stg_shade::shade_backward(albedo.data_ptr<float>(), normals.data_ptr<float>(), shade_visible(visible, n),
+                              static_cast<float>(L.k), n, L.lights(), away_ptr, g_out.data_ptr<float>(),
+                              want_albedo ? g_albedo.data_ptr<float>() : nullptr,
+                              want_normals ? g_normals.data_ptr<float>() : nullptr, &g_k, g_a, g_c.data(), g_d.data(),
+                              g_m, static_cast<int>(threads));
+    // the chain rule back to the parameters
+    at::Tensor g_logit = at::zeros_like(strength_logit);
+    if (given(strength_logit)) g_logit.data_ptr<float>()[0] = static_cast<float>(g_k * L.k * (1.0 - L.k));
+    at::Tensor g_ambient = at::empty_like(ambient), g_colors = at::empty_like(colors);
+    at::Tensor g_directions = at::empty_like(directions);
+    const float* amb = ambient.data_ptr<float>();
+    const float* col = colors.data_ptr<float>();
+    for (int j = 0; j < 3; ++j) g_ambient.data_ptr<float>()[j] = static_cast<float>((g_a[j] + g_m[j]) * softplus_slope(amb[j]));
+    for (int l = 0; l < K; ++l) {
+        double dot = 0.0;
+        for (int q = 0; q < 3; ++q) dot += L.d[3 * l + q] * g_d[3 * l + q];
+        const bool clamped = L.norms[l] < 1e-9;  // then d / 1e-9, the norm taking no gradient
+        const double inv = 1.0 / std::max(L.norms[l], 1e-9);
+        for (int q = 0; q < 3; ++q) {
+            const int i = 3 * l + q;
+            g_colors.data_ptr<float>()[i] = static_cast<float>((g_c[i] + g_m[q] / 4.0) * softplus_slope(col[i]));
+            g_directions.data_ptr<float>()[i] =
+                static_cast<float>(clamped ? g_d[i] * inv : (g_d[i] - L.d[i] * dot) * inv);
+        }
+    }
+    return {g_albedo, g_normals, g_logit, g_ambient, g_colors, g_directions};
+}
+
 int64_t image_window() { return stg_image::kWindow; }
 
 int64_t tile_size() { return stg_splat::kTileSize; }
@@ -1030,6 +1161,13 @@ TORCH_LIBRARY(STG_SPLAT_NS, m) {
         "Tensor g_next_world, Tensor blends, bool bone_grads, bool next_bone_grads, int threads) -> (Tensor, "
         "Tensor, Tensor, Tensor, Tensor, Tensor)",
         &skin_bwd);
+    m.def("shade_fwd(Tensor albedo, Tensor normals, Tensor visible, Tensor strength_logit, Tensor ambient, "
+          "Tensor colors, Tensor directions, int threads) -> Tensor",
+          &shade_fwd);
+    m.def("shade_bwd(Tensor albedo, Tensor normals, Tensor visible, Tensor strength_logit, Tensor ambient, "
+          "Tensor colors, Tensor directions, Tensor away, Tensor g_out, bool want_albedo, bool want_normals, "
+          "int threads) -> Tensor[]",
+          &shade_bwd);
     m.def(
         "mlp_fwd(Tensor[] x, Tensor rows, bool select, Tensor[] weights, Tensor[] biases, int[] acts, int enc_cols, "
         "int enc_freqs, int view_degree, int view_active, bool keep_hidden, "
