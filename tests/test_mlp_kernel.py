@@ -31,8 +31,12 @@ def compare(net, rows=517, output_activation="identity", zero_rows=False, seed=1
     if encoding is None:
         x = torch.randn(rows, width, generator=gen, dtype=torch.float64)
     else:
-        width -= 2 * encoding.columns * encoding.freqs
+        width -= encoding.width(0)
         x = torch.rand(rows, width, generator=gen, dtype=torch.float64) * 2.0 - 1.0
+        if encoding.view_degree is not None:  # the view direction: unit vectors
+            x[:, -3:] = torch.nn.functional.normalize(
+                torch.randn(rows, 3, generator=gen, dtype=torch.float64), dim=1
+            )
     layers64 = mlp_ops.layers_of(net, output_activation)
     out_dim = layers64[-1].weight.shape[0]
     g = torch.randn(rows, out_dim, generator=gen, dtype=torch.float64)
@@ -111,6 +115,100 @@ def test_the_kernels_input_encoding_matches_torch_in_float64(columns, freqs, res
         compare(net, rows=rows, encoding=encoding, seed=rows)
 
 
+@pytest.mark.parametrize(
+    "columns, freqs, rest, degree, active",
+    [
+        (3, 4, 16, 1, 1),  # the balanced colour MLP: gamma(centre), feature, SH(d) of degree 1
+        (3, 4, 24, 2, 1),  # the quality preset while its second band is still switched off
+        (3, 2, 5, 3, 3),  # every band of degree 3
+        (3, 2, 5, 3, 0),
+        (0, 0, 7, 2, 2),  # a view direction without a positional encoding
+        (0, 0, 0, 0, 0),  # nothing but the constant band
+    ],
+)
+def test_the_kernels_view_encoding_matches_torch_in_float64(columns, freqs, rest, degree, active):
+    """The SH basis of the view direction built inside the kernel: the values and the gradients of
+    the raw inputs (the direction's three columns through the basis's derivative, the others as
+    before), weights and biases, against float64 autograd through encode_inputs (sh.sh_basis) +
+    torch.nn; bands not switched on take no gradient."""
+    encoding = mlp_ops.InputEncoding(columns, freqs, view_degree=degree, view_active=active)
+    raw = columns + rest + 3
+    net = network((encoding.width(raw), 48, 3), ("relu", "identity"), seed=raw + degree)
+    x, grads = compare(net, output_activation="sigmoid", encoding=encoding, zero_rows=True)
+    if active == 0:  # the constant band alone: the direction takes no gradient
+        assert torch.equal(grads[0][:, -3:], torch.zeros_like(grads[0][:, -3:]))
+    for rows in (1, 65):
+        compare(net, rows=rows, encoding=encoding, seed=rows)
+
+
+@pytest.mark.parametrize("select", [False, True])
+def test_column_groups_and_selected_rows_match_torch_in_float64(select):
+    """The raw rows read from column groups where they lie, at selected table rows: the values and
+    each group's gradient (zero at the rows not evaluated, and for a group without a gradient none)
+    against float64 autograd through torch.cat + index_select + encode_inputs + torch.nn."""
+    encoding = mlp_ops.InputEncoding(3, 4, view_degree=1)
+    net = network((encoding.width(3 + 5 + 3), 32, 3), ("relu", "identity"), seed=5)
+    gen = torch.Generator().manual_seed(6)
+    table = 300
+    groups64 = [
+        torch.rand(table, 3, generator=gen, dtype=torch.float64) * 2 - 1,
+        torch.randn(table, 5, generator=gen, dtype=torch.float64),
+        torch.nn.functional.normalize(torch.randn(table, 3, generator=gen, dtype=torch.float64), dim=1),
+    ]
+    rows = torch.randperm(table, generator=gen)[:131] if select else None  # distinct, in no order
+    count = table if rows is None else rows.numel()
+    g = torch.randn(count, 3, generator=gen, dtype=torch.float64)
+    g[::4] = 0.0  # rows that drew nothing
+    layers64 = mlp_ops.layers_of(net, "sigmoid")
+    leaves64 = [t.clone().requires_grad_(i < 2) for i, t in enumerate(groups64)]  # no grad: directions
+    ref = mlp_ops.mlp_torch(leaves64, layers64, encoding, rows)
+    ref_grads = torch.autograd.grad((ref * g).sum(), [*leaves64[:2], *net.parameters()])
+    params32 = [p.detach().float().requires_grad_(True) for p in net.parameters()]
+    layers32 = [
+        mlp_ops.Layer(params32[2 * i], params32[2 * i + 1], layer.activation)
+        for i, layer in enumerate(layers64)
+    ]
+    leaves32 = [t.float().requires_grad_(i < 2) for i, t in enumerate(groups64)]
+    out = mlp_ops.mlp(leaves32, layers32, encoding, rows)
+    grads = torch.autograd.grad((out * g.float()).sum(), [*leaves32[:2], *params32])
+    torch.testing.assert_close(out.double(), ref, atol=2e-5, rtol=1e-4)
+    for got, want in zip(grads, ref_grads, strict=True):
+        torch.testing.assert_close(
+            got.double(), want, atol=3e-5 * max(float(want.abs().max()), 1.0), rtol=1e-4
+        )
+    if rows is not None:  # the rows not evaluated take no gradient
+        others = torch.ones(table, dtype=torch.bool)
+        others[rows] = False
+        assert torch.equal(grads[1][others], torch.zeros_like(grads[1][others]))
+
+
+def test_selected_rows_must_be_distinct_rows_of_the_table():
+    layer = mlp_ops.Layer(torch.randn(4, 3), torch.randn(4), "relu")
+    x = torch.randn(10, 3)
+    with pytest.raises(RuntimeError, match="twice"):
+        mlp_ops.mlp(x, [layer], rows=torch.tensor([1, 4, 1]))
+    with pytest.raises(RuntimeError, match="not a row"):
+        mlp_ops.mlp(x, [layer], rows=torch.tensor([1, 10]))
+    with pytest.raises(ValueError, match="int64"):
+        mlp_ops.mlp(x, [layer], rows=torch.tensor([1.0]))
+    with pytest.raises(ValueError, match="same rows"):
+        mlp_ops.mlp([x, torch.randn(9, 2)], [mlp_ops.Layer(torch.randn(4, 5), None)])
+
+
+def test_the_view_encoding_is_the_colour_mlps():
+    """The view columns as the colour MLP's torch path feeds them: SH(d) with the bands not yet on
+    set to zero."""
+    from stg_node.avatar.color import sh_basis
+
+    dirs = torch.nn.functional.normalize(torch.randn(9, 3), dim=1)
+    rest = torch.randn(9, 5)
+    got = mlp_ops.encode_inputs(
+        torch.cat([rest, dirs], 1), mlp_ops.InputEncoding(0, 0, view_degree=2, view_active=1)
+    )
+    want = torch.cat([rest, sh_basis(1, dirs), torch.zeros(9, 5)], 1)
+    assert torch.equal(got, want)
+
+
 def test_the_input_encoding_is_the_colour_mlps():
     """encode_inputs lays the columns out as the avatar's encoded_inputs does (one layout for the
     kernel and the torch path, so a trained network reads the same inputs on either)."""
@@ -129,6 +227,15 @@ def test_an_input_encoding_that_does_not_fit_is_refused():
         mlp_ops.mlp(torch.randn(5, 3), [layer], mlp_ops.InputEncoding(3, 2))  # 15 wide, not 11
     with pytest.raises(ValueError, match="freqs"):
         mlp_ops.InputEncoding(3, 0)
+    with pytest.raises(ValueError, match="view direction"):
+        mlp_ops.InputEncoding(0, 0)
+    with pytest.raises(ValueError, match="view_active"):
+        mlp_ops.InputEncoding(3, 1, view_degree=1, view_active=2)
+    with pytest.raises(ValueError, match="view_degree"):
+        mlp_ops.InputEncoding(3, 1, view_degree=4)
+    with_view = mlp_ops.InputEncoding(3, 1, view_degree=0)
+    with pytest.raises(ValueError, match="raw columns"):  # the direction's three columns are missing
+        mlp_ops.mlp(torch.randn(5, 4), [mlp_ops.Layer(torch.randn(4, 12), None)], with_view)
 
 
 def test_two_threads_give_the_one_thread_result():

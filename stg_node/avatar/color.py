@@ -21,53 +21,8 @@ from torch import nn
 from stg_node.avatar import kernels
 from stg_node.avatar.config import ModelConfig
 from stg_node.splat import mlp_ops
-
-SH_C0 = 0.28209479177387814
-SH_C1 = 0.4886025119029199
-SH_C2 = (
-    1.0925484305920792,
-    -1.0925484305920792,
-    0.31539156525252005,
-    -1.0925484305920792,
-    0.5462742152960396,
-)
-SH_C3 = (
-    -0.5900435899266435,
-    2.890611442640554,
-    -0.4570457994644658,
-    0.3731763325901154,
-    -0.4570457994644658,
-    1.445305721320277,
-    -0.5900435899266435,
-)
-
-
-def sh_basis(degree: int, dirs: torch.Tensor) -> torch.Tensor:
-    """Real SH basis (3DGS's sign convention) of unit directions ``(N, 3)`` -> ``(N, (degree+1)^2)``."""
-    x, y, z = dirs.unbind(-1)
-    out = [torch.full_like(x, SH_C0)]
-    if degree >= 1:
-        out += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
-    if degree >= 2:
-        xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
-        out += [
-            SH_C2[0] * xy,
-            SH_C2[1] * yz,
-            SH_C2[2] * (2 * zz - xx - yy),
-            SH_C2[3] * xz,
-            SH_C2[4] * (xx - yy),
-        ]
-    if degree >= 3:
-        out += [
-            SH_C3[0] * y * (3 * xx - yy),
-            SH_C3[1] * xy * z,
-            SH_C3[2] * y * (4 * zz - xx - yy),
-            SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy),
-            SH_C3[4] * x * (4 * zz - xx - yy),
-            SH_C3[5] * z * (xx - yy),
-            SH_C3[6] * x * (xx - 3 * yy),
-        ]
-    return torch.stack(out, dim=-1)
+from stg_node.splat.sh import SH_C0 as SH_C0  # read here by export.py and shading.py
+from stg_node.splat.sh import sh_basis
 
 
 def sh_color(coeffs: torch.Tensor, dirs: torch.Tensor, degree: int) -> torch.Tensor:
@@ -158,24 +113,39 @@ class ColorMLP(nn.Module):
         pose_key: torch.Tensor,
         view_dirs: torch.Tensor,
         sh_degree: int,
+        rows: torch.Tensor | None = None,
     ) -> torch.Tensor:
+        """Colours (M, 3) in [0, 1] of the Gaussians at ``rows`` (int64 (M,), distinct; None: every
+        row) of ``canonical_means`` (N, 3), ``features`` (N, F) and ``view_dirs`` (N, 3, unit, in the
+        canonical frame), under the pose ``pose_key`` (1, 207), with the view's SH bands up to
+        ``sh_degree``. The kernel reads the selected rows where they lie (a training step's turn of
+        the rows: no gathered copies) and hands their gradients back at their rows."""
+        layers = mlp_ops.layers_of(self.net, "sigmoid")
+        fused = layers is not None and kernels.use_kernels(canonical_means, features, *self.net.parameters())
+        if rows is not None and not fused:
+            canonical_means, features, view_dirs = (
+                t.index_select(0, rows) for t in (canonical_means, features, view_dirs)
+            )
+            rows = None
         lo, hi = self.bounds[0], self.bounds[1]
         x = (canonical_means - lo) / (hi - lo).clamp_min(1e-6) * 2.0 - 1.0
         freqs = self.config.pos_freqs
         n = canonical_means.shape[0]
         pose = None if self.pose_encoder is None else self.pose_encoder(pose_key)
-        basis = sh_basis(self.config.sh_degree, view_dirs)
-        if sh_degree < self.config.sh_degree:  # bands not yet switched on are fed as zeros
-            keep = (sh_degree + 1) ** 2
-            basis = torch.cat([basis[:, :keep], basis.new_zeros(n, basis.shape[1] - keep)], dim=1)
-        layers = mlp_ops.layers_of(self.net, "sigmoid")
-        if layers is not None and kernels.use_kernels(canonical_means, features, *self.net.parameters()):
+        active = min(sh_degree, self.config.sh_degree)
+        if fused:
             if pose is not None:  # the same pose code in every row: folded into the first bias
                 start = x.shape[1] * (1 + 2 * freqs) + features.shape[1]
                 layers = mlp_ops.fold_constant_inputs(layers, slice(start, start + pose.shape[1]), pose[0])
-            # the kernel builds gamma(x) itself, block by block (mlp_ops.InputEncoding)
-            encoding = mlp_ops.InputEncoding(x.shape[1], freqs) if freqs > 0 else None
-            return mlp_ops.mlp(torch.cat([x, features, basis], dim=-1), layers, encoding)
+            # the kernel builds gamma(x) and SH(d) itself, block by block (mlp_ops.InputEncoding)
+            encoding = mlp_ops.InputEncoding(
+                x.shape[1] if freqs > 0 else 0, freqs, view_degree=self.config.sh_degree, view_active=active
+            )
+            return mlp_ops.mlp([x, features, view_dirs], layers, encoding, rows)
+        basis = sh_basis(self.config.sh_degree, view_dirs)
+        if active < self.config.sh_degree:  # bands not yet switched on are fed as zeros
+            keep = (active + 1) ** 2
+            basis = torch.cat([basis[:, :keep], basis.new_zeros(n, basis.shape[1] - keep)], dim=1)
         parts = [positional_encoding(x, freqs), features]
         if pose is not None:
             parts.append(pose.expand(n, -1))

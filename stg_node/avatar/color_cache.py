@@ -81,6 +81,20 @@ class ColorCache:
         return self._colors[ids]
 
 
+class _ScaledGradient(torch.autograd.Function):
+    """``x`` itself, its gradient times ``scale``: one node where ``x + (s - 1) (x - x.detach())``
+    makes three (the same value and, for s = 3, the same gradient to the bit)."""
+
+    @staticmethod
+    def forward(ctx, x, scale):
+        ctx.scale = scale
+        return x.view_as(x)
+
+    @staticmethod
+    def backward(ctx, grad):
+        return grad * ctx.scale, None
+
+
 class TrainingColorTurns:
     """The colour MLP in turns during training (issue 24; ``TrainConfig.color_every``).
 
@@ -168,5 +182,4 @@ class TrainingColorTurns:
         target = ids[sel]
         self._colors[target] = fresh.detach().to(self._colors.dtype)
         self._known[target] = True
-        scaled = fresh + (self.every - 1) * (fresh - fresh.detach())  # the value, x every the gradient
-        return carried.index_put((sel,), scaled)
+        return carried.index_put((sel,), _ScaledGradient.apply(fresh, float(self.every)))

@@ -432,12 +432,8 @@ class AvatarModel(nn.Module):
             features = rows(table["features"])
 
             def evaluate(sel):
-                if sel is None:
-                    return self.color_mlp(canonical, features, key, view_canonical, degree)
-                # index_select: the same rows as t[sel], a cheaper gather (and an index_add backward)
-                # than advanced indexing on a CPU
-                means, feats, view = (t.index_select(0, sel) for t in (canonical, features, view_canonical))
-                return self.color_mlp(means, feats, key, view, degree)
+                # sel: the rows of this step's turn, read where they lie (ColorMLP's rows)
+                return self.color_mlp(canonical, features, key, view_canonical, degree, rows=sel)
 
             if color_cache is not None and not torch.is_grad_enabled():
                 versions = (table["features"]._version, *(p._version for p in self.color_mlp.parameters()))

@@ -68,6 +68,7 @@ from stg_node.avatar.color import SH_C0, sh_basis
 from stg_node.avatar.config import LIGHT_MODELS
 from stg_node.avatar.light_ops import detach_rows, distant_irradiance
 from stg_node.avatar.occlusion import BodyOcclusion
+from stg_node.splat import shade_ops
 
 SH_BANDS = 9  # second order: l = 0, 1, 2
 KERNEL = (math.pi,) + (2.0 * math.pi / 3.0,) * 3 + (math.pi / 4.0,) * 5  # clamped cosine, per coefficient
@@ -374,6 +375,15 @@ class Shading(nn.Module):
     def penalty(self) -> torch.Tensor:
         return self.light.penalty()
 
+    def _fused(self, albedo, normals, visible) -> bool:
+        """Whether the learned distant lights shade these rows in the kernel (splat.shade_ops: the
+        torch ops below are its reference, ``STG_AVATAR_KERNELS=torch``)."""
+        if not isinstance(self.light, DistantLights) or self.light.colors.shape[0] > shade_ops.MAX_LIGHTS:
+            return False
+        if visible is not None and visible.requires_grad:
+            return False
+        return kernels.use_kernels(albedo, normals, visible, *self.light.parameters())
+
     def forward(
         self,
         albedo: torch.Tensor,
@@ -393,14 +403,22 @@ class Shading(nn.Module):
         mode = "learned" if light is None else light.mode
         if mode == "albedo":
             return albedo
-        if visible is not None and self.occlusion is not None:
-            albedo = albedo * self.occlusion.factor(visible)
-        if mode == "given":
-            return albedo * light.irradiance(normals)
+        if visible is not None and self.occlusion is None:
+            visible = None  # no occlusion term to weigh it
         if mode == "baked":
             if root_rotation is None:
                 raise ValueError("the baked light needs the body's root orientation")
             # The normal as it would point had the body kept its mean training orientation.
             normals = normals @ root_rotation.to(normals) @ self.reference.T.to(normals)
+        if mode != "given" and self._fused(albedo, normals, visible):  # one pass, forward and backward
+            logit = None if visible is None else self.occlusion.strength_logit
+            lights = self.light
+            return shade_ops.shade(
+                albedo, normals, visible, logit, lights.ambient, lights.colors, lights.directions, away
+            )
+        if visible is not None:
+            albedo = albedo * self.occlusion.factor(visible)
+        if mode == "given":
+            return albedo * light.irradiance(normals)
         light = self.light.irradiance(normals, away)  # away: its shade teaches the light nothing
         return albedo * light

@@ -46,6 +46,7 @@ SOURCES = (
     "skinning.cpp",
     "small_mlp.cpp",
     "sphere_occlusion.cpp",
+    "distant_shading.cpp",
     "splat_bindings.cpp",
 )
 HEADERS = (
@@ -56,6 +57,7 @@ HEADERS = (
     "skinning.h",
     "small_mlp.h",
     "sphere_occlusion.h",
+    "distant_shading.h",
     "fast_math.h",
 )
 # -ffp-contract=off: the forward and backward passes must compute alpha bit-identically (the

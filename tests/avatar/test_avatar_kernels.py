@@ -363,6 +363,51 @@ def test_colour_input_encoding_gradients_match_autograd_in_float64():
     torch.testing.assert_close(gx, gx_ref, rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.parametrize(
+    "preset_name, active", [("balanced", 1), ("quality", 1), ("quality", 2), ("fast", 0)]
+)
+def test_colour_mlp_kernel_is_its_torch_path(preset_name, active):
+    """ColorMLP on the kernel (gamma(x) and SH(d) built inside it) against its torch path
+    (kernels.reference()): colours and the gradients of centres, features, directions, pose code and
+    every weight; bands not switched on yet (``active`` < the preset's degree) fed as zeros; every
+    row, and a turn of the rows read where they lie (their gradients back at their rows)."""
+    from stg_node.avatar import preset
+    from stg_node.avatar.color import ColorMLP
+
+    cfg = preset(preset_name).model
+    torch.manual_seed(3)
+    mlp = ColorMLP(cfg, torch.tensor([[-1.0, -1.2, -0.5], [1.0, 0.9, 0.6]]))
+    with torch.no_grad():  # a trained network's scale, not the grey start
+        mlp.net[-1].weight.mul_(10.0)
+    gen = torch.Generator().manual_seed(4)
+    n = 150
+    inputs = [
+        torch.rand(n, 3, generator=gen) * 2 - 1,
+        torch.randn(n, cfg.feature_dim, generator=gen),
+        torch.randn(1, 207, generator=gen) * 0.3,
+        torch.nn.functional.normalize(torch.randn(n, 3, generator=gen), dim=1),
+    ]
+    turn = torch.randperm(n, generator=gen)[:61]  # a training step's turn of the rows, in no order
+
+    for rows in (None, turn):
+        g = torch.randn(n if rows is None else rows.numel(), 3, generator=gen)
+
+        def run(rows=rows, g=g):
+            leaves = [t.clone().requires_grad_(True) for t in inputs]
+            out = mlp(*leaves, active, rows=rows)
+            grads = torch.autograd.grad((out * g).sum(), [*leaves, *mlp.parameters()])
+            return out.detach(), grads
+
+        out, grads = run()
+        with kernels.reference():
+            want, want_grads = run()
+        torch.testing.assert_close(out, want, atol=2e-6, rtol=1e-5)
+        for got, ref in zip(grads, want_grads, strict=True):
+            torch.testing.assert_close(got, ref, atol=2e-5 * max(float(ref.abs().max()), 1.0), rtol=1e-4)
+        if active == 0:  # the constant band alone: the directions take no gradient
+            assert torch.equal(grads[3], torch.zeros_like(grads[3]))
+
+
 def test_render_pose_follows_edits_of_the_scales(trained, tiny_frames):
     """A renderer's poses keep the capped scales between frames; an edit of the table (a training
     step, densification) or of the cap is seen by the next pose."""

@@ -178,14 +178,84 @@ inline void sincos_double(double a, double* sin_out, double* cos_out) {
     *cos_out = (quadrant == 1.0 || quadrant == 2.0) ? -c : c;
 }
 
+// The real SH basis of 3DGS (stg_node/splat/sh.py, its reference) of a unit direction (x, y, z):
+// the first `bands` of the (degree + 1)^2 values, the rest zero.
+constexpr float kShC0 = 0.28209479177387814f, kShC1 = 0.4886025119029199f;
+constexpr float kShC2[5] = {1.0925484305920792f, -1.0925484305920792f, 0.31539156525252005f,
+                            -1.0925484305920792f, 0.5462742152960396f};
+constexpr float kShC3[7] = {-0.5900435899266435f, 2.890611442640554f, -0.4570457994644658f, 0.3731763325901154f,
+                            -0.4570457994644658f, 1.445305721320277f, -0.5900435899266435f};
+
+inline void sh_basis(int degree, int bands, float x, float y, float z, float* out) {
+    float v[16];
+    v[0] = kShC0;
+    if (degree >= 1) {
+        v[1] = -kShC1 * y;
+        v[2] = kShC1 * z;
+        v[3] = -kShC1 * x;
+    }
+    const float xx = x * x, yy = y * y, zz = z * z;
+    if (degree >= 2) {
+        v[4] = kShC2[0] * (x * y);
+        v[5] = kShC2[1] * (y * z);
+        v[6] = kShC2[2] * (2.0f * zz - xx - yy);
+        v[7] = kShC2[3] * (x * z);
+        v[8] = kShC2[4] * (xx - yy);
+    }
+    if (degree >= 3) {
+        v[9] = kShC3[0] * y * (3.0f * xx - yy);
+        v[10] = kShC3[1] * (x * y) * z;
+        v[11] = kShC3[2] * y * (4.0f * zz - xx - yy);
+        v[12] = kShC3[3] * z * (2.0f * zz - 3.0f * xx - 3.0f * yy);
+        v[13] = kShC3[4] * x * (4.0f * zz - xx - yy);
+        v[14] = kShC3[5] * z * (xx - yy);
+        v[15] = kShC3[6] * x * (xx - 3.0f * yy);
+    }
+    const int k = (degree + 1) * (degree + 1);
+    for (int j = 0; j < k; ++j) out[j] = j < bands ? v[j] : 0.0f;
+}
+
+// dL/d(x, y, z) of sh_basis given dL/d(each value) `g` (the first `bands` count; the zeros take none).
+inline void sh_basis_backward(int bands, float x, float y, float z, const float* g, float* g_dir) {
+    float gx = 0.0f, gy = 0.0f, gz = 0.0f;
+    auto at = [&](int j) { return j < bands ? g[j] : 0.0f; };
+    if (bands > 1) {
+        gx -= kShC1 * at(3);
+        gy -= kShC1 * at(1);
+        gz += kShC1 * at(2);
+    }
+    const float xx = x * x, yy = y * y, zz = z * z;
+    if (bands > 4) {
+        gx += kShC2[0] * y * at(4) + kShC2[3] * z * at(7) + kShC2[2] * -2.0f * x * at(6) + kShC2[4] * 2.0f * x * at(8);
+        gy += kShC2[0] * x * at(4) + kShC2[1] * z * at(5) + kShC2[2] * -2.0f * y * at(6) - kShC2[4] * 2.0f * y * at(8);
+        gz += kShC2[1] * y * at(5) + kShC2[3] * x * at(7) + kShC2[2] * 4.0f * z * at(6);
+    }
+    if (bands > 9) {
+        const float g9 = at(9), g10 = at(10), g11 = at(11), g12 = at(12), g13 = at(13), g14 = at(14), g15 = at(15);
+        gx += kShC3[0] * 6.0f * x * y * g9 + kShC3[1] * y * z * g10 + kShC3[2] * -2.0f * x * y * g11 +
+              kShC3[3] * -6.0f * x * z * g12 + kShC3[4] * (4.0f * zz - 3.0f * xx - yy) * g13 +
+              kShC3[5] * 2.0f * x * z * g14 + kShC3[6] * 3.0f * (xx - yy) * g15;
+        gy += kShC3[0] * 3.0f * (xx - yy) * g9 + kShC3[1] * x * z * g10 + kShC3[2] * (4.0f * zz - xx - 3.0f * yy) * g11 +
+              kShC3[3] * -6.0f * y * z * g12 + kShC3[4] * -2.0f * x * y * g13 + kShC3[5] * -2.0f * y * z * g14 +
+              kShC3[6] * -6.0f * x * y * g15;
+        gz += kShC3[1] * x * y * g10 + kShC3[2] * 8.0f * y * z * g11 + kShC3[3] * (6.0f * zz - 3.0f * xx - 3.0f * yy) * g12 +
+              kShC3[4] * 8.0f * x * z * g13 + kShC3[5] * (xx - yy) * g14;
+    }
+    g_dir[0] = gx;
+    g_dir[1] = gy;
+    g_dir[2] = gz;
+}
+
 // `rows` raw rows (row r at raw + row(r) * raw_width) -> their encoded rows (see MlpShape) at
 // dst (stride ld), padding columns [dims[0], ld) set to zero. torch's angle 2^k pi x is
 // float(x * float(pi)) times 2^k exactly, so each frequency's sine and cosine follow from the
 // first's by the double-angle formulas, carried in double and rounded once (one polynomial per
-// value, over the block's rows at once, instead of 2 x freqs libm calls).
+// value, over the block's rows at once, instead of 2 x freqs libm calls). A view direction's SH
+// basis (MlpShape::view_degree) closes the row.
 template <typename RowOf>
 void encode_rows(const MlpShape& s, const float* raw, int rows, RowOf row, float* dst, int ld) {
     const int c = s.enc_cols, f = s.enc_freqs, d0 = s.dims[0], raw0 = raw_width(s), cf = c * f;
+    const int k_view = view_columns(s), raw_dir = raw0 - (s.view_degree < 0 ? 0 : 3);
     double sn[kBlock], cs[kBlock];
     for (int i = 0; i < c; ++i) {
 #pragma omp simd
@@ -204,18 +274,22 @@ void encode_rows(const MlpShape& s, const float* raw, int rows, RowOf row, float
             }
         }
     }
+    const int bands = (s.view_active + 1) * (s.view_active + 1);
     for (int r = 0; r < rows; ++r) {
         const float* in = raw + row(r) * raw0;
         float* e = dst + static_cast<int64_t>(r) * ld;
         std::copy(in, in + c, e);
-        std::copy(in + c, in + raw0, e + c + 2 * cf);
+        std::copy(in + c, in + raw_dir, e + c + 2 * cf);
+        if (k_view > 0) sh_basis(s.view_degree, bands, in[raw_dir], in[raw_dir + 1], in[raw_dir + 2], e + d0 - k_view);
         std::fill(e + d0, e + ld, 0.0f);
     }
 }
 
-// dL/d(raw row) from dL/d(encoded row) `g` and the encoded row `e` (its sines and cosines):
-// dL/dx_i = g_i + sum_k 2^k pi (g_sin_ik cos_ik - g_cos_ik sin_ik); the rest passes through.
-void encode_row_backward(const MlpShape& s, const float* e, const float* g, float* g_raw) {
+// dL/d(raw row) from dL/d(encoded row) `g`, the encoded row `e` (its sines and cosines) and the
+// raw row `raw_row` (its view direction):
+// dL/dx_i = g_i + sum_k 2^k pi (g_sin_ik cos_ik - g_cos_ik sin_ik); dL/dd through the SH basis;
+// the rest passes through.
+void encode_row_backward(const MlpShape& s, const float* raw_row, const float* e, const float* g, float* g_raw) {
     const int c = s.enc_cols, f = s.enc_freqs, cf = c * f;
     for (int i = 0; i < c; ++i) {
         float sum = g[i];
@@ -226,12 +300,45 @@ void encode_row_backward(const MlpShape& s, const float* e, const float* g, floa
         }
         g_raw[i] = sum;
     }
-    std::copy(g + c + 2 * cf, g + s.dims[0], g_raw + c);
+    const int k_view = view_columns(s), raw0 = raw_width(s);
+    const int raw_dir = raw0 - (k_view > 0 ? 3 : 0);
+    std::copy(g + c + 2 * cf, g + c + 2 * cf + (raw_dir - c), g_raw + c);
+    if (k_view > 0) {
+        const int bands = (s.view_active + 1) * (s.view_active + 1);
+        const float* d = raw_row + raw_dir;
+        sh_basis_backward(bands, d[0], d[1], d[2], g + s.dims[0] - k_view, g_raw + raw_dir);
+    }
+}
+
+// The raw rows rows_of(0..rows-1) (positions in the evaluated rows) gathered from the groups into
+// dst [rows x raw_width], contiguous.
+template <typename RowOf>
+void gather_raw(const RawRows& x, int raw0, int rows, RowOf row, float* dst) {
+    for (int r = 0; r < rows; ++r) {
+        const int64_t i = row(r);
+        const int64_t t = x.index != nullptr ? x.index[i] : i;
+        float* d = dst + static_cast<int64_t>(r) * raw0;
+        for (int g = 0; g < x.groups; ++g) {
+            const int w = x.widths[g];
+            std::copy(x.data[g] + t * w, x.data[g] + (t + 1) * w, d);
+            d += w;
+        }
+    }
+}
+
+// One evaluated row's dL/d(raw row) `g_raw` handed to the groups that want it, at its table row.
+void scatter_raw(const RawRows& x, int64_t i, const float* g_raw, float* const* g_groups) {
+    const int64_t t = x.index != nullptr ? x.index[i] : i;
+    for (int g = 0; g < x.groups; ++g) {
+        const int w = x.widths[g];
+        if (g_groups[g] != nullptr) std::copy(g_raw, g_raw + w, g_groups[g] + t * w);
+        g_raw += w;
+    }
 }
 
 }  // namespace
 
-void mlp_forward(const MlpShape& s, const float* x, const float* const* weights,
+void mlp_forward(const MlpShape& s, const RawRows& x, const float* const* weights,
                  const float* const* biases, float* out, float* const* hidden) {
     const int L = s.layers;
     const PaddedWeights p = pad_weights(s, weights, biases, true, false);
@@ -242,18 +349,20 @@ void mlp_forward(const MlpShape& s, const float* x, const float* const* weights,
     {
         // two ping-pong buffers for the layers whose outputs are not kept
         std::vector<float> buf0(static_cast<size_t>(kBlock) * widest), buf1(buf0.size());
-        // the block's encoded input rows, when the kernel encodes its input
-        std::vector<float> enc(s.enc_cols > 0 ? static_cast<size_t>(kBlock) * padded(s.dims[0]) : 0);
+        // the block's raw rows, and its encoded input rows when the kernel encodes its input
         const int raw0 = raw_width(s);
+        std::vector<float> raw(static_cast<size_t>(kBlock) * raw0);
+        std::vector<float> enc(encodes(s) ? static_cast<size_t>(kBlock) * padded(s.dims[0]) : 0);
 #pragma omp for schedule(static)
         for (int64_t blk = 0; blk < blocks; ++blk) {
             const int64_t r0 = blk * kBlock;
             const int rows = static_cast<int>(std::min<int64_t>(kBlock, s.rows - r0));
-            const float* in = x + r0 * raw0;
+            gather_raw(x, raw0, rows, [r0](int r) { return r0 + r; }, raw.data());
+            const float* in = raw.data();
             int64_t ld_in = raw0;
-            if (s.enc_cols > 0) {
+            if (encodes(s)) {
                 const int ld = padded(s.dims[0]);
-                encode_rows(s, x, rows, [r0](int r) { return r0 + r; }, enc.data(), ld);
+                encode_rows(s, raw.data(), rows, [](int r) { return static_cast<int64_t>(r); }, enc.data(), ld);
                 in = enc.data();
                 ld_in = ld;
             }
@@ -277,14 +386,16 @@ void mlp_forward(const MlpShape& s, const float* x, const float* const* weights,
     }
 }
 
-void mlp_backward(const MlpShape& s, const float* x, const float* const* weights,
-                  const float* const* hidden, const float* out, const float* g_out, float* g_x,
+void mlp_backward(const MlpShape& s, const RawRows& x, const float* const* weights,
+                  const float* const* hidden, const float* out, const float* g_out, float* const* g_groups,
                   float* const* g_weights, float* const* g_biases) {
     const int L = s.layers;
     const int threads = std::max(1, s.threads);
     const int d0 = s.dims[0], dl = s.dims[L], raw0 = raw_width(s);
     const PaddedWeights p = pad_weights(s, weights, nullptr, false, true);
-    // Rows with a non-zero output gradient; the others contribute nothing.
+    bool want_gx = false;
+    for (int g = 0; g < x.groups; ++g) want_gx |= g_groups != nullptr && g_groups[g] != nullptr;
+    // Rows with a non-zero output gradient; the others contribute nothing (their dL/dx stays zero).
     std::vector<int64_t> active;
     active.reserve(s.rows);
     for (int64_t r = 0; r < s.rows; ++r) {
@@ -292,7 +403,6 @@ void mlp_backward(const MlpShape& s, const float* x, const float* const* weights
         bool any = false;
         for (int j = 0; j < dl; ++j) any |= g[j] != 0.0f;
         if (any) active.push_back(r);
-        else if (g_x != nullptr) std::fill(g_x + r * raw0, g_x + (r + 1) * raw0, 0.0f);
     }
     const int64_t n_active = static_cast<int64_t>(active.size());
     const int64_t blocks = (n_active + kBlock - 1) / kBlock;
@@ -316,20 +426,23 @@ void mlp_backward(const MlpShape& s, const float* x, const float* const* weights
         for (int l = 0; l < L; ++l) h[l].assign(static_cast<size_t>(kBlock) * padded(s.dims[l]), 0.0f);
         std::vector<float> gz(static_cast<size_t>(kBlock) * widest), gh(gz.size()),
             gzt(static_cast<size_t>(widest) * kBlock);
+        std::vector<float> raw(static_cast<size_t>(kBlock) * raw0), g_raw(raw0);
 #pragma omp for schedule(dynamic, 4)
         for (int64_t blk = 0; blk < blocks; ++blk) {
             const int64_t a0 = blk * kBlock;
             const int rows = static_cast<int>(std::min<int64_t>(kBlock, n_active - a0));
             const int64_t* idx = active.data() + a0;
-            // gather: h[0] = x rows (padded), h[l] = hidden[l-1] rows
+            // gather: h[0] = the raw rows, encoded or padded; h[l] = hidden[l-1] rows
+            gather_raw(x, raw0, rows, [idx](int r) { return idx[r]; }, raw.data());
             {
                 const int ld = padded(d0);
-                if (s.enc_cols > 0) {
-                    encode_rows(s, x, rows, [idx](int r) { return idx[r]; }, h[0].data(), ld);
+                if (encodes(s)) {
+                    encode_rows(s, raw.data(), rows, [](int r) { return static_cast<int64_t>(r); }, h[0].data(), ld);
                 } else {
                     for (int r = 0; r < rows; ++r) {
                         float* dst = h[0].data() + static_cast<size_t>(r) * ld;
-                        std::copy(x + idx[r] * d0, x + (idx[r] + 1) * d0, dst);
+                        std::copy(raw.data() + static_cast<size_t>(r) * d0, raw.data() + static_cast<size_t>(r + 1) * d0,
+                                  dst);
                         std::fill(dst + d0, dst + ld, 0.0f);
                     }
                 }
@@ -363,16 +476,19 @@ void mlp_backward(const MlpShape& s, const float* x, const float* const* weights
                 for (int r = 0; r < rows; ++r)
                     for (int j = 0; j < dout; ++j) gzt[static_cast<size_t>(j) * kBlock + r] = gz[static_cast<size_t>(r) * ldo + j];
                 gemm(dout, ldi, rows, gzt.data(), kBlock, h[l].data(), ldi, dW[l].data(), ldi, true);
-                if (l == 0 && g_x == nullptr) break;
+                if (l == 0 && !want_gx) break;
                 // gh = gz W_l (rows x padded(din))
                 gemm(rows, ldi, dout, gz.data(), ldo, p.wp[l].data(), ldi, gh.data(), ldi, false);
                 if (l == 0) {
                     for (int r = 0; r < rows; ++r) {
                         const float* g = gh.data() + static_cast<size_t>(r) * ldi;
-                        if (s.enc_cols > 0)
-                            encode_row_backward(s, h[0].data() + static_cast<size_t>(r) * ldi, g, g_x + idx[r] * raw0);
-                        else
-                            std::copy(g, g + din, g_x + idx[r] * d0);
+                        if (encodes(s)) {
+                            encode_row_backward(s, raw.data() + static_cast<size_t>(r) * raw0,
+                                                h[0].data() + static_cast<size_t>(r) * ldi, g, g_raw.data());
+                            scatter_raw(x, idx[r], g_raw.data(), g_groups);
+                        } else {
+                            scatter_raw(x, idx[r], g, g_groups);
+                        }
                     }
                     break;
                 }

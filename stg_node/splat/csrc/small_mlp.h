@@ -33,21 +33,48 @@ struct MlpShape {
     // columns, the rest passed through. dL/dx is then with respect to the raw rows.
     int enc_cols = 0;
     int enc_freqs = 0;
+    // Optional view direction (view_degree = -1: none): the last 3 raw columns are a unit
+    // direction d, and the encoded row ends with its real SH basis of degree view_degree
+    // ((view_degree + 1)^2 columns, 3DGS's signs as stg_node/splat/sh.py), the bands above
+    // view_active fed as zeros; dL/dd is that basis's derivative. The encoded row is then
+    //   [x_0..x_{c-1}, sines, cosines, x_c..x_{raw-4}, SH(d)].
+    int view_degree = -1;
+    int view_active = -1;
 };
 
-// Width of the raw rows the kernels read: dims[0] less the sines and cosines they add.
-inline int raw_width(const MlpShape& s) { return s.dims[0] - 2 * s.enc_cols * s.enc_freqs; }
+// Columns of the view direction's SH basis in the encoded row (0: no view direction).
+inline int view_columns(const MlpShape& s) { return s.view_degree < 0 ? 0 : (s.view_degree + 1) * (s.view_degree + 1); }
+
+// Whether the kernels build the encoded row (an input encoding or a view direction).
+inline bool encodes(const MlpShape& s) { return s.enc_cols > 0 || s.view_degree >= 0; }
+
+// Width of the raw rows the kernels read: dims[0] less the sines and cosines they add, with the
+// 3 direction columns in place of the SH basis.
+inline int raw_width(const MlpShape& s) {
+    return s.dims[0] - 2 * s.enc_cols * s.enc_freqs - (s.view_degree < 0 ? 0 : view_columns(s) - 3);
+}
+
+// The raw rows the kernels read: row r is the concatenation of row index[r] (index null: row r)
+// of `groups` column groups, group g [table rows x widths[g]] row-major; the widths sum to
+// raw_width(). The rows of `index` must be distinct (the backward writes each one's gradient).
+struct RawRows {
+    int groups;
+    const float* const* data;
+    const int* widths;
+    const int64_t* index;
+};
 
 // out [rows x dims[L]]. If `hidden` is not null, hidden[l] (l < L - 1) receives layer l's output
 // [rows x padded(dims[l+1])] for the backward pass.
-void mlp_forward(const MlpShape& s, const float* x, const float* const* weights,
+void mlp_forward(const MlpShape& s, const RawRows& x, const float* const* weights,
                  const float* const* biases, float* out, float* const* hidden);
 
-// Given dL/dout [rows x dims[L]], writes dL/dx [rows x dims[0]] (if g_x is not null) and
-// dL/dW_l, dL/db_l (each may be null). `hidden` and `out` are what mlp_forward wrote. Rows whose
-// dL/dout is all zero are skipped (their dL/dx is zero).
-void mlp_backward(const MlpShape& s, const float* x, const float* const* weights,
-                  const float* const* hidden, const float* out, const float* g_out, float* g_x,
+// Given dL/dout [rows x dims[L]], writes dL/dx into the groups' gradients g_groups[g] (the
+// groups' shapes; null: not wanted), at the rows read (the others are left as they are, zero from
+// the caller), and dL/dW_l, dL/db_l (each may be null). `hidden` and `out` are what mlp_forward
+// wrote. Rows whose dL/dout is all zero are skipped (their dL/dx is zero).
+void mlp_backward(const MlpShape& s, const RawRows& x, const float* const* weights,
+                  const float* const* hidden, const float* out, const float* g_out, float* const* g_groups,
                   float* const* g_weights, float* const* g_biases);
 
 }  // namespace stg_mlp

@@ -8,6 +8,7 @@
 #include <torch/library.h>
 
 #include <algorithm>
+#include <cmath>
 #include <string>
 #include <tuple>
 #include <vector>
@@ -17,6 +18,7 @@
 #include "image_filter.h"
 #include "skinning.h"
 #include "small_mlp.h"
+#include "distant_shading.h"
 #include "sphere_occlusion.h"
 #include "splat_kernels.h"
 
@@ -790,25 +792,61 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
 
 // ---- small MLP (small_mlp.h) ----
 struct MlpArgs {
-    std::vector<int> dims, acts;
-    std::vector<const float*> weights, biases;
+    std::vector<int> dims, acts, widths;
+    std::vector<const float*> weights, biases, groups;
+    int64_t table_rows = 0, rows = 0;  // rows of the groups, rows evaluated
+    const int64_t* index = nullptr;    // the evaluated rows' table rows (null: every row in order)
+
+    stg_mlp::RawRows raw() const {
+        return {static_cast<int>(groups.size()), groups.data(), widths.data(), index};
+    }
 };
 
-// enc_cols, enc_freqs: the input encoding the kernels apply (small_mlp.h; 0: none); x holds the
-// raw rows, layer 0 takes the encoded width.
-MlpArgs mlp_args(const at::Tensor& x, at::TensorList weights, at::TensorList biases, c10::ArrayRef<int64_t> acts,
-                 int64_t enc_cols, int64_t enc_freqs) {
-    const int64_t n = x.size(0);
-    TORCH_CHECK(x.dim() == 2, "x must be [rows, width], got ", x.sizes());
-    check_cpu_float(x, "x", n, x.size(1));
-    TORCH_CHECK(enc_cols >= 0 && enc_freqs >= 0 && enc_cols <= x.size(1) && (enc_cols == 0) == (enc_freqs == 0),
+// x: the raw rows' column groups (each [table rows, width], concatenated in order); with `select`,
+// `rows` (int64, distinct) are the table rows evaluated, else every row. enc_cols, enc_freqs: the
+// input encoding the kernels apply (small_mlp.h; 0: none); view_degree, view_active: the SH basis
+// of a view direction in the last 3 raw columns (-1: none). Layer 0 takes the encoded width.
+MlpArgs mlp_args(at::TensorList x, const at::Tensor& rows, bool select, at::TensorList weights, at::TensorList biases,
+                 c10::ArrayRef<int64_t> acts, int64_t enc_cols, int64_t enc_freqs, int64_t view_degree,
+                 int64_t view_active) {
+    TORCH_CHECK(!x.empty(), "x needs at least one column group");
+    MlpArgs a;
+    a.table_rows = x[0].size(0);
+    int64_t width = 0;
+    for (const at::Tensor& group : x) {
+        TORCH_CHECK(group.dim() == 2, "x's groups must be [rows, width], got ", group.sizes());
+        check_cpu_float(group, "x", a.table_rows, group.size(1));
+        a.groups.push_back(group.data_ptr<float>());
+        a.widths.push_back(static_cast<int>(group.size(1)));
+        width += group.size(1);
+    }
+    a.rows = a.table_rows;
+    if (select) {
+        TORCH_CHECK(rows.device().is_cpu() && rows.scalar_type() == at::kLong && rows.dim() == 1 &&
+                        rows.is_contiguous(), "rows must be a contiguous 1-D int64 CPU tensor");
+        a.rows = rows.numel();
+        a.index = rows.data_ptr<int64_t>();
+        std::vector<char> seen(static_cast<size_t>(a.table_rows), 0);
+        for (int64_t i = 0; i < a.rows; ++i) {
+            const int64_t t = a.index[i];
+            TORCH_CHECK(t >= 0 && t < a.table_rows, "rows: ", t, " is not a row of ", a.table_rows);
+            TORCH_CHECK(!seen[t], "rows: ", t, " appears twice (the rows must be distinct)");
+            seen[t] = 1;
+        }
+    }
+    TORCH_CHECK(enc_cols >= 0 && enc_freqs >= 0 && enc_cols <= width && (enc_cols == 0) == (enc_freqs == 0),
                 "encoding: need 0 <= enc_cols <= width and both zero or both positive, got ", enc_cols, ", ",
                 enc_freqs);
+    TORCH_CHECK(view_degree >= -1 && view_degree <= 3 && (view_degree < 0 ? view_active == -1
+                : view_active >= 0 && view_active <= view_degree), "view direction: need -1 <= view_degree <= 3 "
+                "and 0 <= view_active <= view_degree (both -1: none), got ", view_degree, ", ", view_active);
+    const int64_t view_cols = view_degree < 0 ? 0 : (view_degree + 1) * (view_degree + 1);
+    TORCH_CHECK(view_degree < 0 || enc_cols + 3 <= width, "a view direction needs 3 raw columns after the ",
+                enc_cols, " encoded ones, got ", width);
     const size_t L = weights.size();
     TORCH_CHECK(L >= 1 && biases.size() == L && acts.size() == L, "need as many weights, biases and "
                 "activations (>= 1), got ", L, ", ", biases.size(), ", ", acts.size());
-    MlpArgs a;
-    a.dims.push_back(static_cast<int>(x.size(1) + 2 * enc_cols * enc_freqs));
+    a.dims.push_back(static_cast<int>(width + 2 * enc_cols * enc_freqs + (view_degree < 0 ? 0 : view_cols - 3)));
     for (size_t l = 0; l < L; ++l) {
         const at::Tensor& w = weights[l];
         TORCH_CHECK(w.dim() == 2 && w.size(1) == a.dims.back(), "layer ", l, ": weight must be [out, ",
@@ -824,39 +862,56 @@ MlpArgs mlp_args(const at::Tensor& x, at::TensorList weights, at::TensorList bia
     return a;
 }
 
-std::tuple<at::Tensor, std::vector<at::Tensor>> mlp_fwd(const at::Tensor& x, at::TensorList weights,
-                                                        at::TensorList biases, c10::ArrayRef<int64_t> acts,
-                                                        int64_t enc_cols, int64_t enc_freqs, bool keep_hidden,
-                                                        int64_t threads) {
-    const MlpArgs a = mlp_args(x, weights, biases, acts, enc_cols, enc_freqs);
+stg_mlp::MlpShape mlp_shape(const MlpArgs& a, int64_t threads, int64_t enc_cols, int64_t enc_freqs,
+                            int64_t view_degree, int64_t view_active) {
     TORCH_CHECK(threads >= 1, "threads must be >= 1");
-    const int64_t n = x.size(0);
-    const int L = static_cast<int>(a.acts.size());
-    at::Tensor out = at::empty({n, a.dims.back()}, x.options());
+    return stg_mlp::MlpShape{a.rows,
+                             static_cast<int>(a.acts.size()),
+                             a.dims.data(),
+                             a.acts.data(),
+                             static_cast<int>(threads),
+                             static_cast<int>(enc_cols),
+                             static_cast<int>(enc_freqs),
+                             static_cast<int>(view_degree),
+                             static_cast<int>(view_active)};
+}
+
+std::tuple<at::Tensor, std::vector<at::Tensor>> mlp_fwd(at::TensorList x, const at::Tensor& rows, bool select,
+                                                        at::TensorList weights, at::TensorList biases,
+                                                        c10::ArrayRef<int64_t> acts, int64_t enc_cols,
+                                                        int64_t enc_freqs, int64_t view_degree, int64_t view_active,
+                                                        bool keep_hidden, int64_t threads) {
+    const MlpArgs a = mlp_args(x, rows, select, weights, biases, acts, enc_cols, enc_freqs, view_degree, view_active);
+    const stg_mlp::MlpShape shape = mlp_shape(a, threads, enc_cols, enc_freqs, view_degree, view_active);
+    const int64_t n = a.rows;
+    at::Tensor out = at::empty({n, a.dims.back()}, x[0].options());
     std::vector<at::Tensor> hidden;
     std::vector<float*> hidden_ptr;
     if (keep_hidden) {
-        for (int l = 0; l + 1 < L; ++l) {
-            hidden.push_back(at::empty({n, stg_mlp::padded(a.dims[l + 1])}, x.options()));
+        for (int l = 0; l + 1 < shape.layers; ++l) {
+            hidden.push_back(at::empty({n, stg_mlp::padded(a.dims[l + 1])}, x[0].options()));
             hidden_ptr.push_back(hidden.back().data_ptr<float>());
         }
     }
-    const stg_mlp::MlpShape shape{n, L, a.dims.data(), a.acts.data(), static_cast<int>(threads),
-                                  static_cast<int>(enc_cols), static_cast<int>(enc_freqs)};
-    stg_mlp::mlp_forward(shape, x.data_ptr<float>(), a.weights.data(), a.biases.data(), out.data_ptr<float>(),
+    stg_mlp::mlp_forward(shape, a.raw(), a.weights.data(), a.biases.data(), out.data_ptr<float>(),
                          keep_hidden ? hidden_ptr.data() : nullptr);
     return {out, hidden};
 }
 
-std::tuple<at::Tensor, std::vector<at::Tensor>, std::vector<at::Tensor>> mlp_bwd(
-    const at::Tensor& x, at::TensorList weights, at::TensorList biases, c10::ArrayRef<int64_t> acts,
-    int64_t enc_cols, int64_t enc_freqs, at::TensorList hidden, const at::Tensor& out, const at::Tensor& g_out,
-    bool want_gx, int64_t threads) {
-    const MlpArgs a = mlp_args(x, weights, biases, acts, enc_cols, enc_freqs);
-    TORCH_CHECK(threads >= 1, "threads must be >= 1");
-    const int64_t n = x.size(0);
-    const int L = static_cast<int>(a.acts.size());
+// want_gx: per column group, whether (1) or not (0) its gradient is wanted (an empty tensor in its
+// place if not; rows not evaluated get zero).
+std::tuple<std::vector<at::Tensor>, std::vector<at::Tensor>, std::vector<at::Tensor>> mlp_bwd(
+    at::TensorList x, const at::Tensor& rows, bool select, at::TensorList weights, at::TensorList biases,
+    c10::ArrayRef<int64_t> acts, int64_t enc_cols, int64_t enc_freqs, int64_t view_degree, int64_t view_active,
+    at::TensorList hidden, const at::Tensor& out, const at::Tensor& g_out, c10::ArrayRef<int64_t> want_gx,
+    int64_t threads) {
+    const MlpArgs a = mlp_args(x, rows, select, weights, biases, acts, enc_cols, enc_freqs, view_degree, view_active);
+    const stg_mlp::MlpShape shape = mlp_shape(a, threads, enc_cols, enc_freqs, view_degree, view_active);
+    const int64_t n = a.rows;
+    const int L = shape.layers;
     TORCH_CHECK(static_cast<int>(hidden.size()) == L - 1, "need ", L - 1, " hidden outputs, got ", hidden.size());
+    TORCH_CHECK(want_gx.size() == x.size(), "want_gx: one flag per column group (", x.size(), "), got ",
+                want_gx.size());
     std::vector<const float*> hidden_ptr;
     for (int l = 0; l + 1 < L; ++l) {
         check_cpu_float(hidden[l], "hidden", n, stg_mlp::padded(a.dims[l + 1]));
@@ -864,21 +919,152 @@ std::tuple<at::Tensor, std::vector<at::Tensor>, std::vector<at::Tensor>> mlp_bwd
     }
     check_cpu_float(out, "out", n, a.dims.back());
     check_cpu_float(g_out, "grad out", n, a.dims.back());
-    at::Tensor g_x = at::empty({want_gx ? n : 0, x.size(1)}, x.options());
+    std::vector<at::Tensor> g_x;
+    std::vector<float*> g_x_ptr;
+    for (size_t g = 0; g < x.size(); ++g) {
+        g_x.push_back(want_gx[g] ? at::zeros_like(x[g]) : at::empty({0}, x[g].options()));
+        g_x_ptr.push_back(want_gx[g] ? g_x.back().data_ptr<float>() : nullptr);
+    }
     std::vector<at::Tensor> g_w, g_b;
     std::vector<float*> g_w_ptr, g_b_ptr;
     for (int l = 0; l < L; ++l) {
-        g_w.push_back(at::empty({a.dims[l + 1], a.dims[l]}, x.options()));
-        g_b.push_back(at::empty({a.dims[l + 1]}, x.options()));
+        g_w.push_back(at::empty({a.dims[l + 1], a.dims[l]}, x[0].options()));
+        g_b.push_back(at::empty({a.dims[l + 1]}, x[0].options()));
         g_w_ptr.push_back(g_w.back().data_ptr<float>());
         g_b_ptr.push_back(g_b.back().data_ptr<float>());
     }
-    const stg_mlp::MlpShape shape{n, L, a.dims.data(), a.acts.data(), static_cast<int>(threads),
-                                  static_cast<int>(enc_cols), static_cast<int>(enc_freqs)};
-    stg_mlp::mlp_backward(shape, x.data_ptr<float>(), a.weights.data(), hidden_ptr.data(), out.data_ptr<float>(),
-                          g_out.data_ptr<float>(), want_gx ? g_x.data_ptr<float>() : nullptr, g_w_ptr.data(),
-                          g_b_ptr.data());
+    stg_mlp::mlp_backward(shape, a.raw(), a.weights.data(), hidden_ptr.data(), out.data_ptr<float>(),
+                          g_out.data_ptr<float>(), g_x_ptr.data(), g_w_ptr.data(), g_b_ptr.data());
     return {g_x, g_w, g_b};
+}
+
+// ---- shading under distant lights (distant_shading.h) ----
+// The learned light from its parameters (stg_node/avatar/shading.py, DistantLights.parts: its
+// reference), in double, and the chain rule back to them: a = softplus(ambient), c =
+// softplus(colours), d = directions / max(|directions|, 1e-9), m = a + sum_l c_l / 4; the occlusion
+// strength k = sigmoid(strength_logit).
+struct LearnedLight {
+    int count = 0;
+    std::vector<double> a, c, d, m, norms;
+    std::vector<float> af, cf, df, mf;
+    double k = 0.0;
+
+    stg_shade::Lights lights() const { return {count, af.data(), cf.data(), df.data(), mf.data()}; }
+};
+
+double softplus(double x) { return x > 20.0 ? x : std::log1p(std::exp(x)); }  // torch's threshold 20
+double softplus_slope(double x) { return x > 20.0 ? 1.0 : 1.0 / (1.0 + std::exp(-x)); }
+
+LearnedLight learned_light(const at::Tensor& ambient, const at::Tensor& colors, const at::Tensor& directions,
+                           const at::Tensor& strength_logit) {
+    const int64_t K = colors.size(0);
+    TORCH_CHECK(colors.dim() == 2 && K >= 1 && K <= 8, "shading: 1 to 8 lights, got ", colors.sizes());
+    check_cpu_float(colors, "light colours", K, 3);
+    check_cpu_float(directions, "light directions", K, 3);
+    TORCH_CHECK(ambient.numel() == 3, "shading: the ambient term needs 3 values, got ", ambient.numel());
+    check_cpu_float(ambient, "ambient", ambient.size(0), 0);
+    LearnedLight L;
+    L.count = static_cast<int>(K);
+    const float* amb = ambient.data_ptr<float>();
+    const float* col = colors.data_ptr<float>();
+    const float* dir = directions.data_ptr<float>();
+    for (int j = 0; j < 3; ++j) L.a.push_back(softplus(amb[j]));
+    L.m = L.a;
+    for (int64_t l = 0; l < K; ++l) {
+        const double n = std::sqrt(static_cast<double>(dir[3 * l]) * dir[3 * l] +
+                                   static_cast<double>(dir[3 * l + 1]) * dir[3 * l + 1] +
+                                   static_cast<double>(dir[3 * l + 2]) * dir[3 * l + 2]);
+        L.norms.push_back(n);
+        for (int j = 0; j < 3; ++j) {
+            L.c.push_back(softplus(col[3 * l + j]));
+            L.m[j] += L.c.back() / 4.0;
+            L.d.push_back(dir[3 * l + j] / std::max(n, 1e-9));
+        }
+    }
+    if (given(strength_logit)) {
+        TORCH_CHECK(strength_logit.numel() == 1, "shading: one occlusion strength, got ", strength_logit.numel());
+        check_cpu_float(strength_logit, "strength", strength_logit.size(0), 0);
+        L.k = 1.0 / (1.0 + std::exp(-static_cast<double>(strength_logit.data_ptr<float>()[0])));
+    }
+    const auto to_float = [](const std::vector<double>& v) { return std::vector<float>(v.begin(), v.end()); };
+    L.af = to_float(L.a);
+    L.cf = to_float(L.c);
+    L.df = to_float(L.d);
+    L.mf = to_float(L.m);
+    return L;
+}
+
+const float* shade_visible(const at::Tensor& visible, int64_t n) {
+    if (!given(visible)) return nullptr;
+    TORCH_CHECK(visible.dim() == 1, "visible must be [rows], got ", visible.sizes());
+    check_cpu_float(visible, "visible", n, 0);
+    return visible.data_ptr<float>();
+}
+
+// visible: (M,) or empty (no occlusion factor, and strength_logit empty).
+at::Tensor shade_fwd(const at::Tensor& albedo, const at::Tensor& normals, const at::Tensor& visible,
+                     const at::Tensor& strength_logit, const at::Tensor& ambient, const at::Tensor& colors,
+                     const at::Tensor& directions, int64_t threads) {
+    const int64_t n = albedo.size(0);
+    check_cpu_float(albedo, "albedo", n, 3);
+    check_cpu_float(normals, "normals", n, 3);
+    TORCH_CHECK(threads >= 1, "threads must be >= 1");
+    const LearnedLight L = learned_light(ambient, colors, directions, strength_logit);
+    at::Tensor out = at::empty({n, 3}, albedo.options());
+    stg_shade::shade_forward(albedo.data_ptr<float>(), normals.data_ptr<float>(), shade_visible(visible, n),
+                             static_cast<float>(L.k), n, L.lights(), out.data_ptr<float>(), static_cast<int>(threads));
+    return out;
+}
+
+// away: (M,) bool or empty. Returns dL/dalbedo, dL/dnormals (empty where not wanted), dL/dstrength_logit,
+// dL/dambient, dL/dcolors, dL/ddirections (the parameters' shapes, float32).
+std::vector<at::Tensor> shade_bwd(const at::Tensor& albedo, const at::Tensor& normals, const at::Tensor& visible,
+                                  const at::Tensor& strength_logit, const at::Tensor& ambient,
+                                  const at::Tensor& colors, const at::Tensor& directions, const at::Tensor& away,
+                                  const at::Tensor& g_out, bool want_albedo, bool want_normals, int64_t threads) {
+    const int64_t n = albedo.size(0);
+    check_cpu_float(albedo, "albedo", n, 3);
+    check_cpu_float(normals, "normals", n, 3);
+    check_cpu_float(g_out, "grad out", n, 3);
+    TORCH_CHECK(threads >= 1, "threads must be >= 1");
+    const LearnedLight L = learned_light(ambient, colors, directions, strength_logit);
+    const int K = L.count;
+    const bool* away_ptr = nullptr;
+    if (given(away)) {
+        TORCH_CHECK(away.device().is_cpu() && away.scalar_type() == at::kBool && away.dim() == 1 && away.size(0) == n &&
+                        away.is_contiguous(), "away must be a contiguous [", n, "] bool CPU tensor");
+        away_ptr = away.data_ptr<bool>();
+    }
+    at::Tensor g_albedo = at::empty({want_albedo ? n : 0, 3}, albedo.options());
+    at::Tensor g_normals = at::empty({want_normals ? n : 0, 3}, albedo.options());
+    double g_k = 0.0, g_a[3], g_m[3];
+    std::vector<double> g_c(3 * K), g_d(3 * K);
+    stg_shade::shade_backward(albedo.data_ptr<float>(), normals.data_ptr<float>(), shade_visible(visible, n),
+                              static_cast<float>(L.k), n, L.lights(), away_ptr, g_out.data_ptr<float>(),
+                              want_albedo ? g_albedo.data_ptr<float>() : nullptr,
+                              want_normals ? g_normals.data_ptr<float>() : nullptr, &g_k, g_a, g_c.data(), g_d.data(),
+                              g_m, static_cast<int>(threads));
+    // the chain rule back to the parameters
+    at::Tensor g_logit = at::zeros_like(strength_logit);
+    if (given(strength_logit)) g_logit.data_ptr<float>()[0] = static_cast<float>(g_k * L.k * (1.0 - L.k));
+    at::Tensor g_ambient = at::empty_like(ambient), g_colors = at::empty_like(colors);
+    at::Tensor g_directions = at::empty_like(directions);
+    const float* amb = ambient.data_ptr<float>();
+    const float* col = colors.data_ptr<float>();
+    for (int j = 0; j < 3; ++j) g_ambient.data_ptr<float>()[j] = static_cast<float>((g_a[j] + g_m[j]) * softplus_slope(amb[j]));
+    for (int l = 0; l < K; ++l) {
+        double dot = 0.0;
+        for (int q = 0; q < 3; ++q) dot += L.d[3 * l + q] * g_d[3 * l + q];
+        const bool clamped = L.norms[l] < 1e-9;  // then d / 1e-9, the norm taking no gradient
+        const double inv = 1.0 / std::max(L.norms[l], 1e-9);
+        for (int q = 0; q < 3; ++q) {
+            const int i = 3 * l + q;
+            g_colors.data_ptr<float>()[i] = static_cast<float>((g_c[i] + g_m[q] / 4.0) * softplus_slope(col[i]));
+            g_directions.data_ptr<float>()[i] =
+                static_cast<float>(clamped ? g_d[i] * inv : (g_d[i] - L.d[i] * dot) * inv);
+        }
+    }
+    return {g_albedo, g_normals, g_logit, g_ambient, g_colors, g_directions};
 }
 
 int64_t image_window() { return stg_image::kWindow; }
@@ -975,14 +1161,23 @@ TORCH_LIBRARY(STG_SPLAT_NS, m) {
         "Tensor g_next_world, Tensor blends, bool bone_grads, bool next_bone_grads, int threads) -> (Tensor, "
         "Tensor, Tensor, Tensor, Tensor, Tensor)",
         &skin_bwd);
+    m.def("shade_fwd(Tensor albedo, Tensor normals, Tensor visible, Tensor strength_logit, Tensor ambient, "
+          "Tensor colors, Tensor directions, int threads) -> Tensor",
+          &shade_fwd);
+    m.def("shade_bwd(Tensor albedo, Tensor normals, Tensor visible, Tensor strength_logit, Tensor ambient, "
+          "Tensor colors, Tensor directions, Tensor away, Tensor g_out, bool want_albedo, bool want_normals, "
+          "int threads) -> Tensor[]",
+          &shade_bwd);
     m.def(
-        "mlp_fwd(Tensor x, Tensor[] weights, Tensor[] biases, int[] acts, int enc_cols, int enc_freqs, bool keep_hidden, "
+        "mlp_fwd(Tensor[] x, Tensor rows, bool select, Tensor[] weights, Tensor[] biases, int[] acts, int enc_cols, "
+        "int enc_freqs, int view_degree, int view_active, bool keep_hidden, "
         "int threads) -> "
         "(Tensor, Tensor[])",
         &mlp_fwd);
     m.def(
-        "mlp_bwd(Tensor x, Tensor[] weights, Tensor[] biases, int[] acts, int enc_cols, int enc_freqs, Tensor[] hidden, "
+        "mlp_bwd(Tensor[] x, Tensor rows, bool select, Tensor[] weights, Tensor[] biases, int[] acts, int enc_cols, "
+        "int enc_freqs, int view_degree, int view_active, Tensor[] hidden, "
         "Tensor out, "
-        "Tensor g_out, bool want_gx, int threads) -> (Tensor, Tensor[], Tensor[])",
+        "Tensor g_out, int[] want_gx, int threads) -> (Tensor[], Tensor[], Tensor[])",
         &mlp_bwd);
 }
