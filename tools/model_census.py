@@ -33,27 +33,46 @@ def blend_weights(run: Path) -> tuple[np.ndarray, np.ndarray]:
     from stg_node.avatar.data_spec import DataSpec
     from stg_node.avatar.loading import corrected, load_run_renderer
     from stg_node.avatar.model import BodyState, Camera3
-    from stg_node.splat.api import rasterize
 
     data = json.loads((run / "config.json").read_text())["data"]
     spec = DataSpec(data["root"], data["format"], size=data["size"])
     _, renderer, corrections, _ = load_run_renderer(run)
-    n = renderer.model.table.num
+
+    def views():
+        for sample in spec.open("train"):
+            smpl = corrected(sample.smpl, corrections.get(sample.index))
+            cam = Camera3.from_camera(sample.camera, device=renderer.device)
+            with torch.no_grad():
+                body = BodyState.from_smpl(smpl, renderer.device)
+                posed = renderer.model.pose(body, renderer.time_for(smpl, sample.time), cam.center)
+            weight = view_blend_weights(
+                posed.means, posed.quats, posed.scales, posed.opacities, cam.viewmat, cam.K,
+                cam.width, cam.height, renderer.backend,
+            )  # fmt: skip
+            yield (None if posed.index is None else posed.index.cpu().numpy()), weight
+
+    return sum_over_views(renderer.model.table.num, views())
+
+
+def view_blend_weights(means, quats, scales, opacities, viewmat, K, width, height, backend) -> np.ndarray:
+    """Each posed Gaussian's blend weight (alpha times transmittance) summed over one view's pixels."""
+    import torch
+
+    from stg_node.splat.api import rasterize
+
+    ones = torch.ones(means.shape[0], 1, dtype=means.dtype, device=means.device, requires_grad=True)
+    image, _, _ = rasterize(
+        means, quats, scales, opacities, ones, viewmat, K, width, height, backend=backend
+    )  # fmt: skip
+    image.sum().backward()  # d(sum of pixels)/d(row's value) = its blend weights, summed
+    return ones.grad[:, 0].double().cpu().numpy()
+
+
+def sum_over_views(n: int, views) -> tuple[np.ndarray, np.ndarray]:
+    """(summed, largest) over ``views`` of (model rows or None for all ``n``, per-row weight)."""
     total, peak = np.zeros(n), np.zeros(n)
-    for sample in spec.open("train"):
-        smpl = corrected(sample.smpl, corrections.get(sample.index))
-        cam = Camera3.from_camera(sample.camera, device=renderer.device)
-        with torch.no_grad():
-            body = BodyState.from_smpl(smpl, renderer.device)
-            posed = renderer.model.pose(body, renderer.time_for(smpl, sample.time), cam.center)
-        ones = torch.ones(posed.means.shape[0], 1, requires_grad=True)
-        image, _, _ = rasterize(
-            posed.means, posed.quats, posed.scales, posed.opacities, ones, cam.viewmat, cam.K,
-            cam.width, cam.height, backend=renderer.backend,
-        )  # fmt: skip
-        image.sum().backward()  # d(sum of pixels)/d(row's value) = its blend weights, summed
-        weight = ones.grad[:, 0].double().numpy()
-        rows = np.arange(n) if posed.index is None else posed.index.numpy()
+    for rows, weight in views:
+        rows = np.arange(n) if rows is None else rows
         total[rows] += weight
         peak[rows] = np.maximum(peak[rows], weight)
     return total, peak

@@ -27,12 +27,23 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import tradeoff  # noqa: E402
 
 
+def true_motion(folder: Path, samples, faces, num_frames: int, cuts=()) -> np.ndarray:
+    """True image motion (px per frame) of every body pixel of every view in ``samples`` (each with
+    ``index`` and ``camera``), from the benchmark's ground-truth vertices."""
+    from stg_node.data.synth.true_flow import benchmark_true_flow
+
+    moved = []
+    for sample in samples:
+        flow = benchmark_true_flow(folder, sample.index, sample.camera, faces, num_frames, cuts)
+        moved.append(flow.magnitude[flow.covered])
+    return np.concatenate(moved)
+
+
 def main() -> None:
     from stg_node.avatar.data_spec import DataSpec
     from stg_node.body import load_body_model
     from stg_node.data.synth.coverage import benchmark_coverage
     from stg_node.data.synth.garment_truth import rest_body
-    from stg_node.data.synth.true_flow import benchmark_true_flow
     from stg_node.data.synth.writer import read_metadata
     from stg_node.threads import configure_threads
 
@@ -68,12 +79,7 @@ def main() -> None:
         cov = benchmark_coverage(folder, samples, faces, rest, args.supersample)
         yaw = (meta.get("held_out") or {}).get("train_yaw_deg")
         cuts = tuple((meta.get("held_out") or {}).get("cuts", ()))
-        moved = []
-        frames = int(meta["num_frames"])
-        for sample in samples:
-            flow = benchmark_true_flow(folder, sample.index, sample.camera, faces, frames, cuts)
-            moved.append(flow.magnitude[flow.covered])
-        moved = np.concatenate(moved)
+        moved = true_motion(folder, samples, faces, int(meta["num_frames"]), cuts)
         print(
             f"| {folder.name} | {meta['motion']}, {'full turn' if yaw is None else f'{yaw:g} deg'} | "
             f"{size} px | {cov.views} | {100 * cov.fraction_never_seen():.1f} % | "

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import subprocess
+import threading
 import time
 
 import msgpack
@@ -22,6 +24,28 @@ def wait_until(predicate, timeout: float = 5.0, step: float = 0.01) -> bool:
             return True
         time.sleep(step)
     return predicate()
+
+
+def expect_first_line(proc: subprocess.Popen, text: str, timeout: float = 60.0) -> str:
+    """The first line ``proc`` prints (text-mode stdout), asserted to hold ``text``. Read in a thread
+    so that a child hanging silently fails the test at ``timeout`` s with its output instead of
+    blocking in ``readline``; on failure the child is killed. Reads that one line only (unlike
+    tests/nodes' LineReader), so the caller can still ``communicate`` with the child afterwards."""
+    got: list[str] = []
+    reader = threading.Thread(target=lambda: got.append(proc.stdout.readline()), daemon=True)
+    reader.start()
+    reader.join(timeout)
+    timed_out = reader.is_alive()
+    if not timed_out and text in got[0]:
+        return got[0]
+    proc.kill()
+    reader.join(30)  # the kill closes the pipe: readline returns
+    out, err = proc.communicate(timeout=30)
+    waited = f"printed no full line in {timeout:g} s" if timed_out else "printed"
+    raise AssertionError(
+        f"{proc.args} {waited} {''.join(got)!r} (expected {text!r}); "
+        f"then stdout {out!r}, stderr {err!r}, exit {proc.returncode}"
+    )
 
 
 def recv_until(sub, predicate, timeout: float = 30.0, seen: list | None = None):

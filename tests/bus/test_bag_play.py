@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import zmq
 from baghelpers import ROOT, encoded_stream
-from bushelpers import assert_same_message
+from bushelpers import assert_same_message, expect_first_line
 
 from stg_node.bus import Ack, Broker, Bus, Publisher, Subscriber, TrainerMetrics, decode, lane_endpoint
 from stg_node.bus.recording import BagReader, BagWriter, Lockstep, PlaybackError, Player
@@ -295,7 +295,7 @@ def test_play_cli_paused_resumes_on_sigusr1(broker, ipc_url, tmp_path, ctx):
             stderr=subprocess.PIPE,
             text=True,
         )
-        assert "paused" in proc.stdout.readline()
+        expect_first_line(proc, "paused")
         assert sub.recv(timeout=0.5) is None
         proc.send_signal(signal.SIGUSR1)
         assert [m.header.seq for m in sub.messages(timeout=30.0, count=3)] == [0, 1, 2]

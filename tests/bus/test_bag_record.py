@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import zmq
 from baghelpers import ROOT, encoded_stream, mcap_messages, wait_written
-from bushelpers import sample_messages, wait_until
+from bushelpers import expect_first_line, sample_messages, wait_until
 from mcap.reader import make_reader
 from mcap.stream_reader import StreamReader
 
@@ -205,9 +205,20 @@ def _start_recorder(url, path, *extra, ignore_sigint=False):
         text=True,
         preexec_fn=preexec,
     )
-    line = proc.stdout.readline()  # "recording ... (Ctrl-C to stop)": subscribed
-    assert "recording" in line, line + proc.stderr.read()
+    expect_first_line(proc, "recording")  # "recording ... (Ctrl-C to stop)": subscribed
     return proc
+
+
+def test_a_child_that_hangs_silently_fails_at_the_deadline_with_its_output():
+    """What _start_recorder relies on: no first line by the deadline is a failure naming what the
+    child wrote to stderr, and the child is killed rather than left running."""
+    hang = "import sys, time; print('stuck', file=sys.stderr, flush=True); time.sleep(120)"
+    proc = subprocess.Popen(
+        [sys.executable, "-c", hang], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    with pytest.raises(AssertionError, match=r"printed no full line in 1 s.*stderr 'stuck\\n'"):
+        expect_first_line(proc, "recording", timeout=1.0)
+    assert proc.returncode == -signal.SIGKILL
 
 
 def _publish_poses(url, ctx, count, first_seq=0, pause=0.0):
