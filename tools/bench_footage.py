@@ -308,6 +308,9 @@ def pose_variants(video_data: Path, data: Path, out: Path) -> dict[str, Path]:
         row["Th"][i] = _joints(body, [mine])[0, 0] - _joints(body, [turned])[0, 0]  # the tracked pelvis kept
         pelvis = tracked_joints[i, 0]
         variants["true-depth"]["Th"][i] = slid_to_depth(mine.Th, pelvis, gauge * true_joints[0, 2])
+    true_rows = variants["true"]
+    for name, chain in CHAINS.items():
+        variants[f"true-{name}"] = chain_true_in_world(variants["tracked"], true_rows, chain)
     folders = {}
     for name, rows in variants.items():
         folder = out / name
@@ -319,6 +322,45 @@ def pose_variants(video_data: Path, data: Path, out: Path) -> dict[str, Path]:
         np.savez(folder / "poses.npz", **rows)
         folders[name] = folder
     return folders
+
+
+CHAINS = {  # the joints (SMPL indices) whose orientation in the camera's frame a chain step makes true
+    "arms": (16, 17, 18, 19, 20, 21, 22, 23),  # shoulders, elbows, wrists, hands
+    "legs": (1, 2, 4, 5, 7, 8, 10, 11),  # hips, knees, ankles, feet
+    "torso": (3, 6, 9, 12, 13, 14, 15),  # spine, neck, collars, head
+}
+
+
+def chain_true_in_world(tracked: dict, true: dict, joints) -> dict:
+    """``tracked``'s rows (poses.npz columns) with ``joints`` turned to their true orientation in
+    the camera's frame and every other joint kept at its tracked orientation there (each local
+    rotation re-solved from its parent's): which chain's rotations carry the gap, free of what a
+    wrong parent does to a swapped local rotation. Global orientation, shape and position stay
+    tracked."""
+    import cv2
+    import numpy as np
+
+    from stg_node.body import load_body_model
+
+    parents = load_body_model().parents.tolist()
+    chosen = set(joints)
+    rows = {k: v.copy() for k, v in tracked.items()}
+
+    def world(r, i):
+        poses = r["poses"][i].reshape(24, 3).astype(np.float64)
+        G = [cv2.Rodrigues(np.asarray(r["Rh"][i], np.float64))[0] @ cv2.Rodrigues(poses[0])[0]]
+        for j in range(1, 24):
+            G.append(G[parents[j]] @ cv2.Rodrigues(poses[j])[0])
+        return G
+
+    for i in range(len(rows["poses"])):
+        mine, theirs = world(tracked, i), world(true, i)
+        target = [theirs[j] if j in chosen else mine[j] for j in range(24)]
+        poses = rows["poses"][i].reshape(24, 3)
+        for j in range(1, 24):
+            poses[j] = cv2.Rodrigues(target[parents[j]].T @ target[j])[0].ravel()
+        rows["poses"][i] = poses.reshape(-1)
+    return rows
 
 
 def slid_to_depth(Th, pelvis, depth: float):
@@ -1284,7 +1326,7 @@ def decompose(args) -> dict:
     return rows
 
 
-TRAINED_STEPS = ("tracked", "true-depth", "true-orientation", "true")
+TRAINED_STEPS = ("tracked", "true-depth", "true-orientation", "true", "true-arms", "true-legs", "true-torso")
 
 
 def decompose_trained(args, subject_name: str = "gap") -> dict:

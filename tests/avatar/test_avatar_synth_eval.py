@@ -264,3 +264,32 @@ def test_an_unknown_swap_is_refused_before_anything_is_loaded(tmp_path):
 
     with pytest.raises(ValueError, match="swap must be one of"):
         evaluate_on_synth(tmp_path / "no_run", tmp_path / "no_subject", swap="shape")
+
+
+def test_bench_footage_chain_step_turns_only_that_chain_to_its_true_orientation_in_the_camera():
+    """decompose's chain steps (true-arms, ...): the body model's own forward kinematics puts each
+    joint of the chain at the true orientation in the camera's frame and every other joint at
+    the tracked one (the local rotations re-solved below a changed parent)."""
+    import torch
+
+    body = load_body_model()
+    truth, tracked, _ = _truth_and_tracked(11)
+
+    def rows(params):
+        poses = np.asarray(params.poses, np.float32).reshape(1, 72).copy()
+        return {"poses": poses, "Rh": np.asarray(params.Rh, np.float32)[None],
+                "Th": np.asarray(params.Th, np.float32)[None], "shapes": np.zeros((1, 10), np.float32)}  # fmt: skip
+
+    def world_rotations(r):
+        out = body(betas=torch.as_tensor(r["shapes"]), poses=torch.as_tensor(r["poses"]),
+                   Rh=torch.as_tensor(r["Rh"]), Th=torch.as_tensor(r["Th"]))  # fmt: skip
+        return out.bone_transforms[0, :, :3, :3].double().numpy()
+
+    bench = _bench_footage()
+    arms = bench.CHAINS["arms"]
+    mixed = world_rotations(bench.chain_true_in_world(rows(tracked), rows(truth), arms))
+    want_true, want_tracked = world_rotations(rows(truth)), world_rotations(rows(tracked))
+    others = [j for j in range(24) if j not in arms]
+    np.testing.assert_allclose(mixed[list(arms)], want_true[list(arms)], atol=1e-5)
+    np.testing.assert_allclose(mixed[others], want_tracked[others], atol=1e-5)
+    assert np.abs(want_true[list(arms)] - want_tracked[list(arms)]).max() > 0.1  # the swap did something
