@@ -260,8 +260,9 @@ def pose_variants(video_data: Path, data: Path, out: Path) -> dict[str, Path]:
     orientation, position) in the training camera's frame; ``true-depth``: the tracked parameters
     with each frame's body slid along the camera ray through its pelvis to the true pelvis depth
     (times the sequence's one depth-ratio scale, the gauge the scoring fixes): the picture in
-    the training camera unchanged at the pelvis, the single camera's depth error gone. Each is
-    ``out/NAME``."""
+    the training camera unchanged at the pelvis, the single camera's depth error gone;
+    ``true-arms`` / ``true-legs`` / ``true-torso``: one chain turned true in the camera's frame
+    (:func:`chain_true_in_world`). Each is ``out/NAME``."""
     import dataclasses
     import os
     import shutil
@@ -1334,7 +1335,10 @@ def decompose_trained(args, subject_name: str = "gap") -> dict:
     training, free of what an avatar learnt on the tracked poses does when rendered with others.
     The tracked run's own folder (its images, masks, camera) trained as ``--format video`` trains,
     with the tracked poses, with each frame's depth made true (``pose_variants``' ``true-depth``),
-    with the true global orientation, and with the true parameters; scored as the subject's
+    with the true global orientation, and with the true parameters; and, to split the joint
+    rotations' share by chain, with one chain (:data:`CHAINS`: ``true-arms``, ``true-legs``,
+    ``true-torso``) at its true orientation in the camera's frame, the rest as tracked
+    (:func:`chain_true_in_world`); scored as the subject's
     experiment scores (gap: novel views and novel poses; closeup: the held-out frames of the
     training camera and novel views)."""
     out = args.out

@@ -278,7 +278,8 @@ def test_bench_footage_chain_step_turns_only_that_chain_to_its_true_orientation_
     def rows(params):
         poses = np.asarray(params.poses, np.float32).reshape(1, 72).copy()
         return {"poses": poses, "Rh": np.asarray(params.Rh, np.float32)[None],
-                "Th": np.asarray(params.Th, np.float32)[None], "shapes": np.zeros((1, 10), np.float32)}  # fmt: skip
+                "Th": np.asarray(params.Th, np.float32)[None],
+                "shapes": np.zeros((1, 10), np.float32)}  # fmt: skip
 
     def world_rotations(r):
         out = body(betas=torch.as_tensor(r["shapes"]), poses=torch.as_tensor(r["poses"]),
