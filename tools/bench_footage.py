@@ -14,6 +14,7 @@ size in the frame and an unknown camera cost, and what each remedy buys back.
     python tools/bench_footage.py errors    [--size 256]                  # what the tracked poses' errors are
     python tools/bench_footage.py twist     [--size 256] [--runs mixed,...] # tracker per bone, motions
     python tools/bench_footage.py closeup   [--size 256] [--frames 90] [--closeup-m 2.2] # same camera
+    python tools/bench_footage.py cues      [--size 256] [--runs gap|closeup] # limbs' depth: fit vs 3D
     common: --out DIR (default runs/bench_footage) --preset fast --seed 0 --json
 
 Every experiment generates its subjects with ``stg-synth``'s generator into ``--out/data``
@@ -1393,6 +1394,127 @@ def decomposition(truth: dict, steps: dict) -> dict:
     return {"truth": truth, "steps": steps, "gains": gains, "gap_db": truth["psnr"] - steps[names[0]]["psnr"]}
 
 
+CUE_BONES = {  # bone -> (SMPL joint, child), (BlazePose point, child)
+    "left upper arm": ((16, 18), ("left_shoulder", "left_elbow")),
+    "right upper arm": ((17, 19), ("right_shoulder", "right_elbow")),
+    "left forearm": ((18, 20), ("left_elbow", "left_wrist")),
+    "right forearm": ((19, 21), ("right_elbow", "right_wrist")),
+    "left thigh": ((1, 4), ("left_hip", "left_knee")),
+    "right thigh": ((2, 5), ("right_hip", "right_knee")),
+    "left shin": ((4, 7), ("left_knee", "left_ankle")),
+    "right shin": ((5, 8), ("right_knee", "right_ankle")),
+}
+LENGTH_BONES = {"upper arm": (16, 18), "forearm": (18, 20), "thigh": (1, 4), "shin": (4, 7), "neck": (12, 15)}
+
+
+def cues(args) -> dict:
+    """What evidence for the limbs' depth the tracker has beside its fit, on ``decompose``'s tracked
+    folder (``--runs gap`` or ``closeup``; run ``decompose --runs gap-trained`` / ``closeup-trained``
+    first): per limb bone, the fit's and BlazePose's metric 3D points' direction in the camera's
+    frame against the truth (the angle, its elevation towards the camera, and how often the
+    bone's depth order, which end is nearer, is wrong where the true bone leans more than 15
+    degrees), the fitted shape's bone lengths against the true ones, and each joint's local
+    rotation error with its twist about the bone. A depth-order or direction term from the
+    detector's 3D points can only help where they beat the fit."""
+    import cv2
+    import numpy as np
+    import torch
+
+    from stg_node.body import load_body_model
+    from stg_node.safe_load import load_npz
+    from stg_node.tracking.detectors import make_detector
+    from stg_node.tracking.layouts import get_layout
+
+    name = args.runs or "gap"
+    tag = (
+        f"{args.size}_s{args.seed}"
+        if name == "gap"
+        else f"{args.size}_{args.frames}_{args.closeup_m:g}m_s{args.seed}"
+    )
+    folder = args.out / "decompose" / f"data_{name}_{tag}"
+    if not (folder / "true" / "poses.npz").is_file():
+        raise FileNotFoundError(f"{folder}: run decompose --runs {name}-trained first")
+    body = load_body_model()
+    parents = body.parents.tolist()
+    layout = get_layout("blazepose33")
+    rows = {
+        k: {c: np.asarray(v) for c, v in load_npz(folder / k / "poses.npz").items()}
+        for k in ("tracked", "true")
+    }
+
+    def forward(r, poses=None):
+        def tensor(x):
+            return torch.as_tensor(np.asarray(x), dtype=torch.float32)
+
+        poses = r["poses"] if poses is None else poses
+        return body(betas=tensor(r["shapes"][:, :10]), poses=tensor(poses).reshape(len(poses), 72),
+                    Rh=tensor(r["Rh"]), Th=tensor(r["Th"]))  # fmt: skip
+
+    fit, true = forward(rows["tracked"]).joints.numpy(), forward(rows["true"]).joints.numpy()
+    detector = make_detector("blazepose", threads=1)
+    world = []
+    for frame in rows["tracked"]["frames"].astype(int):
+        image = cv2.imread(str(folder / "tracked" / "images" / "camera" / f"{frame:06d}.jpg"))
+        if image is None:
+            raise FileNotFoundError(f"{folder}/tracked/images/camera/{frame:06d}.jpg")
+        points = detector(cv2.cvtColor(image, cv2.COLOR_BGR2RGB))
+        world.append(np.full((33, 3), np.nan) if points is None or points.world is None else points.world)
+    world = np.asarray(world, np.float64)
+
+    def unit(v):
+        return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+    def elevation(d):
+        return np.degrees(np.arcsin(np.clip(d[:, 2], -1, 1)))
+
+    bones = {}
+    for bone, ((j, c), (a, b)) in CUE_BONES.items():
+        t = unit(true[:, c] - true[:, j])
+        leaning = np.abs(t[:, 2]) > np.sin(np.radians(15))
+        row = {}
+        for source, d in (("fit", unit(fit[:, c] - fit[:, j])),
+                          ("blazepose", unit(world[:, layout.index(b)] - world[:, layout.index(a)])),
+                          ):  # fmt: skip
+            wrong = np.sign(d[leaning, 2]) != np.sign(t[leaning, 2])
+            row[source] = {
+                "direction_deg": float(np.nanmean(np.degrees(np.arccos(np.clip((d * t).sum(1), -1, 1))))),
+                "elevation_deg": float(np.nanmean(np.abs(elevation(d) - elevation(t)))),
+                "depth_order_wrong_pct": float(100 * wrong.mean()) if leaning.any() else float("nan"),
+            }
+        bones[bone] = row
+    rest = {k: forward(r, np.zeros_like(r["poses"])).joints.numpy()[0] for k, r in rows.items()}
+    lengths = {bone: float(np.linalg.norm(rest["tracked"][c] - rest["tracked"][j])
+                           / np.linalg.norm(rest["true"][c] - rest["true"][j]))
+               for bone, (j, c) in LENGTH_BONES.items()}  # fmt: skip
+    joints = {}
+    child = {}
+    for j in range(1, 24):
+        child.setdefault(parents[j], j)
+    for j in range(1, 24):
+        axis = (
+            unit(rest["true"][child[j]] - rest["true"][j])
+            if j in child
+            else unit(rest["true"][j] - rest["true"][parents[j]])
+        )
+        err, twist = [], []
+        for i in range(len(fit)):
+            mine = cv2.Rodrigues(rows["tracked"]["poses"][i].reshape(24, 3)[j].astype(np.float64))[0]
+            theirs = cv2.Rodrigues(rows["true"]["poses"][i].reshape(24, 3)[j].astype(np.float64))[0]
+            vec = cv2.Rodrigues(theirs.T @ mine)[0].ravel()
+            angle = np.linalg.norm(vec)
+            half = np.sin(angle / 2) * vec / max(angle, 1e-12)
+            err.append(np.degrees(angle))
+            twist.append(abs(np.degrees(2 * np.arctan2(half @ axis, np.cos(angle / 2)))))
+        joints[JOINT_NAMES[j]] = {"error_deg": float(np.mean(err)), "twist_deg": float(np.mean(twist))}
+    return {"frames": len(fit), "bones": bones, "bone_length_ratio": lengths, "joints": joints}
+
+
+JOINT_NAMES = ("pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2",
+               "left_ankle", "right_ankle", "spine3", "left_foot", "right_foot", "neck", "left_collar",
+               "right_collar", "head", "left_shoulder", "right_shoulder", "left_elbow", "right_elbow",
+               "left_wrist", "right_wrist", "left_hand", "right_hand")  # fmt: skip
+
+
 TWIST_MOTIONS = ("mixed", "dance", "wave", "reach", "walk")
 
 
@@ -1476,6 +1598,7 @@ EXPERIMENTS = {
     "twist": twist,
     "closeup": closeup,
     "decompose": decompose,
+    "cues": cues,
 }
 
 
