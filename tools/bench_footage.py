@@ -1363,13 +1363,17 @@ def decompose_trained(args, subject_name: str = "gap") -> dict:
         def scores(run: Path) -> dict:
             return closeup_scores(run, data)
 
+    if args.train_set and not args.variant:
+        raise ValueError("decompose --set needs --variant NAME (the runs are named after it)")
+    settings = [x for kv in args.train_set for x in ("--set", kv)]
+    suffix = f"_{args.variant}" if args.variant else ""
     where = out / "decompose" / f"data_{subject_name}_{tag}"
     folders = pose_variants(tracked_run / "video_data", data, where)
     rows = {"truth": scores(truth)}
     for name in wanted_runs(args.steps, TRAINED_STEPS, "decompose --steps"):
         slug = name.replace("-", "_")
-        run = train(out, f"decompose_{subject_name}_{slug}_{tag}", args, "--data", str(folders[name]),
-                    "--format", "folder", *frames, *as_video_trains())  # fmt: skip
+        run = train(out, f"decompose_{subject_name}_{slug}_{tag}{suffix}", args, "--data", str(folders[name]),
+                    "--format", "folder", *frames, *as_video_trains(), *settings)  # fmt: skip
         rows[name] = scores(run)
         rows[name]["gap_db"] = gap_by_part(rows["truth"], rows[name])
     return rows
@@ -1636,6 +1640,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--steps", default=None, help="decompose --runs gap-trained: which of " + ",".join(TRAINED_STEPS)
     )
+    p.add_argument(
+        "--set",
+        dest="train_set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="decompose --runs *-trained: a trainer setting for every step's training (repeatable); "
+        "needs --variant, which names the runs",
+    )
+    p.add_argument("--variant", default="", help="decompose --runs *-trained: a name for the --set runs")
     p.add_argument("--json", action="store_true", help="print the results as one JSON object")
     p.add_argument("--iters", type=int, default=None, help="override the iterations (smoke tests)")
     p.add_argument(
