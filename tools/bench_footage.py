@@ -109,7 +109,14 @@ to ``--out/results/EXPERIMENT.json``; a run folder that is already finished is n
   avatar learnt on tracked poses drawn with others is a confounded witness): the tracked run's
   own folder trained as ``--format video`` trains with the tracked poses, each frame at the true
   depth along its pelvis's ray, the true global orientation, the true parameters (``--steps``
-  picks), scored as ``gap`` / ``closeup`` score, with the gap to the truth run per part.
+  picks), scored as ``gap`` / ``closeup`` score, with the gap to the truth run per part; the
+  steps ``true-arms``, ``true-legs``, ``true-torso`` turn one chain to its true orientation in
+  the camera's frame and keep the rest as tracked (which chain's rotations carry the gap).
+  ``--set KEY=VALUE --variant NAME``: every step trained with that trainer setting, into runs
+  named after the variant (a lever, measured with the same decomposition).
+- ``cues``: the limbs' depth evidence on ``decompose``'s tracked folder (``--runs`` gap or
+  closeup): per limb bone, the fit's and BlazePose's metric 3D points' direction, elevation and
+  depth order against the truth; the fitted shape's bone lengths; each joint's error and twist.
 - ``framing``: renders RUN_DIR's default orbit (and follow camera) and reports the share of
   frames with the avatar whole and at least 30 % of the image tall.
 
