@@ -15,6 +15,7 @@ size in the frame and an unknown camera cost, and what each remedy buys back.
     python tools/bench_footage.py twist     [--size 256] [--runs mixed,...] # tracker per bone, motions
     python tools/bench_footage.py closeup   [--size 256] [--frames 90] [--closeup-m 2.2] # same camera
     python tools/bench_footage.py cues      [--size 256] [--runs gap|closeup] # limbs' depth: fit vs 3D
+    python tools/bench_footage.py twopass   [--size 256] [--runs gap|closeup] # the fit forwards + backwards
     common: --out DIR (default runs/bench_footage) --preset fast --seed 0 --json
 
 Every experiment generates its subjects with ``stg-synth``'s generator into ``--out/data``
@@ -117,6 +118,8 @@ to ``--out/results/EXPERIMENT.json``; a run folder that is already finished is n
 - ``cues``: the limbs' depth evidence on ``decompose``'s tracked folder (``--runs`` gap or
   closeup): per limb bone, the fit's and BlazePose's metric 3D points' direction, elevation and
   depth order against the truth; the fitted shape's bone lengths; each joint's error and twist.
+- ``twopass``: the training frames tracked forwards, then backwards with the shape held, and the
+  two fits averaged (a fixed-interval smoother against the temporal term's lag); joint errors.
 - ``framing``: renders RUN_DIR's default orbit (and follow camera) and reports the share of
   frames with the avatar whole and at least 30 % of the image tall.
 
@@ -1520,6 +1523,77 @@ def cues(args) -> dict:
     return {"frames": len(fit), "bones": bones, "bone_length_ratio": lengths, "joints": joints}
 
 
+def twopass(args) -> dict:
+    """A fixed-interval smoother for the fit: the training frames of the subject's camera
+    (``--runs gap``: the mixed subject; ``closeup``: the dancer) tracked forwards as ``--format
+    video`` tracks (unsmoothed, true intrinsics), then backwards with the forward pass's shape
+    held, and the two fits averaged per frame (each joint, the global orientation halfway between
+    them; the translations' mean): a temporal term that ties each frame to the one before lags a
+    fast limb in one direction forwards and in the other backwards. Joint rotations against the
+    truth, per group; the three sets of poses in ``--out/twopass``."""
+    import cv2
+    import numpy as np
+
+    from stg_node.safe_load import load_npy
+    from stg_node.tracking.fitting import FitConfig, SmplFitter
+    from stg_node.tracking.pipeline import TrackOptions, build_tracker
+    from stg_node.tracking.sources import open_source
+
+    name = args.runs or "gap"
+    if name == "gap":
+        data = subject(args.out, f"mixed_{args.size}", num_frames=args.frames, size=args.size)
+    else:
+        data = closeup_subject(args)
+    metadata = json.loads((data / "synth.json").read_text())
+    options = TrackOptions(intrinsics=str(intrinsics_file(data)), fps=float(metadata["fps"]), smoothing=False)
+    source = open_source(data / "Camera_B1", options.fps)
+    frames = [(f.image, f.timestamp) for f in source][: round(0.8 * args.frames)]
+
+    def track(order, betas=None):
+        tracker, body = build_tracker(options, source.width, source.height, fit=FitConfig())
+        if betas is not None:  # the backward pass: the forward pass's shape, held
+            tracker.fitter = SmplFitter(body, tracker.layout, tracker.intrinsics.K, FitConfig(), betas=betas)
+        sign = 1.0 if order[0] < order[-1] else -1.0  # backwards, time still runs forwards
+        poses = {}
+        for i in order:
+            e = tracker.estimate(frames[i][0], sign * frames[i][1])
+            poses[i] = np.concatenate(
+                [np.asarray(e.smpl.poses, np.float64).reshape(72), e.smpl.Rh, e.smpl.Th]
+            )
+        return np.stack([poses[i] for i in range(len(frames))]), np.asarray(tracker.fitter.betas)
+
+    forward, betas = track(list(range(len(frames))))
+    backward, _ = track(list(range(len(frames)))[::-1], betas)
+
+    def halfway(a, b):
+        out = np.empty_like(a)
+        for k in range(len(a)):
+            Ra, Rb = cv2.Rodrigues(a[k])[0], cv2.Rodrigues(b[k])[0]
+            out[k] = cv2.Rodrigues(Ra @ cv2.Rodrigues(0.5 * cv2.Rodrigues(Ra.T @ Rb)[0])[0])[0].ravel()
+        return out
+
+    n = len(frames)
+    average = np.concatenate(
+        [halfway(forward[:, :75].reshape(-1, 3), backward[:, :75].reshape(-1, 3)).reshape(n, 75),
+         0.5 * (forward[:, 75:] + backward[:, 75:])], axis=1
+    )  # fmt: skip
+    folder = args.out / "twopass"
+    folder.mkdir(parents=True, exist_ok=True)
+    target = folder / f"{name}_{args.size}_s{args.seed}.npz"
+    np.savez(target, forward=forward, backward=backward, average=average, betas=betas)
+
+    def true_local(i):
+        return np.asarray(load_npy(data / "new_params" / f"{i}.npy")["poses"], np.float64).reshape(24, 3)[1:]
+
+    true = np.stack([true_local(i) for i in range(n)])
+    rows = {}
+    for label, poses in (("forward", forward), ("backward", backward), ("average", average)):
+        err = rotation_angles_deg(poses[:, 3:72].reshape(n, 23, 3), true).reshape(n, 23)
+        groups = {g: float(err[:, [j - 1 for j in js]].mean()) for g, js in JOINT_GROUPS.items()}
+        rows[label] = {"joint_rotation_deg": float(err.mean()), **groups}
+    return {"frames": n, "rows": rows}
+
+
 JOINT_NAMES = ("pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2",
                "left_ankle", "right_ankle", "spine3", "left_foot", "right_foot", "neck", "left_collar",
                "right_collar", "head", "left_shoulder", "right_shoulder", "left_elbow", "right_elbow",
@@ -1610,6 +1684,7 @@ EXPERIMENTS = {
     "closeup": closeup,
     "decompose": decompose,
     "cues": cues,
+    "twopass": twopass,
 }
 
 
