@@ -707,8 +707,9 @@ def refine(args) -> dict:
 
 def refined_pose_accuracy(run: Path, video_data: Path, data: Path) -> dict:
     """The training frames' poses, as tracked and as refined by ``run``, against the truth in the
-    training camera's frame: each joint's rotation error (mean, and per group) and the global
-    orientation's."""
+    training camera's frame: each joint's rotation error (mean, and per group), the global
+    orientation's, and the pelvis's distance from the camera (mm, mean absolute, after the
+    sequence's one depth ratio that the scoring fixes: :func:`tracked_alignment`'s scale)."""
     import cv2
     import numpy as np
 
@@ -720,10 +721,27 @@ def refined_pose_accuracy(run: Path, video_data: Path, data: Path) -> dict:
     frames = np.asarray(load_npz(video_data / "poses.npz")["frames"]).astype(int)
     sequence = load_smpl_params(video_data / "poses.npz")
     R1 = np.asarray(load_npy(data / "annots.npy")["cams"]["R"][0], np.float64)
+    from stg_node.avatar.data_spec import DataSpec
+    from stg_node.avatar.synth_eval import _joints, tracked_alignment
+    from stg_node.body import load_body_model
+
+    body = load_body_model()
+    truth_spec = DataSpec(str(data.resolve()), "synthetic", None, None, None).open("train")
+    camera = truth_spec.camera(truth_spec.camera_names[0])
+    t1 = np.asarray(camera.t, np.float64).reshape(3)
+    true_pelvis = _joints(body, [truth_spec.smpl(int(f)) for f in frames])[:, 0] @ R1.T + t1
+    tracked_all = _joints(body, [sequence[i] for i in range(len(sequence))])
+    gauge = tracked_alignment(
+        camera, _joints(body, [truth_spec.smpl(int(f)) for f in frames]), tracked_all
+    ).scale
     rows = {"tracked": ([], []), "refined": ([], []), "truth": ([], [])}
+    depth = {"tracked": [], "refined": []}
     for i, frame in enumerate(frames):
         if int(frame) not in corrections:
             continue  # a held-out frame
+        refined_pelvis = _joints(body, [corrected(sequence[i], corrections[int(frame)])])[0, 0]
+        for name, pelvis in (("tracked", tracked_all[i, 0]), ("refined", refined_pelvis)):
+            depth[name].append(abs(pelvis[2] / gauge - true_pelvis[i, 2]) * 1000.0)
         true = load_npy(data / "new_params" / f"{int(frame)}.npy")
         true_poses = np.asarray(true["poses"], np.float64).reshape(24, 3)
         rotation = R1 @ cv2.Rodrigues(np.asarray(true["Rh"], np.float64).reshape(3))[0]
@@ -744,6 +762,7 @@ def refined_pose_accuracy(run: Path, video_data: Path, data: Path) -> dict:
             "joint_rotation_deg": float(err.mean()),
             **{g: float(err[[j - 1 for j in js]].mean()) for g, js in JOINT_GROUPS.items()},
             "global_orientation_deg": float(rotation_angles_deg(global_, true_global).mean()),
+            "pelvis_depth_mm": float(np.mean(depth[name])),
         }
     return result
 
