@@ -375,6 +375,33 @@ def chain_true_in_world(tracked: dict, true: dict, joints) -> dict:
     return rows
 
 
+def two_pass_folder(tracked: Path, two_pass: Path) -> Path:
+    """``tracked`` (a ``pose_variants`` folder) with its training frames' poses from ``twopass``'s
+    average of the forward and backward fits (``two_pass``, run ``twopass`` first); the frames
+    after them as tracked. The folder ``twopass`` beside ``tracked``."""
+    import os
+    import shutil
+
+    import numpy as np
+
+    from stg_node.safe_load import load_npz
+
+    if not two_pass.is_file():
+        raise FileNotFoundError(f"{two_pass}: run bench_footage.py twopass for this subject first")
+    rows = {k: np.asarray(v).copy() for k, v in load_npz(tracked / "poses.npz").items()}
+    average = np.asarray(load_npz(two_pass)["average"])
+    n = len(average)
+    rows["poses"][:n], rows["Rh"][:n], rows["Th"][:n] = average[:, :72], average[:, 72:75], average[:, 75:]
+    folder = tracked.parent / "twopass"
+    folder.mkdir(parents=True, exist_ok=True)
+    for sub in ("images", "masks"):
+        if not (folder / sub).exists():
+            os.symlink((tracked / sub).resolve(), folder / sub)
+    shutil.copy(tracked / "cameras.json", folder / "cameras.json")
+    np.savez(folder / "poses.npz", **rows)
+    return folder
+
+
 def slid_to_depth(Th, pelvis, depth: float):
     """The translation ``Th`` that moves a body (camera frame) along the ray through its ``pelvis``
     until the pelvis is ``depth`` away: the pelvis's pixel unchanged, its distance changed."""
@@ -1357,7 +1384,9 @@ def decompose(args) -> dict:
     return rows
 
 
-TRAINED_STEPS = ("tracked", "true-depth", "true-orientation", "true", "true-arms", "true-legs", "true-torso")
+TRAINED_STEPS = (
+    "tracked", "true-depth", "true-orientation", "true", "true-arms", "true-legs", "true-torso", "twopass",
+)  # fmt: skip
 
 
 def decompose_trained(args, subject_name: str = "gap") -> dict:
@@ -1398,6 +1427,10 @@ def decompose_trained(args, subject_name: str = "gap") -> dict:
     suffix = f"_{args.variant}" if args.variant else ""
     where = out / "decompose" / f"data_{subject_name}_{tag}"
     folders = pose_variants(tracked_run / "video_data", data, where)
+    if "twopass" in (args.steps or ""):
+        folders["twopass"] = two_pass_folder(
+            folders["tracked"], out / "twopass" / f"{subject_name}_{args.size}_s0.npz"
+        )
     rows = {"truth": scores(truth)}
     for name in wanted_runs(args.steps, TRAINED_STEPS, "decompose --steps"):
         slug = name.replace("-", "_")
