@@ -112,7 +112,8 @@ to ``--out/results/EXPERIMENT.json``; a run folder that is already finished is n
   depth along its pelvis's ray, the true global orientation, the true parameters (``--steps``
   picks), scored as ``gap`` / ``closeup`` score, with the gap to the truth run per part; the
   steps ``true-arms``, ``true-legs``, ``true-torso`` turn one chain to its true orientation in
-  the camera's frame and keep the rest as tracked (which chain's rotations carry the gap).
+  the camera's frame and keep the rest as tracked (which chain's rotations carry the gap);
+  ``twopass``: the training frames' poses from ``twopass``'s average (run it first).
   ``--set KEY=VALUE --variant NAME``: every step trained with that trainer setting, into runs
   named after the variant (a lever, measured with the same decomposition).
 - ``cues``: the limbs' depth evidence on ``decompose``'s tracked folder (``--runs`` gap or
