@@ -294,3 +294,28 @@ def test_bench_footage_chain_step_turns_only_that_chain_to_its_true_orientation_
     np.testing.assert_allclose(mixed[list(arms)], want_true[list(arms)], atol=1e-5)
     np.testing.assert_allclose(mixed[others], want_tracked[others], atol=1e-5)
     assert np.abs(want_true[list(arms)] - want_tracked[list(arms)]).max() > 0.1  # the swap did something
+
+
+def test_bench_footage_twopass_step_replaces_only_the_training_frames_poses(tmp_path):
+    """decompose's twopass step: the first rows (the frames twopass fitted) take its average, the
+    frames after them keep the tracked poses; the images and camera are the tracked folder's."""
+    tracked = tmp_path / "tracked"
+    for sub in ("images", "masks"):
+        (tracked / sub).mkdir(parents=True)
+    (tracked / "cameras.json").write_text("{}")
+    rng = np.random.default_rng(3)
+    rows = {"poses": rng.normal(size=(5, 72)), "Rh": rng.normal(size=(5, 3)), "Th": rng.normal(size=(5, 3)),
+            "shapes": np.zeros((5, 10)), "frames": np.arange(5)}  # fmt: skip
+    np.savez(tracked / "poses.npz", **rows)
+    bench = _bench_footage()
+    with pytest.raises(FileNotFoundError, match="twopass"):
+        bench.two_pass_folder(tracked, tmp_path / "missing.npz")
+    average = rng.normal(size=(3, 78))
+    np.savez(tmp_path / "two.npz", average=average)
+    folder = bench.two_pass_folder(tracked, tmp_path / "two.npz")
+    out = np.load(folder / "poses.npz")
+    np.testing.assert_allclose(out["poses"][:3], average[:, :72])
+    np.testing.assert_allclose(out["Rh"][:3], average[:, 72:75])
+    np.testing.assert_allclose(out["Th"][:3], average[:, 75:])
+    np.testing.assert_allclose(out["poses"][3:], rows["poses"][3:])
+    assert (folder / "images").resolve() == (tracked / "images").resolve()
