@@ -144,3 +144,33 @@ def test_the_isometry_term_takes_the_kernel_and_matches_its_torch_path():
     assert v1.item() == pytest.approx(v2.item(), rel=1e-5) and v1.item() > 0
     torch.testing.assert_close(gx1, gx2, rtol=1e-4, atol=1e-6 * gx2.abs().max().item())
     torch.testing.assert_close(gc1, gc2, rtol=1e-4, atol=1e-6 * gc2.abs().max().item())
+
+
+def test_the_isometry_term_keeps_exactly_the_edges_between_posed_rows():
+    """The table-row edges mapped to posed rows (an unordered, partial index): the same loss as
+    the edges picked one by one in Python, both ends posed, in the graph's order."""
+    from stg_node.avatar.isometry import IsometryGraph
+
+    x, c, _, _ = graph_case(300)
+
+    class Table:
+        num, version = 300, 0
+
+        def __getitem__(self, name):
+            return c.float()
+
+    graph = IsometryGraph()
+    index = torch.randperm(300, generator=torch.Generator().manual_seed(2))[:170]
+    graph.loss(Table(), x[index].float(), c[index].float(), index)  # builds the graph
+    a, b = graph.edges()
+    where = {int(row): i for i, row in enumerate(index)}
+    kept = [
+        (where[int(i)], where[int(j)])
+        for i, j in zip(a, b, strict=True)
+        if int(i) in where and int(j) in where
+    ]
+    assert 0 < len(kept) < a.numel()
+    ea, eb = (torch.tensor(col) for col in zip(*kept, strict=True))
+    xl, cl = x[index].float(), c[index].float()
+    want = 100.0 * edge_ops.edge_length_loss_torch(xl, cl, ea, eb)
+    torch.testing.assert_close(graph.loss(Table(), xl, cl, index), want, rtol=1e-5, atol=0)

@@ -159,3 +159,19 @@ def test_still_subject_breathes_at_a_resting_rate():
     freqs = np.fft.rfftfreq(chest.size, 1 / FPS)
     assert 0.2 - 0.03 <= freqs[spectrum.argmax()] <= 0.3 + 0.03
     assert 0.5 < np.ptp(chest) < 3.0  # about a degree of extension, not a bow
+
+
+def _root_yaw_deg(seq) -> np.ndarray:
+    """(N,) unwrapped turn of the body's forward direction about the world's vertical (scipy)."""
+    forward = Rotation.from_rotvec(seq.Rh.astype(np.float64)).apply(np.array([0.0, 0.0, 1.0]))  # SMPL front
+    return np.degrees(np.unwrap(np.arctan2(forward[:, 1], forward[:, 0])))
+
+
+def test_the_still_motion_is_a_turntable_unless_its_facing_is_held():
+    """``still`` turns a full revolution over the training frames (the coverage rule); with
+    ``train_yaw_deg=0`` (the trade-off study's ``still_standing``) it stands facing the camera."""
+    turning = make_motion("still", FRAMES, FPS, np.random.default_rng(7), NOVEL_START)
+    standing = make_motion("still", FRAMES, FPS, np.random.default_rng(7), NOVEL_START, train_yaw_deg=0.0)
+    assert abs(np.ptp(_root_yaw_deg(turning)[:NOVEL_START])) >= 360.0 - 1.0
+    assert np.ptp(_root_yaw_deg(standing)[:NOVEL_START]) < 2.0  # the weight shift's wobble only
+    np.testing.assert_allclose(standing.poses, turning.poses)  # the same breathing and head turns

@@ -58,6 +58,8 @@ def test_grid_holds_every_preset_and_ablation_the_issue_names():
         assert row.config(tradeoff.FULL).model.normal_sign == "outward" and row.group == "normal_sign"
     held = tradeoff.SUBJECTS["room_turn_held_out"]
     assert (held.shading, held.train_yaw_deg, held.test_yaw_deg) == ("room", 60.0, 150.0)
+    standing = tradeoff.SUBJECTS["still_standing"]  # the issue-22 subject without the turntable
+    assert standing.synth_options()["motion"] == "still" and standing.synth_options()["train_yaw_deg"] == 0.0
     assert tradeoff.subject_frames("room_new_motions", tradeoff.FULL) == (200, 0.5)
     assert tradeoff.subject_frames("dance", tradeoff.FULL) == (125, 0.8)
     for row in rows.values():

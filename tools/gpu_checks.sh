@@ -57,7 +57,7 @@ wait_for=$((SECONDS + 120))
 until [ -e "$work/data.ready" ] || [ $SECONDS -gt $wait_for ]; do  # the CPU side generates it
     sleep 2
 done
-step tradeoff_gpu "${TRADEOFF_LIMIT:-200}" "$py" tools/tradeoff.py "${tradeoff_args[@]}" \
+step tradeoff_gpu "${TRADEOFF_LIMIT:-240}" "$py" tools/tradeoff.py "${tradeoff_args[@]}" \
     --device cuda --backend cuda --out "$work/gpu" --docs "$work/gpu/BENCHMARKS.md" --plot "$work/gpu/pareto.png"
 wait "$cpu_side"
 echo "== cpu side: exit $?"

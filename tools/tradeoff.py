@@ -143,6 +143,13 @@ SUBJECTS = {
         train_yaw_deg=60.0,
         title="still, never turning (training frames face the camera +-30 deg): its back never seen",
     ),
+    # The issue's words taken literally (issue 22, round 9): standing and breathing, facing the camera,
+    # no turn at all (`still` itself turns a full revolution: the coverage rule's turntable).
+    "still_standing": Subject(
+        "still",
+        train_yaw_deg=0.0,
+        title="still, standing (facing the camera, no turn): breathing and small head turns only",
+    ),
     "room_new_motions": Subject(
         "turn",
         "room",

@@ -239,6 +239,10 @@ class DensifyStrategy:
         if c.flow_guided and inputs.grow_in_time and inputs.flow is not None and self.flow_round(it):
             report["flow_added"] = self._flow_guided(model, optimizer, state, inputs)
         density_step = (it - c.start_iter) % c.interval == 0 and it > c.start_iter
+        # A density step judges at least half an interval of statistics: after a restart of them (the
+        # non-rigid part switched off: what the model with motion terms saw does not judge the rigid
+        # one) the interval runs on to the next step instead of cloning on a step or two of gradients.
+        density_step &= float(state["steps_seen"]) >= c.interval / 2
         if density_step:
             report.update(self._adaptive_density(model, optimizer, state, inputs))
         if gate_round:  # after the density step: its temporal split saw who was dynamic all interval

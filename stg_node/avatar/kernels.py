@@ -6,7 +6,9 @@ each have a fused CPU kernel with a hand-written backward (``stg_node.splat.skin
 flow loss's next frame, and ``skin_ops`` holds the shading normals and the flow target's image
 motion with their backward passes), the occlusion term's visibility (:mod:`occlusion`, no
 gradient) a forward-only one, the bones' kinematics with a gradient (:mod:`kinematics`) a numpy
-pass with a hand-written backward, and each a torch
+pass with a hand-written backward (so is the colour MLP's pose code with a gradient), the
+capped scales (:mod:`scale_ops`) and the distant lights' irradiance (:mod:`light_ops`) single
+autograd nodes with their backward written out in torch, and each a torch
 implementation, which is the reference the kernels are tested against and what runs on other
 devices, in float64, or without a C++ compiler. The kernels are used wherever they apply (float32
 CPU tensors, kernels built) unless switched off:

@@ -16,11 +16,11 @@ import numpy as np
 import torch
 from torch import nn
 
-from stg_node.avatar import kernels, spacetime
+from stg_node.avatar import kernels, kinematics, spacetime
 from stg_node.avatar.color import ColorMLP, sh_color
 from stg_node.avatar.color_cache import ColorCache, TrainingColorTurns
 from stg_node.avatar.config import ModelConfig
-from stg_node.avatar.gaussians import MOTION_COLUMNS, GaussianTable, cap_scale_ratio
+from stg_node.avatar.gaussians import MOTION_COLUMNS, GaussianTable
 from stg_node.avatar.motion_basis import MotionBases
 from stg_node.avatar.rigid import (
     QUAT_EPS,
@@ -32,6 +32,7 @@ from stg_node.avatar.rigid import (
     skin_with_kernel,
     squeeze_of_blend,
 )
+from stg_node.avatar.scale_ops import capped_scales
 from stg_node.avatar.shading import LightSpec, Shading, gaussian_normals
 from stg_node.avatar.spacetime import TimeAxis
 from stg_node.avatar.timecode import PoseTimeIndex, pose_key
@@ -250,7 +251,7 @@ class AvatarModel(nn.Module):
 
     def scales(self) -> torch.Tensor:
         """(N, 3) the Gaussians' scales as rendered: the table's, largest / smallest axis capped."""
-        return cap_scale_ratio(self.table.scales(), self.config.max_scale_ratio)
+        return capped_scales(self.table["log_scales"], self.config.max_scale_ratio)
 
     def _render_scales(self) -> torch.Tensor:
         """:meth:`scales` computed once for a model that does not change (a renderer's frames);
@@ -374,8 +375,8 @@ class AvatarModel(nn.Module):
             if not bool(keep.all()):
                 index = keep.nonzero().squeeze(1)
 
-        def rows(t):
-            return t if index is None or t is None else t[index]
+        def rows(t):  # index_select: t[index]'s rows, a cheaper gather (and an index_add backward)
+            return t if index is None or t is None else t.index_select(0, index)
 
         canonical = table["means"] if st.offsets is None else table["means"] + st.offsets
         canonical = rows(canonical)
@@ -414,13 +415,18 @@ class AvatarModel(nn.Module):
                 keep = seen.nonzero().squeeze(1)
                 index = keep if index is None else index[keep]
                 canonical, means, quats, view_canonical, scales = (
-                    t[keep] for t in (canonical, means, quats, view_canonical, scales)
+                    t.index_select(0, keep) for t in (canonical, means, quats, view_canonical, scales)
                 )
-                next_means = None if next_means is None else next_means[keep]
+                next_means = None if next_means is None else next_means.index_select(0, keep)
         degree = cfg.sh_degree if sh_degree is None else min(sh_degree, cfg.sh_degree)
         if self.color_mlp is not None:
             if body.poses.requires_grad:  # pose refinement: keep the pose code differentiable
-                key = lbs.axis_angle_to_matrix(body.poses[0, 1:]).reshape(1, 23 * 9)
+                joints = body.poses[0, 1:]
+                uses_numpy = kernels.mode() != "torch" and joints.device.type == "cpu"
+                mats = (
+                    kinematics.rotation_matrices(joints) if uses_numpy else lbs.axis_angle_to_matrix(joints)
+                )
+                key = mats.reshape(1, 23 * 9)
             elif key is None:
                 key = torch.as_tensor(pose_key(body.poses.detach().cpu().numpy()), device=self.device)
             features = rows(table["features"])

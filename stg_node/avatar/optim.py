@@ -25,6 +25,57 @@ def _fusable(groups) -> bool | None:
     return True if ok else None
 
 
+def _fused_adam_step(adam: torch.optim.Adam) -> bool:
+    """One step of a fused ``adam`` straight through ``torch._fused_adam_``, one call per group and
+    one step-count increment for all of them; False (nothing done) where that is not exactly what
+    ``adam.step()`` would do (a parameter without state yet, options the call does not take,
+    mixed devices or dtypes): the caller then runs ``adam.step()``.
+
+    The same kernel on the same state as torch's fused path (bit-identical), without its per-group
+    Python (state lookups, grouping by device and dtype, profiling and grad-mode wrappers): ~0.4 ms
+    of a 20k-Gaussian training step on a CPU with its dozen parameter groups.
+    """
+    work = []
+    for group in adam.param_groups:
+        if not group.get("fused") or group["amsgrad"] or group["maximize"] or group["differentiable"]:
+            return False
+        if group.get("decoupled_weight_decay", False) or torch.is_tensor(group["lr"]):
+            return False
+        params = [p for p in group["params"] if p.grad is not None]
+        if not params:
+            continue
+        states = [adam.state.get(p) for p in params]
+        if not all(states):
+            return False
+        first = params[0]
+        if any(p.device != first.device or p.dtype != first.dtype or p.grad.is_sparse for p in params):
+            return False
+        work.append((group, params, states))
+    if not work:
+        return True
+    torch._foreach_add_([s["step"] for _, _, states in work for s in states], 1)
+    for group, params, states in work:
+        beta1, beta2 = group["betas"]
+        torch._fused_adam_(
+            params,
+            [p.grad for p in params],
+            [s["exp_avg"] for s in states],
+            [s["exp_avg_sq"] for s in states],
+            [],
+            [s["step"] for s in states],
+            amsgrad=False,
+            lr=group["lr"],
+            beta1=beta1,
+            beta2=beta2,
+            weight_decay=group["weight_decay"],
+            eps=group["eps"],
+            maximize=False,
+            grad_scale=None,
+            found_inf=None,
+        )
+    return True
+
+
 def all_finite(tensors: list[torch.Tensor]) -> bool:
     """Whether every element of every tensor is finite: one read-only C++ pass over float32 CPU
     tensors (the exponent bits), else three batched torch ops over all of them (one test per
@@ -70,9 +121,9 @@ class TableOptimizer:
             self.dense.zero_grad(set_to_none=True)
 
     def step(self) -> None:
-        self.adam.step()
-        if self.dense is not None:
-            self.dense.step()
+        for adam in (self.adam, self.dense):
+            if adam is not None and not _fused_adam_step(adam):
+                adam.step()
 
     def set_schedule(
         self, progress: float, means_final: float, others_final: float, boost: dict[str, float] | None = None

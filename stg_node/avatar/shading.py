@@ -66,6 +66,7 @@ from torch import nn
 from stg_node.avatar import kernels
 from stg_node.avatar.color import SH_C0, sh_basis
 from stg_node.avatar.config import LIGHT_MODELS
+from stg_node.avatar.light_ops import detach_rows, distant_irradiance
 from stg_node.avatar.occlusion import BodyOcclusion
 
 SH_BANDS = 9  # second order: l = 0, 1, 2
@@ -288,8 +289,8 @@ class SHLight(nn.Module):
     def sh(self) -> torch.Tensor:
         return torch.cat([self.dc, self.coefficients], dim=0)
 
-    def irradiance(self, normals: torch.Tensor) -> torch.Tensor:
-        return irradiance(normals, self.sh())
+    def irradiance(self, normals: torch.Tensor, away: torch.Tensor | None = None) -> torch.Tensor:
+        return detach_rows(irradiance(normals, self.sh()), away)
 
     def penalty(self) -> torch.Tensor:
         """Mean square of the non-constant coefficients: zero for uniform light."""
@@ -327,9 +328,11 @@ class DistantLights(nn.Module):
         d = self.directions / self.directions.norm(dim=1, keepdim=True).clamp_min(1e-9)
         return a, c, d, a + c.sum(dim=0) / 4.0
 
-    def irradiance(self, normals: torch.Tensor) -> torch.Tensor:
+    def irradiance(self, normals: torch.Tensor, away: torch.Tensor | None = None) -> torch.Tensor:
+        """(M, 3) the light each normal (M, 3) receives; rows where ``away`` (M,) bool is set pass
+        no gradient (light_ops: one autograd node)."""
         a, c, d, mean = self.parts()
-        return (a + (normals @ d.T).clamp_min(0.0) @ c) / mean
+        return distant_irradiance(normals, a, c, d, mean, away)
 
     def sh(self) -> torch.Tensor:
         """(9, 3) the same light as SH irradiance (second order: to about 3 % of its lobes)."""
@@ -399,7 +402,5 @@ class Shading(nn.Module):
                 raise ValueError("the baked light needs the body's root orientation")
             # The normal as it would point had the body kept its mean training orientation.
             normals = normals @ root_rotation.to(normals) @ self.reference.T.to(normals)
-        light = self.light.irradiance(normals)
-        if away is not None:  # these rows' shade teaches the light nothing (outward_normals)
-            light = torch.where(away[:, None], light.detach(), light)
+        light = self.light.irradiance(normals, away)  # away: its shade teaches the light nothing
         return albedo * light

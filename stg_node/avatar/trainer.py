@@ -45,6 +45,7 @@ from stg_node.avatar.optim import TableOptimizer, all_finite
 from stg_node.avatar.pose_refine import PoseTrack, hold_unseen_rows, pose_warmup_factor, touched_slots
 from stg_node.avatar.rigid import Skeleton, skin
 from stg_node.avatar.rigidity import NeighbourGraph
+from stg_node.avatar.scale_ops import largest_scale
 from stg_node.avatar.spacetime import TimeAxis
 from stg_node.avatar.stream_window import forget_unheld_frames, window_to_frames
 from stg_node.body.canonical import big_pose_output
@@ -379,7 +380,8 @@ class Trainer:
         crop = None if full else stored.crop
         camera = Camera3.from_camera(stored.frame.camera, crop, self.device)
         x0, y0, w, h = crop or (0, 0, camera.width, camera.height)
-        target = torch.from_numpy(stored.image[y0 : y0 + h, x0 : x0 + w]).to(self.device).float() / 255.0
+        image = torch.from_numpy(stored.image[y0 : y0 + h, x0 : x0 + w])
+        target = image.to(self.device, torch.float32, copy=True).div_(255.0)  # one new tensor, in place
         mask = None
         if stored.frame.mask is not None:
             m = stored.frame.mask[y0 : y0 + h, x0 : x0 + w]
@@ -445,7 +447,7 @@ class Trainer:
         l1, dssim = L.photometric(rgb, target, c.loss.ssim)
         terms["photo"] = (1 - c.loss.ssim) * l1 + c.loss.ssim * dssim
         if mask is not None and c.loss.mask > 0:
-            terms["mask"] = (alpha[..., 0] - mask.float()).abs().mean()
+            terms["mask"] = L.mean_abs_difference(alpha.squeeze(-1), mask.float())
         if use_flow:
             fwd = torch.from_numpy(flow_pair.forward[y0 : y0 + h, x0 : x0 + w]).to(self.device)
             valid = torch.from_numpy(flow_pair.valid_forward[y0 : y0 + h, x0 : x0 + w]).to(self.device)
@@ -485,7 +487,7 @@ class Trainer:
         timer.mark("loss")
 
         self.optimizer.zero_grad()
-        skipped = not bool(torch.isfinite(total))
+        skipped = not math.isfinite(float(total.detach()))
         if not skipped:
             total.backward()
             skipped = not self._grads_finite()
@@ -541,7 +543,7 @@ class Trainer:
         elapsed = time.perf_counter() - started
         self.train_seconds += elapsed
         with torch.no_grad():
-            mse = float(((rgb.detach() - target) ** 2).mean())
+            mse = float(torch.nn.functional.mse_loss(rgb.detach(), target))  # one pass (the PSNR shown)
         return StepResult(
             iteration=self.iteration,
             loss=float("nan") if skipped else float(total.detach()),
@@ -644,6 +646,9 @@ class Trainer:
         self.densifier = DensifyStrategy(self.config.densify, self.config.iterations)
         DensifyStrategy._resize(self.densify_state, keep=keep)
         self.densify_state["was_dynamic"].zero_()
+        # The interval's screen gradients are the switched-off model's misfit (its rows snapped back to
+        # the rigid part): the rigid model is densified on statistics of its own (densify.step).
+        DensifyStrategy._reset_interval(self.densify_state)
         self.neighbours = NeighbourGraph()
 
     def nonrigid_report(self) -> dict:
@@ -754,7 +759,7 @@ class Trainer:
         if self.model.motion_bases is not None and c.basis_smooth > 0:
             out["basis_smooth"] = self.model.motion_bases.roughness()
         if c.scale > 0:
-            out["scale"] = torch.relu(table.scales().max(dim=1).values - c.scale_max_m).mean() * 100.0
+            out["scale"] = torch.relu(largest_scale(table["log_scales"]) - c.scale_max_m).mean() * 100.0
         if c.opacity > 0:
             o = table.opacities()
             out["opacity"] = (-(o * (o + 1e-6).log() + (1 - o) * (1 - o + 1e-6).log())).mean()

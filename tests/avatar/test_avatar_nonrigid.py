@@ -80,6 +80,25 @@ def test_a_trial_holds_frames_out_and_nothing_moving_switches_the_part_off(tiny_
     assert not resumed._deciding()
 
 
+def test_a_switch_off_restarts_the_density_interval_and_the_rigid_model_densifies_on_its_own(tiny_frames):
+    """The trial ends "off" at step 12, on a density step (start 4, interval 4). The interval's screen
+    gradients were gathered by the model with motion terms, whose moving rows the switch-off snaps
+    back: the statistics restart, step 12 clones nothing (one step of them is less than half an
+    interval) and the interval runs on to step 16, which densifies on the rigid model's own four
+    steps (and starts the next interval). Before the rule, step 12 cloned on the old statistics."""
+    changes = {"iterations": 40, "densify.grad_threshold": 0.0, "densify.resample_fraction": 0.0}
+    config = _trial_config(**changes)
+    trainer, _ = _trainer(tiny_frames, config, 12)
+    trainer.densify_state["resid_w"].fill_(0.01)  # nothing moves that the rigid model misses
+    at_decision = trainer.step()
+    assert trainer.decision.chose == "off" and trainer.decision.iteration == 12
+    assert "cloned" not in at_decision.densify, at_decision.densify
+    assert float(trainer.densify_state["steps_seen"]) == 1.0  # the interval restarted and runs on
+    reports = [trainer.step().densify for _ in range(4)]  # steps 13-16
+    assert [("cloned" in r) for r in reports] == [False, False, False, True], reports
+    assert reports[-1]["cloned"] > 0 and float(trainer.densify_state["steps_seen"]) == 0.0
+
+
 @pytest.mark.parametrize("gain, chose", [(1.0, "on"), (0.1, "off")])
 def test_with_motion_the_held_out_gain_decides(tiny_frames, monkeypatch, gain, chose):
     config = _trial_config()

@@ -209,3 +209,22 @@ def test_hand_written_kinematics_backward_matches_torch_autograd_in_float64(body
         for name, a, b in zip(("poses", "Rh", "Th"), got_grads, want_grads, strict=True):
             assert a.shape == b.shape and a.dtype == torch.float64
             torch.testing.assert_close(a, b, atol=1e-6 * float(b.abs().max()), rtol=0, msg=name)
+
+
+@pytest.mark.parametrize("scale", [0.0, 1e-5, 1.0, 3.0])
+def test_pose_code_rotations_match_torch_autograd_in_float64(scale):
+    """kinematics.rotation_matrices (the colour MLP's pose code with a gradient: numpy Rodrigues,
+    the backward by hand) against lbs.axis_angle_to_matrix under autograd, float64, at the rest
+    pose and tiny angles (the small-angle series), human and large angles."""
+    from stg_node.avatar import kinematics
+
+    gen = torch.Generator().manual_seed(11)
+    p = torch.randn(23, 3, generator=gen, dtype=torch.float64) * scale
+    weights = torch.randn(23, 3, 3, generator=gen, dtype=torch.float64)
+    a, b = p.clone().requires_grad_(True), p.clone().requires_grad_(True)
+    got, want = kinematics.rotation_matrices(a), lbs.axis_angle_to_matrix(b)
+    assert got.grad_fn.name() != want.grad_fn.name()
+    torch.testing.assert_close(got, want, atol=1e-14, rtol=0)
+    (got * weights).sum().backward()
+    (want * weights).sum().backward()
+    torch.testing.assert_close(a.grad, b.grad, atol=1e-12, rtol=1e-10)

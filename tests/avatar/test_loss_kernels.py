@@ -78,3 +78,19 @@ def test_mean_square_matches_pow_mean():
     torch.testing.assert_close(x.grad, y.grad)
     assert L.mean_square(x).item() == pytest.approx(y.pow(2).mean().item())
     assert L.mean_square(torch.zeros(0, 24)).isnan()  # as the mean of nothing is
+
+
+def test_mean_abs_difference_matches_autograd_bit_for_bit():
+    """The mask term's one-node L1 against (a - b).abs().mean() under autograd: the same value and
+    gradient, exactly (sign times grad / n in both), ties (a == b) included."""
+    gen = torch.Generator().manual_seed(4)
+    a = torch.rand(40, 30, generator=gen, dtype=torch.float64)
+    b = (torch.rand(40, 30, generator=gen) > 0.5).double()
+    a[:5] = b[:5]  # exact ties: zero gradient on both paths
+    x, y = a.clone().requires_grad_(True), a.clone().requires_grad_(True)
+    got, want = L.mean_abs_difference(x, b), (y - b).abs().mean()
+    assert got.grad_fn.name() != want.grad_fn.name()
+    assert torch.equal(got, want)
+    (2.5 * got).backward()
+    (2.5 * want).backward()
+    assert torch.equal(x.grad, y.grad) and x.grad[:5].abs().max() == 0

@@ -9,7 +9,7 @@ import socket
 import time
 
 import pytest
-from nodehelpers import NodeThread, child_env, ignore_sigint, recv_until, spawn
+from nodehelpers import LineReader, NodeThread, child_env, ignore_sigint, recv_until, spawn
 from sample_nodes import Echo, EchoParams, pose
 
 from stg_node.bus import Bus, BusConfig, Subscriber
@@ -115,26 +115,19 @@ def _node_process(tmp_path, bus_url, **params):
     )
 
 
-def _wait_for_line(proc, text: str, timeout: float = 60.0) -> str:
-    seen = []
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        line = proc.stdout.readline()
-        if not line:
-            break
-        seen.append(line)
-        if text in line:
-            return "".join(seen)
-    proc.kill()
-    raise AssertionError(f"never printed {text!r}: {''.join(seen)}")
+def _wait_for_line(proc, out: LineReader, text: str, timeout: float = 60.0) -> None:
+    if not out.wait_for(lambda seen: text in seen, timeout=timeout):
+        proc.kill()
+        raise AssertionError(f"never printed {text!r}: {out.text()}")
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_a_node_started_with_sigint_ignored_still_stops_cleanly_on_a_signal(broker, bus_url, tmp_path, sig):
     proc = _node_process(tmp_path, bus_url, teardown_s=0.2)
-    _wait_for_line(proc, "running (pid")
+    reader = LineReader(proc.stdout)
+    _wait_for_line(proc, reader, "running (pid")
     proc.send_signal(sig)
-    out, _ = proc.communicate(timeout=20)
+    out = reader.rest(proc, timeout=20)
     assert proc.returncode == 0, out
     assert f"stopped ({signal.Signals(sig).name})" in out and "Traceback" not in out
     assert (tmp_path / "flushed").read_text() == "flushed"  # teardown ran before the exit
@@ -142,11 +135,12 @@ def test_a_node_started_with_sigint_ignored_still_stops_cleanly_on_a_signal(brok
 
 def test_a_second_signal_aborts_a_slow_teardown(broker, bus_url, tmp_path):
     proc = _node_process(tmp_path, bus_url, teardown_s=30)
-    _wait_for_line(proc, "running (pid")
+    reader = LineReader(proc.stdout)
+    _wait_for_line(proc, reader, "running (pid")
     proc.send_signal(signal.SIGINT)
-    _wait_for_line(proc, "teardown started")  # the second signal must find it in its teardown
+    _wait_for_line(proc, reader, "teardown started")  # the second signal must find it in its teardown
     proc.send_signal(signal.SIGINT)
-    out, _ = proc.communicate(timeout=20)
+    out = reader.rest(proc, timeout=20)
     assert "teardown interrupted" in out
     assert not (tmp_path / "flushed").exists()
 
