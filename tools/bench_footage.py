@@ -14,6 +14,8 @@ size in the frame and an unknown camera cost, and what each remedy buys back.
     python tools/bench_footage.py errors    [--size 256]                  # what the tracked poses' errors are
     python tools/bench_footage.py twist     [--size 256] [--runs mixed,...] # tracker per bone, motions
     python tools/bench_footage.py closeup   [--size 256] [--frames 90] [--closeup-m 2.2] # same camera
+    python tools/bench_footage.py cues      [--size 256] [--runs gap|closeup] # limbs' depth: fit vs 3D
+    python tools/bench_footage.py twopass   [--size 256] [--runs gap|closeup] # the fit forwards + backwards
     common: --out DIR (default runs/bench_footage) --preset fast --seed 0 --json
 
 Every experiment generates its subjects with ``stg-synth``'s generator into ``--out/data``
@@ -108,7 +110,17 @@ to ``--out/results/EXPERIMENT.json``; a run folder that is already finished is n
   avatar learnt on tracked poses drawn with others is a confounded witness): the tracked run's
   own folder trained as ``--format video`` trains with the tracked poses, each frame at the true
   depth along its pelvis's ray, the true global orientation, the true parameters (``--steps``
-  picks), scored as ``gap`` / ``closeup`` score, with the gap to the truth run per part.
+  picks), scored as ``gap`` / ``closeup`` score, with the gap to the truth run per part; the
+  steps ``true-arms``, ``true-legs``, ``true-torso`` turn one chain to its true orientation in
+  the camera's frame and keep the rest as tracked (which chain's rotations carry the gap);
+  ``twopass``: the training frames' poses from ``twopass``'s average (run it first).
+  ``--set KEY=VALUE --variant NAME``: every step trained with that trainer setting, into runs
+  named after the variant (a lever, measured with the same decomposition).
+- ``cues``: the limbs' depth evidence on ``decompose``'s tracked folder (``--runs`` gap or
+  closeup): per limb bone, the fit's and BlazePose's metric 3D points' direction, elevation and
+  depth order against the truth; the fitted shape's bone lengths; each joint's error and twist.
+- ``twopass``: the training frames tracked forwards, then backwards with the shape held, and the
+  two fits averaged (a fixed-interval smoother against the temporal term's lag); joint errors.
 - ``framing``: renders RUN_DIR's default orbit (and follow camera) and reports the share of
   frames with the avatar whole and at least 30 % of the image tall.
 
@@ -260,8 +272,9 @@ def pose_variants(video_data: Path, data: Path, out: Path) -> dict[str, Path]:
     orientation, position) in the training camera's frame; ``true-depth``: the tracked parameters
     with each frame's body slid along the camera ray through its pelvis to the true pelvis depth
     (times the sequence's one depth-ratio scale, the gauge the scoring fixes): the picture in
-    the training camera unchanged at the pelvis, the single camera's depth error gone. Each is
-    ``out/NAME``."""
+    the training camera unchanged at the pelvis, the single camera's depth error gone;
+    ``true-arms`` / ``true-legs`` / ``true-torso``: one chain turned true in the camera's frame
+    (:func:`chain_true_in_world`). Each is ``out/NAME``."""
     import dataclasses
     import os
     import shutil
@@ -308,6 +321,9 @@ def pose_variants(video_data: Path, data: Path, out: Path) -> dict[str, Path]:
         row["Th"][i] = _joints(body, [mine])[0, 0] - _joints(body, [turned])[0, 0]  # the tracked pelvis kept
         pelvis = tracked_joints[i, 0]
         variants["true-depth"]["Th"][i] = slid_to_depth(mine.Th, pelvis, gauge * true_joints[0, 2])
+    true_rows = variants["true"]
+    for name, chain in CHAINS.items():
+        variants[f"true-{name}"] = chain_true_in_world(variants["tracked"], true_rows, chain)
     folders = {}
     for name, rows in variants.items():
         folder = out / name
@@ -319,6 +335,72 @@ def pose_variants(video_data: Path, data: Path, out: Path) -> dict[str, Path]:
         np.savez(folder / "poses.npz", **rows)
         folders[name] = folder
     return folders
+
+
+CHAINS = {  # the joints (SMPL indices) whose orientation in the camera's frame a chain step makes true
+    "arms": (16, 17, 18, 19, 20, 21, 22, 23),  # shoulders, elbows, wrists, hands
+    "legs": (1, 2, 4, 5, 7, 8, 10, 11),  # hips, knees, ankles, feet
+    "torso": (3, 6, 9, 12, 13, 14, 15),  # spine, neck, collars, head
+}
+
+
+def chain_true_in_world(tracked: dict, true: dict, joints) -> dict:
+    """``tracked``'s rows (poses.npz columns) with ``joints`` turned to their true orientation in
+    the camera's frame and every other joint kept at its tracked orientation there (each local
+    rotation re-solved from its parent's): which chain's rotations carry the gap, free of what a
+    wrong parent does to a swapped local rotation. Global orientation, shape and position stay
+    tracked."""
+    import cv2
+    import numpy as np
+
+    from stg_node.body import load_body_model
+
+    parents = load_body_model().parents.tolist()
+    chosen = set(joints)
+    rows = {k: v.copy() for k, v in tracked.items()}
+
+    def world(r, i):
+        poses = r["poses"][i].reshape(24, 3).astype(np.float64)
+        G = [cv2.Rodrigues(np.asarray(r["Rh"][i], np.float64))[0] @ cv2.Rodrigues(poses[0])[0]]
+        for j in range(1, 24):
+            G.append(G[parents[j]] @ cv2.Rodrigues(poses[j])[0])
+        return G
+
+    for i in range(len(rows["poses"])):
+        mine, theirs = world(tracked, i), world(true, i)
+        target = [theirs[j] if j in chosen else mine[j] for j in range(24)]
+        poses = rows["poses"][i].reshape(24, 3)
+        for j in range(1, 24):
+            poses[j] = cv2.Rodrigues(target[parents[j]].T @ target[j])[0].ravel()
+        rows["poses"][i] = poses.reshape(-1)
+    return rows
+
+
+def two_pass_folder(tracked: Path, two_pass: Path) -> Path:
+    """``tracked`` (a ``pose_variants`` folder) with its training frames' poses from ``twopass``'s
+    average of the forward and backward fits (``two_pass``, run ``twopass`` first); the frames
+    after them as tracked. The folder ``twopass`` beside ``tracked``."""
+    import os
+    import shutil
+
+    import numpy as np
+
+    from stg_node.safe_load import load_npz
+
+    if not two_pass.is_file():
+        raise FileNotFoundError(f"{two_pass}: run bench_footage.py twopass for this subject first")
+    rows = {k: np.asarray(v).copy() for k, v in load_npz(tracked / "poses.npz").items()}
+    average = np.asarray(load_npz(two_pass)["average"])
+    n = len(average)
+    rows["poses"][:n], rows["Rh"][:n], rows["Th"][:n] = average[:, :72], average[:, 72:75], average[:, 75:]
+    folder = tracked.parent / "twopass"
+    folder.mkdir(parents=True, exist_ok=True)
+    for sub in ("images", "masks"):
+        if not (folder / sub).exists():
+            os.symlink((tracked / sub).resolve(), folder / sub)
+    shutil.copy(tracked / "cameras.json", folder / "cameras.json")
+    np.savez(folder / "poses.npz", **rows)
+    return folder
 
 
 def slid_to_depth(Th, pelvis, depth: float):
@@ -653,8 +735,9 @@ def refine(args) -> dict:
 
 def refined_pose_accuracy(run: Path, video_data: Path, data: Path) -> dict:
     """The training frames' poses, as tracked and as refined by ``run``, against the truth in the
-    training camera's frame: each joint's rotation error (mean, and per group) and the global
-    orientation's."""
+    training camera's frame: each joint's rotation error (mean, and per group), the global
+    orientation's, and the pelvis's distance from the camera (mm, mean absolute, after the
+    sequence's one depth ratio that the scoring fixes: :func:`tracked_alignment`'s scale)."""
     import cv2
     import numpy as np
 
@@ -666,10 +749,27 @@ def refined_pose_accuracy(run: Path, video_data: Path, data: Path) -> dict:
     frames = np.asarray(load_npz(video_data / "poses.npz")["frames"]).astype(int)
     sequence = load_smpl_params(video_data / "poses.npz")
     R1 = np.asarray(load_npy(data / "annots.npy")["cams"]["R"][0], np.float64)
+    from stg_node.avatar.data_spec import DataSpec
+    from stg_node.avatar.synth_eval import _joints, tracked_alignment
+    from stg_node.body import load_body_model
+
+    body = load_body_model()
+    truth_spec = DataSpec(str(data.resolve()), "synthetic", None, None, None).open("train")
+    camera = truth_spec.camera(truth_spec.camera_names[0])
+    t1 = np.asarray(camera.t, np.float64).reshape(3)
+    true_pelvis = _joints(body, [truth_spec.smpl(int(f)) for f in frames])[:, 0] @ R1.T + t1
+    tracked_all = _joints(body, [sequence[i] for i in range(len(sequence))])
+    gauge = tracked_alignment(
+        camera, _joints(body, [truth_spec.smpl(int(f)) for f in frames]), tracked_all
+    ).scale
     rows = {"tracked": ([], []), "refined": ([], []), "truth": ([], [])}
+    depth = {"tracked": [], "refined": []}
     for i, frame in enumerate(frames):
         if int(frame) not in corrections:
             continue  # a held-out frame
+        refined_pelvis = _joints(body, [corrected(sequence[i], corrections[int(frame)])])[0, 0]
+        for name, pelvis in (("tracked", tracked_all[i, 0]), ("refined", refined_pelvis)):
+            depth[name].append(abs(pelvis[2] / gauge - true_pelvis[i, 2]) * 1000.0)
         true = load_npy(data / "new_params" / f"{int(frame)}.npy")
         true_poses = np.asarray(true["poses"], np.float64).reshape(24, 3)
         rotation = R1 @ cv2.Rodrigues(np.asarray(true["Rh"], np.float64).reshape(3))[0]
@@ -690,6 +790,7 @@ def refined_pose_accuracy(run: Path, video_data: Path, data: Path) -> dict:
             "joint_rotation_deg": float(err.mean()),
             **{g: float(err[[j - 1 for j in js]].mean()) for g, js in JOINT_GROUPS.items()},
             "global_orientation_deg": float(rotation_angles_deg(global_, true_global).mean()),
+            "pelvis_depth_mm": float(np.mean(depth[name])),
         }
     return result
 
@@ -1284,7 +1385,9 @@ def decompose(args) -> dict:
     return rows
 
 
-TRAINED_STEPS = ("tracked", "true-depth", "true-orientation", "true")
+TRAINED_STEPS = (
+    "tracked", "true-depth", "true-orientation", "true", "true-arms", "true-legs", "true-torso", "twopass",
+)  # fmt: skip
 
 
 def decompose_trained(args, subject_name: str = "gap") -> dict:
@@ -1292,7 +1395,10 @@ def decompose_trained(args, subject_name: str = "gap") -> dict:
     training, free of what an avatar learnt on the tracked poses does when rendered with others.
     The tracked run's own folder (its images, masks, camera) trained as ``--format video`` trains,
     with the tracked poses, with each frame's depth made true (``pose_variants``' ``true-depth``),
-    with the true global orientation, and with the true parameters; scored as the subject's
+    with the true global orientation, and with the true parameters; and, to split the joint
+    rotations' share by chain, with one chain (:data:`CHAINS`: ``true-arms``, ``true-legs``,
+    ``true-torso``) at its true orientation in the camera's frame, the rest as tracked
+    (:func:`chain_true_in_world`); scored as the subject's
     experiment scores (gap: novel views and novel poses; closeup: the held-out frames of the
     training camera and novel views)."""
     out = args.out
@@ -1316,13 +1422,21 @@ def decompose_trained(args, subject_name: str = "gap") -> dict:
         def scores(run: Path) -> dict:
             return closeup_scores(run, data)
 
+    if args.train_set and not args.variant:
+        raise ValueError("decompose --set needs --variant NAME (the runs are named after it)")
+    settings = [x for kv in args.train_set for x in ("--set", kv)]
+    suffix = f"_{args.variant}" if args.variant else ""
     where = out / "decompose" / f"data_{subject_name}_{tag}"
     folders = pose_variants(tracked_run / "video_data", data, where)
+    if "twopass" in (args.steps or ""):
+        folders["twopass"] = two_pass_folder(
+            folders["tracked"], out / "twopass" / f"{subject_name}_{args.size}_s0.npz"
+        )
     rows = {"truth": scores(truth)}
     for name in wanted_runs(args.steps, TRAINED_STEPS, "decompose --steps"):
         slug = name.replace("-", "_")
-        run = train(out, f"decompose_{subject_name}_{slug}_{tag}", args, "--data", str(folders[name]),
-                    "--format", "folder", *frames, *as_video_trains())  # fmt: skip
+        run = train(out, f"decompose_{subject_name}_{slug}_{tag}{suffix}", args, "--data", str(folders[name]),
+                    "--format", "folder", *frames, *as_video_trains(), *settings)  # fmt: skip
         rows[name] = scores(run)
         rows[name]["gap_db"] = gap_by_part(rows["truth"], rows[name])
     return rows
@@ -1345,6 +1459,198 @@ def decomposition(truth: dict, steps: dict) -> dict:
         "parts": {p: truth["parts_psnr"][p] - last["parts_psnr"][p] for p in truth["parts_psnr"]},
     }
     return {"truth": truth, "steps": steps, "gains": gains, "gap_db": truth["psnr"] - steps[names[0]]["psnr"]}
+
+
+CUE_BONES = {  # bone -> (SMPL joint, child), (BlazePose point, child)
+    "left upper arm": ((16, 18), ("left_shoulder", "left_elbow")),
+    "right upper arm": ((17, 19), ("right_shoulder", "right_elbow")),
+    "left forearm": ((18, 20), ("left_elbow", "left_wrist")),
+    "right forearm": ((19, 21), ("right_elbow", "right_wrist")),
+    "left thigh": ((1, 4), ("left_hip", "left_knee")),
+    "right thigh": ((2, 5), ("right_hip", "right_knee")),
+    "left shin": ((4, 7), ("left_knee", "left_ankle")),
+    "right shin": ((5, 8), ("right_knee", "right_ankle")),
+}
+LENGTH_BONES = {"upper arm": (16, 18), "forearm": (18, 20), "thigh": (1, 4), "shin": (4, 7), "neck": (12, 15)}
+
+
+def cues(args) -> dict:
+    """What evidence for the limbs' depth the tracker has beside its fit, on ``decompose``'s tracked
+    folder (``--runs gap`` or ``closeup``; run ``decompose --runs gap-trained`` / ``closeup-trained``
+    first): per limb bone, the fit's and BlazePose's metric 3D points' direction in the camera's
+    frame against the truth (the angle, its elevation towards the camera, and how often the
+    bone's depth order, which end is nearer, is wrong where the true bone leans more than 15
+    degrees), the fitted shape's bone lengths against the true ones, and each joint's local
+    rotation error with its twist about the bone. A depth-order or direction term from the
+    detector's 3D points can only help where they beat the fit."""
+    import cv2
+    import numpy as np
+    import torch
+
+    from stg_node.body import load_body_model
+    from stg_node.safe_load import load_npz
+    from stg_node.tracking.detectors import make_detector
+    from stg_node.tracking.layouts import get_layout
+
+    name = args.runs or "gap"
+    tag = (
+        f"{args.size}_s{args.seed}"
+        if name == "gap"
+        else f"{args.size}_{args.frames}_{args.closeup_m:g}m_s{args.seed}"
+    )
+    folder = args.out / "decompose" / f"data_{name}_{tag}"
+    if not (folder / "true" / "poses.npz").is_file():
+        raise FileNotFoundError(f"{folder}: run decompose --runs {name}-trained first")
+    body = load_body_model()
+    parents = body.parents.tolist()
+    layout = get_layout("blazepose33")
+    rows = {
+        k: {c: np.asarray(v) for c, v in load_npz(folder / k / "poses.npz").items()}
+        for k in ("tracked", "true")
+    }
+
+    def forward(r, poses=None):
+        def tensor(x):
+            return torch.as_tensor(np.asarray(x), dtype=torch.float32)
+
+        poses = r["poses"] if poses is None else poses
+        return body(betas=tensor(r["shapes"][:, :10]), poses=tensor(poses).reshape(len(poses), 72),
+                    Rh=tensor(r["Rh"]), Th=tensor(r["Th"]))  # fmt: skip
+
+    fit, true = forward(rows["tracked"]).joints.numpy(), forward(rows["true"]).joints.numpy()
+    detector = make_detector("blazepose", threads=1)
+    world = []
+    for frame in rows["tracked"]["frames"].astype(int):
+        image = cv2.imread(str(folder / "tracked" / "images" / "camera" / f"{frame:06d}.jpg"))
+        if image is None:
+            raise FileNotFoundError(f"{folder}/tracked/images/camera/{frame:06d}.jpg")
+        points = detector(cv2.cvtColor(image, cv2.COLOR_BGR2RGB))
+        world.append(np.full((33, 3), np.nan) if points is None or points.world is None else points.world)
+    world = np.asarray(world, np.float64)
+
+    def unit(v):
+        return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+    def elevation(d):
+        return np.degrees(np.arcsin(np.clip(d[:, 2], -1, 1)))
+
+    bones = {}
+    for bone, ((j, c), (a, b)) in CUE_BONES.items():
+        t = unit(true[:, c] - true[:, j])
+        leaning = np.abs(t[:, 2]) > np.sin(np.radians(15))
+        row = {}
+        for source, d in (("fit", unit(fit[:, c] - fit[:, j])),
+                          ("blazepose", unit(world[:, layout.index(b)] - world[:, layout.index(a)])),
+                          ):  # fmt: skip
+            wrong = np.sign(d[leaning, 2]) != np.sign(t[leaning, 2])
+            row[source] = {
+                "direction_deg": float(np.nanmean(np.degrees(np.arccos(np.clip((d * t).sum(1), -1, 1))))),
+                "elevation_deg": float(np.nanmean(np.abs(elevation(d) - elevation(t)))),
+                "depth_order_wrong_pct": float(100 * wrong.mean()) if leaning.any() else float("nan"),
+            }
+        bones[bone] = row
+    rest = {k: forward(r, np.zeros_like(r["poses"])).joints.numpy()[0] for k, r in rows.items()}
+    lengths = {bone: float(np.linalg.norm(rest["tracked"][c] - rest["tracked"][j])
+                           / np.linalg.norm(rest["true"][c] - rest["true"][j]))
+               for bone, (j, c) in LENGTH_BONES.items()}  # fmt: skip
+    joints = {}
+    child = {}
+    for j in range(1, 24):
+        child.setdefault(parents[j], j)
+    for j in range(1, 24):
+        axis = (
+            unit(rest["true"][child[j]] - rest["true"][j])
+            if j in child
+            else unit(rest["true"][j] - rest["true"][parents[j]])
+        )
+        err, twist = [], []
+        for i in range(len(fit)):
+            mine = cv2.Rodrigues(rows["tracked"]["poses"][i].reshape(24, 3)[j].astype(np.float64))[0]
+            theirs = cv2.Rodrigues(rows["true"]["poses"][i].reshape(24, 3)[j].astype(np.float64))[0]
+            vec = cv2.Rodrigues(theirs.T @ mine)[0].ravel()
+            angle = np.linalg.norm(vec)
+            half = np.sin(angle / 2) * vec / max(angle, 1e-12)
+            err.append(np.degrees(angle))
+            twist.append(abs(np.degrees(2 * np.arctan2(half @ axis, np.cos(angle / 2)))))
+        joints[JOINT_NAMES[j]] = {"error_deg": float(np.mean(err)), "twist_deg": float(np.mean(twist))}
+    return {"frames": len(fit), "bones": bones, "bone_length_ratio": lengths, "joints": joints}
+
+
+def twopass(args) -> dict:
+    """A fixed-interval smoother for the fit: the training frames of the subject's camera
+    (``--runs gap``: the mixed subject; ``closeup``: the dancer) tracked forwards as ``--format
+    video`` tracks (unsmoothed, true intrinsics), then backwards with the forward pass's shape
+    held, and the two fits averaged per frame (each joint, the global orientation halfway between
+    them; the translations' mean): a temporal term that ties each frame to the one before lags a
+    fast limb in one direction forwards and in the other backwards. Joint rotations against the
+    truth, per group; the three sets of poses in ``--out/twopass``."""
+    import cv2
+    import numpy as np
+
+    from stg_node.safe_load import load_npy
+    from stg_node.tracking.fitting import FitConfig, SmplFitter
+    from stg_node.tracking.pipeline import TrackOptions, build_tracker
+    from stg_node.tracking.sources import open_source
+
+    name = args.runs or "gap"
+    if name == "gap":
+        data = subject(args.out, f"mixed_{args.size}", num_frames=args.frames, size=args.size)
+    else:
+        data = closeup_subject(args)
+    metadata = json.loads((data / "synth.json").read_text())
+    options = TrackOptions(intrinsics=str(intrinsics_file(data)), fps=float(metadata["fps"]), smoothing=False)
+    source = open_source(data / "Camera_B1", options.fps)
+    frames = [(f.image, f.timestamp) for f in source][: round(0.8 * args.frames)]
+
+    def track(order, betas=None):
+        tracker, body = build_tracker(options, source.width, source.height, fit=FitConfig())
+        if betas is not None:  # the backward pass: the forward pass's shape, held
+            tracker.fitter = SmplFitter(body, tracker.layout, tracker.intrinsics.K, FitConfig(), betas=betas)
+        sign = 1.0 if order[0] < order[-1] else -1.0  # backwards, time still runs forwards
+        poses = {}
+        for i in order:
+            e = tracker.estimate(frames[i][0], sign * frames[i][1])
+            poses[i] = np.concatenate(
+                [np.asarray(e.smpl.poses, np.float64).reshape(72), e.smpl.Rh, e.smpl.Th]
+            )
+        return np.stack([poses[i] for i in range(len(frames))]), np.asarray(tracker.fitter.betas)
+
+    forward, betas = track(list(range(len(frames))))
+    backward, _ = track(list(range(len(frames)))[::-1], betas)
+
+    def halfway(a, b):
+        out = np.empty_like(a)
+        for k in range(len(a)):
+            Ra, Rb = cv2.Rodrigues(a[k])[0], cv2.Rodrigues(b[k])[0]
+            out[k] = cv2.Rodrigues(Ra @ cv2.Rodrigues(0.5 * cv2.Rodrigues(Ra.T @ Rb)[0])[0])[0].ravel()
+        return out
+
+    n = len(frames)
+    average = np.concatenate(
+        [halfway(forward[:, :75].reshape(-1, 3), backward[:, :75].reshape(-1, 3)).reshape(n, 75),
+         0.5 * (forward[:, 75:] + backward[:, 75:])], axis=1
+    )  # fmt: skip
+    folder = args.out / "twopass"
+    folder.mkdir(parents=True, exist_ok=True)
+    target = folder / f"{name}_{args.size}_s{args.seed}.npz"
+    np.savez(target, forward=forward, backward=backward, average=average, betas=betas)
+
+    def true_local(i):
+        return np.asarray(load_npy(data / "new_params" / f"{i}.npy")["poses"], np.float64).reshape(24, 3)[1:]
+
+    true = np.stack([true_local(i) for i in range(n)])
+    rows = {}
+    for label, poses in (("forward", forward), ("backward", backward), ("average", average)):
+        err = rotation_angles_deg(poses[:, 3:72].reshape(n, 23, 3), true).reshape(n, 23)
+        groups = {g: float(err[:, [j - 1 for j in js]].mean()) for g, js in JOINT_GROUPS.items()}
+        rows[label] = {"joint_rotation_deg": float(err.mean()), **groups}
+    return {"frames": n, "rows": rows}
+
+
+JOINT_NAMES = ("pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2",
+               "left_ankle", "right_ankle", "spine3", "left_foot", "right_foot", "neck", "left_collar",
+               "right_collar", "head", "left_shoulder", "right_shoulder", "left_elbow", "right_elbow",
+               "left_wrist", "right_wrist", "left_hand", "right_hand")  # fmt: skip
 
 
 TWIST_MOTIONS = ("mixed", "dance", "wave", "reach", "walk")
@@ -1430,6 +1736,8 @@ EXPERIMENTS = {
     "twist": twist,
     "closeup": closeup,
     "decompose": decompose,
+    "cues": cues,
+    "twopass": twopass,
 }
 
 
@@ -1467,6 +1775,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--steps", default=None, help="decompose --runs gap-trained: which of " + ",".join(TRAINED_STEPS)
     )
+    p.add_argument(
+        "--set",
+        dest="train_set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="decompose --runs *-trained: a trainer setting for every step's training (repeatable); "
+        "needs --variant, which names the runs",
+    )
+    p.add_argument("--variant", default="", help="decompose --runs *-trained: a name for the --set runs")
     p.add_argument("--json", action="store_true", help="print the results as one JSON object")
     p.add_argument("--iters", type=int, default=None, help="override the iterations (smoke tests)")
     p.add_argument(

@@ -264,3 +264,58 @@ def test_an_unknown_swap_is_refused_before_anything_is_loaded(tmp_path):
 
     with pytest.raises(ValueError, match="swap must be one of"):
         evaluate_on_synth(tmp_path / "no_run", tmp_path / "no_subject", swap="shape")
+
+
+def test_bench_footage_chain_step_turns_only_that_chain_to_its_true_orientation_in_the_camera():
+    """decompose's chain steps (true-arms, ...): the body model's own forward kinematics puts each
+    joint of the chain at the true orientation in the camera's frame and every other joint at
+    the tracked one (the local rotations re-solved below a changed parent)."""
+    import torch
+
+    body = load_body_model()
+    truth, tracked, _ = _truth_and_tracked(11)
+
+    def rows(params):
+        poses = np.asarray(params.poses, np.float32).reshape(1, 72).copy()
+        return {"poses": poses, "Rh": np.asarray(params.Rh, np.float32)[None],
+                "Th": np.asarray(params.Th, np.float32)[None],
+                "shapes": np.zeros((1, 10), np.float32)}  # fmt: skip
+
+    def world_rotations(r):
+        out = body(betas=torch.as_tensor(r["shapes"]), poses=torch.as_tensor(r["poses"]),
+                   Rh=torch.as_tensor(r["Rh"]), Th=torch.as_tensor(r["Th"]))  # fmt: skip
+        return out.bone_transforms[0, :, :3, :3].double().numpy()
+
+    bench = _bench_footage()
+    arms = bench.CHAINS["arms"]
+    mixed = world_rotations(bench.chain_true_in_world(rows(tracked), rows(truth), arms))
+    want_true, want_tracked = world_rotations(rows(truth)), world_rotations(rows(tracked))
+    others = [j for j in range(24) if j not in arms]
+    np.testing.assert_allclose(mixed[list(arms)], want_true[list(arms)], atol=1e-5)
+    np.testing.assert_allclose(mixed[others], want_tracked[others], atol=1e-5)
+    assert np.abs(want_true[list(arms)] - want_tracked[list(arms)]).max() > 0.1  # the swap did something
+
+
+def test_bench_footage_twopass_step_replaces_only_the_training_frames_poses(tmp_path):
+    """decompose's twopass step: the first rows (the frames twopass fitted) take its average, the
+    frames after them keep the tracked poses; the images and camera are the tracked folder's."""
+    tracked = tmp_path / "tracked"
+    for sub in ("images", "masks"):
+        (tracked / sub).mkdir(parents=True)
+    (tracked / "cameras.json").write_text("{}")
+    rng = np.random.default_rng(3)
+    rows = {"poses": rng.normal(size=(5, 72)), "Rh": rng.normal(size=(5, 3)), "Th": rng.normal(size=(5, 3)),
+            "shapes": np.zeros((5, 10)), "frames": np.arange(5)}  # fmt: skip
+    np.savez(tracked / "poses.npz", **rows)
+    bench = _bench_footage()
+    with pytest.raises(FileNotFoundError, match="twopass"):
+        bench.two_pass_folder(tracked, tmp_path / "missing.npz")
+    average = rng.normal(size=(3, 78))
+    np.savez(tmp_path / "two.npz", average=average)
+    folder = bench.two_pass_folder(tracked, tmp_path / "two.npz")
+    out = np.load(folder / "poses.npz")
+    np.testing.assert_allclose(out["poses"][:3], average[:, :72])
+    np.testing.assert_allclose(out["Rh"][:3], average[:, 72:75])
+    np.testing.assert_allclose(out["Th"][:3], average[:, 75:])
+    np.testing.assert_allclose(out["poses"][3:], rows["poses"][3:])
+    assert (folder / "images").resolve() == (tracked / "images").resolve()
