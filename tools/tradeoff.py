@@ -425,14 +425,21 @@ OCCLUSION_ABLATIONS = (
 
 # Shading normals with the side the disc initialisation gave them in training
 # (model.normal_sign=outward, shading.outward_normals) instead of facing the training camera (the
-# default), on each lit condition with a held-out turn and on flat light.
+# default), on each lit condition and on flat light.
 OUTWARD_NORMALS = {"model.normal_sign": "outward"}
 # The presets decide the sign from the learned light ("auto", normal_trial.py); these rows force
-# either one, on the same subjects and on the never-turning one.
+# either one.
 CAMERA_NORMALS = {"model.normal_sign": "camera"}
 NORMAL_SIGN_ABLATIONS = tuple(
     (subject, suffix, label, changes)
-    for subject in ("room_turn_held_out", "env_turn_held_out", "flat_turn_held_out", "room_facing")
+    for subject in (
+        "room_turn_held_out",
+        "env_turn_held_out",
+        "flat_turn_held_out",
+        "room_facing",
+        "room_new_motions",
+        "room_self_shadow",
+    )
     for suffix, label, changes in (
         ("outward_normals", "outward normals in training", OUTWARD_NORMALS),
         ("camera_normals", "normals facing the camera in training", CAMERA_NORMALS),

@@ -323,7 +323,7 @@ class TrainConfig:
     # model.normal_sign = "auto" (normal_trial.py): at normal_decide_iter, outward normals from then
     # on when the learned light's contrast (std of its irradiance over directions / mean) is at least
     # normal_min_contrast, else the camera's sign stays.
-    normal_decide_iter: int = 600
+    normal_decide_iter: int = 300
     normal_min_contrast: float = 0.25
 
     def validate(self) -> None:
