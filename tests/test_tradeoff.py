@@ -52,10 +52,13 @@ def test_grid_holds_every_preset_and_ablation_the_issue_names():
     assert rows["still_fast"].subject == "still" and rows["still_fast"].preset == "fast"
     assert {r.subject for r in rows.values()} == {"dance", "still", "mixed", *tradeoff.CONDITIONS}
     assert set(tradeoff.CONDITIONS) <= set(tradeoff.SUBJECTS)
-    assert base.model.normal_sign == "camera"
-    for subject in ("room", "env", "flat"):
-        row = rows[f"{subject}_turn_held_out_outward_normals"]
-        assert row.config(tradeoff.FULL).model.normal_sign == "outward" and row.group == "normal_sign"
+    assert base.model.normal_sign == "auto"
+    for subject in ("room_turn_held_out", "env_turn_held_out", "flat_turn_held_out", "room_facing"):
+        for suffix, sign in (("outward_normals", "outward"), ("camera_normals", "camera")):
+            row = rows[f"{subject}_{suffix}"]
+            assert row.config(tradeoff.FULL).model.normal_sign == sign and row.group == "normal_sign"
+    # The sign's decision comes at the same share of the schedule at every scale.
+    assert rows["preset_fast"].config(tradeoff.MID).normal_decide_iter == round(base.normal_decide_iter / 3)
     held = tradeoff.SUBJECTS["room_turn_held_out"]
     assert (held.shading, held.train_yaw_deg, held.test_yaw_deg) == ("room", 60.0, 150.0)
     standing = tradeoff.SUBJECTS["still_standing"]  # the issue-22 subject without the turntable

@@ -220,6 +220,7 @@ ITERATION_KEYS = (
     "checkpoint_every",
     "log_every",
     "nonrigid_decide_iter",
+    "normal_decide_iter",
     "densify.unseen_after_views",
 )
 GAUSSIAN_KEYS = ("model.num_gaussians", "model.max_gaussians", "densify.flow_max_new")
@@ -431,11 +432,25 @@ OCCLUSION_ABLATIONS = (
 
 # Shading normals with the side the disc initialisation gave them in training
 # (model.normal_sign=outward, shading.outward_normals) instead of facing the training camera (the
-# default), on each lit condition with a held-out turn and on flat light.
+# default), on each lit condition and on flat light.
 OUTWARD_NORMALS = {"model.normal_sign": "outward"}
+# The presets decide the sign from the learned light ("auto", normal_trial.py); these rows force
+# either one.
+CAMERA_NORMALS = {"model.normal_sign": "camera"}
 NORMAL_SIGN_ABLATIONS = tuple(
-    (subject, "outward_normals", "outward normals in training", OUTWARD_NORMALS)
-    for subject in ("room_turn_held_out", "env_turn_held_out", "flat_turn_held_out")
+    (subject, suffix, label, changes)
+    for subject in (
+        "room_turn_held_out",
+        "env_turn_held_out",
+        "flat_turn_held_out",
+        "room_facing",
+        "room_new_motions",
+        "room_self_shadow",
+    )
+    for suffix, label, changes in (
+        ("outward_normals", "outward normals in training", OUTWARD_NORMALS),
+        ("camera_normals", "normals facing the camera in training", CAMERA_NORMALS),
+    )
 )
 
 
@@ -732,6 +747,7 @@ def train_run(row: Configuration, config, data: Path, run_dir: Path, scale: Scal
         "active_motion_count": round(stats["active_motion_fraction"] * stats["gaussians"]),
         "densify": trainer.densify_counts,
         "nonrigid": trainer.nonrigid_report(),
+        "normal_sign": trainer.normal_sign_report(),
         **active_on_garment(trainer, data),
     }
     write_json(run.summary, summary)

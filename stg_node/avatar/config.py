@@ -23,7 +23,7 @@ NONRIGID_MODES = ("auto", "on", "off")
 # What switching the non-rigid part off sets: LBS only (no spacetime terms, no flow-guided densification).
 LBS_ONLY = {"model.spacetime": False, "densify.flow_guided": False}
 LIGHT_MODELS = ("distant", "sh")  # the learned light: an ambient term and distant lights, or free SH
-NORMAL_SIGNS = ("outward", "camera")  # which way a shading normal points (shading.gaussian_normals)
+NORMAL_SIGNS = ("outward", "camera", "auto")  # a shading normal's sign in training (normal_trial.py)
 # What settings added later mean for a model or configuration written before they existed: the
 # behaviour it was trained with (snapshot.model_config_from_meta, TrainConfig.from_dict).
 # A group's entries are a dict; a top-level setting's entry is its value.
@@ -80,10 +80,12 @@ class ModelConfig:
     light_model: str = "distant"  # the learned light: ambient + light_count distant lights, or free SH
     light_count: int = 2
     # Which way a Gaussian's shading normal points in training: "camera", flipped towards the
-    # training camera (the default), or "outward", the side its disc was initialised with on the
-    # body surface (while its local z axis is the shortest; shading.outward_normals). Renders flip
-    # every normal towards the viewer either way (docs/AVATAR.md, "Which way a normal points").
-    normal_sign: str = "camera"
+    # training camera, "outward", the side its disc was initialised with on the body surface
+    # (while its local z axis is the shortest; shading.outward_normals), or "auto" (the default):
+    # the camera's until TrainConfig.normal_decide_iter, then outward when the learned light has
+    # the contrast for a sign to matter (normal_trial.py). Renders flip every normal towards the
+    # viewer either way (docs/AVATAR.md, "Which way a normal points").
+    normal_sign: str = "auto"
     init_flatness: float = 0.3  # initial Gaussians: discs along the surface, normal axis x this (1 = spheres)
     max_scale_ratio: float = 10.0  # largest / smallest axis of a rendered Gaussian at most this (0 = no cap)
     # A Gaussian between bones that bend apart shrinks as linear blend skinning squeezes the surface
@@ -318,6 +320,11 @@ class TrainConfig:
     nonrigid_holdout_every: int = 10
     nonrigid_min_moving: float = 0.05  # share of the Gaussians seeing flow the rigid model misses
     nonrigid_min_gain_db: float = 0.3  # on the held-out frames' pixels the non-rigid terms change
+    # model.normal_sign = "auto" (normal_trial.py): at normal_decide_iter, outward normals from then
+    # on when the learned light's contrast (std of its irradiance over directions / mean) is at least
+    # normal_min_contrast, else the camera's sign stays.
+    normal_decide_iter: int = 300
+    normal_min_contrast: float = 0.25
 
     def validate(self) -> None:
         self.model.validate()

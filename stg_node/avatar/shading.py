@@ -17,7 +17,8 @@ everything else:
   rotation). Gaussians start as flat discs along the body surface (``model.init_flatness``) so the
   shortest axis is the surface normal from the start. Its sign: in renders, flipped to face the
   camera (for a surface seen from outside the visible side faces the viewer); in training, with
-  ``model.normal_sign = outward`` (off by default: flat light is worse with it), the side the disc
+  ``model.normal_sign = outward`` (chosen by the default ``auto`` where the learned light has
+  contrast: normal_trial.py; from the first step flat light is worse with it), the side the disc
   was initialised with (:func:`outward_normals`), so the albedo does not learn to undo the flips
   of the training camera's silhouettes, which a turned body would show; a disc seen from behind
   then teaches the light nothing (``away`` in :meth:`Shading.forward`).

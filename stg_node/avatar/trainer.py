@@ -14,6 +14,7 @@ backend and thread count).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
@@ -23,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from stg_node.avatar import checkpoint, nonrigid, spacetime
+from stg_node.avatar import checkpoint, nonrigid, normal_trial, spacetime
 from stg_node.avatar import losses as L
 from stg_node.avatar.color_cache import TrainingColorTurns
 from stg_node.avatar.config import LBS_ONLY, TrainConfig
@@ -366,6 +367,8 @@ class Trainer:
         timer.start()
         if self._deciding() and self.iteration >= self.config.nonrigid_decide_iter:
             self._decide()
+        if self._normal_sign_pending() and self.iteration >= self.config.normal_decide_iter:
+            self._decide_normal_sign()
         c = self.config
         it = self.iteration
         gen = step_generator(self.seed, it)
@@ -650,6 +653,26 @@ class Trainer:
         # the rigid part): the rigid model is densified on statistics of its own (densify.step).
         DensifyStrategy._reset_interval(self.densify_state)
         self.neighbours = NeighbourGraph()
+
+    # --- which way the training normals point (normal_trial.py) -------------------------------------
+    def _normal_sign_pending(self) -> bool:
+        """Whether model.normal_sign is "auto" and not decided yet on a shaded model."""
+        c = self.config
+        return c.model.normal_sign == "auto" and c.model.shading and self.model.shading is not None
+
+    def _decide_normal_sign(self) -> None:
+        """Outward normals from now on where the learned light has the contrast to need them."""
+        contrast = normal_trial.light_contrast(self.model.shading)
+        sign, why = normal_trial.choose(contrast, self.config.normal_min_contrast)
+        self.notes[normal_trial.CONTRAST_NOTE] = contrast
+        self.notes[normal_trial.ITERATION_NOTE] = float(self.iteration)
+        self.config = self.config.replace(**{normal_trial.NORMAL_SIGN_KEY: sign})
+        self.model.config = dataclasses.replace(self.model.config, normal_sign=sign)
+        log.info("training normals %s at iteration %d: %s", sign, self.iteration, why)
+
+    def normal_sign_report(self) -> dict:
+        """What the run chose for the training normals' sign and why (the run's summary)."""
+        return normal_trial.report(self.config, self.notes)
 
     def nonrigid_report(self) -> dict:
         """What the run chose for the non-rigid part and why (the run's summary)."""

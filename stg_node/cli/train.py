@@ -341,6 +341,7 @@ def _train(args, frames, stop: StopSignals) -> int:
         **stats,
         "densify": trainer.densify_counts,
         "nonrigid": trainer.nonrigid_report(),
+        "normal_sign": trainer.normal_sign_report(),
     }
     write_json(run.summary, summary)
     tlog.close()
