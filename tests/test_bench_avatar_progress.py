@@ -74,3 +74,33 @@ def test_a_failing_child_names_itself_and_keeps_its_other_output(tmp_path):
     assert "a warning the parent keeps for errors" in message
     assert "bench-phase" not in message
     assert "done after" not in progress.getvalue()
+
+
+# a child that would go on measuring for a minute, then say it finished
+LONG_CHILD = """
+import os, sys, time
+sys.path.insert(0, {tools!r})
+import bench_avatar
+bench_avatar._phase("imports")
+deadline = time.monotonic() + 60
+while time.monotonic() < deadline:
+    time.sleep(0.05)
+open({finished!r}, "w").close()
+"""
+
+
+class Interrupting(io.StringIO):
+    """The parent interrupted (Ctrl-C, or a time limit's SIGTERM, which the bench turns into one)
+    while it shows a child's first phase."""
+
+    def write(self, text: str) -> int:
+        raise KeyboardInterrupt
+
+
+def test_an_interrupted_parent_stops_its_child(tmp_path):
+    finished = tmp_path / "finished"
+    cmd = [sys.executable, "-c", LONG_CHILD.format(tools=str(ROOT / "tools"), finished=str(finished))]
+    with pytest.raises(KeyboardInterrupt):
+        run_child(cmd, dict(os.environ), "render 50000 exact new", "child", Interrupting())
+    # run_child returns once the child is gone: killed, it never got to finish
+    assert not finished.exists()

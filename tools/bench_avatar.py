@@ -47,7 +47,8 @@ and the same-run baselines are the rasterizer alone on the same device and the c
 The data is generated if --data is not given (stg-synth, 125 frames, 100 for training).
 A row is printed once all its children are done (2 x ``--rounds`` of them for a render row); while
 they run, each child's phases (start-up, model, first render, timed loop, ...) go to stderr with the
-seconds since it started, so a run cut by a time limit still shows where its time went.
+seconds since it started, so a run cut by a time limit still shows where its time went. A stopped
+bench (SIGTERM, Ctrl-C) stops the child it is measuring.
 Figures go to docs/BENCHMARKS.md with this command line, the machine and the load.
 """
 
@@ -401,13 +402,17 @@ def run_child(cmd: list[str], env: dict, label: str, what: str, progress=sys.std
         reader = threading.Thread(target=lambda: stdout.extend(child.stdout), daemon=True)
         reader.start()
         errors: list[str] = []
-        for line in child.stderr:
-            if line.startswith(PHASE_MARK):
-                seconds, done = line[len(PHASE_MARK) :].rstrip("\n").split("\t", 1)
-                print(f"  [{label}] {float(seconds):6.1f} s: {done}", file=progress, flush=True)
-            else:
-                errors.append(line)
-        child.wait()
+        try:
+            for line in child.stderr:
+                if line.startswith(PHASE_MARK):
+                    seconds, done = line[len(PHASE_MARK) :].rstrip("\n").split("\t", 1)
+                    print(f"  [{label}] {float(seconds):6.1f} s: {done}", file=progress, flush=True)
+                else:
+                    errors.append(line)
+            child.wait()
+        except BaseException:  # stopped (Ctrl-C, a time limit's SIGTERM): no child left measuring
+            child.kill()
+            raise
         reader.join()
     if child.returncode != 0:
         raise SystemExit(f"bench: {what} failed (exit {child.returncode}):\n{''.join(errors)[-4000:]}")
@@ -759,6 +764,20 @@ def main(argv=None) -> int:
         run_worker(args.worker, args.root)
         return 0
     sys.path.insert(0, str(ROOT))
+    from stg_node.signals import interrupt_on_signals
+
+    # SIGTERM (a time limit) raises here like Ctrl-C, so the child being measured is stopped too:
+    # left running, it would load the machine under whatever is measured next
+    try:
+        with interrupt_on_signals():
+            return run_sections(args)
+    except KeyboardInterrupt:
+        print("bench: stopped (the rows above are complete; the child being measured was stopped)",
+              file=sys.stderr, flush=True)  # fmt: skip
+        return 130
+
+
+def run_sections(args) -> int:
     from stg_node.threads import configure_threads
 
     configure_threads("1")
