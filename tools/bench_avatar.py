@@ -45,6 +45,10 @@ this tree only: the figures are wall times with the device synchronised around e
 and the same-run baselines are the rasterizer alone on the same device and the cpu rows.
 
 The data is generated if --data is not given (stg-synth, 125 frames, 100 for training).
+A row is printed once all its children are done (2 x ``--rounds`` of them for a render row); while
+they run, each child's phases (start-up, model, first render, timed loop, ...) go to stderr with the
+seconds since it started, so a run cut by a time limit still shows where its time went. A stopped
+bench (SIGTERM, Ctrl-C) stops the child it is measuring.
 Figures go to docs/BENCHMARKS.md with this command line, the machine and the load.
 """
 
@@ -58,6 +62,7 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -94,6 +99,7 @@ def ensure_data(path: str | None) -> Path:
         return Path(path)
     out = Path(tempfile.gettempdir()) / "stg_bench_avatar_synth"
     if not (out / "synth.json").is_file():
+        print(f"# generating the benchmark's data in {out} (once per machine)", file=sys.stderr, flush=True)
         sys.path.insert(0, str(ROOT))
         from stg_node.data.synth.generate import SynthConfig, generate
 
@@ -111,6 +117,25 @@ def _sync_for(device: str):
 
         return torch.cuda.synchronize
     return lambda: None
+
+
+PHASE_MARK = "bench-phase\t"  # a child's progress line on stderr: mark, seconds, what it has done
+_child_started = time.perf_counter()
+
+
+def _phase(done: str) -> None:
+    """Tell the parent what this child has finished so far (the parent shows it as it comes)."""
+    print(f"{PHASE_MARK}{time.perf_counter() - _child_started:.1f}\t{done}", file=sys.stderr, flush=True)
+
+
+def _device_ready(device: str) -> None:
+    """Start-up as a phase of its own: the imports, and on a GPU the CUDA context."""
+    _phase("imports")
+    if device != "cpu":
+        import torch
+
+        torch.zeros(1, device=device)
+        _phase(f"{device} context ready")
 
 
 def _timed(fn, repeats: int, warmup: int = 2, sync=lambda: None) -> dict:
@@ -161,12 +186,15 @@ def worker_step(spec: dict) -> dict:
     device = spec.get("device", "cpu")
     sync = _sync_for(device)
     config = _balanced(n, **{"densify.start_iter": 10, "densify.interval": 20})
+    _device_ready(device)
     trainer = Trainer(config, seed=0, **_device_args(device))
     size = spec.get("size")
     frames = DataSpec(spec["data"], "synthetic", **({"size": size} if size else {})).open("train")
     trainer.add_frames(frames)
+    _phase(f"model of {trainer.model.table.num} Gaussians, {len(frames)} frames added")
     for _ in range(5):
         trainer.step()
+    _phase("5 warm-up steps")
     # on CUDA the phases are host wall time (kernels run asynchronously: read them as launch cost)
     trainer.profile = _cpu_profile_class()() if device == "cpu" else StepProfile()
     wall, cpu = [], []
@@ -178,6 +206,7 @@ def worker_step(spec: dict) -> dict:
         cpu.append(time.thread_time() - c)
         wall.append(time.perf_counter() - w)
     phases = trainer.profile.per_step_ms()
+    _phase(f"{steps} timed steps")
     # the rasterizer alone, forward + backward, on the same posed Gaussians and crop
     stored = trainer.store.frames[0]
     cam = Camera3.from_camera(stored.frame.camera, stored.crop, device)
@@ -204,6 +233,7 @@ def worker_step(spec: dict) -> dict:
         (image.sum() + alpha.sum()).backward()
 
     with_flow = _timed(raster_with_flow, max(steps // 2, 5), sync=sync)
+    _phase("rasterizer alone")
     return {
         "gaussians": trainer.model.table.num,
         "step_wall_ms": 1e3 * statistics.median(wall),
@@ -230,10 +260,12 @@ def worker_render(spec: dict) -> dict:
     device = spec.get("device", "cpu")
     sync = _sync_for(device)
     backend = _device_args(device).get("backend", "auto")
+    _device_ready(device)
     train = DataSpec(spec["data"], "synthetic").open("train")
     trainer = Trainer(_balanced(spec["gaussians"]), seed=0, **_device_args(device))
     trainer.add_frame(TrainFrame.from_sample(train[0]))
     model = trainer.model
+    _phase(f"model of {model.table.num} Gaussians")
     stream = spec["mode"] == "stream"
     if stream:
         if "color_refresh_every" not in inspect.signature(AvatarRenderer).parameters:
@@ -246,6 +278,7 @@ def worker_render(spec: dict) -> dict:
 
     cameras = [resized_camera(f.camera, spec["size"]) for f in frames]
     extra = {"stream": "bench"} if stream else {}
+    _phase(f"{len(frames)} frames read")
     wall, cpu, drawn = [], [], 0
     for _ in range(spec["passes"]):
         for frame, camera in zip(frames, cameras, strict=False):
@@ -256,6 +289,9 @@ def worker_render(spec: dict) -> dict:
             cpu.append(time.thread_time() - c)
             wall.append(time.perf_counter() - w)
             drawn = out.num_rendered
+            if len(wall) == 1:  # the first builds the caches (and, on a GPU, loads the kernels)
+                _phase(f"first render ({1e3 * wall[0]:.0f} ms)")
+    _phase(f"{len(wall)} renders")
     skip = min(5, len(wall) // 4)  # the first renders build caches (effective weights, colours)
     result = {
         "gaussians": model.table.num,
@@ -274,6 +310,7 @@ def worker_render(spec: dict) -> dict:
             render(posed, cam, background=0.0, backend=backend)
 
     alone = _timed(raster, 10, sync=sync)
+    _phase("rasterizer alone")
     result["raster_wall_ms"], result["raster_cpu_ms"] = alone["wall_ms"], alone["cpu_ms"]
     return result
 
@@ -341,13 +378,46 @@ def run_worker(spec_text: str, root: str) -> None:
 # ---- the parent ------------------------------------------------------------------------------------
 
 
-def spawn(spec: dict, root: Path) -> dict:
+def child_label(spec: dict, tree: str) -> str:
+    """What a progress line names: the case, its size and mode, the tree."""
+    parts = [spec["case"], str(spec.get("gaussians", "")), spec.get("mode", ""), tree]
+    return " ".join(p for p in parts if p)
+
+
+def spawn(spec: dict, root: Path, label: str | None = None, progress=sys.stderr) -> dict:
+    """Run one child on ``root``'s stg_node; its phases are shown on ``progress`` as they come."""
     env = child_env(root, STG_THREADS="1")
     cmd = [sys.executable, __file__, "--worker", json.dumps(spec), "--root", str(root)]
-    done = subprocess.run(cmd, env=env, capture_output=True, text=True)
-    if done.returncode != 0:
-        raise SystemExit(f"bench: the {spec['case']} child on {root} failed:\n{done.stderr[-4000:]}")
-    return json.loads(done.stdout.strip().splitlines()[-1])
+    what = f"the {spec['case']} child on {root}"
+    return run_child(cmd, env, label or child_label(spec, root.name), what, progress)
+
+
+def run_child(cmd: list[str], env: dict, label: str, what: str, progress=sys.stderr) -> dict:
+    """The JSON result (last stdout line) of the child ``cmd``; its phase lines on stderr (PHASE_MARK)
+    are shown on ``progress`` as they come, prefixed with ``label``; anything else it writes there is
+    kept for the error naming ``what`` if it fails."""
+    started = time.perf_counter()
+    with subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as child:
+        stdout: list[str] = []  # read beside stderr, so neither pipe can fill and stall the child
+        reader = threading.Thread(target=lambda: stdout.extend(child.stdout), daemon=True)
+        reader.start()
+        errors: list[str] = []
+        try:
+            for line in child.stderr:
+                if line.startswith(PHASE_MARK):
+                    seconds, done = line[len(PHASE_MARK) :].rstrip("\n").split("\t", 1)
+                    print(f"  [{label}] {float(seconds):6.1f} s: {done}", file=progress, flush=True)
+                else:
+                    errors.append(line)
+            child.wait()
+        except BaseException:  # stopped (Ctrl-C, a time limit's SIGTERM): no child left measuring
+            child.kill()
+            raise
+        reader.join()
+    if child.returncode != 0:
+        raise SystemExit(f"bench: {what} failed (exit {child.returncode}):\n{''.join(errors)[-4000:]}")
+    print(f"  [{label}] done after {time.perf_counter() - started:.1f} s", file=progress, flush=True)
+    return json.loads("".join(stdout).strip().splitlines()[-1])
 
 
 def interleaved(spec: dict, trees: dict[str, Path], rounds: int) -> dict[str, dict]:
@@ -358,7 +428,7 @@ def interleaved(spec: dict, trees: dict[str, Path], rounds: int) -> dict[str, di
     for r in range(rounds):
         for name in names if r % 2 == 0 else names[::-1]:
             loads.append(os.getloadavg()[0])
-            runs[name].append(spawn(spec, trees[name]))
+            runs[name].append(spawn(spec, trees[name], child_label(spec, name)))
     out = {}
     for name, results in runs.items():
         merged: dict = {}
@@ -694,6 +764,20 @@ def main(argv=None) -> int:
         run_worker(args.worker, args.root)
         return 0
     sys.path.insert(0, str(ROOT))
+    from stg_node.signals import interrupt_on_signals
+
+    # SIGTERM (a time limit) raises here like Ctrl-C, so the child being measured is stopped too:
+    # left running, it would load the machine under whatever is measured next
+    try:
+        with interrupt_on_signals():
+            return run_sections(args)
+    except KeyboardInterrupt:
+        print("bench: stopped (the rows above are complete; the child being measured was stopped)",
+              file=sys.stderr, flush=True)  # fmt: skip
+        return 130
+
+
+def run_sections(args) -> int:
     from stg_node.threads import configure_threads
 
     configure_threads("1")
