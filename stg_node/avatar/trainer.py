@@ -809,7 +809,7 @@ class Trainer:
             densify=self.densify_state,
             loss_ema=dict(self.weights.ema),
             nonrigid={} if self.decision is None else self.decision.to_dict(),
-            isometry=self.isometry.state_arrays(),
+            isometry=self.isometry.state_arrays(self.model.table),
             notes=dict(self.notes),
             exposure=self.exposure.state_arrays(),
             color_turns={} if self.color_turns is None else self.color_turns.state_arrays(),
