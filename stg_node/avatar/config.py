@@ -37,7 +37,7 @@ PREDATING_DEFAULTS = {
         "occlusion": False,
         "normal_sign": "camera",
     },
-    "loss": {"isometry": 0.0, "flow_every": 1},
+    "loss": {"isometry": 0.0, "flow_every": 1, "isometry_every": 1},
     "densify": {"flow_seed_missed": False, "motion_min_px": 0.0, "occlusion_m": 0.0, "unseen_cell_m": 0.0},
     "nonrigid": "on",  # runs stored before the trial kept their non-rigid part
     "lr_exposure": 0.0,  # no exposure correction before real footage had one
@@ -172,6 +172,9 @@ class LossConfig:
     # Shading and shape (shading.py, isometry.py).
     light: float = 1e-3  # keeps the learned light near uniform (mean square of its non-constant terms)
     isometry: float = 0.05  # posed distances between canonical neighbours stay as in canonical space (cm)
+    # The isometry term on every k-th step only, at k x its weight (issue 24, as flow_every): the
+    # other steps skip its ~96k edges (20k Gaussians). 1: every step (as before).
+    isometry_every: int = 4
     # Real footage (pose_refine.py, exposure.py).
     pose_smooth: float = 0.0  # refined poses smooth in time (pose_refine.py; on for tracked poses)
     adaptive: bool = True  # balance the auxiliary terms against the photometric term (see losses.py)
@@ -336,6 +339,11 @@ class TrainConfig:
         if self.loss.flow_every < 1:
             raise ValueError(
                 f"loss.flow_every must be >= 1 (1: the flow term every step), got {self.loss.flow_every}"
+            )
+        if self.loss.isometry_every < 1:
+            raise ValueError(
+                "loss.isometry_every must be >= 1 (1: the isometry term every step), got "
+                f"{self.loss.isometry_every}"
             )
         if self.color_every < 1:
             raise ValueError(f"color_every must be >= 1 (1: every row every step), got {self.color_every}")

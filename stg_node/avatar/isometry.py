@@ -109,9 +109,16 @@ class IsometryGraph:
         self._built_for(table)
         return True
 
-    def state_arrays(self) -> dict[str, torch.Tensor]:
-        """What a checkpoint keeps: the graph (as float32, exact for row indices below 2^24)."""
-        return {} if self.neighbours is None else {"neighbours": self.neighbours.float()}
+    def state_arrays(self, table=None) -> dict[str, torch.Tensor]:
+        """What a checkpoint keeps: the graph (as float32, exact for row indices below 2^24); none
+        when ``table``'s rows changed since it was built (densification between two steps that
+        evaluate the term, ``loss.isometry_every``): the resumed run rebuilds it where this one will."""
+        built_for = self._table() if self._table is not None else None
+        if self.neighbours is None or (
+            table is not None and (built_for is not table or table.version != self._version)
+        ):
+            return {}
+        return {"neighbours": self.neighbours.float()}
 
     def load_state_arrays(self, arrays: dict[str, torch.Tensor], table) -> None:
         """Take the graph of a checkpoint as the one of ``table`` (rows unchanged since it was saved)."""

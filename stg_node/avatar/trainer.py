@@ -463,7 +463,7 @@ class Trainer:
             terms["line_of_sight"] = self._line_of_sight(state, bones, camera)
         if c.loss.rigidity > 0 and state.offsets is not None and self.model.motion_bases is None:
             terms["rigidity"] = self.neighbours.loss(table, state.offsets, state.temporal)
-        if c.loss.isometry > 0:
+        if c.loss.isometry > 0 and it % c.loss.isometry_every == 0:
             terms["isometry"] = self.isometry.loss(table, posed.means, posed.canonical, posed.index)
         terms.update(self._regularisers(body))
         if c.loss.pose_smooth > 0 and self.pose_deltas is not None:
@@ -482,7 +482,7 @@ class Trainer:
             "opacity": c.loss.opacity,
             "skin": c.loss.skin,
             "pose": c.loss.pose_refine,
-            "isometry": c.loss.isometry,
+            "isometry": c.loss.isometry * c.loss.isometry_every,  # present on every k-th step only
             "light": c.loss.light,
             "pose_smooth": c.loss.pose_smooth,
         }
@@ -832,7 +832,7 @@ class Trainer:
             densify=self.densify_state,
             loss_ema=dict(self.weights.ema),
             nonrigid={} if self.decision is None else self.decision.to_dict(),
-            isometry=self.isometry.state_arrays(),
+            isometry=self.isometry.state_arrays(self.model.table),
             notes=dict(self.notes),
             exposure=self.exposure.state_arrays(),
             color_turns={} if self.color_turns is None else self.color_turns.state_arrays(),
