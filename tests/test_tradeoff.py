@@ -4,6 +4,7 @@ default suite, the whole quick grid in the slow one)."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -100,6 +101,30 @@ def test_mid_scale_halves_the_images_and_budgets_and_thirds_the_schedule():
     assert mid.model.max_gaussians == round(full.model.max_gaussians / 2)
     assert math.isclose(mid.densify.motion_floor_px, full.densify.motion_floor_px / 2)
     assert tradeoff.SCALES["mid"].size == 256 and tradeoff.SCALES["quick"] is tradeoff.QUICK
+
+
+def test_scaling_a_config_that_predates_a_key_scales_the_keys_it_has():
+    """A baseline tree (tools/baseline.py) is scaled with this tree's key lists: a key its config
+    lacks is left out, not an AttributeError."""
+    from stg_node.avatar import preset
+
+    full = preset("fast")
+
+    class OlderConfig:  # the fast preset as a tree before normal_decide_iter would hold it
+        def __init__(self):
+            self.__dict__.update({f.name: getattr(full, f.name) for f in dataclasses.fields(full)})
+            del self.__dict__["normal_decide_iter"]
+            self.changes = {}
+
+        def replace(self, **changes):
+            self.changes = changes
+            return self
+
+    mid = tradeoff.scaled(OlderConfig(), tradeoff.SCALES["mid"])
+    assert mid.changes["iterations"] == round(full.iterations / 3)
+    assert mid.changes["nonrigid_decide_iter"] == round(full.nonrigid_decide_iter / 3)
+    assert mid.changes["model.max_gaussians"] == round(full.model.max_gaussians / 2)
+    assert "normal_decide_iter" not in mid.changes
 
 
 def test_pareto_front_is_the_set_of_undominated_points():

@@ -242,14 +242,21 @@ def scaled(config, scale: Scale):
     pixel_factor = scale.size / 512.0
     if scale.iteration_factor == 1.0 and scale.gaussian_factor == 1.0 and pixel_factor == 1.0:
         return config
+
+    def known(keys):  # a baseline tree's config (tools/baseline.py) may predate a key: it has none to scale
+        for key in keys:
+            try:
+                yield key, setting_value(config, key)
+            except AttributeError:
+                continue
+
     changes = {}
-    for key in ITERATION_KEYS:
-        changes[key] = max(1, round(setting_value(config, key) * scale.iteration_factor))
-    for key in GAUSSIAN_KEYS:
-        changes[key] = max(1, round(setting_value(config, key) * scale.gaussian_factor))
-    for key, integer in PIXEL_KEYS.items():
-        value = setting_value(config, key) * pixel_factor
-        changes[key] = max(2, round(value)) if integer else value
+    for key, value in known(ITERATION_KEYS):
+        changes[key] = max(1, round(value * scale.iteration_factor))
+    for key, value in known(GAUSSIAN_KEYS):
+        changes[key] = max(1, round(value * scale.gaussian_factor))
+    for key, value in known(PIXEL_KEYS):
+        changes[key] = max(2, round(value * pixel_factor)) if PIXEL_KEYS[key] else value * pixel_factor
     return config.replace(**changes)
 
 
