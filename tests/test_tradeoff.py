@@ -266,3 +266,23 @@ def test_quick_grid_end_to_end_and_a_rerun_reuses_results(tmp_path):
     assert again.returncode == 0
     assert (tmp_path / "BENCH.md").read_text().count(tradeoff_report.BEGIN) == 1
     assert "preset_fast: reusing the result" in again.stderr and "training" not in again.stderr
+
+
+def test_a_partial_full_scale_run_does_not_replace_the_docs_table(tmp_path):
+    """docs/BENCHMARKS.md's table takes a complete grid only: a partial run's report goes beside its
+    runs unless --docs names a file."""
+    import argparse
+
+    rows = [row for row in tradeoff.grid("fast") if not row.alias_of]
+    docs, plot = Path("docs/BENCHMARKS.md"), Path("docs/tradeoff_pareto.png")
+    args = argparse.Namespace(docs=None, plot=None)
+    partial = {rows[0].name: {}}
+    assert tradeoff.partial_report_targets(rows, partial, args, tmp_path, docs, plot, False) == (
+        tmp_path / "BENCHMARKS_partial.md",
+        tmp_path / "tradeoff_pareto_partial.png",
+    )
+    complete = {row.name: {} for row in rows}
+    assert tradeoff.partial_report_targets(rows, complete, args, tmp_path, docs, plot, False) == (docs, plot)
+    chosen = argparse.Namespace(docs=str(docs), plot=str(plot))
+    assert tradeoff.partial_report_targets(rows, partial, chosen, tmp_path, docs, plot, False) == (docs, plot)
+    assert tradeoff.partial_report_targets(rows, partial, args, tmp_path, docs, plot, True) == (docs, plot)

@@ -1089,6 +1089,7 @@ def run(args: argparse.Namespace, argv: list[str]) -> int:
             key = fingerprint(row.config(scale), row, scale, args.seed, args.backend, data_id(folder))
             if record.get("fingerprint") == key:
                 results[row.name] = record
+    docs, plot = partial_report_targets(rows, results, args, out, docs, plot, reduced)
     context = tradeoff_report.ReportContext(
         command=command_line(argv),
         machine=machine(),
@@ -1106,6 +1107,28 @@ def run(args: argparse.Namespace, argv: list[str]) -> int:
     tradeoff_report.write_section(docs, report.markdown)
     print(report.markdown)
     return 0
+
+
+def partial_report_targets(rows, results, args, out: Path, docs: Path, plot: Path, reduced: bool):
+    """Where the report goes: the full-scale table in docs/BENCHMARKS.md takes only a complete grid
+    (every row measured now or stored with the same settings); a partial run writes beside its
+    runs instead, unless ``--docs`` / ``--plot`` name a file. A partial run once replaced that
+    table with a column of 'not measured' rows."""
+    missing = [r.name for r in rows if not r.alias_of and r.name not in results]
+    if reduced or not missing:
+        return docs, plot
+    if not args.docs:
+        docs = out / "BENCHMARKS_partial.md"
+        log.info(
+            "%d of the grid's rows are not measured with these settings (%s...): the report goes "
+            "into %s, not docs/BENCHMARKS.md (--docs to choose)",
+            len(missing),
+            ", ".join(missing[:3]),
+            docs,
+        )
+    if not args.plot:
+        plot = out / "tradeoff_pareto_partial.png"
+    return docs, plot
 
 
 def main(argv: list[str] | None = None) -> int:
