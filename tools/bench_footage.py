@@ -344,6 +344,19 @@ CHAINS = {  # the joints (SMPL indices) whose orientation in the camera's frame 
 }
 
 
+def joint_world_rotations(rows: dict, i: int, parents) -> list:
+    """The 24 joints' (3, 3) rotations in the camera's frame at row ``i`` of ``rows`` (poses.npz
+    columns: the root's ``Rh`` times the kinematic chain of local rotations)."""
+    import cv2
+    import numpy as np
+
+    poses = rows["poses"][i].reshape(24, 3).astype(np.float64)
+    G = [cv2.Rodrigues(np.asarray(rows["Rh"][i], np.float64))[0] @ cv2.Rodrigues(poses[0])[0]]
+    for j in range(1, 24):
+        G.append(G[parents[j]] @ cv2.Rodrigues(poses[j])[0])
+    return G
+
+
 def chain_true_in_world(tracked: dict, true: dict, joints) -> dict:
     """``tracked``'s rows (poses.npz columns) with ``joints`` turned to their true orientation in
     the camera's frame and every other joint kept at its tracked orientation there (each local
@@ -351,7 +364,6 @@ def chain_true_in_world(tracked: dict, true: dict, joints) -> dict:
     wrong parent does to a swapped local rotation. Global orientation, shape and position stay
     tracked."""
     import cv2
-    import numpy as np
 
     from stg_node.body import load_body_model
 
@@ -359,15 +371,8 @@ def chain_true_in_world(tracked: dict, true: dict, joints) -> dict:
     chosen = set(joints)
     rows = {k: v.copy() for k, v in tracked.items()}
 
-    def world(r, i):
-        poses = r["poses"][i].reshape(24, 3).astype(np.float64)
-        G = [cv2.Rodrigues(np.asarray(r["Rh"][i], np.float64))[0] @ cv2.Rodrigues(poses[0])[0]]
-        for j in range(1, 24):
-            G.append(G[parents[j]] @ cv2.Rodrigues(poses[j])[0])
-        return G
-
     for i in range(len(rows["poses"])):
-        mine, theirs = world(tracked, i), world(true, i)
+        mine, theirs = joint_world_rotations(tracked, i, parents), joint_world_rotations(true, i, parents)
         target = [theirs[j] if j in chosen else mine[j] for j in range(24)]
         poses = rows["poses"][i].reshape(24, 3)
         for j in range(1, 24):
@@ -811,16 +816,9 @@ def limb_roots_in_world(base: dict, donor: dict):
 
     parents = load_body_model().parents.tolist()
 
-    def world(rows, i):
-        poses = rows["poses"][i].reshape(24, 3).astype(np.float64)
-        G = [cv2.Rodrigues(np.asarray(rows["Rh"][i], np.float64))[0] @ cv2.Rodrigues(poses[0])[0]]
-        for j in range(1, 24):
-            G.append(G[parents[j]] @ cv2.Rodrigues(poses[j])[0])
-        return G
-
     out = []
     for i in range(len(base["poses"])):
-        mine, theirs = world(base, i), world(donor, i)
+        mine, theirs = joint_world_rotations(base, i, parents), joint_world_rotations(donor, i, parents)
         out.append([cv2.Rodrigues(mine[p].T @ theirs[j])[0].ravel() for j, p in LIMB_ROOTS.items()])
     return np.asarray(out)
 

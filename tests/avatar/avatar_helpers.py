@@ -67,3 +67,19 @@ def density_step_inputs(iteration: int):
         generator=torch.Generator().manual_seed(0),
         rendered_flow=None,
     )
+
+
+def spy_normal_signs(monkeypatch) -> list[bool]:
+    """The ``outward`` flag of every shading-normals call from now on (the normal sign a step or a
+    render used), while the real function still computes them."""
+    from stg_node.avatar import model as model_module
+
+    seen = []
+    real = model_module.gaussian_normals
+
+    def spy(quats, scales, means, camera_center, outward=False):
+        seen.append(outward)
+        return real(quats, scales, means, camera_center, outward)
+
+    monkeypatch.setattr(model_module, "gaussian_normals", spy)
+    return seen

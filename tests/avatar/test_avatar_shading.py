@@ -483,22 +483,14 @@ def test_training_shades_outward_normals_and_renders_face_the_viewer(tiny_frames
     a configuration or snapshot from before the setting trained with normals facing the camera."""
     import dataclasses
 
-    from avatar_helpers import small_config
+    from avatar_helpers import small_config, spy_normal_signs
 
-    from stg_node.avatar import model as model_module
     from stg_node.avatar.config import TrainConfig
     from stg_node.avatar.renderer import AvatarRenderer
     from stg_node.avatar.snapshot import model_from_snapshot
     from stg_node.avatar.trainer import Trainer
 
-    seen = []
-    real = model_module.gaussian_normals
-
-    def spy(quats, scales, means, camera_center, outward=False):
-        seen.append(outward)
-        return real(quats, scales, means, camera_center, outward)
-
-    monkeypatch.setattr(model_module, "gaussian_normals", spy)
+    seen = spy_normal_signs(monkeypatch)
     signs = {}
     for sign in ("outward", "camera"):
         trainer = Trainer(small_config(iterations=2).replace(**{"model.normal_sign": sign}), seed=0)

@@ -66,20 +66,12 @@ def test_the_default_decides_the_sign():
 def test_trainer_decides_at_normal_decide_iter(tiny_frames, monkeypatch, tmp_path, threshold, expected):
     """Camera normals until the decision, then the chosen sign, in the steps, the config, the
     published model, the summary and a resumed checkpoint."""
-    from avatar_helpers import small_config
+    from avatar_helpers import small_config, spy_normal_signs
 
-    from stg_node.avatar import model as model_module
     from stg_node.avatar.snapshot import model_from_snapshot
     from stg_node.avatar.trainer import Trainer
 
-    seen = []
-    real = model_module.gaussian_normals
-
-    def spy(quats, scales, means, camera_center, outward=False):
-        seen.append(outward)
-        return real(quats, scales, means, camera_center, outward)
-
-    monkeypatch.setattr(model_module, "gaussian_normals", spy)
+    seen = spy_normal_signs(monkeypatch)
     config = small_config(iterations=6, normal_decide_iter=3, normal_min_contrast=threshold)
     trainer = Trainer(config, seed=0)
     trainer.add_frames(tiny_frames[:2])
