@@ -276,8 +276,6 @@ def pose_variants(video_data: Path, data: Path, out: Path) -> dict[str, Path]:
     ``true-arms`` / ``true-legs`` / ``true-torso``: one chain turned true in the camera's frame
     (:func:`chain_true_in_world`). Each is ``out/NAME``."""
     import dataclasses
-    import os
-    import shutil
 
     import cv2
     import numpy as np
@@ -324,17 +322,24 @@ def pose_variants(video_data: Path, data: Path, out: Path) -> dict[str, Path]:
     true_rows = variants["true"]
     for name, chain in CHAINS.items():
         variants[f"true-{name}"] = chain_true_in_world(variants["tracked"], true_rows, chain)
-    folders = {}
-    for name, rows in variants.items():
-        folder = out / name
-        folder.mkdir(parents=True, exist_ok=True)
-        for sub in ("images", "masks"):
-            if not (folder / sub).exists():
-                os.symlink((video_data / sub).resolve(), folder / sub)
-        shutil.copy(video_data / "cameras.json", folder / "cameras.json")
-        np.savez(folder / "poses.npz", **rows)
-        folders[name] = folder
-    return folders
+    return {name: write_pose_variant(out / name, video_data, rows) for name, rows in variants.items()}
+
+
+def write_pose_variant(folder: Path, source: Path, rows: dict) -> Path:
+    """A training folder that is ``source`` (a ``--format video`` data folder) with its poses
+    replaced by ``rows`` (poses.npz columns): images and masks linked, the cameras copied."""
+    import os
+    import shutil
+
+    import numpy as np
+
+    folder.mkdir(parents=True, exist_ok=True)
+    for sub in ("images", "masks"):
+        if not (folder / sub).exists():
+            os.symlink((source / sub).resolve(), folder / sub)
+    shutil.copy(source / "cameras.json", folder / "cameras.json")
+    np.savez(folder / "poses.npz", **rows)
+    return folder
 
 
 CHAINS = {  # the joints (SMPL indices) whose orientation in the camera's frame a chain step makes true
@@ -385,8 +390,6 @@ def two_pass_folder(tracked: Path, two_pass: Path) -> Path:
     """``tracked`` (a ``pose_variants`` folder) with its training frames' poses from ``twopass``'s
     average of the forward and backward fits (``two_pass``, run ``twopass`` first); the frames
     after them as tracked. The folder ``twopass`` beside ``tracked``."""
-    import os
-    import shutil
 
     import numpy as np
 
@@ -398,14 +401,7 @@ def two_pass_folder(tracked: Path, two_pass: Path) -> Path:
     average = np.asarray(load_npz(two_pass)["average"])
     n = len(average)
     rows["poses"][:n], rows["Rh"][:n], rows["Th"][:n] = average[:, :72], average[:, 72:75], average[:, 75:]
-    folder = tracked.parent / "twopass"
-    folder.mkdir(parents=True, exist_ok=True)
-    for sub in ("images", "masks"):
-        if not (folder / sub).exists():
-            os.symlink((tracked / sub).resolve(), folder / sub)
-    shutil.copy(tracked / "cameras.json", folder / "cameras.json")
-    np.savez(folder / "poses.npz", **rows)
-    return folder
+    return write_pose_variant(tracked.parent / "twopass", tracked, rows)
 
 
 def slid_to_depth(Th, pelvis, depth: float):
