@@ -23,10 +23,25 @@ Gaussians per round scaled by the area the same share of them is seeded per bad 
 loss's SSIM window (11 px, 3DGS's: a larger person should be sharp at the pixels it has, not at the
 reference's). The world-unit settings (scales, pruning, learning rates of the means) need nothing.
 
-The ratio is clamped to [1, ``MAX_SCALE``]: a person smaller than the reference keeps the preset
-(fewer Gaussians would save time but never quality, and the tuned presets are the tested ones),
-and a huge image does not make a run unbounded. ``--set`` on any of these settings wins (the user
-said so), and ``--resume`` keeps the budget the run started with.
+For the Gaussians and the steps the ratio is clamped to [1, ``MAX_SCALE``]: a person smaller than
+the reference keeps the preset's, and a huge image does not make a run unbounded. Fewer Gaussians
+would save time, never quality: measured on the benchmark's subjects at 256 px (a quarter of the
+reference's area), starting from the area's share of the preset's Gaussians (3,100-3,400 instead
+of 12,000) ended with 40 % fewer and cost 0.2-0.65 dB on novel views (LPIPS 0.015 -> 0.021 on the
+still subject), and did not make a still subject's model smaller than a dancer's
+(docs/BENCHMARKS.md, issue 22, round 10).
+
+The pixel settings follow a smaller person down too, to half the reference's linear size
+(``MIN_PIXEL_SCALE_AREA``): kept at the reference's pixels, a person a quarter of its area has to
+move twice as far in metres to pass the motion gates and the non-rigid trial, and the benchmark's
+dancer at 256 px had its non-rigid part switched off (3.7 % of its Gaussians missing more than
+1.5 px of flow a frame; the trial needs 5 %) where following it down keeps the part and gains
+0.9 dB on novel views. The floor: at half the linear size the residual threshold is 0.75 px a
+frame, three times the optical flow's mean error on a still subject at 256 px (0.25 px against
+the true flow); much lower, the gates would read the flow's own error as motion.
+
+``--set`` on any of these settings wins (the user said so), and ``--resume`` keeps the budget the
+run started with.
 """
 
 from __future__ import annotations
@@ -38,6 +53,9 @@ import numpy as np
 
 REFERENCE_AREA_PX = 20_000.0  # median person mask area of the benchmark's training frames at 512 px
 MAX_SCALE = 4.0
+# The pixel settings follow a smaller person down to a quarter of the reference's area (half its
+# linear size); below it their thresholds would near the optical flow's own error (module docstring).
+MIN_PIXEL_SCALE_AREA = 0.25
 # Settings in pixels (at the reference size) that measure the body's motion or extent: x the linear ratio.
 PIXEL_SETTINGS = (
     "densify.motion_floor_px",
@@ -63,7 +81,7 @@ class Budget:
     person_height_px: float  # median mask height
     scale: float  # the Gaussian budget's factor (the area ratio, clamped)
     steps_scale: float
-    pixel_scale: float  # the pixel settings' factor (the linear size ratio, clamped)
+    pixel_scale: float  # the pixel settings' factor (the linear size ratio, clamped to [0.5, 2])
     changes: dict  # setting -> new value (those the user did not set)
 
     def as_dict(self) -> dict:
@@ -84,7 +102,8 @@ class Budget:
         changed = ", ".join(
             f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in self.changes.items()
         )
-        return f"{size} ({self.scale:.2f}x the presets' reference): budget scaled: {changed}"
+        ratio = self.person_area_px / REFERENCE_AREA_PX
+        return f"{size} ({ratio:.2f}x the presets' reference): budget scaled: {changed}"
 
 
 def person_size(masks) -> tuple[float, float]:
@@ -117,9 +136,10 @@ def scale_budget(config, masks, *, fixed: tuple[str, ...] = ()) -> tuple[object,
     area, height = person_size(masks)
     if not math.isfinite(area):
         return config, Budget(area, height, 1.0, 1.0, 1.0, {})
-    scale = min(max(area / REFERENCE_AREA_PX, 1.0), MAX_SCALE)
+    ratio = area / REFERENCE_AREA_PX
+    scale = min(max(ratio, 1.0), MAX_SCALE)
     steps = min(math.sqrt(scale), 2.0)
-    linear = math.sqrt(scale)
+    linear = math.sqrt(min(max(ratio, MIN_PIXEL_SCALE_AREA), MAX_SCALE))
     current = {key: setting_value(config, key) for key in SCALED}
     wanted = {
         "model.num_gaussians": round(current["model.num_gaussians"] * scale),

@@ -609,7 +609,7 @@ class Trainer:
         if evidence["moving_fraction"] < c.nonrigid_min_moving:
             why = (
                 f"the rigid model explains the motion: {100 * evidence['moving_fraction']:.1f} % of the "
-                f"Gaussians see flow it misses by more than {c.densify.residual_motion_px:g} px per frame "
+                f"Gaussians see flow it misses by more than {c.densify.residual_motion_px:.3g} px per frame "
                 f"{'or move with their own terms ' if learned is not None else ''}"
                 f"(needs >= {100 * c.nonrigid_min_moving:g} %)"
             )

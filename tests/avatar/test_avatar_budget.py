@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stg_node.avatar.budget import MAX_SCALE, REFERENCE_AREA_PX, SCALED, person_size, scale_budget
+from stg_node.avatar.budget import MAX_SCALE, MIN_PIXEL_SCALE_AREA, REFERENCE_AREA_PX, SCALED, person_size, scale_budget
 from stg_node.avatar.presets import preset
 
 
@@ -44,10 +44,37 @@ def test_a_person_twice_the_reference_area_gets_the_hand_computed_budget():
     config.validate()
 
 
-def test_small_people_keep_the_preset_and_huge_ones_are_capped():
+def test_a_smaller_person_keeps_the_gaussians_and_steps_but_its_motion_thresholds_follow_it_down():
+    # 100 x 50 px = 5,000 px = a quarter of the reference (the benchmark's person at 256 px): half the
+    # linear size, so the settings that measure the body's motion in pixels halve (the same motion in
+    # metres) and the flow weight doubles; the Gaussians and the steps stay the preset's. Values by hand.
     fast = preset("fast")
     config, budget = scale_budget(fast, [person(100, 50)])
-    assert config == fast and budget.changes == {} and budget.scale == 1.0
+    assert (budget.scale, budget.steps_scale, budget.pixel_scale) == (1.0, 1.0, 0.5)
+    assert budget.changes == {
+        "densify.motion_floor_px": 0.5,
+        "densify.flow_consistency_px": 0.75,
+        "densify.residual_motion_px": 0.75,
+        "densify.motion_min_px": 3.0,
+        "crop_margin_px": 8,
+        "loss.flow": 0.1,
+    }
+    assert (config.model.num_gaussians, config.model.max_gaussians, config.iterations) == (12_000, 30_000, 1500)
+    assert config.densify.flow_max_new == fast.densify.flow_max_new
+    # half the reference's area: x sqrt(0.5)
+    config, budget = scale_budget(fast, [person(100, 100)])
+    assert budget.pixel_scale == pytest.approx(0.707107, abs=1e-6)
+    assert config.densify.residual_motion_px == pytest.approx(1.06066, abs=1e-5)
+    assert config.crop_margin_px == 11  # 16 x 0.7071 = 11.3
+    # smaller than a quarter: held at half the reference's linear size (MIN_PIXEL_SCALE_AREA)
+    assert MIN_PIXEL_SCALE_AREA == 0.25
+    config, budget = scale_budget(fast, [person(50, 20)])
+    assert budget.pixel_scale == 0.5 and config.densify.residual_motion_px == 0.75
+    config.validate()
+
+
+def test_huge_people_are_capped():
+    fast = preset("fast")
     config, budget = scale_budget(fast, [person(590, 580)])
     assert budget.scale == MAX_SCALE and config.iterations == 2 * fast.iterations
     assert config.model.max_gaussians == 4 * fast.model.max_gaussians and budget.pixel_scale == 2.0
