@@ -5,7 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stg_node.avatar.budget import MAX_SCALE, MIN_PIXEL_SCALE_AREA, REFERENCE_AREA_PX, SCALED, person_size, scale_budget
+from stg_node.avatar.budget import (
+    MAX_SCALE,
+    MIN_PIXEL_SCALE_AREA,
+    REFERENCE_AREA_PX,
+    SCALED,
+    person_size,
+    scale_budget,
+)
 from stg_node.avatar.presets import preset
 
 
@@ -59,7 +66,8 @@ def test_a_smaller_person_keeps_the_gaussians_and_steps_but_its_motion_threshold
         "crop_margin_px": 8,
         "loss.flow": 0.1,
     }
-    assert (config.model.num_gaussians, config.model.max_gaussians, config.iterations) == (12_000, 30_000, 1500)
+    model = config.model
+    assert (model.num_gaussians, model.max_gaussians, config.iterations) == (12_000, 30_000, 1500)
     assert config.densify.flow_max_new == fast.densify.flow_max_new
     # half the reference's area: x sqrt(0.5)
     config, budget = scale_budget(fast, [person(100, 100)])
