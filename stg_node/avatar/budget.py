@@ -25,20 +25,21 @@ reference's). The world-unit settings (scales, pruning, learning rates of the me
 
 For the Gaussians and the steps the ratio is clamped to [1, ``MAX_SCALE``]: a person smaller than
 the reference keeps the preset's, and a huge image does not make a run unbounded. Fewer Gaussians
-would save time, never quality: measured on the benchmark's subjects at 256 px (a quarter of the
-reference's area), starting from the area's share of the preset's Gaussians (3,100-3,400 instead
-of 12,000) ended with 40 % fewer and cost 0.2-0.65 dB on novel views (LPIPS 0.015 -> 0.021 on the
-still subject), and did not make a still subject's model smaller than a dancer's
-(docs/BENCHMARKS.md, issue 22, round 10).
+for a smaller person would save time and cost quality: on the benchmark's subjects at 256 px (a
+quarter of the reference's area), starting from the area's share of the preset's Gaussians
+(3,100-3,400 instead of 12,000) ended with 40 % fewer, cost 0.2-0.65 dB on novel views (LPIPS
+0.015 -> 0.021 on the still subject) and did not make a still subject's model smaller than a
+dancer's (docs/BENCHMARKS.md, issue 22, round 10).
 
 The pixel settings follow a smaller person down too, to half the reference's linear size
 (``MIN_PIXEL_SCALE_AREA``): kept at the reference's pixels, a person a quarter of its area has to
-move twice as far in metres to pass the motion gates and the non-rigid trial, and the benchmark's
+move twice as far in metres to pass the motion gates and the non-rigid trial. The benchmark's
 dancer at 256 px had its non-rigid part switched off (3.7 % of its Gaussians missing more than
-1.5 px of flow a frame; the trial needs 5 %) where following it down keeps the part and gains
-0.9 dB on novel views. The floor: at half the linear size the residual threshold is 0.75 px a
-frame, three times the optical flow's mean error on a still subject at 256 px (0.25 px against
-the true flow); much lower, the gates would read the flow's own error as motion.
+1.5 px of flow a frame; the trial needs 5 %); following it down keeps the part and gains 0.6-0.9 dB
+on novel views (novel poses: +0.5 dB on one subject draw, -0.5 dB on another). The floor: at half
+the linear size the residual threshold is 0.75 px a frame, three times the optical flow's mean
+error on a still subject at 256 px (0.25 px against the true flow); much lower, the gates would
+read the flow's own error as motion.
 
 ``--set`` on any of these settings wins (the user said so), and ``--resume`` keeps the budget the
 run started with.
