@@ -72,6 +72,48 @@ inline void blend_bones(int B, const float* w, const float* bones, float* blend)
     stg_math::v8_store(blend + 8, (acc[0][1] + acc[1][1]) + (acc[2][1] + acc[3][1]));
 }
 
+// gw[b] (+)= sum_k g[k] cols[k * B + b] over k < K for every b < B, in k order per b with fused
+// multiply-adds (the same values as an axpy over b per k), the sums held in registers for up to 32
+// bones at a time: an axpy per k through memory waits on a store-to-load forward per k.
+template <int NV>
+inline void weight_grads_block(int B, int K, const float* g, const float* cols, float* gw, bool accumulate) {
+    using stg_math::v8_load;
+    using stg_math::v8_madd;
+    using stg_math::v8_splat;
+    using stg_math::v8f;
+    v8f acc[NV];
+    for (int v = 0; v < NV; ++v) acc[v] = accumulate ? v8_load(gw + 8 * v) : v8_splat(0.0f);
+    for (int k = 0; k < K; ++k) {
+        const v8f gk = v8_splat(g[k]);
+        const float* col = cols + static_cast<int64_t>(k) * B;
+        for (int v = 0; v < NV; ++v) acc[v] = v8_madd(gk, v8_load(col + 8 * v), acc[v]);
+    }
+    for (int v = 0; v < NV; ++v) stg_math::v8_store(gw + 8 * v, acc[v]);
+}
+
+inline void weight_grads(int B, int K, const float* g, const float* cols, float* gw, bool accumulate) {
+    int b = 0;
+    for (; b + 32 <= B; b += 32) weight_grads_block<4>(B, K, g, cols + b, gw + b, accumulate);
+    switch ((B - b) / 8) {
+        case 3:
+            weight_grads_block<3>(B, K, g, cols + b, gw + b, accumulate);
+            break;
+        case 2:
+            weight_grads_block<2>(B, K, g, cols + b, gw + b, accumulate);
+            break;
+        case 1:
+            weight_grads_block<1>(B, K, g, cols + b, gw + b, accumulate);
+            break;
+        default:
+            break;
+    }
+    for (b += (B - b) / 8 * 8; b < B; ++b) {
+        float a = accumulate ? gw[b] : 0.0f;
+        for (int k = 0; k < K; ++k) a = STG_MADD(g[k], cols[static_cast<int64_t>(k) * B + b], a);
+        gw[b] = a;
+    }
+}
+
 inline float norm4(const float* q) {
     return std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
 }
@@ -254,15 +296,7 @@ void skin_backward(const SkinShape& s, const float* means, const float* weights,
                 }
             }
             // dL/dw_b = <bones[b], g16> (only the correction takes it); dL/dbones[b] += w_b g16
-            if (s.has_delta) {
-                std::fill(gw.begin(), gw.end(), 0.0f);
-                for (int k = 0; k < kBoneStride; ++k) {
-                    const float gk = g16[k];
-                    const float* col = bones_t.data() + static_cast<size_t>(k) * B;
-#pragma omp simd
-                    for (int b = 0; b < B; ++b) gw[b] = STG_MADD(gk, col[b], gw[b]);
-                }
-            }
+            if (s.has_delta) weight_grads(B, kBoneStride, g16, bones_t.data(), gw.data(), false);
             if (s.bone_grads) {
                 for (int b = 0; b < B; ++b) {
                     const float wb = w[b];
@@ -289,14 +323,8 @@ void skin_backward(const SkinShape& s, const float* means, const float* weights,
                     h16[r * 4 + 2] = gp2[r] * x2[2];
                     h16[r * 4 + 3] = gp2[r];
                 }
-                if (s.has_delta) {
-                    for (int k = 0; k < 12; ++k) {
-                        const float hk = h16[k];
-                        const float* col = bones_t.data() + static_cast<size_t>(kBoneStride + k) * B;
-#pragma omp simd
-                        for (int b = 0; b < B; ++b) gw[b] = STG_MADD(hk, col[b], gw[b]);
-                    }
-                }
+                if (s.has_delta)
+                    weight_grads(B, 12, h16, bones_t.data() + static_cast<size_t>(kBoneStride) * B, gw.data(), true);
                 if (s.next_bone_grads) {
                     for (int b = 0; b < B; ++b) {
                         const float wb = w[b];
