@@ -21,6 +21,25 @@ namespace {
 
 constexpr int kFlushEvery = 256;  // points between float -> double flushes of the bone gradients
 
+// max_b x[b] over b < B >= 1, eight lanes at a time (a maximum is exact in any order; the compiler
+// left the reduction scalar, a chain of B dependent maxima per point).
+inline float row_max(const float* x, int B) {
+    using stg_math::v8f;
+    float m = x[0];
+    int b = 1;
+    if (B >= 8) {
+        v8f v = stg_math::v8_load(x);
+        for (b = 8; b + 8 <= B; b += 8) {
+            const v8f y = stg_math::v8_load(x + b);
+            v = v < y ? y : v;
+        }
+        m = v[0];
+        for (int l = 1; l < 8; ++l) m = m < v[l] ? v[l] : m;
+    }
+    for (; b < B; ++b) m = m < x[b] ? x[b] : m;
+    return m;
+}
+
 // Effective weights of one point into w (B floats); returns nothing, never divides by zero
 // (the body's weights plus eps are positive).
 inline void point_weights(const SkinShape& s, const float* sw, const float* delta, float* w) {
@@ -30,9 +49,7 @@ inline void point_weights(const SkinShape& s, const float* sw, const float* delt
         return;
     }
     // (s + eps) exp(d - max d) / sum: the same ratio as without the shift, never overflowing.
-    float dmax = delta[0];
-#pragma omp simd reduction(max : dmax)
-    for (int b = 1; b < B; ++b) dmax = std::max(dmax, delta[b]);
+    const float dmax = row_max(delta, B);
     float total = 0.0f;
 #pragma omp simd reduction(+ : total)
     for (int b = 0; b < B; ++b) {
