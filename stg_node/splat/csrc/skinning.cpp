@@ -382,11 +382,13 @@ namespace {
 // written to nrm before the flip; returns the sign that makes it face the camera from the centre p.
 inline float turned_axis(const float* sc, const float* q, const float* p, const float* camera, float* a,
                          float* nrm) {
-    int k = 0;
-    if (sc[1] < sc[k]) k = 1;
-    if (sc[2] < sc[k]) k = 2;
-    a[0] = a[1] = a[2] = 0.0f;
-    a[k] = 1.0f;
+    // the axis as selects (no indexed store), so the loops over points vectorise
+    const bool k1 = sc[1] < sc[0];
+    const float smallest = k1 ? sc[1] : sc[0];
+    const bool k2 = sc[2] < smallest;
+    a[0] = (!k1 && !k2) ? 1.0f : 0.0f;
+    a[1] = (k1 && !k2) ? 1.0f : 0.0f;
+    a[2] = k2 ? 1.0f : 0.0f;
     const float w = q[0], u[3] = {q[1], q[2], q[3]};
     const float uv[3] = {u[1] * a[2] - u[2] * a[1], u[2] * a[0] - u[0] * a[2], u[0] * a[1] - u[1] * a[0]};
     const float uuv[3] = {u[1] * uv[2] - u[2] * uv[1], u[2] * uv[0] - u[0] * uv[2], u[0] * uv[1] - u[1] * uv[0]};
@@ -400,7 +402,7 @@ inline float turned_axis(const float* sc, const float* q, const float* p, const 
 
 void gaussian_normals(int64_t n, const float* quats, const float* scales, const float* means,
                       const float* camera, float* normals, int threads) {
-#pragma omp parallel for schedule(static) num_threads(threads)
+#pragma omp parallel for simd schedule(static) num_threads(threads)
     for (int64_t i = 0; i < n; ++i) {
         float a[3], nrm[3];
         const float sign = turned_axis(scales + i * 3, quats + i * 4, means + i * 3, camera, a, nrm);
@@ -410,7 +412,7 @@ void gaussian_normals(int64_t n, const float* quats, const float* scales, const 
 
 void gaussian_normals_backward(int64_t n, const float* quats, const float* scales, const float* means,
                                const float* camera, const float* g_normals, float* g_quats, int threads) {
-#pragma omp parallel for schedule(static) num_threads(threads)
+#pragma omp parallel for simd schedule(static) num_threads(threads)
     for (int64_t i = 0; i < n; ++i) {
         float a[3], nrm[3];  // the forward's axis and sign, found again
         const float* q = quats + i * 4;
