@@ -48,6 +48,7 @@ SOURCES = (
     "sphere_occlusion.cpp",
     "distant_shading.cpp",
     "kinematics.cpp",
+    "scale_cap.cpp",
     "splat_bindings.cpp",
 )
 HEADERS = (
@@ -60,6 +61,7 @@ HEADERS = (
     "sphere_occlusion.h",
     "distant_shading.h",
     "kinematics.h",
+    "scale_cap.h",
     "fast_math.h",
 )
 # -ffp-contract=off: the forward and backward passes must compute alpha bit-identically (the

@@ -17,6 +17,7 @@
 #include "edge_loss.h"
 #include "image_filter.h"
 #include "kinematics.h"
+#include "scale_cap.h"
 #include "skinning.h"
 #include "small_mlp.h"
 #include "distant_shading.h"
@@ -601,6 +602,33 @@ at::Tensor sphere_visibility_fwd(const at::Tensor& points, const at::Tensor& nor
     return visible;
 }
 
+// ---- the capped scales and the largest axis (scale_cap.h) ----
+std::tuple<at::Tensor, at::Tensor> scale_row_max(const at::Tensor& x) {
+    const int64_t n = x.size(0);
+    check_cpu_float(x, "x", n, 3);
+    at::Tensor largest = at::empty({n}, x.options()), one_hot = at::empty({n, 3}, x.options());
+    stg_scale::row_max(n, x.data_ptr<float>(), largest.data_ptr<float>(), one_hot.data_ptr<float>());
+    return {largest, one_hot};
+}
+
+at::Tensor scale_capped_fwd(const at::Tensor& s, double ratio) {
+    const int64_t n = s.size(0);
+    check_cpu_float(s, "scales", n, 3);
+    at::Tensor out = at::empty({n, 3}, s.options());
+    stg_scale::capped_forward(n, s.data_ptr<float>(), static_cast<float>(ratio), out.data_ptr<float>());
+    return out;
+}
+
+at::Tensor scale_capped_bwd(const at::Tensor& s, double ratio, const at::Tensor& grad) {
+    const int64_t n = s.size(0);
+    check_cpu_float(s, "scales", n, 3);
+    check_cpu_float(grad, "grad", n, 3);
+    at::Tensor g = at::empty({n, 3}, s.options());
+    stg_scale::capped_backward(n, s.data_ptr<float>(), static_cast<float>(ratio), grad.data_ptr<float>(),
+                               g.data_ptr<float>());
+    return g;
+}
+
 // ---- skeleton kinematics (kinematics.h), float64 ----
 void check_cpu_double(const at::Tensor& t, const char* name, int64_t numel) {
     TORCH_CHECK(t.device().is_cpu() && t.scalar_type() == at::kDouble && t.is_contiguous(), name,
@@ -1165,6 +1193,9 @@ int64_t num_settings() { return stg_splat::kNumSettings; }
 }  // namespace
 
 TORCH_LIBRARY(STG_SPLAT_NS, m) {
+    m.def("scale_row_max(Tensor x) -> (Tensor, Tensor)", &scale_row_max);
+    m.def("scale_capped_fwd(Tensor s, float ratio) -> Tensor", &scale_capped_fwd);
+    m.def("scale_capped_bwd(Tensor s, float ratio, Tensor grad) -> Tensor", &scale_capped_bwd);
     m.def("kin_rodrigues_fwd(Tensor aa) -> Tensor", &kin_rodrigues_fwd);
     m.def("kin_rodrigues_bwd(Tensor aa, Tensor R, Tensor G) -> Tensor", &kin_rodrigues_bwd);
     m.def("kin_bones_fwd(Tensor poses, Tensor rh, Tensor th, Tensor rest, Tensor parents, Tensor big_inv) -> "
