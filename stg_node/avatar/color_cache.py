@@ -184,6 +184,8 @@ class TrainingColorTurns:
             return carried
         fresh = evaluate(sel)
         target = ids[sel]
-        self._colors[target] = fresh.detach().to(self._colors.dtype)
-        self._known[target] = True
+        # index_copy_ / index_fill_: the same writes as an advanced-index assignment (distinct rows),
+        # without index_put's general indexing machinery
+        self._colors.index_copy_(0, target, fresh.detach().to(self._colors.dtype))
+        self._known.index_fill_(0, target, True)
         return _Refreshed.apply(carried, sel, fresh, float(self.every))
