@@ -107,7 +107,10 @@ def test_the_kernel_equals_the_elementwise_composition_bit_for_bit(ratio):
     x = _log_scales(3000, seed=7).float()
     x[200:240] = torch.log(torch.tensor([1.0, 1.0 / ratio, 0.5]))  # an axis exactly at the floor
     weights = torch.randn(x.shape, generator=torch.Generator().manual_seed(8))
-    for fn, w in ((lambda t, k: _CappedScales.apply(t, ratio, k), weights), (_LargestScale.apply, weights[:, 0])):
+    for fn, w in (
+        (lambda t, k: _CappedScales.apply(t, ratio, k), weights),
+        (_LargestScale.apply, weights[:, 0]),
+    ):
         results = []
         for use_kernel in (True, False):
             t = x.clone().requires_grad_(True)

@@ -181,7 +181,9 @@ class _Bones(torch.autograd.Function):
         if ops is not None:
             parents = skeleton.parents.detach().cpu().long().contiguous()
             arrays = [torch.from_numpy(np.ascontiguousarray(a)) for a in (p, rh, th, rest, big_inv)]
-            transforms, quats, *saved = (t.numpy() for t in ops.kin_bones_fwd(*arrays[:4], parents, arrays[4]))
+            transforms, quats, *saved = (
+                t.numpy() for t in ops.kin_bones_fwd(*arrays[:4], parents, arrays[4])
+            )
         else:
             transforms, saved = forward_kinematics(p, rh, th, rest, skeleton.parent_list, big_inv)
             quats = matrix_to_quaternion(transforms[..., :3, :3])

@@ -11,8 +11,9 @@ Where the CPU kernels build, both run in C++ (``csrc/scale_cap.cpp``: one pass o
 way where the elementwise composition below took ~10 torch ops over (N,) columns; the same values
 and gradients to the bit, the exponentials still torch's); the composition runs elsewhere (float64,
 other devices). The torch compositions (``cap_scale_ratio(log_scales.exp(), r)``,
-``log_scales.exp().max(1)``) stay the reference: ``kernels.reference()`` / ``STG_AVATAR_KERNELS=torch`` runs them, and the tests
-compare both in float64, values and gradients, ties included (tests/test_scale_ops.py).
+``log_scales.exp().max(1)``) stay the reference: ``kernels.reference()`` /
+``STG_AVATAR_KERNELS=torch`` runs them, and the tests compare both in float64, values and
+gradients, ties included (tests/test_scale_ops.py).
 """
 
 from __future__ import annotations
