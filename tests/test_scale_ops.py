@@ -95,3 +95,38 @@ def test_no_gradient_in_gives_none_out():
     y = torch.ones((), requires_grad=True)
     (Blocks.apply(capped_scales(x, 10.0)) + Blocks.apply(largest_scale(x)) + y).backward()
     assert x.grad is None
+
+
+@pytest.mark.usefixtures("cpu_kernels")
+@pytest.mark.parametrize("ratio", [1.0, 3.0, 10.0])
+def test_the_kernel_equals_the_elementwise_composition_bit_for_bit(ratio):
+    """csrc/scale_cap.cpp against the torch composition it replaces (float32, ties and floor ties
+    included): the same outputs and gradients to the bit."""
+    from stg_node.avatar.scale_ops import _CappedScales, _LargestScale
+
+    x = _log_scales(3000, seed=7).float()
+    x[200:240] = torch.log(torch.tensor([1.0, 1.0 / ratio, 0.5]))  # an axis exactly at the floor
+    weights = torch.randn(x.shape, generator=torch.Generator().manual_seed(8))
+    for fn, w in (
+        (lambda t, k: _CappedScales.apply(t, ratio, k), weights),
+        (_LargestScale.apply, weights[:, 0]),
+    ):
+        results = []
+        for use_kernel in (True, False):
+            t = x.clone().requires_grad_(True)
+            out = fn(t, use_kernel)
+            (out * w).sum().backward()
+            results.append((out.detach(), t.grad))
+        assert torch.equal(results[0][0], results[1][0])
+        assert torch.equal(results[0][1], results[1][1])
+
+
+@pytest.mark.usefixtures("cpu_kernels")
+def test_the_kernel_propagates_nan_as_torch_maximum():
+    from stg_node.avatar.scale_ops import _CappedScales, _LargestScale
+
+    x = torch.tensor([[0.0, float("nan"), -1.0], [-1.0, -2.0, -3.0]])
+    for use_kernel in (True, False):
+        capped = _CappedScales.apply(x, 3.0, use_kernel)
+        assert capped[0].isnan().all() and not capped[1].isnan().any()
+        assert _LargestScale.apply(x, use_kernel)[0].isnan()

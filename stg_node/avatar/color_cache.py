@@ -81,18 +81,22 @@ class ColorCache:
         return self._colors[ids]
 
 
-class _ScaledGradient(torch.autograd.Function):
-    """``x`` itself, its gradient times ``scale``: one node where ``x + (s - 1) (x - x.detach())``
-    makes three (the same value and, for s = 3, the same gradient to the bit)."""
+class _Refreshed(torch.autograd.Function):
+    """``carried`` (no graph) with its rows ``sel`` replaced by ``fresh``, whose gradient is ``scale``
+    times theirs: one node where an out-of-place ``index_put`` of ``fresh`` behind a gradient-scaling
+    node made two (and ``index_put``'s backward built a masked copy of the whole gradient for the
+    carried rows, which take none). The same values and gradient to the bit."""
 
     @staticmethod
-    def forward(ctx, x, scale):
+    def forward(ctx, carried, sel, fresh, scale):
+        ctx.save_for_backward(sel)
         ctx.scale = scale
-        return x.view_as(x)
+        return carried.index_copy(0, sel, fresh)
 
     @staticmethod
     def backward(ctx, grad):
-        return grad * ctx.scale, None
+        (sel,) = ctx.saved_tensors
+        return None, None, grad.index_select(0, sel) * ctx.scale, None
 
 
 class TrainingColorTurns:
@@ -180,6 +184,8 @@ class TrainingColorTurns:
             return carried
         fresh = evaluate(sel)
         target = ids[sel]
-        self._colors[target] = fresh.detach().to(self._colors.dtype)
-        self._known[target] = True
-        return carried.index_put((sel,), _ScaledGradient.apply(fresh, float(self.every)))
+        # index_copy_ / index_fill_: the same writes as an advanced-index assignment (distinct rows),
+        # without index_put's general indexing machinery
+        self._colors.index_copy_(0, target, fresh.detach().to(self._colors.dtype))
+        self._known.index_fill_(0, target, True)
+        return _Refreshed.apply(carried, sel, fresh, float(self.every))

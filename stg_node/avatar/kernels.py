@@ -5,8 +5,9 @@ each have a fused CPU kernel with a hand-written backward (``stg_node.splat.skin
 ``stg_node.splat.mlp_ops``, ``stg_node.splat.edge_ops``; the skinning kernel also carries the
 flow loss's next frame, and ``skin_ops`` holds the shading normals and the flow target's image
 motion with their backward passes), the occlusion term's visibility (:mod:`occlusion`, no
-gradient) a forward-only one, the bones' kinematics with a gradient (:mod:`kinematics`) a numpy
-pass with a hand-written backward (so is the colour MLP's pose code with a gradient), the
+gradient) a forward-only one, the bones' kinematics with a gradient (:mod:`kinematics`) a float64
+C++ pass with a hand-written backward, numpy its reference (so is the colour MLP's pose code with a
+gradient), the
 capped scales (:mod:`scale_ops`) and the distant lights' irradiance (:mod:`light_ops`) single
 autograd nodes with their backward written out in torch, and each a torch
 implementation, which is the reference the kernels are tested against and what runs on other

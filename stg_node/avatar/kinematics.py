@@ -17,13 +17,45 @@ already uses, and the backward is the chain rule written out over the 24 joints:
   Jacobian J_l (its small-angle series near zero, like lbs.axis_angle_to_matrix).
 
 The torch path (``rigid.Skeleton.bones`` under ``kernels.reference()``) is the oracle it is tested
-against in float64.
+against in float64. Where the CPU kernels build, the same maths runs in one C++ pass
+(``csrc/kinematics.cpp``, float64): numpy's per-call overhead on a few hundred operations on 4x4
+matrices was ~1.4 ms of a training step; the numpy functions here are its reference
+(:func:`numpy_reference` switches the kernel off, for the tests).
 """
 
 from __future__ import annotations
 
+import contextlib
+import threading
+
 import numpy as np
 import torch
+
+_local = threading.local()
+
+
+@contextlib.contextmanager
+def numpy_reference():
+    """Run the numpy kinematics (the C++ kernel's reference) inside this block, in this thread."""
+    previous = getattr(_local, "numpy", False)
+    _local.numpy = True
+    try:
+        yield
+    finally:
+        _local.numpy = previous
+
+
+def _kernel_ops():
+    """The CPU kernels' operators for the kinematics, or None (not built here, or numpy asked for)."""
+    if getattr(_local, "numpy", False):
+        return None
+    from stg_node.splat.build import load_kernels
+    from stg_node.splat.types import BackendUnavailable
+
+    try:
+        return load_kernels().ops
+    except BackendUnavailable:
+        return None
 
 
 def as_float64(t: torch.Tensor) -> np.ndarray:
@@ -145,20 +177,40 @@ class _Bones(torch.autograd.Function):
         big_inv = as_float64(skeleton.big_pose_inverse)
         p = as_float64(poses).reshape(batch, 24, 3)
         rh, th = as_float64(Rh).reshape(batch, 3), as_float64(Th).reshape(batch, 3)
-        transforms, saved = forward_kinematics(p, rh, th, rest, skeleton.parent_list, big_inv)
-        quats = matrix_to_quaternion(transforms[..., :3, :3])
-        quats = quats * hemisphere_signs(quats, skeleton.parent_list)
+        ops = _kernel_ops()
+        if ops is not None:
+            parents = skeleton.parents.detach().cpu().long().contiguous()
+            arrays = [torch.from_numpy(np.ascontiguousarray(a)) for a in (p, rh, th, rest, big_inv)]
+            transforms, quats, *saved = (
+                t.numpy() for t in ops.kin_bones_fwd(*arrays[:4], parents, arrays[4])
+            )
+        else:
+            transforms, saved = forward_kinematics(p, rh, th, rest, skeleton.parent_list, big_inv)
+            quats = matrix_to_quaternion(transforms[..., :3, :3])
+            quats = quats * hemisphere_signs(quats, skeleton.parent_list)
         dtype = torch.promote_types(skeleton.rest_joints.dtype, poses.dtype)
         out = torch.as_tensor(transforms, device=poses.device).to(dtype)
         out_quats = torch.as_tensor(quats, device=poses.device).to(dtype)
         ctx.fk = (p, rh, rest, big_inv, skeleton.parent_list, transforms, quats, *saved)
         ctx.shapes = (poses.shape, Rh.shape, Th.shape, poses.dtype)
+        ctx.ops = ops
         return out, out_quats
 
     @staticmethod
     def backward(ctx, g_transforms, g_quats):
         p, rh, rest, big_inv, parents, transforms, quats, local, world, bone, root = ctx.fk
         batch, joints = p.shape[:2]
+        if ctx.ops is not None:
+            empty = torch.empty(0, dtype=torch.float64)
+            g_t = empty if g_transforms is None else g_transforms.detach().cpu().double().contiguous()
+            g_q = empty if g_quats is None else g_quats.detach().cpu().double().contiguous()
+            saved = [torch.from_numpy(a) for a in (p, rh, rest)]
+            matrices = [torch.from_numpy(a) for a in (big_inv, transforms, quats, local, world, bone, root)]
+            parent_rows = torch.as_tensor(parents, dtype=torch.long)
+            g_poses, g_rh, g_th = (
+                t.numpy() for t in ctx.ops.kin_bones_bwd(*saved, parent_rows, *matrices, g_t, g_q)
+            )
+            return _bones_grads(ctx, g_transforms, g_quats, g_poses, g_rh, g_th)
         G = np.zeros((batch, joints, 4, 4)) if g_transforms is None else as_float64(g_transforms).copy()
         G[..., 3, :] = 0.0  # the constant bottom row
         if g_quats is not None:  # dL/dq as a gradient of the rotation (module docstring)
@@ -183,33 +235,47 @@ class _Bones(torch.autograd.Function):
         g_poses = _left_jacobian_t_times(p, _rotation_grad(g_local[..., :3, :3], local[..., :3, :3]))
         g_rh = _left_jacobian_t_times(rh, _rotation_grad(g_root[:, :3, :3], root[:, :3, :3]))
         g_th = g_root[:, :3, 3]
-        poses_shape, rh_shape, th_shape, dtype = ctx.shapes
-        need = ctx.needs_input_grad
-        device = g_quats.device if g_quats is not None else g_transforms.device
+        return _bones_grads(ctx, g_transforms, g_quats, g_poses, g_rh, g_th)
 
-        def out(a, shape, wanted):
-            return torch.as_tensor(a, device=device).to(dtype).reshape(shape) if wanted else None
 
-        return (
-            out(g_poses, poses_shape, need[0]),
-            out(g_rh, rh_shape, need[1]),
-            out(g_th, th_shape, need[2]),
-            None,
-        )
+def _bones_grads(ctx, g_transforms, g_quats, g_poses, g_rh, g_th):
+    """_Bones.backward's return: the float64 gradients in the inputs' shapes, dtype and device."""
+    poses_shape, rh_shape, th_shape, dtype = ctx.shapes
+    need = ctx.needs_input_grad
+    device = g_quats.device if g_quats is not None else g_transforms.device
+
+    def out(a, shape, wanted):
+        return torch.as_tensor(a, device=device).to(dtype).reshape(shape) if wanted else None
+
+    return (
+        out(g_poses, poses_shape, need[0]),
+        out(g_rh, rh_shape, need[1]),
+        out(g_th, th_shape, need[2]),
+        None,
+    )
 
 
 class _PoseKey(torch.autograd.Function):
     @staticmethod
     def forward(ctx, axis_angles):
         p = as_float64(axis_angles)
-        rotations = rodrigues(p)
-        ctx.saved = (p, rotations, axis_angles.shape, axis_angles.dtype)
+        ops = _kernel_ops()
+        if ops is not None:
+            p = np.ascontiguousarray(p)
+            rotations = ops.kin_rodrigues_fwd(torch.from_numpy(p)).numpy().reshape(p.shape + (3,))
+        else:
+            rotations = rodrigues(p)
+        ctx.saved = (p, rotations, axis_angles.shape, axis_angles.dtype, ops)
         return torch.as_tensor(rotations, device=axis_angles.device).to(axis_angles.dtype)
 
     @staticmethod
     def backward(ctx, grad):
-        p, rotations, shape, dtype = ctx.saved
-        g = _left_jacobian_t_times(p, _rotation_grad(as_float64(grad), rotations))
+        p, rotations, shape, dtype, ops = ctx.saved
+        if ops is not None:
+            g64 = torch.from_numpy(np.ascontiguousarray(as_float64(grad)))
+            g = ops.kin_rodrigues_bwd(torch.from_numpy(p), torch.from_numpy(rotations), g64).numpy()
+        else:
+            g = _left_jacobian_t_times(p, _rotation_grad(as_float64(grad), rotations))
         return torch.as_tensor(g, device=grad.device).to(dtype).reshape(shape)
 
 

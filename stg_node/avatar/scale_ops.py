@@ -7,9 +7,13 @@ of torch's slowest shapes on a CPU: ~0.13 ms at 20k rows), a broadcast ``maximum
 autograd nodes: about 1.2 ms a step forward and backward at 20k Gaussians. Here each is one
 autograd node whose row maximum runs over the three columns elementwise.
 
-The torch compositions (``cap_scale_ratio(log_scales.exp(), r)``, ``log_scales.exp().max(1)``)
-stay the reference: ``kernels.reference()`` / ``STG_AVATAR_KERNELS=torch`` runs them, and the tests
-compare both in float64, values and gradients, ties included (tests/test_scale_ops.py).
+Where the CPU kernels build, both run in C++ (``csrc/scale_cap.cpp``: one pass over the rows each
+way where the elementwise composition below took ~10 torch ops over (N,) columns; the same values
+and gradients to the bit, the exponentials still torch's); the composition runs elsewhere (float64,
+other devices). The torch compositions (``cap_scale_ratio(log_scales.exp(), r)``,
+``log_scales.exp().max(1)``) stay the reference: ``kernels.reference()`` /
+``STG_AVATAR_KERNELS=torch`` runs them, and the tests compare both in float64, values and
+gradients, ties included (tests/test_scale_ops.py).
 """
 
 from __future__ import annotations
@@ -39,21 +43,37 @@ def _row_sum(x: torch.Tensor) -> torch.Tensor:
     return a + b + c
 
 
+def _ops(use_kernel: bool):
+    """The CPU kernels' operators when ``use_kernel`` (the caller checked kernels.use_kernels)."""
+    if not use_kernel:
+        return None
+    from stg_node.splat.build import load_kernels
+
+    return load_kernels().ops
+
+
 class _CappedScales(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, log_scales: torch.Tensor, max_ratio: float) -> torch.Tensor:
+    def forward(ctx, log_scales: torch.Tensor, max_ratio: float, use_kernel: bool = False) -> torch.Tensor:
         ctx.set_materialize_grads(False)  # no gradient in: none out (as torch's own nodes)
         scales = log_scales.exp()
+        ctx.max_ratio = max_ratio
+        ctx.ops = _ops(use_kernel)
+        if ctx.ops is not None:  # csrc/scale_cap.cpp: the composition below in one pass each way
+            ctx.save_for_backward(scales)
+            return ctx.ops.scale_capped_fwd(scales.contiguous(), max_ratio)
         largest, one_hot = _row_max(scales)
         floor = (largest / max_ratio)[:, None]
-        ctx.max_ratio = max_ratio
         ctx.save_for_backward(scales, floor, one_hot)
         return torch.maximum(scales, floor)
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor | None):
         if grad is None:
-            return None, None
+            return None, None, None
+        if ctx.ops is not None:
+            (scales,) = ctx.saved_tensors
+            return ctx.ops.scale_capped_bwd(scales, ctx.max_ratio, grad.contiguous()), None, None
         scales, floor, one_hot = ctx.saved_tensors
         # torch.maximum's split: the axis where it is above the floor, the floor where below, half
         # each on a tie; the floor's share goes to the largest axis through the division.
@@ -63,14 +83,15 @@ class _CappedScales(torch.autograd.Function):
             own += 0.5 * tie.to(grad.dtype)
         to_axis = grad * own
         to_floor = _row_sum(grad - to_axis) / ctx.max_ratio
-        return to_axis.addcmul_(one_hot, to_floor[:, None]).mul_(scales), None
+        return to_axis.addcmul_(one_hot, to_floor[:, None]).mul_(scales), None, None
 
 
 class _LargestScale(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, log_scales: torch.Tensor) -> torch.Tensor:
+    def forward(ctx, log_scales: torch.Tensor, use_kernel: bool = False) -> torch.Tensor:
         ctx.set_materialize_grads(False)  # no gradient in: none out (as torch's own nodes)
-        largest_log, one_hot = _row_max(log_scales)
+        ops = _ops(use_kernel)
+        largest_log, one_hot = ops.scale_row_max(log_scales.contiguous()) if ops else _row_max(log_scales)
         largest = largest_log.exp()  # exp is increasing: the same element as the max of exp
         ctx.save_for_backward(largest, one_hot)
         return largest
@@ -78,9 +99,9 @@ class _LargestScale(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad: torch.Tensor | None):
         if grad is None:
-            return None
+            return None, None
         largest, one_hot = ctx.saved_tensors
-        return one_hot * (grad * largest)[:, None]
+        return one_hot * (grad * largest)[:, None], None
 
 
 def _reference(*tensors: torch.Tensor) -> bool:
@@ -91,11 +112,11 @@ def capped_scales(log_scales: torch.Tensor, max_ratio: float) -> torch.Tensor:
     """(N, 3) ``cap_scale_ratio(exp(log_scales), max_ratio)`` as one autograd node."""
     if max_ratio <= 0 or _reference(log_scales):
         return cap_scale_ratio(log_scales.exp(), max_ratio)
-    return _CappedScales.apply(log_scales, float(max_ratio))
+    return _CappedScales.apply(log_scales, float(max_ratio), kernels.use_kernels(log_scales))
 
 
 def largest_scale(log_scales: torch.Tensor) -> torch.Tensor:
     """(N,) each row's largest axis, ``exp(log_scales).max(1).values``, as one autograd node."""
     if _reference(log_scales):
         return log_scales.exp().max(dim=1).values
-    return _LargestScale.apply(log_scales)
+    return _LargestScale.apply(log_scales, kernels.use_kernels(log_scales))

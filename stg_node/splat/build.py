@@ -47,6 +47,8 @@ SOURCES = (
     "small_mlp.cpp",
     "sphere_occlusion.cpp",
     "distant_shading.cpp",
+    "kinematics.cpp",
+    "scale_cap.cpp",
     "splat_bindings.cpp",
 )
 HEADERS = (
@@ -58,6 +60,8 @@ HEADERS = (
     "small_mlp.h",
     "sphere_occlusion.h",
     "distant_shading.h",
+    "kinematics.h",
+    "scale_cap.h",
     "fast_math.h",
 )
 # -ffp-contract=off: the forward and backward passes must compute alpha bit-identically (the

@@ -227,6 +227,19 @@ def test_the_kernel_equals_the_torch_reference_in_float64(cpu_kernels, spheres):
     assert torch.equal(two, got)  # threads split the points, never a point's product
 
 
+@pytest.mark.parametrize("points", [601, 600])  # an odd point out of the pairs, and none
+def test_the_avx512_pairs_equal_the_eight_lane_points_bit_for_bit(cpu_kernels, points, monkeypatch):
+    """On an AVX-512 CPU the kernel takes two points per 16-lane vector (sphere_occlusion.cpp,
+    visibility_pair); STG_SPLAT_NO_AVX512 keeps one point per 8 lanes: the same visibility to the bit
+    (on other CPUs both runs take the 8-lane path)."""
+    p, n, c, r, mask, group = _random_spheres(71, points, 12, 9)
+    args = (p.float(), n.float(), group, c.float(), r.square().float(), mask.float(), 1)
+    monkeypatch.setenv("STG_SPLAT_NO_AVX512", "1")
+    narrow = cpu_kernels.ops.sphere_visibility(*args)
+    monkeypatch.setenv("STG_SPLAT_NO_AVX512", "0")
+    assert torch.equal(cpu_kernels.ops.sphere_visibility(*args), narrow)
+
+
 def test_body_occlusion_takes_the_kernel_and_agrees_with_its_reference(cpu_kernels):
     """BodyOcclusion.visibility: float32 CPU tensors go to the kernel, the same call under
     ``kernels.reference()`` (and in float64) to torch; posed spheres, own and neighbouring bones left out."""

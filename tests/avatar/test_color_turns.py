@@ -60,6 +60,26 @@ def test_a_step_evaluates_its_turn_of_the_rows_and_carries_the_others():
     torch.testing.assert_close(later[[4, 7]], fresh[due].detach(), rtol=0, atol=0)
 
 
+def test_the_refreshed_rows_node_is_index_put_behind_a_scaled_gradient_to_the_bit():
+    """color_cache._Refreshed against the composition it replaced: an out-of-place index_put of
+    the fresh rows whose gradient is scaled (x + (s - 1)(x - x.detach()) for the scaling)."""
+    from stg_node.avatar.color_cache import _Refreshed
+
+    gen = torch.Generator().manual_seed(2)
+    carried = torch.rand(500, 3, generator=gen)
+    sel = torch.randperm(500, generator=gen)[:170]
+    x = torch.rand(170, 3, generator=gen)
+    g = torch.randn(500, 3, generator=gen)
+    got_x, want_x = x.clone().requires_grad_(True), x.clone().requires_grad_(True)
+    got = _Refreshed.apply(carried, sel, got_x, 3.0)
+    want = carried.index_put((sel,), want_x + 2.0 * (want_x - want_x.detach()))
+    assert torch.equal(got, want)
+    (got * g).sum().backward()
+    (want * g).sum().backward()
+    assert torch.equal(got_x.grad, want_x.grad)
+    assert not torch.equal(got_x.grad, g[sel])  # the scale is there
+
+
 def test_changed_rows_or_a_reset_start_a_full_evaluation_and_every_1_is_the_exact_network():
     inputs = torch.randn(8, 4)
     weights = torch.randn(4, 3)

@@ -21,6 +21,25 @@ namespace {
 
 constexpr int kFlushEvery = 256;  // points between float -> double flushes of the bone gradients
 
+// max_b x[b] over b < B >= 1, eight lanes at a time (a maximum is exact in any order; the compiler
+// left the reduction scalar, a chain of B dependent maxima per point).
+inline float row_max(const float* x, int B) {
+    using stg_math::v8f;
+    float m = x[0];
+    int b = 1;
+    if (B >= 8) {
+        v8f v = stg_math::v8_load(x);
+        for (b = 8; b + 8 <= B; b += 8) {
+            const v8f y = stg_math::v8_load(x + b);
+            v = v < y ? y : v;
+        }
+        m = v[0];
+        for (int l = 1; l < 8; ++l) m = m < v[l] ? v[l] : m;
+    }
+    for (; b < B; ++b) m = m < x[b] ? x[b] : m;
+    return m;
+}
+
 // Effective weights of one point into w (B floats); returns nothing, never divides by zero
 // (the body's weights plus eps are positive).
 inline void point_weights(const SkinShape& s, const float* sw, const float* delta, float* w) {
@@ -30,9 +49,7 @@ inline void point_weights(const SkinShape& s, const float* sw, const float* delt
         return;
     }
     // (s + eps) exp(d - max d) / sum: the same ratio as without the shift, never overflowing.
-    float dmax = delta[0];
-#pragma omp simd reduction(max : dmax)
-    for (int b = 1; b < B; ++b) dmax = std::max(dmax, delta[b]);
+    const float dmax = row_max(delta, B);
     float total = 0.0f;
 #pragma omp simd reduction(+ : total)
     for (int b = 0; b < B; ++b) {
@@ -70,6 +87,48 @@ inline void blend_bones(int B, const float* w, const float* bones, float* blend)
     }
     stg_math::v8_store(blend, (acc[0][0] + acc[1][0]) + (acc[2][0] + acc[3][0]));
     stg_math::v8_store(blend + 8, (acc[0][1] + acc[1][1]) + (acc[2][1] + acc[3][1]));
+}
+
+// gw[b] (+)= sum_k g[k] cols[k * B + b] over k < K for every b < B, in k order per b with fused
+// multiply-adds (the same values as an axpy over b per k), the sums held in registers for up to 32
+// bones at a time: an axpy per k through memory waits on a store-to-load forward per k.
+template <int NV>
+inline void weight_grads_block(int B, int K, const float* g, const float* cols, float* gw, bool accumulate) {
+    using stg_math::v8_load;
+    using stg_math::v8_madd;
+    using stg_math::v8_splat;
+    using stg_math::v8f;
+    v8f acc[NV];
+    for (int v = 0; v < NV; ++v) acc[v] = accumulate ? v8_load(gw + 8 * v) : v8_splat(0.0f);
+    for (int k = 0; k < K; ++k) {
+        const v8f gk = v8_splat(g[k]);
+        const float* col = cols + static_cast<int64_t>(k) * B;
+        for (int v = 0; v < NV; ++v) acc[v] = v8_madd(gk, v8_load(col + 8 * v), acc[v]);
+    }
+    for (int v = 0; v < NV; ++v) stg_math::v8_store(gw + 8 * v, acc[v]);
+}
+
+inline void weight_grads(int B, int K, const float* g, const float* cols, float* gw, bool accumulate) {
+    int b = 0;
+    for (; b + 32 <= B; b += 32) weight_grads_block<4>(B, K, g, cols + b, gw + b, accumulate);
+    switch ((B - b) / 8) {
+        case 3:
+            weight_grads_block<3>(B, K, g, cols + b, gw + b, accumulate);
+            break;
+        case 2:
+            weight_grads_block<2>(B, K, g, cols + b, gw + b, accumulate);
+            break;
+        case 1:
+            weight_grads_block<1>(B, K, g, cols + b, gw + b, accumulate);
+            break;
+        default:
+            break;
+    }
+    for (b += (B - b) / 8 * 8; b < B; ++b) {
+        float a = accumulate ? gw[b] : 0.0f;
+        for (int k = 0; k < K; ++k) a = STG_MADD(g[k], cols[static_cast<int64_t>(k) * B + b], a);
+        gw[b] = a;
+    }
 }
 
 inline float norm4(const float* q) {
@@ -254,15 +313,7 @@ void skin_backward(const SkinShape& s, const float* means, const float* weights,
                 }
             }
             // dL/dw_b = <bones[b], g16> (only the correction takes it); dL/dbones[b] += w_b g16
-            if (s.has_delta) {
-                std::fill(gw.begin(), gw.end(), 0.0f);
-                for (int k = 0; k < kBoneStride; ++k) {
-                    const float gk = g16[k];
-                    const float* col = bones_t.data() + static_cast<size_t>(k) * B;
-#pragma omp simd
-                    for (int b = 0; b < B; ++b) gw[b] = STG_MADD(gk, col[b], gw[b]);
-                }
-            }
+            if (s.has_delta) weight_grads(B, kBoneStride, g16, bones_t.data(), gw.data(), false);
             if (s.bone_grads) {
                 for (int b = 0; b < B; ++b) {
                     const float wb = w[b];
@@ -289,14 +340,8 @@ void skin_backward(const SkinShape& s, const float* means, const float* weights,
                     h16[r * 4 + 2] = gp2[r] * x2[2];
                     h16[r * 4 + 3] = gp2[r];
                 }
-                if (s.has_delta) {
-                    for (int k = 0; k < 12; ++k) {
-                        const float hk = h16[k];
-                        const float* col = bones_t.data() + static_cast<size_t>(kBoneStride + k) * B;
-#pragma omp simd
-                        for (int b = 0; b < B; ++b) gw[b] = STG_MADD(hk, col[b], gw[b]);
-                    }
-                }
+                if (s.has_delta)
+                    weight_grads(B, 12, h16, bones_t.data() + static_cast<size_t>(kBoneStride) * B, gw.data(), true);
                 if (s.next_bone_grads) {
                     for (int b = 0; b < B; ++b) {
                         const float wb = w[b];
@@ -337,11 +382,13 @@ namespace {
 // written to nrm before the flip; returns the sign that makes it face the camera from the centre p.
 inline float turned_axis(const float* sc, const float* q, const float* p, const float* camera, float* a,
                          float* nrm) {
-    int k = 0;
-    if (sc[1] < sc[k]) k = 1;
-    if (sc[2] < sc[k]) k = 2;
-    a[0] = a[1] = a[2] = 0.0f;
-    a[k] = 1.0f;
+    // the axis as selects (no indexed store), so the loops over points vectorise
+    const bool k1 = sc[1] < sc[0];
+    const float smallest = k1 ? sc[1] : sc[0];
+    const bool k2 = sc[2] < smallest;
+    a[0] = (!k1 && !k2) ? 1.0f : 0.0f;
+    a[1] = (k1 && !k2) ? 1.0f : 0.0f;
+    a[2] = k2 ? 1.0f : 0.0f;
     const float w = q[0], u[3] = {q[1], q[2], q[3]};
     const float uv[3] = {u[1] * a[2] - u[2] * a[1], u[2] * a[0] - u[0] * a[2], u[0] * a[1] - u[1] * a[0]};
     const float uuv[3] = {u[1] * uv[2] - u[2] * uv[1], u[2] * uv[0] - u[0] * uv[2], u[0] * uv[1] - u[1] * uv[0]};
@@ -355,7 +402,7 @@ inline float turned_axis(const float* sc, const float* q, const float* p, const 
 
 void gaussian_normals(int64_t n, const float* quats, const float* scales, const float* means,
                       const float* camera, float* normals, int threads) {
-#pragma omp parallel for schedule(static) num_threads(threads)
+#pragma omp parallel for simd schedule(static) num_threads(threads)
     for (int64_t i = 0; i < n; ++i) {
         float a[3], nrm[3];
         const float sign = turned_axis(scales + i * 3, quats + i * 4, means + i * 3, camera, a, nrm);
@@ -365,7 +412,7 @@ void gaussian_normals(int64_t n, const float* quats, const float* scales, const 
 
 void gaussian_normals_backward(int64_t n, const float* quats, const float* scales, const float* means,
                                const float* camera, const float* g_normals, float* g_quats, int threads) {
-#pragma omp parallel for schedule(static) num_threads(threads)
+#pragma omp parallel for simd schedule(static) num_threads(threads)
     for (int64_t i = 0; i < n; ++i) {
         float a[3], nrm[3];  // the forward's axis and sign, found again
         const float* q = quats + i * 4;

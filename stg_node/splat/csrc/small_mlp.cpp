@@ -14,6 +14,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdlib>
 #include <cstring>
 #include <vector>
 
@@ -31,9 +32,9 @@ using stg_math::v8f;
 constexpr int kBlock = 64;  // rows per block
 constexpr float kPi = 3.14159265358979323846f;
 
-// C[RT x 8CT] (+)= A[RT x K] B[K x 8CT], strides in floats.
+// C[RT x 8CT] (+)= A[RT x K] B[K x 8CT], strides in floats (A's entry (r, k) at r lda + k ka).
 template <int RT, int CT>
-inline void gemm_tile(int K, const float* A, int64_t lda, const float* B, int64_t ldb, float* C,
+inline void gemm_tile(int K, const float* A, int64_t lda, int64_t ka, const float* B, int64_t ldb, float* C,
                       int64_t ldc, bool accumulate) {
     v8f c[RT][CT];
     for (int r = 0; r < RT; ++r)
@@ -42,7 +43,7 @@ inline void gemm_tile(int K, const float* A, int64_t lda, const float* B, int64_
         v8f b[CT];
         for (int t = 0; t < CT; ++t) b[t] = v8_load(B + k * ldb + t * 8);
         for (int r = 0; r < RT; ++r) {
-            const v8f a = v8_splat(A[r * lda + k]);
+            const v8f a = v8_splat(A[r * lda + k * ka]);
             for (int t = 0; t < CT; ++t) c[r][t] = v8_madd(a, b[t], c[r][t]);
         }
     }
@@ -50,21 +51,97 @@ inline void gemm_tile(int K, const float* A, int64_t lda, const float* B, int64_
         for (int t = 0; t < CT; ++t) v8_store(C + r * ldc + t * 8, c[r][t]);
 }
 
-// C[m x nc] (+)= A[m x K] B[K x nc] with nc a multiple of 8.
-void gemm(int m, int nc, int K, const float* A, int64_t lda, const float* B, int64_t ldb, float* C,
-          int64_t ldc, bool accumulate) {
+#if defined(__x86_64__) && defined(__GNUC__) && defined(__FMA__)
+// The same products on 16-lane AVX-512 vectors, for CPUs that have them (chosen at run time, see
+// wide_vectors(): the build stays portable). Each output column still sums its K products in the
+// same order with the same fused multiply-adds, so the result equals the 8-lane path's bit for bit;
+// what changes is how many columns one instruction carries (a 64-wide layer is one row of 4 vectors).
+#define STG_MLP_WIDE 1
+#define STG_WIDE_TARGET __attribute__((target("avx512f")))
+
+template <int RT, int CT>
+STG_WIDE_TARGET inline void gemm_tile16(int K, const float* A, int64_t lda, int64_t ka, const float* B, int64_t ldb, float* C,
+                                        int64_t ldc, bool accumulate) {
+    __m512 c[RT][CT];
+    for (int r = 0; r < RT; ++r)
+        for (int t = 0; t < CT; ++t) c[r][t] = accumulate ? _mm512_loadu_ps(C + r * ldc + t * 16) : _mm512_setzero_ps();
+    for (int k = 0; k < K; ++k) {
+        __m512 b[CT];
+        for (int t = 0; t < CT; ++t) b[t] = _mm512_loadu_ps(B + k * ldb + t * 16);
+        for (int r = 0; r < RT; ++r) {
+            const __m512 a = _mm512_set1_ps(A[r * lda + k * ka]);
+            for (int t = 0; t < CT; ++t) c[r][t] = _mm512_fmadd_ps(a, b[t], c[r][t]);
+        }
+    }
+    for (int r = 0; r < RT; ++r)
+        for (int t = 0; t < CT; ++t) _mm512_storeu_ps(C + r * ldc + t * 16, c[r][t]);
+}
+
+template <int RT>
+STG_WIDE_TARGET inline void gemm_rows16(int nc, int K, const float* A, int64_t lda, int64_t ka, const float* B, int64_t ldb,
+                                        float* C, int64_t ldc, bool accumulate) {
+    int j = 0;
+    for (; j + 64 <= nc; j += 64) gemm_tile16<RT, 4>(K, A, lda, ka, B + j, ldb, C + j, ldc, accumulate);
+    switch ((nc - j) / 16) {
+        case 3:
+            gemm_tile16<RT, 3>(K, A, lda, ka, B + j, ldb, C + j, ldc, accumulate);
+            break;
+        case 2:
+            gemm_tile16<RT, 2>(K, A, lda, ka, B + j, ldb, C + j, ldc, accumulate);
+            break;
+        case 1:
+            gemm_tile16<RT, 1>(K, A, lda, ka, B + j, ldb, C + j, ldc, accumulate);
+            break;
+        default:
+            break;
+    }
+}
+
+// C[m x nc] (+)= A[m x K] B[K x nc] with nc a multiple of 16.
+STG_WIDE_TARGET void gemm16(int m, int nc, int K, const float* A, int64_t lda, int64_t ka, const float* B, int64_t ldb, float* C,
+                            int64_t ldc, bool accumulate) {
+    int i = 0;
+    for (; i + 4 <= m; i += 4) gemm_rows16<4>(nc, K, A + i * lda, lda, ka, B, ldb, C + i * ldc, ldc, accumulate);
+    for (; i < m; ++i) gemm_rows16<1>(nc, K, A + i * lda, lda, ka, B, ldb, C + i * ldc, ldc, accumulate);
+}
+#endif
+
+// Whether the products run on 16-lane vectors: the CPU (and its OS) has AVX-512F and
+// STG_SPLAT_NO_AVX512 is not set (the switch the tests use to compare the two paths).
+bool wide_vectors() {
+#ifdef STG_MLP_WIDE
+    static const bool cpu = __builtin_cpu_supports("avx512f");
+    if (!cpu) return false;
+    const char* off = std::getenv("STG_SPLAT_NO_AVX512");
+    return off == nullptr || off[0] == '\0' || off[0] == '0';
+#else
+    return false;
+#endif
+}
+
+// C[m x nc] (+)= A[m x K] B[K x nc] with nc a multiple of 8; `wide`: wide_vectors().
+void gemm(int m, int nc, int K, const float* A, int64_t lda, int64_t ka, const float* B, int64_t ldb, float* C,
+          int64_t ldc, bool accumulate, bool wide) {
+#ifdef STG_MLP_WIDE
+    if (wide && nc % 16 == 0) {
+        gemm16(m, nc, K, A, lda, ka, B, ldb, C, ldc, accumulate);
+        return;
+    }
+#else
+    (void)wide;
+#endif
     int i = 0;
     for (; i + 4 <= m; i += 4) {
         int j = 0;
         for (; j + 16 <= nc; j += 16)
-            gemm_tile<4, 2>(K, A + i * lda, lda, B + j, ldb, C + i * ldc + j, ldc, accumulate);
-        for (; j < nc; j += 8) gemm_tile<4, 1>(K, A + i * lda, lda, B + j, ldb, C + i * ldc + j, ldc, accumulate);
+            gemm_tile<4, 2>(K, A + i * lda, lda, ka, B + j, ldb, C + i * ldc + j, ldc, accumulate);
+        for (; j < nc; j += 8) gemm_tile<4, 1>(K, A + i * lda, lda, ka, B + j, ldb, C + i * ldc + j, ldc, accumulate);
     }
     for (; i < m; ++i) {
         int j = 0;
         for (; j + 16 <= nc; j += 16)
-            gemm_tile<1, 2>(K, A + i * lda, lda, B + j, ldb, C + i * ldc + j, ldc, accumulate);
-        for (; j < nc; j += 8) gemm_tile<1, 1>(K, A + i * lda, lda, B + j, ldb, C + i * ldc + j, ldc, accumulate);
+            gemm_tile<1, 2>(K, A + i * lda, lda, ka, B + j, ldb, C + i * ldc + j, ldc, accumulate);
+        for (; j < nc; j += 8) gemm_tile<1, 1>(K, A + i * lda, lda, ka, B + j, ldb, C + i * ldc + j, ldc, accumulate);
     }
 }
 
@@ -342,6 +419,7 @@ void mlp_forward(const MlpShape& s, const RawRows& x, const float* const* weight
                  const float* const* biases, float* out, float* const* hidden) {
     const int L = s.layers;
     const PaddedWeights p = pad_weights(s, weights, biases, true, false);
+    const bool wide = wide_vectors();
     const int64_t blocks = (s.rows + kBlock - 1) / kBlock;
     int widest = 0;
     for (int l = 1; l <= L; ++l) widest = std::max(widest, padded(s.dims[l]));
@@ -374,7 +452,7 @@ void mlp_forward(const MlpShape& s, const RawRows& x, const float* const* weight
                 } else {
                     y = (l % 2 == 0) ? buf0.data() : buf1.data();
                 }
-                gemm(rows, ld, s.dims[l], in, ld_in, p.wt[l].data(), ld, y, ld, false);
+                gemm(rows, ld, s.dims[l], in, ld_in, 1, p.wt[l].data(), ld, y, ld, false, wide);
                 bias_activation(rows, dout, ld, p.bias[l].data(), s.acts[l], y);
                 in = y;
                 ld_in = ld;
@@ -393,6 +471,7 @@ void mlp_backward(const MlpShape& s, const RawRows& x, const float* const* weigh
     const int threads = std::max(1, s.threads);
     const int d0 = s.dims[0], dl = s.dims[L], raw0 = raw_width(s);
     const PaddedWeights p = pad_weights(s, weights, nullptr, false, true);
+    const bool wide = wide_vectors();
     bool want_gx = false;
     for (int g = 0; g < x.groups; ++g) want_gx |= g_groups != nullptr && g_groups[g] != nullptr;
     // Rows with a non-zero output gradient; the others contribute nothing (their dL/dx stays zero).
@@ -421,11 +500,10 @@ void mlp_backward(const MlpShape& s, const RawRows& x, const float* const* weigh
             dW[l].assign(static_cast<size_t>(s.dims[l + 1]) * padded(s.dims[l]), 0.0f);
             db[l].assign(padded(s.dims[l + 1]), 0.0f);
         }
-        // the block's inputs (layer 0's and each hidden layer's), its gradient and a transpose
+        // the block's inputs (layer 0's and each hidden layer's), and its gradient
         std::vector<std::vector<float>> h(L);
         for (int l = 0; l < L; ++l) h[l].assign(static_cast<size_t>(kBlock) * padded(s.dims[l]), 0.0f);
-        std::vector<float> gz(static_cast<size_t>(kBlock) * widest), gh(gz.size()),
-            gzt(static_cast<size_t>(widest) * kBlock);
+        std::vector<float> gz(static_cast<size_t>(kBlock) * widest), gh(gz.size());
         std::vector<float> raw(static_cast<size_t>(kBlock) * raw0), g_raw(raw0);
 #pragma omp for schedule(dynamic, 4)
         for (int64_t blk = 0; blk < blocks; ++blk) {
@@ -473,12 +551,11 @@ void mlp_backward(const MlpShape& s, const RawRows& x, const float* const* weigh
 #pragma omp simd
                     for (int j = 0; j < dout; ++j) db[l][j] += g[j];
                 }
-                for (int r = 0; r < rows; ++r)
-                    for (int j = 0; j < dout; ++j) gzt[static_cast<size_t>(j) * kBlock + r] = gz[static_cast<size_t>(r) * ldo + j];
-                gemm(dout, ldi, rows, gzt.data(), kBlock, h[l].data(), ldi, dW[l].data(), ldi, true);
+                // gz^T read in place: row j of A is column j of gz (stride 1), its k-th entry row k's
+                gemm(dout, ldi, rows, gz.data(), 1, ldo, h[l].data(), ldi, dW[l].data(), ldi, true, wide);
                 if (l == 0 && !want_gx) break;
                 // gh = gz W_l (rows x padded(din))
-                gemm(rows, ldi, dout, gz.data(), ldo, p.wp[l].data(), ldi, gh.data(), ldi, false);
+                gemm(rows, ldi, dout, gz.data(), ldo, 1, p.wp[l].data(), ldi, gh.data(), ldi, false, wide);
                 if (l == 0) {
                     for (int r = 0; r < rows; ++r) {
                         const float* g = gh.data() + static_cast<size_t>(r) * ldi;

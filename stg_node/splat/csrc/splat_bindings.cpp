@@ -16,6 +16,8 @@
 #include "densify_stats.h"
 #include "edge_loss.h"
 #include "image_filter.h"
+#include "kinematics.h"
+#include "scale_cap.h"
 #include "skinning.h"
 #include "small_mlp.h"
 #include "distant_shading.h"
@@ -600,6 +602,121 @@ at::Tensor sphere_visibility_fwd(const at::Tensor& points, const at::Tensor& nor
     return visible;
 }
 
+// ---- the capped scales and the largest axis (scale_cap.h) ----
+std::tuple<at::Tensor, at::Tensor> scale_row_max(const at::Tensor& x) {
+    const int64_t n = x.size(0);
+    check_cpu_float(x, "x", n, 3);
+    at::Tensor largest = at::empty({n}, x.options()), one_hot = at::empty({n, 3}, x.options());
+    stg_scale::row_max(n, x.data_ptr<float>(), largest.data_ptr<float>(), one_hot.data_ptr<float>());
+    return {largest, one_hot};
+}
+
+at::Tensor scale_capped_fwd(const at::Tensor& s, double ratio) {
+    const int64_t n = s.size(0);
+    check_cpu_float(s, "scales", n, 3);
+    at::Tensor out = at::empty({n, 3}, s.options());
+    stg_scale::capped_forward(n, s.data_ptr<float>(), static_cast<float>(ratio), out.data_ptr<float>());
+    return out;
+}
+
+at::Tensor scale_capped_bwd(const at::Tensor& s, double ratio, const at::Tensor& grad) {
+    const int64_t n = s.size(0);
+    check_cpu_float(s, "scales", n, 3);
+    check_cpu_float(grad, "grad", n, 3);
+    at::Tensor g = at::empty({n, 3}, s.options());
+    stg_scale::capped_backward(n, s.data_ptr<float>(), static_cast<float>(ratio), grad.data_ptr<float>(),
+                               g.data_ptr<float>());
+    return g;
+}
+
+// ---- skeleton kinematics (kinematics.h), float64 ----
+void check_cpu_double(const at::Tensor& t, const char* name, int64_t numel) {
+    TORCH_CHECK(t.device().is_cpu() && t.scalar_type() == at::kDouble && t.is_contiguous(), name,
+                " must be a contiguous float64 CPU tensor, got ", t.scalar_type(), " ", t.sizes());
+    TORCH_CHECK(t.numel() == numel, name, " must hold ", numel, " values, got ", t.sizes());
+}
+
+at::Tensor kin_rodrigues_fwd(const at::Tensor& aa) {
+    const int64_t n = aa.numel() / 3;
+    check_cpu_double(aa, "axis-angles", n * 3);
+    at::Tensor R = at::empty({n, 3, 3}, aa.options());
+    stg_kin::rodrigues(n, aa.data_ptr<double>(), R.data_ptr<double>());
+    return R;
+}
+
+at::Tensor kin_rodrigues_bwd(const at::Tensor& aa, const at::Tensor& R, const at::Tensor& G) {
+    const int64_t n = aa.numel() / 3;
+    check_cpu_double(aa, "axis-angles", n * 3);
+    check_cpu_double(R, "rotations", n * 9);
+    check_cpu_double(G, "the rotations' gradient", n * 9);
+    at::Tensor g = at::empty({n, 3}, aa.options());
+    stg_kin::rodrigues_backward(n, aa.data_ptr<double>(), R.data_ptr<double>(), G.data_ptr<double>(),
+                                g.data_ptr<double>());
+    return g;
+}
+
+void check_parents(const at::Tensor& parents, int64_t J) {
+    TORCH_CHECK(parents.device().is_cpu() && parents.scalar_type() == at::kLong && parents.is_contiguous() &&
+                    parents.numel() == J,
+                "parents must be a contiguous (", J, ",) int64 CPU tensor, got ", parents.sizes());
+    const int64_t* p = parents.data_ptr<int64_t>();
+    for (int64_t j = 1; j < J; ++j)
+        TORCH_CHECK(p[j] >= 0 && p[j] < j, "joint ", j, "'s parent ", p[j], " must be an earlier joint");
+}
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> kin_bones_fwd(
+    const at::Tensor& poses, const at::Tensor& rh, const at::Tensor& th, const at::Tensor& rest,
+    const at::Tensor& parents, const at::Tensor& big_inv) {
+    const int64_t J = rest.numel() / 3;
+    const int64_t B = rh.numel() / 3;
+    check_cpu_double(poses, "poses", B * J * 3);
+    check_cpu_double(rh, "Rh", B * 3);
+    check_cpu_double(th, "Th", B * 3);
+    check_cpu_double(rest, "rest joints", J * 3);
+    check_cpu_double(big_inv, "big_inv", J * 16);
+    check_parents(parents, J);
+    const auto f64 = poses.options();
+    at::Tensor transforms = at::empty({B, J, 4, 4}, f64), quats = at::empty({B, J, 4}, f64);
+    at::Tensor local = at::empty({B, J, 4, 4}, f64), world = at::empty({B, J, 4, 4}, f64);
+    at::Tensor bone = at::empty({B, J, 4, 4}, f64), root = at::empty({B, 4, 4}, f64);
+    stg_kin::bones_forward(B, static_cast<int>(J), poses.data_ptr<double>(), rh.data_ptr<double>(),
+                           th.data_ptr<double>(), rest.data_ptr<double>(), parents.data_ptr<int64_t>(),
+                           big_inv.data_ptr<double>(), transforms.data_ptr<double>(), quats.data_ptr<double>(),
+                           local.data_ptr<double>(), world.data_ptr<double>(), bone.data_ptr<double>(),
+                           root.data_ptr<double>());
+    return {transforms, quats, local, world, bone, root};
+}
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor> kin_bones_bwd(
+    const at::Tensor& poses, const at::Tensor& rh, const at::Tensor& rest, const at::Tensor& parents,
+    const at::Tensor& big_inv, const at::Tensor& transforms, const at::Tensor& quats, const at::Tensor& local,
+    const at::Tensor& world, const at::Tensor& bone, const at::Tensor& root, const at::Tensor& g_transforms,
+    const at::Tensor& g_quats) {
+    const int64_t J = rest.numel() / 3;
+    const int64_t B = rh.numel() / 3;
+    check_cpu_double(poses, "poses", B * J * 3);
+    check_cpu_double(rh, "Rh", B * 3);
+    check_cpu_double(rest, "rest joints", J * 3);
+    check_cpu_double(big_inv, "big_inv", J * 16);
+    check_parents(parents, J);
+    for (const auto* t : {&transforms, &local, &world, &bone}) check_cpu_double(*t, "a saved matrix", B * J * 16);
+    check_cpu_double(quats, "quats", B * J * 4);
+    check_cpu_double(root, "root", B * 16);
+    const bool has_gt = g_transforms.numel() > 0, has_gq = g_quats.numel() > 0;
+    if (has_gt) check_cpu_double(g_transforms, "the transforms' gradient", B * J * 16);
+    if (has_gq) check_cpu_double(g_quats, "the quaternions' gradient", B * J * 4);
+    at::Tensor g_poses = at::empty({B, J, 3}, poses.options()), g_rh = at::empty({B, 3}, poses.options()),
+               g_th = at::empty({B, 3}, poses.options());
+    stg_kin::bones_backward(B, static_cast<int>(J), poses.data_ptr<double>(), rh.data_ptr<double>(),
+                            rest.data_ptr<double>(), parents.data_ptr<int64_t>(), big_inv.data_ptr<double>(),
+                            transforms.data_ptr<double>(), quats.data_ptr<double>(), local.data_ptr<double>(),
+                            world.data_ptr<double>(), bone.data_ptr<double>(), root.data_ptr<double>(),
+                            has_gt ? g_transforms.data_ptr<double>() : nullptr,
+                            has_gq ? g_quats.data_ptr<double>() : nullptr, g_poses.data_ptr<double>(),
+                            g_rh.data_ptr<double>(), g_th.data_ptr<double>());
+    return {g_poses, g_rh, g_th};
+}
+
 // ---- skinning (skinning.h); an absent optional tensor is passed as an empty one ----
 bool given(const at::Tensor& t) { return t.defined() && t.numel() > 0; }
 
@@ -1076,6 +1193,18 @@ int64_t num_settings() { return stg_splat::kNumSettings; }
 }  // namespace
 
 TORCH_LIBRARY(STG_SPLAT_NS, m) {
+    m.def("scale_row_max(Tensor x) -> (Tensor, Tensor)", &scale_row_max);
+    m.def("scale_capped_fwd(Tensor s, float ratio) -> Tensor", &scale_capped_fwd);
+    m.def("scale_capped_bwd(Tensor s, float ratio, Tensor grad) -> Tensor", &scale_capped_bwd);
+    m.def("kin_rodrigues_fwd(Tensor aa) -> Tensor", &kin_rodrigues_fwd);
+    m.def("kin_rodrigues_bwd(Tensor aa, Tensor R, Tensor G) -> Tensor", &kin_rodrigues_bwd);
+    m.def("kin_bones_fwd(Tensor poses, Tensor rh, Tensor th, Tensor rest, Tensor parents, Tensor big_inv) -> "
+          "(Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)",
+          &kin_bones_fwd);
+    m.def("kin_bones_bwd(Tensor poses, Tensor rh, Tensor rest, Tensor parents, Tensor big_inv, Tensor transforms, "
+          "Tensor quats, Tensor local, Tensor world, Tensor bone, Tensor root, Tensor g_transforms, "
+          "Tensor g_quats) -> (Tensor, Tensor, Tensor)",
+          &kin_bones_bwd);
     m.def("tile_size() -> int", &tile_size);
     m.def("num_settings() -> int", &num_settings);
     m.def("image_window() -> int", &image_window);
