@@ -1381,6 +1381,7 @@ def decompose(args) -> dict:
 
 TRAINED_STEPS = (
     "tracked", "true-depth", "true-orientation", "true", "true-arms", "true-legs", "true-torso", "twopass",
+    "order-oracle", "order-voted",
 )  # fmt: skip
 
 
@@ -1426,6 +1427,11 @@ def decompose_trained(args, subject_name: str = "gap") -> dict:
         folders["twopass"] = two_pass_folder(
             folders["tracked"], out / "twopass" / f"{subject_name}_{args.size}_s0.npz"
         )
+    for name in ("order-oracle", "order-voted"):
+        if name in (args.steps or ""):
+            if not (where / name / "poses.npz").is_file():
+                raise FileNotFoundError(f"{where / name}: run bench_footage.py order for this subject first")
+            folders[name] = where / name
     rows = {"truth": scores(truth)}
     for name in wanted_runs(args.steps, TRAINED_STEPS, "decompose --steps"):
         slug = name.replace("-", "_")
@@ -1568,6 +1574,192 @@ def cues(args) -> dict:
             twist.append(abs(np.degrees(2 * np.arctan2(half @ axis, np.cos(angle / 2)))))
         joints[JOINT_NAMES[j]] = {"error_deg": float(np.mean(err)), "twist_deg": float(np.mean(twist))}
     return {"frames": len(fit), "bones": bones, "bone_length_ratio": lengths, "joints": joints}
+
+
+def blazepose_world_points(folder: Path, frames) -> "np.ndarray":
+    """BlazePose's metric 3D points (F, 33, 3; NaN where it found nobody) for ``frames`` of a
+    ``pose_variants`` folder's images, detected afresh (the tracker keeps only its fit)."""
+    import cv2
+    import numpy as np
+
+    from stg_node.tracking.detectors import make_detector
+
+    detector = make_detector("blazepose", threads=1)
+    world = []
+    for frame in np.asarray(frames).astype(int):
+        image = cv2.imread(str(folder / "images" / "camera" / f"{frame:06d}.jpg"))
+        if image is None:
+            raise FileNotFoundError(f"{folder}/images/camera/{frame:06d}.jpg")
+        points = detector(cv2.cvtColor(image, cv2.COLOR_BGR2RGB))
+        world.append(np.full((33, 3), np.nan) if points is None or points.world is None else points.world)
+    return np.asarray(world, np.float64)
+
+
+def flipped_direction(p, q):
+    """The other direction of the bone from ``p`` to ``q`` (camera frame, metres) that keeps ``q``'s
+    pixel and the bone's length: ``q`` slid along its ray to the second root of ``|s u - p| = L``
+    (its depth order the other way round). Unit vector."""
+    import numpy as np
+
+    u = q / np.linalg.norm(q)
+    s2 = 2.0 * float(u @ p) - float(np.linalg.norm(q))
+    d = s2 * u - p
+    return d / np.linalg.norm(d)
+
+
+def with_bones_flipped(rows: dict, flips: dict) -> dict:
+    """``rows`` (poses.npz columns, camera frame) with each bone ``(j, c)`` of ``flips`` (a boolean
+    per row) turned, where set, to :func:`flipped_direction`: ``j``'s rotation in the camera's
+    frame pre-multiplied by the smallest rotation between the two directions, every other joint's
+    rotation in the camera's frame kept (each local rotation re-solved from its parent's), so only
+    that bone's depth order changes."""
+    import cv2
+    import numpy as np
+    import torch
+
+    from stg_node.body import load_body_model
+
+    body = load_body_model()
+    parents = body.parents.tolist()
+
+    def tensor(x):
+        return torch.as_tensor(np.asarray(x), dtype=torch.float32)
+
+    joints = body(betas=tensor(rows["shapes"][:, :10]), poses=tensor(rows["poses"]).reshape(-1, 72),
+                  Rh=tensor(rows["Rh"]), Th=tensor(rows["Th"])).joints.numpy().astype(np.float64)  # fmt: skip
+    out = {k: v.copy() for k, v in rows.items()}
+    for i in range(len(rows["poses"])):
+        G = joint_world_rotations(rows, i, parents)
+        changed = False
+        for (j, c), mask in flips.items():
+            if not mask[i]:
+                continue
+            p, q = joints[i, j], joints[i, c]
+            d = (q - p) / np.linalg.norm(q - p)
+            axis = np.cross(d, flipped_direction(p, q))
+            angle = math.atan2(np.linalg.norm(axis), float(d @ flipped_direction(p, q)))
+            if np.linalg.norm(axis) < 1e-9:
+                continue
+            G[j] = cv2.Rodrigues(axis / np.linalg.norm(axis) * angle)[0] @ G[j]
+            changed = True
+        if changed:
+            poses = out["poses"][i].reshape(24, 3)
+            for j in range(1, 24):
+                poses[j] = cv2.Rodrigues(G[parents[j]].T @ G[j])[0].ravel()
+            out["poses"][i] = poses.reshape(-1)
+    return out
+
+
+ORDER_MIN_LEAN_DEG = 10.0  # a bone nearer the image plane than this: its depth order is left alone
+
+
+def voted_flips(fit_joints, world, layout, min_lean_deg: float = ORDER_MIN_LEAN_DEG) -> dict:
+    """Per limb bone, the frames whose depth order the detector's 3D points outvote, decided over
+    the sequence: the frames where the fitted bone leans towards or away from the camera by more
+    than ``min_lean_deg`` form runs of one depth order (a limb changes order only by passing the
+    image plane); in each run BlazePose's metric 3D points vote, each frame weighted by how far its
+    bone leans (a bone it sees side-on says little), and the run is flipped where the weighted
+    vote goes against the fit."""
+    import numpy as np
+
+    lean_min = math.sin(math.radians(min_lean_deg))
+    flips = {}
+    for (j, c), (a, b) in CUE_BONES.values():
+        d = fit_joints[:, c] - fit_joints[:, j]
+        d /= np.linalg.norm(d, axis=-1, keepdims=True)
+        ray = fit_joints[:, j] / np.linalg.norm(fit_joints[:, j], axis=-1, keepdims=True)
+        towards = -(d * ray).sum(-1)  # > 0: the child end nearer the camera
+        w = world[:, layout.index(b)] - world[:, layout.index(a)]
+        w_towards = -w[:, 2] / np.linalg.norm(w, axis=-1)  # BlazePose's z points away from the camera
+        w_towards = np.nan_to_num(w_towards)
+        mask = np.zeros(len(d), bool)
+        i = 0
+        while i < len(d):
+            if abs(towards[i]) < lean_min:
+                i += 1
+                continue
+            k = i
+            while k + 1 < len(d) and abs(towards[k + 1]) >= lean_min and np.sign(towards[k + 1]) == np.sign(towards[i]):
+                k += 1
+            vote = float(w_towards[i : k + 1].sum())  # signed, weighted by each frame's lean
+            if vote * np.sign(towards[i]) < 0:
+                mask[i : k + 1] = True
+            i = k + 1
+        flips[(j, c)] = mask
+    return flips
+
+
+def order(args) -> dict:
+    """Each limb bone's depth order (which end is nearer the camera), on ``decompose``'s tracked
+    folder (``--runs gap`` or ``closeup``; run ``decompose --runs gap-trained`` / ``closeup-trained``
+    first): the tracked poses, the same with every bone's order set by the truth where the other
+    order is closer to it (``order-oracle``: what an order decider could be worth at most; a
+    diagnostic), and with the order decided over the sequence by the detector's 3D points
+    (``order-voted``, :func:`voted_flips`). Each bone's direction in the camera's frame and the
+    joints' local rotations against the truth, over the training frames; the two folders are
+    written beside ``tracked`` for ``decompose --steps order-oracle,order-voted``."""
+    import numpy as np
+    import torch
+
+    from stg_node.body import load_body_model
+    from stg_node.safe_load import load_npz
+    from stg_node.tracking.layouts import get_layout
+
+    name = args.runs or "gap"
+    tag = (
+        f"{args.size}_s{args.seed}"
+        if name == "gap"
+        else f"{args.size}_{args.frames}_{args.closeup_m:g}m_s{args.seed}"
+    )
+    folder = args.out / "decompose" / f"data_{name}_{tag}"
+    if not (folder / "true" / "poses.npz").is_file():
+        raise FileNotFoundError(f"{folder}: run decompose --runs {name}-trained first")
+    body = load_body_model()
+    layout = get_layout("blazepose33")
+    rows = {
+        k: {c: np.asarray(v) for c, v in load_npz(folder / k / "poses.npz").items()}
+        for k in ("tracked", "true")
+    }
+
+    def joints_of(r):
+        def tensor(x):
+            return torch.as_tensor(np.asarray(x), dtype=torch.float32)
+
+        return body(betas=tensor(r["shapes"][:, :10]), poses=tensor(r["poses"]).reshape(-1, 72),
+                    Rh=tensor(r["Rh"]), Th=tensor(r["Th"])).joints.numpy().astype(np.float64)  # fmt: skip
+
+    fit, true = joints_of(rows["tracked"]), joints_of(rows["true"])
+    world = blazepose_world_points(folder / "tracked", rows["tracked"]["frames"])
+
+    def unit(v):
+        return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+    oracle = {}
+    for (j, c), _points in CUE_BONES.values():
+        t = unit(true[:, c] - true[:, j])
+        other = np.stack([flipped_direction(fit[i, j], fit[i, c]) for i in range(len(fit))])
+        oracle[(j, c)] = (other * t).sum(-1) > (unit(fit[:, c] - fit[:, j]) * t).sum(-1)
+    voted = voted_flips(fit, world, layout)
+    decided = {"order-oracle": oracle, "order-voted": voted}
+    variants = {"tracked": rows["tracked"], **{k: with_bones_flipped(rows["tracked"], v) for k, v in decided.items()}}
+    n = round(0.8 * args.frames)
+    true_local = rows["true"]["poses"][:n].reshape(n, 24, 3)[:, 1:]
+    report = {"training_frames": n}
+    for label, r in variants.items():
+        mine = joints_of(r)
+        bones = {
+            bone: float(np.degrees(np.arccos(np.clip(
+                (unit(mine[:n, c] - mine[:n, j]) * unit(true[:n, c] - true[:n, j])).sum(-1), -1, 1))).mean())
+            for bone, ((j, c), _points) in CUE_BONES.items()
+        }  # fmt: skip
+        err = rotation_angles_deg(r["poses"][:n].reshape(n, 24, 3)[:, 1:], true_local).reshape(n, 23)
+        groups = {g: float(err[:, [k - 1 for k in js]].mean()) for g, js in JOINT_GROUPS.items()}
+        report[label] = {"limb_bones_deg": float(np.mean(list(bones.values()))), "bones": bones,
+                         "joint_rotation_deg": float(err.mean()), **groups}  # fmt: skip
+        if label != "tracked":
+            report[label]["flipped_pct"] = float(100 * np.mean([m[:n].mean() for m in decided[label].values()]))
+            write_pose_variant(folder / label, folder / "tracked", r)
+    return report
 
 
 def twopass(args) -> dict:
@@ -1732,6 +1924,7 @@ EXPERIMENTS = {
     "decompose": decompose,
     "cues": cues,
     "twopass": twopass,
+    "order": order,
 }
 
 
