@@ -1381,7 +1381,7 @@ def decompose(args) -> dict:
 
 TRAINED_STEPS = (
     "tracked", "true-depth", "true-orientation", "true", "true-arms", "true-legs", "true-torso", "twopass",
-    "order-oracle", "order-voted",
+    "order-oracle", "order-voted", "order-test",
 )  # fmt: skip
 
 
@@ -1427,7 +1427,7 @@ def decompose_trained(args, subject_name: str = "gap") -> dict:
         folders["twopass"] = two_pass_folder(
             folders["tracked"], out / "twopass" / f"{subject_name}_{args.size}_s0.npz"
         )
-    for name in ("order-oracle", "order-voted"):
+    for name in ("order-oracle", "order-voted", "order-test"):
         if name in (args.steps or ""):
             if not (where / name / "poses.npz").is_file():
                 raise FileNotFoundError(f"{where / name}: run bench_footage.py order for this subject first")
@@ -1762,6 +1762,104 @@ def order(args) -> dict:
     return report
 
 
+ORDER_TEST_BONES = ((16, 18), (17, 19), (1, 4), (2, 5))  # upper arms, thighs: ball joints
+
+
+def ordertest(args) -> dict:
+    """The fit's own depth-order test (FitConfig.order_test_bones): the subject's camera (``--runs
+    gap`` or ``closeup``) tracked again as ``--format video`` tracks it (unsmoothed, true
+    intrinsics), as is and with the test on the upper arms and thighs (:data:`ORDER_TEST_BONES`;
+    ``--set limbs`` in ``--variant`` adds the forearms and shins); each limb bone's direction and
+    depth order and the joints' local rotations against the truth over the training frames. The
+    tested poses become the folder ``order-test`` beside ``decompose``'s ``tracked`` (run
+    ``decompose --runs gap-trained`` / ``closeup-trained`` first) for ``decompose --steps
+    order-test``; the re-tracked default is checked against ``tracked``."""
+    import dataclasses
+
+    import numpy as np
+    import torch
+
+    from stg_node.body import load_body_model
+    from stg_node.safe_load import load_npz
+    from stg_node.tracking.fitting import FitConfig
+    from stg_node.tracking.pipeline import TrackOptions, build_tracker
+    from stg_node.tracking.sources import open_source
+
+    name = args.runs or "gap"
+    if name == "gap":
+        data = subject(args.out, f"mixed_{args.size}", num_frames=args.frames, size=args.size)
+        tag = f"{args.size}_s{args.seed}"
+    else:
+        data = closeup_subject(args)
+        tag = f"{args.size}_{args.frames}_{args.closeup_m:g}m_s{args.seed}"
+    folder = args.out / "decompose" / f"data_{name}_{tag}"
+    if not (folder / "true" / "poses.npz").is_file():
+        raise FileNotFoundError(f"{folder}: run decompose --runs {name}-trained first")
+    rows = {k: {c: np.asarray(v) for c, v in load_npz(folder / k / "poses.npz").items()} for k in ("tracked", "true")}
+    metadata = json.loads((data / "synth.json").read_text())
+    options = TrackOptions(intrinsics=str(intrinsics_file(data)), fps=float(metadata["fps"]), smoothing=False)
+    source = open_source(data / "Camera_B1", options.fps)
+    frames = [(f.image, f.timestamp) for f in source]
+    kept = rows["tracked"]["frames"].astype(int)
+    bones = ORDER_TEST_BONES
+    if args.variant == "limbs":
+        bones = bones + ((18, 20), (19, 21), (4, 7), (5, 8))
+    configs = {"retracked": FitConfig(), "order-test": FitConfig(order_test_bones=bones)}
+    tracked_rows = {}
+    seconds = {}
+    for label, config in configs.items():
+        started = time.perf_counter()
+        tracker, _body = build_tracker(options, source.width, source.height, fit=config)
+        out = {k: v.copy() for k, v in rows["tracked"].items()}
+        for row, i in enumerate(kept):
+            e = tracker.estimate(frames[i][0], frames[i][1])
+            out["poses"][row] = np.asarray(e.smpl.poses, np.float64).reshape(72)
+            out["Rh"][row], out["Th"][row] = e.smpl.Rh, e.smpl.Th
+            out["shapes"][row] = np.asarray(e.smpl.betas)[: out["shapes"].shape[1]]
+        tracked_rows[label] = out
+        seconds[label] = time.perf_counter() - started
+    body = load_body_model()
+
+    def joints_of(r):
+        def tensor(x):
+            return torch.as_tensor(np.asarray(x), dtype=torch.float32)
+
+        return body(betas=tensor(r["shapes"][:, :10]), poses=tensor(r["poses"]).reshape(-1, 72),
+                    Rh=tensor(r["Rh"]), Th=tensor(r["Th"])).joints.numpy().astype(np.float64)  # fmt: skip
+
+    def unit(v):
+        return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+    n = round(0.8 * args.frames)
+    true = joints_of(rows["true"])[:n]
+    true_local = rows["true"]["poses"][:n].reshape(n, 24, 3)[:, 1:]
+    report = {"training_frames": n, "bones_tested": [list(b) for b in bones], "track_seconds": seconds,
+              "retracked_max_pose_diff_rad": float(np.abs(tracked_rows["retracked"]["poses"] - rows["tracked"]["poses"]).max())}  # fmt: skip
+    for label, r in (("tracked", rows["tracked"]), ("retracked", tracked_rows["retracked"]), ("order-test", tracked_rows["order-test"])):
+        mine = joints_of(r)[:n]
+        per_bone = {}
+        for bone, ((j, c), _points) in CUE_BONES.items():
+            d, t = unit(mine[:, c] - mine[:, j]), unit(true[:, c] - true[:, j])
+            towards = -(d * unit(mine[:, j])).sum(-1)
+            true_towards = -(t * unit(true[:, j])).sum(-1)
+            leaning = np.abs(true_towards) > math.sin(math.radians(15))
+            per_bone[bone] = {
+                "direction_deg": float(np.degrees(np.arccos(np.clip((d * t).sum(-1), -1, 1))).mean()),
+                "order_wrong_pct": float(100 * np.mean(np.sign(towards[leaning]) != np.sign(true_towards[leaning])))
+                if leaning.any() else float("nan"),
+            }  # fmt: skip
+        err = rotation_angles_deg(r["poses"][:n].reshape(n, 24, 3)[:, 1:], true_local).reshape(n, 23)
+        report[label] = {
+            "limb_bones_deg": float(np.mean([b["direction_deg"] for b in per_bone.values()])),
+            "joint_rotation_deg": float(err.mean()),
+            **{g: float(err[:, [k - 1 for k in js]].mean()) for g, js in JOINT_GROUPS.items()},
+            "bones": per_bone,
+        }
+    write_pose_variant(folder / "order-test", folder / "tracked", tracked_rows["order-test"])
+    del dataclasses
+    return report
+
+
 def twopass(args) -> dict:
     """A fixed-interval smoother for the fit: the training frames of the subject's camera
     (``--runs gap``: the mixed subject; ``closeup``: the dancer) tracked forwards as ``--format
@@ -1925,6 +2023,7 @@ EXPERIMENTS = {
     "cues": cues,
     "twopass": twopass,
     "order": order,
+    "ordertest": ordertest,
 }
 
 
