@@ -274,7 +274,8 @@ def pose_variants(video_data: Path, data: Path, out: Path) -> dict[str, Path]:
     (times the sequence's one depth-ratio scale, the gauge the scoring fixes): the picture in
     the training camera unchanged at the pelvis, the single camera's depth error gone;
     ``true-arms`` / ``true-legs`` / ``true-torso``: one chain turned true in the camera's frame
-    (:func:`chain_true_in_world`). Each is ``out/NAME``."""
+    (:func:`chain_true_in_world`); ``toward-N``: every parameter N % of the way from the tracked to
+    the true (:func:`toward_truth`). Each is ``out/NAME``."""
     import dataclasses
 
     import cv2
@@ -322,6 +323,8 @@ def pose_variants(video_data: Path, data: Path, out: Path) -> dict[str, Path]:
     true_rows = variants["true"]
     for name, chain in CHAINS.items():
         variants[f"true-{name}"] = chain_true_in_world(variants["tracked"], true_rows, chain)
+    for percent in TOWARD_TRUTH_PERCENT:
+        variants[f"toward-{percent}"] = toward_truth(variants["tracked"], true_rows, percent / 100.0)
     return {name: write_pose_variant(out / name, video_data, rows) for name, rows in variants.items()}
 
 
@@ -383,6 +386,30 @@ def chain_true_in_world(tracked: dict, true: dict, joints) -> dict:
         for j in range(1, 24):
             poses[j] = cv2.Rodrigues(target[parents[j]].T @ target[j])[0].ravel()
         rows["poses"][i] = poses.reshape(-1)
+    return rows
+
+
+def toward_truth(tracked: dict, true: dict, alpha: float) -> dict:
+    """``tracked``'s rows (poses.npz columns, camera frame) moved a fraction ``alpha`` of the way to
+    ``true``'s: every local rotation and the global orientation along the shortest arc, position
+    and shape in a straight line (0: as tracked, 1: the truth). How the avatar's score grows as the
+    tracker's error shrinks, whatever the lever."""
+    import cv2
+    import numpy as np
+
+    rows = {k: v.copy() for k, v in tracked.items()}
+
+    def slerp(a, b):
+        Ra, Rb = cv2.Rodrigues(np.asarray(a, np.float64))[0], cv2.Rodrigues(np.asarray(b, np.float64))[0]
+        step = cv2.Rodrigues(alpha * cv2.Rodrigues(Ra.T @ Rb)[0])[0]
+        return cv2.Rodrigues(Ra @ step)[0].ravel()
+
+    for i in range(len(rows["poses"])):
+        mine, theirs = tracked["poses"][i].reshape(24, 3), true["poses"][i].reshape(24, 3)
+        rows["poses"][i] = np.stack([slerp(mine[j], theirs[j]) for j in range(24)]).reshape(-1)
+        rows["Rh"][i] = slerp(tracked["Rh"][i], true["Rh"][i])
+    for key in ("Th", "shapes"):
+        rows[key] = (1.0 - alpha) * tracked[key] + alpha * true[key]
     return rows
 
 
@@ -1379,9 +1406,11 @@ def decompose(args) -> dict:
     return rows
 
 
+TOWARD_TRUTH_PERCENT = (50, 75, 90)  # pose_variants' toward-N: the tracked poses N % of the way to the truth
+
 TRAINED_STEPS = (
     "tracked", "true-depth", "true-orientation", "true", "true-arms", "true-legs", "true-torso", "twopass",
-    "order-oracle", "order-voted", "order-test",
+    "order-oracle", "order-voted", "order-test", *(f"toward-{p}" for p in TOWARD_TRUTH_PERCENT),
 )  # fmt: skip
 
 
@@ -1576,7 +1605,7 @@ def cues(args) -> dict:
     return {"frames": len(fit), "bones": bones, "bone_length_ratio": lengths, "joints": joints}
 
 
-def blazepose_world_points(folder: Path, frames) -> "np.ndarray":
+def blazepose_world_points(folder: Path, frames):
     """BlazePose's metric 3D points (F, 33, 3; NaN where it found nobody) for ``frames`` of a
     ``pose_variants`` folder's images, detected afresh (the tracker keeps only its fit)."""
     import cv2
@@ -1679,7 +1708,11 @@ def voted_flips(fit_joints, world, layout, min_lean_deg: float = ORDER_MIN_LEAN_
                 i += 1
                 continue
             k = i
-            while k + 1 < len(d) and abs(towards[k + 1]) >= lean_min and np.sign(towards[k + 1]) == np.sign(towards[i]):
+            while (
+                k + 1 < len(d)
+                and abs(towards[k + 1]) >= lean_min
+                and np.sign(towards[k + 1]) == np.sign(towards[i])
+            ):
                 k += 1
             vote = float(w_towards[i : k + 1].sum())  # signed, weighted by each frame's lean
             if vote * np.sign(towards[i]) < 0:
@@ -1741,7 +1774,10 @@ def order(args) -> dict:
         oracle[(j, c)] = (other * t).sum(-1) > (unit(fit[:, c] - fit[:, j]) * t).sum(-1)
     voted = voted_flips(fit, world, layout)
     decided = {"order-oracle": oracle, "order-voted": voted}
-    variants = {"tracked": rows["tracked"], **{k: with_bones_flipped(rows["tracked"], v) for k, v in decided.items()}}
+    variants = {
+        "tracked": rows["tracked"],
+        **{k: with_bones_flipped(rows["tracked"], v) for k, v in decided.items()},
+    }
     n = round(0.8 * args.frames)
     true_local = rows["true"]["poses"][:n].reshape(n, 24, 3)[:, 1:]
     report = {"training_frames": n}
@@ -1757,7 +1793,9 @@ def order(args) -> dict:
         report[label] = {"limb_bones_deg": float(np.mean(list(bones.values()))), "bones": bones,
                          "joint_rotation_deg": float(err.mean()), **groups}  # fmt: skip
         if label != "tracked":
-            report[label]["flipped_pct"] = float(100 * np.mean([m[:n].mean() for m in decided[label].values()]))
+            report[label]["flipped_pct"] = float(
+                100 * np.mean([m[:n].mean() for m in decided[label].values()])
+            )
             write_pose_variant(folder / label, folder / "tracked", r)
     return report
 
@@ -1769,13 +1807,11 @@ def ordertest(args) -> dict:
     """The fit's own depth-order test (FitConfig.order_test_bones): the subject's camera (``--runs
     gap`` or ``closeup``) tracked again as ``--format video`` tracks it (unsmoothed, true
     intrinsics), as is and with the test on the upper arms and thighs (:data:`ORDER_TEST_BONES`;
-    ``--set limbs`` in ``--variant`` adds the forearms and shins); each limb bone's direction and
+    ``--variant limbs`` adds the forearms and shins); each limb bone's direction and
     depth order and the joints' local rotations against the truth over the training frames. The
-    tested poses become the folder ``order-test`` beside ``decompose``'s ``tracked`` (run
-    ``decompose --runs gap-trained`` / ``closeup-trained`` first) for ``decompose --steps
-    order-test``; the re-tracked default is checked against ``tracked``."""
-    import dataclasses
-
+    tested poses become the folder ``order-test`` (``order-test-VARIANT``) beside ``decompose``'s
+    ``tracked`` (run ``decompose --runs gap-trained`` / ``closeup-trained`` first) for ``decompose
+    --steps order-test``; the re-tracked default is checked against ``tracked``."""
     import numpy as np
     import torch
 
@@ -1795,7 +1831,10 @@ def ordertest(args) -> dict:
     folder = args.out / "decompose" / f"data_{name}_{tag}"
     if not (folder / "true" / "poses.npz").is_file():
         raise FileNotFoundError(f"{folder}: run decompose --runs {name}-trained first")
-    rows = {k: {c: np.asarray(v) for c, v in load_npz(folder / k / "poses.npz").items()} for k in ("tracked", "true")}
+    rows = {
+        k: {c: np.asarray(v) for c, v in load_npz(folder / k / "poses.npz").items()}
+        for k in ("tracked", "true")
+    }
     metadata = json.loads((data / "synth.json").read_text())
     options = TrackOptions(intrinsics=str(intrinsics_file(data)), fps=float(metadata["fps"]), smoothing=False)
     source = open_source(data / "Camera_B1", options.fps)
@@ -1833,9 +1872,14 @@ def ordertest(args) -> dict:
     n = round(0.8 * args.frames)
     true = joints_of(rows["true"])[:n]
     true_local = rows["true"]["poses"][:n].reshape(n, 24, 3)[:, 1:]
+    retrack_diff = np.abs(tracked_rows["retracked"]["poses"] - rows["tracked"]["poses"]).max()
     report = {"training_frames": n, "bones_tested": [list(b) for b in bones], "track_seconds": seconds,
-              "retracked_max_pose_diff_rad": float(np.abs(tracked_rows["retracked"]["poses"] - rows["tracked"]["poses"]).max())}  # fmt: skip
-    for label, r in (("tracked", rows["tracked"]), ("retracked", tracked_rows["retracked"]), ("order-test", tracked_rows["order-test"])):
+              "retracked_max_pose_diff_rad": float(retrack_diff)}  # fmt: skip
+    for label, r in (
+        ("tracked", rows["tracked"]),
+        ("retracked", tracked_rows["retracked"]),
+        ("order-test", tracked_rows["order-test"]),
+    ):
         mine = joints_of(r)[:n]
         per_bone = {}
         for bone, ((j, c), _points) in CUE_BONES.items():
@@ -1843,11 +1887,11 @@ def ordertest(args) -> dict:
             towards = -(d * unit(mine[:, j])).sum(-1)
             true_towards = -(t * unit(true[:, j])).sum(-1)
             leaning = np.abs(true_towards) > math.sin(math.radians(15))
+            wrong = np.sign(towards[leaning]) != np.sign(true_towards[leaning])
             per_bone[bone] = {
                 "direction_deg": float(np.degrees(np.arccos(np.clip((d * t).sum(-1), -1, 1))).mean()),
-                "order_wrong_pct": float(100 * np.mean(np.sign(towards[leaning]) != np.sign(true_towards[leaning])))
-                if leaning.any() else float("nan"),
-            }  # fmt: skip
+                "order_wrong_pct": float(100 * wrong.mean()) if leaning.any() else float("nan"),
+            }
         err = rotation_angles_deg(r["poses"][:n].reshape(n, 24, 3)[:, 1:], true_local).reshape(n, 23)
         report[label] = {
             "limb_bones_deg": float(np.mean([b["direction_deg"] for b in per_bone.values()])),
@@ -1855,8 +1899,9 @@ def ordertest(args) -> dict:
             **{g: float(err[:, [k - 1 for k in js]].mean()) for g, js in JOINT_GROUPS.items()},
             "bones": per_bone,
         }
-    write_pose_variant(folder / "order-test", folder / "tracked", tracked_rows["order-test"])
-    del dataclasses
+    written = "order-test" + (f"-{args.variant}" if args.variant else "")
+    write_pose_variant(folder / written, folder / "tracked", tracked_rows["order-test"])
+    report["folder"] = str(folder / written)
     return report
 
 

@@ -587,7 +587,9 @@ class SmplFitter:
             length = (q - p).norm()
             ray = q / q.norm()
             direction = (q - p) / length
-            if abs(float(direction @ (p / p.norm()))) < math.sin(math.radians(self.config.order_min_lean_deg)):
+            if abs(float(direction @ (p / p.norm()))) < math.sin(
+                math.radians(self.config.order_min_lean_deg)
+            ):
                 return None
             depth = 2.0 * float(ray @ p) - float(q.norm())
             if depth <= MIN_DEPTH_M:

@@ -207,8 +207,8 @@ def estimate_focal(
         sure, reason = (
             False,
             (
-                f"only {len(costs)} frames fitted at every focal length (at least {MIN_FRAMES} needed: "
-                f"fewer make fewer than {-(-MIN_FRAMES // BLOCK)} bootstrap blocks, whose interval says nothing)"
+                f"only {len(costs)} frames fitted at every focal length (at least {MIN_FRAMES} needed: fewer "
+                f"make fewer than {-(-MIN_FRAMES // BLOCK)} bootstrap blocks, whose interval says nothing)"
             ),
         )
     elif rise < MIN_RISE:
