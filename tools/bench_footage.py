@@ -1410,7 +1410,7 @@ TOWARD_TRUTH_PERCENT = (50, 75, 90)  # pose_variants' toward-N: the tracked pose
 
 TRAINED_STEPS = (
     "tracked", "true-depth", "true-orientation", "true", "true-arms", "true-legs", "true-torso", "twopass",
-    "order-oracle", "order-voted", "order-test", *(f"toward-{p}" for p in TOWARD_TRUTH_PERCENT),
+    "order-oracle", "order-voted", "order-test", "retracked", *(f"toward-{p}" for p in TOWARD_TRUTH_PERCENT),
 )  # fmt: skip
 
 
@@ -1456,8 +1456,8 @@ def decompose_trained(args, subject_name: str = "gap") -> dict:
         folders["twopass"] = two_pass_folder(
             folders["tracked"], out / "twopass" / f"{subject_name}_{args.size}_s0.npz"
         )
-    for name in ("order-oracle", "order-voted", "order-test"):
-        if name in (args.steps or ""):
+    for name in ("order-oracle", "order-voted", "order-test", "retracked"):
+        if name in (args.steps or "").split(","):
             if not (where / name / "poses.npz").is_file():
                 raise FileNotFoundError(f"{where / name}: run bench_footage.py order for this subject first")
             folders[name] = where / name
@@ -1811,7 +1811,8 @@ def ordertest(args) -> dict:
     depth order and the joints' local rotations against the truth over the training frames. The
     tested poses become the folder ``order-test`` (``order-test-VARIANT``) beside ``decompose``'s
     ``tracked`` (run ``decompose --runs gap-trained`` / ``closeup-trained`` first) for ``decompose
-    --steps order-test``; the re-tracked default is checked against ``tracked``."""
+    --steps order-test``, and the default re-tracked the same way (its baseline; it should match
+    ``tracked``) the folder ``retracked``."""
     import numpy as np
     import torch
 
@@ -1901,6 +1902,7 @@ def ordertest(args) -> dict:
         }
     written = "order-test" + (f"-{args.variant}" if args.variant else "")
     write_pose_variant(folder / written, folder / "tracked", tracked_rows["order-test"])
+    write_pose_variant(folder / "retracked", folder / "tracked", tracked_rows["retracked"])
     report["folder"] = str(folder / written)
     return report
 
