@@ -349,6 +349,10 @@ def test_bench_footage_toward_truth_moves_every_rotation_that_fraction_of_its_ar
                                    (1 - alpha) * gap_deg(tracked["Rh"], truth["Rh"]), atol=1e-6)  # fmt: skip
         np.testing.assert_allclose(moved["Th"], tracked["Th"] + alpha * (truth["Th"] - tracked["Th"]))
     assert full.mean() > 10.0  # the test moved something
+    joints = bench.toward_truth(tracked, truth, 0.5, joints_only=True)  # the joints alone
+    np.testing.assert_allclose(gap_deg(joints["poses"], truth["poses"]), 0.5 * full, atol=1e-6)
+    for key in ("Rh", "Th", "shapes"):
+        np.testing.assert_array_equal(joints[key], tracked[key])
 
 
 def test_bench_footage_flipped_bone_keeps_its_childs_pixel_and_turns_only_that_bone():
