@@ -134,6 +134,13 @@ class FitConfig:
             raise ValueError(
                 "temporal_max_rad_per_s must be >= temporal_rad_per_s and temporal_jitter_units >= 0"
             )
+        if self.order_iterations < 1 or not 0.0 <= self.order_min_lean_deg < 90.0:
+            raise ValueError("order_iterations must be >= 1 and order_min_lean_deg in [0, 90)")
+        for bone in self.order_test_bones:
+            if len(bone) != 2 or not all(isinstance(k, int) and 1 <= k < 1 + NUM_BODY_JOINTS for k in bone):
+                raise ValueError(
+                    f"order_test_bones holds (joint, child) pairs of SMPL joints 1..23, got {bone!r}"
+                )
         for name in ("noise_fraction", "robust_scale", "world_sigma", "shape_sigma", "step_eps",
                      "silhouette_robust_units", "silhouette_trust_units",
                      "temporal_min_length_units"):  # fmt: skip

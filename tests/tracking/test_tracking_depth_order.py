@@ -118,3 +118,9 @@ def test_a_limb_held_behind_by_the_temporal_term_is_turned_back_by_the_test(body
     lean = towards_camera(fitted, LEFT_UPPER_ARM)
     true_lean = towards_camera(joints_of(body, truth.poses[0], truth.Rh[0], truth.Th[0]), LEFT_UPPER_ARM)
     assert bool(np.sign(lean) == np.sign(true_lean)) is turned_back, (lean, true_lean)
+
+
+@pytest.mark.parametrize("bones", [((0, 1),), ((16, 24),), ((16,),)])
+def test_bones_outside_the_body_joints_are_refused(bones):
+    with pytest.raises(ValueError, match="order_test_bones"):
+        FitConfig(order_test_bones=bones).validate()
