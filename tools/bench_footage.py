@@ -275,8 +275,8 @@ def pose_variants(video_data: Path, data: Path, out: Path) -> dict[str, Path]:
     the training camera unchanged at the pelvis, the single camera's depth error gone;
     ``true-arms`` / ``true-legs`` / ``true-torso``: one chain turned true in the camera's frame
     (:func:`chain_true_in_world`); ``toward-N``: every parameter N % of the way from the tracked to
-    the true (:func:`toward_truth`), ``toward-joints-N`` the local joint rotations alone. Each is
-    ``out/NAME``."""
+    the true (:func:`toward_truth`), ``toward-joints-N`` the local joint rotations alone,
+    ``toward-body-N`` the global orientation, position and shape alone. Each is ``out/NAME``."""
     import dataclasses
 
     import cv2
@@ -326,9 +326,10 @@ def pose_variants(video_data: Path, data: Path, out: Path) -> dict[str, Path]:
         variants[f"true-{name}"] = chain_true_in_world(variants["tracked"], true_rows, chain)
     for percent in TOWARD_TRUTH_PERCENT:
         variants[f"toward-{percent}"] = toward_truth(variants["tracked"], true_rows, percent / 100.0)
-        variants[f"toward-joints-{percent}"] = toward_truth(
-            variants["tracked"], true_rows, percent / 100.0, joints_only=True
-        )
+        for which in ("joints", "body"):
+            variants[f"toward-{which}-{percent}"] = toward_truth(
+                variants["tracked"], true_rows, percent / 100.0, which=which
+            )
     return {name: write_pose_variant(out / name, video_data, rows) for name, rows in variants.items()}
 
 
@@ -393,12 +394,12 @@ def chain_true_in_world(tracked: dict, true: dict, joints) -> dict:
     return rows
 
 
-def toward_truth(tracked: dict, true: dict, alpha: float, joints_only: bool = False) -> dict:
+def toward_truth(tracked: dict, true: dict, alpha: float, which: str = "all") -> dict:
     """``tracked``'s rows (poses.npz columns, camera frame) moved a fraction ``alpha`` of the way to
     ``true``'s: every local rotation and the global orientation along the shortest arc, position
-    and shape in a straight line (0: as tracked, 1: the truth); ``joints_only``: the local joint
-    rotations alone, the global orientation, position and shape as tracked. How the avatar's
-    score grows as the tracker's error shrinks, whatever the lever."""
+    and shape in a straight line (0: as tracked, 1: the truth); ``which="joints"``: the local
+    joint rotations alone, ``"body"``: the global orientation, position and shape alone, the rest
+    as tracked. How the avatar's score grows as the tracker's error shrinks, whatever the lever."""
     import cv2
     import numpy as np
 
@@ -411,10 +412,11 @@ def toward_truth(tracked: dict, true: dict, alpha: float, joints_only: bool = Fa
 
     for i in range(len(rows["poses"])):
         mine, theirs = tracked["poses"][i].reshape(24, 3), true["poses"][i].reshape(24, 3)
-        rows["poses"][i] = np.stack([slerp(mine[j], theirs[j]) for j in range(24)]).reshape(-1)
-        if not joints_only:
+        if which != "body":
+            rows["poses"][i] = np.stack([slerp(mine[j], theirs[j]) for j in range(24)]).reshape(-1)
+        if which != "joints":
             rows["Rh"][i] = slerp(tracked["Rh"][i], true["Rh"][i])
-    for key in () if joints_only else ("Th", "shapes"):
+    for key in () if which == "joints" else ("Th", "shapes"):
         rows[key] = (1.0 - alpha) * tracked[key] + alpha * true[key]
     return rows
 
@@ -1417,7 +1419,7 @@ TOWARD_TRUTH_PERCENT = (50, 75, 90)  # pose_variants' toward-N: the tracked pose
 TRAINED_STEPS = (
     "tracked", "true-depth", "true-orientation", "true", "true-arms", "true-legs", "true-torso", "twopass",
     "order-oracle", "order-voted", "order-test", "retracked",
-    *(f"toward-{p}" for p in TOWARD_TRUTH_PERCENT), *(f"toward-joints-{p}" for p in TOWARD_TRUTH_PERCENT),
+    *(f"toward-{w}{p}" for w in ("", "joints-", "body-") for p in TOWARD_TRUTH_PERCENT),
 )  # fmt: skip
 
 

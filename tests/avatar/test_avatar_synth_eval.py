@@ -349,10 +349,13 @@ def test_bench_footage_toward_truth_moves_every_rotation_that_fraction_of_its_ar
                                    (1 - alpha) * gap_deg(tracked["Rh"], truth["Rh"]), atol=1e-6)  # fmt: skip
         np.testing.assert_allclose(moved["Th"], tracked["Th"] + alpha * (truth["Th"] - tracked["Th"]))
     assert full.mean() > 10.0  # the test moved something
-    joints = bench.toward_truth(tracked, truth, 0.5, joints_only=True)  # the joints alone
+    joints = bench.toward_truth(tracked, truth, 0.5, which="joints")  # the joints alone
     np.testing.assert_allclose(gap_deg(joints["poses"], truth["poses"]), 0.5 * full, atol=1e-6)
     for key in ("Rh", "Th", "shapes"):
         np.testing.assert_array_equal(joints[key], tracked[key])
+    placed = bench.toward_truth(tracked, truth, 0.5, which="body")  # everything but the joints
+    np.testing.assert_array_equal(placed["poses"], tracked["poses"])
+    np.testing.assert_allclose(placed["shapes"], 0.5 * (tracked["shapes"] + truth["shapes"]))
 
 
 def test_bench_footage_flipped_bone_keeps_its_childs_pixel_and_turns_only_that_bone():
