@@ -16,6 +16,8 @@ size in the frame and an unknown camera cost, and what each remedy buys back.
     python tools/bench_footage.py closeup   [--size 256] [--frames 90] [--closeup-m 2.2] # same camera
     python tools/bench_footage.py cues      [--size 256] [--runs gap|closeup] # limbs' depth: fit vs 3D
     python tools/bench_footage.py twopass   [--size 256] [--runs gap|closeup] # the fit forwards + backwards
+    python tools/bench_footage.py order     [--size 256] [--runs gap|closeup] # limbs' depth order: oracle, vote
+    python tools/bench_footage.py ordertest [--size 256] [--runs gap|closeup] # the fit's depth-order test
     common: --out DIR (default runs/bench_footage) --preset fast --seed 0 --json
 
 Every experiment generates its subjects with ``stg-synth``'s generator into ``--out/data``
@@ -113,7 +115,11 @@ to ``--out/results/EXPERIMENT.json``; a run folder that is already finished is n
   picks), scored as ``gap`` / ``closeup`` score, with the gap to the truth run per part; the
   steps ``true-arms``, ``true-legs``, ``true-torso`` turn one chain to its true orientation in
   the camera's frame and keep the rest as tracked (which chain's rotations carry the gap);
-  ``twopass``: the training frames' poses from ``twopass``'s average (run it first).
+  ``twopass``: the training frames' poses from ``twopass``'s average (run it first);
+  ``order-oracle`` / ``order-voted`` / ``order-test`` / ``retracked``: the folders ``order`` and
+  ``ordertest`` write (run them first); ``toward-N`` / ``toward-joints-N`` / ``toward-body-N``:
+  every parameter, the joints alone, or the body's turn, position and shape alone N % of the way
+  from the tracked to the true (N in 50, 75, 90: how the score grows as the error shrinks).
   ``--set KEY=VALUE --variant NAME``: every step trained with that trainer setting, into runs
   named after the variant (a lever, measured with the same decomposition).
 - ``cues``: the limbs' depth evidence on ``decompose``'s tracked folder (``--runs`` gap or
@@ -121,6 +127,12 @@ to ``--out/results/EXPERIMENT.json``; a run folder that is already finished is n
   depth order against the truth; the fitted shape's bone lengths; each joint's error and twist.
 - ``twopass``: the training frames tracked forwards, then backwards with the shape held, and the
   two fits averaged (a fixed-interval smoother against the temporal term's lag); joint errors.
+- ``order``: each limb bone's depth order (which end is nearer the camera) on ``decompose``'s
+  tracked folder: as tracked, set by the truth (a bound) and voted by BlazePose's 3D points over
+  each run of one order; directions and joint errors, and the two folders for ``decompose``.
+- ``ordertest``: the subject's camera tracked again with the fit's depth-order test
+  (``FitConfig.order_test_bones``: upper arms and thighs; ``--variant limbs`` adds forearms and
+  shins) and without; the same errors, and the folders ``order-test`` and ``retracked``.
 - ``framing``: renders RUN_DIR's default orbit (and follow camera) and reports the share of
   frames with the avatar whole and at least 30 % of the image tall.
 
