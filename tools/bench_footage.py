@@ -16,7 +16,7 @@ size in the frame and an unknown camera cost, and what each remedy buys back.
     python tools/bench_footage.py closeup   [--size 256] [--frames 90] [--closeup-m 2.2] # same camera
     python tools/bench_footage.py cues      [--size 256] [--runs gap|closeup] # limbs' depth: fit vs 3D
     python tools/bench_footage.py twopass   [--size 256] [--runs gap|closeup] # the fit forwards + backwards
-    python tools/bench_footage.py order     [--size 256] [--runs gap|closeup] # limbs' depth order: oracle, vote
+    python tools/bench_footage.py order     [--size 256] [--runs gap|closeup] # depth order: oracle, vote
     python tools/bench_footage.py ordertest [--size 256] [--runs gap|closeup] # the fit's depth-order test
     common: --out DIR (default runs/bench_footage) --preset fast --seed 0 --json
 
