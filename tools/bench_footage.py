@@ -16,6 +16,8 @@ size in the frame and an unknown camera cost, and what each remedy buys back.
     python tools/bench_footage.py closeup   [--size 256] [--frames 90] [--closeup-m 2.2] # same camera
     python tools/bench_footage.py cues      [--size 256] [--runs gap|closeup] # limbs' depth: fit vs 3D
     python tools/bench_footage.py twopass   [--size 256] [--runs gap|closeup] # the fit forwards + backwards
+    python tools/bench_footage.py order     [--size 256] [--runs gap|closeup] # depth order: oracle, vote
+    python tools/bench_footage.py ordertest [--size 256] [--runs gap|closeup] # the fit's depth-order test
     common: --out DIR (default runs/bench_footage) --preset fast --seed 0 --json
 
 Every experiment generates its subjects with ``stg-synth``'s generator into ``--out/data``
@@ -113,7 +115,11 @@ to ``--out/results/EXPERIMENT.json``; a run folder that is already finished is n
   picks), scored as ``gap`` / ``closeup`` score, with the gap to the truth run per part; the
   steps ``true-arms``, ``true-legs``, ``true-torso`` turn one chain to its true orientation in
   the camera's frame and keep the rest as tracked (which chain's rotations carry the gap);
-  ``twopass``: the training frames' poses from ``twopass``'s average (run it first).
+  ``twopass``: the training frames' poses from ``twopass``'s average (run it first);
+  ``order-oracle`` / ``order-voted`` / ``order-test`` / ``retracked``: the folders ``order`` and
+  ``ordertest`` write (run them first); ``toward-N`` / ``toward-joints-N`` / ``toward-body-N``:
+  every parameter, the joints alone, or the body's turn, position and shape alone N % of the way
+  from the tracked to the true (N in 50, 75, 90: how the score grows as the error shrinks).
   ``--set KEY=VALUE --variant NAME``: every step trained with that trainer setting, into runs
   named after the variant (a lever, measured with the same decomposition).
 - ``cues``: the limbs' depth evidence on ``decompose``'s tracked folder (``--runs`` gap or
@@ -121,6 +127,12 @@ to ``--out/results/EXPERIMENT.json``; a run folder that is already finished is n
   depth order against the truth; the fitted shape's bone lengths; each joint's error and twist.
 - ``twopass``: the training frames tracked forwards, then backwards with the shape held, and the
   two fits averaged (a fixed-interval smoother against the temporal term's lag); joint errors.
+- ``order``: each limb bone's depth order (which end is nearer the camera) on ``decompose``'s
+  tracked folder: as tracked, set by the truth (a bound) and voted by BlazePose's 3D points over
+  each run of one order; directions and joint errors, and the two folders for ``decompose``.
+- ``ordertest``: the subject's camera tracked again with the fit's depth-order test
+  (``FitConfig.order_test_bones``: upper arms and thighs; ``--variant limbs`` adds forearms and
+  shins) and without; the same errors, and the folders ``order-test`` and ``retracked``.
 - ``framing``: renders RUN_DIR's default orbit (and follow camera) and reports the share of
   frames with the avatar whole and at least 30 % of the image tall.
 
@@ -274,7 +286,9 @@ def pose_variants(video_data: Path, data: Path, out: Path) -> dict[str, Path]:
     (times the sequence's one depth-ratio scale, the gauge the scoring fixes): the picture in
     the training camera unchanged at the pelvis, the single camera's depth error gone;
     ``true-arms`` / ``true-legs`` / ``true-torso``: one chain turned true in the camera's frame
-    (:func:`chain_true_in_world`). Each is ``out/NAME``."""
+    (:func:`chain_true_in_world`); ``toward-N``: every parameter N % of the way from the tracked to
+    the true (:func:`toward_truth`), ``toward-joints-N`` the local joint rotations alone,
+    ``toward-body-N`` the global orientation, position and shape alone. Each is ``out/NAME``."""
     import dataclasses
 
     import cv2
@@ -322,6 +336,12 @@ def pose_variants(video_data: Path, data: Path, out: Path) -> dict[str, Path]:
     true_rows = variants["true"]
     for name, chain in CHAINS.items():
         variants[f"true-{name}"] = chain_true_in_world(variants["tracked"], true_rows, chain)
+    for percent in TOWARD_TRUTH_PERCENT:
+        variants[f"toward-{percent}"] = toward_truth(variants["tracked"], true_rows, percent / 100.0)
+        for which in ("joints", "body"):
+            variants[f"toward-{which}-{percent}"] = toward_truth(
+                variants["tracked"], true_rows, percent / 100.0, which=which
+            )
     return {name: write_pose_variant(out / name, video_data, rows) for name, rows in variants.items()}
 
 
@@ -383,6 +403,33 @@ def chain_true_in_world(tracked: dict, true: dict, joints) -> dict:
         for j in range(1, 24):
             poses[j] = cv2.Rodrigues(target[parents[j]].T @ target[j])[0].ravel()
         rows["poses"][i] = poses.reshape(-1)
+    return rows
+
+
+def toward_truth(tracked: dict, true: dict, alpha: float, which: str = "all") -> dict:
+    """``tracked``'s rows (poses.npz columns, camera frame) moved a fraction ``alpha`` of the way to
+    ``true``'s: every local rotation and the global orientation along the shortest arc, position
+    and shape in a straight line (0: as tracked, 1: the truth); ``which="joints"``: the local
+    joint rotations alone, ``"body"``: the global orientation, position and shape alone, the rest
+    as tracked. How the avatar's score grows as the tracker's error shrinks, whatever the lever."""
+    import cv2
+    import numpy as np
+
+    rows = {k: v.copy() for k, v in tracked.items()}
+
+    def slerp(a, b):
+        Ra, Rb = cv2.Rodrigues(np.asarray(a, np.float64))[0], cv2.Rodrigues(np.asarray(b, np.float64))[0]
+        step = cv2.Rodrigues(alpha * cv2.Rodrigues(Ra.T @ Rb)[0])[0]
+        return cv2.Rodrigues(Ra @ step)[0].ravel()
+
+    for i in range(len(rows["poses"])):
+        mine, theirs = tracked["poses"][i].reshape(24, 3), true["poses"][i].reshape(24, 3)
+        if which != "body":
+            rows["poses"][i] = np.stack([slerp(mine[j], theirs[j]) for j in range(24)]).reshape(-1)
+        if which != "joints":
+            rows["Rh"][i] = slerp(tracked["Rh"][i], true["Rh"][i])
+    for key in () if which == "joints" else ("Th", "shapes"):
+        rows[key] = (1.0 - alpha) * tracked[key] + alpha * true[key]
     return rows
 
 
@@ -1379,8 +1426,12 @@ def decompose(args) -> dict:
     return rows
 
 
+TOWARD_TRUTH_PERCENT = (50, 75, 90)  # pose_variants' toward-N: the tracked poses N % of the way to the truth
+
 TRAINED_STEPS = (
     "tracked", "true-depth", "true-orientation", "true", "true-arms", "true-legs", "true-torso", "twopass",
+    "order-oracle", "order-voted", "order-test", "retracked",
+    *(f"toward-{w}{p}" for w in ("", "joints-", "body-") for p in TOWARD_TRUTH_PERCENT),
 )  # fmt: skip
 
 
@@ -1426,6 +1477,11 @@ def decompose_trained(args, subject_name: str = "gap") -> dict:
         folders["twopass"] = two_pass_folder(
             folders["tracked"], out / "twopass" / f"{subject_name}_{args.size}_s0.npz"
         )
+    for name in ("order-oracle", "order-voted", "order-test", "retracked"):
+        if name in (args.steps or "").split(","):
+            if not (where / name / "poses.npz").is_file():
+                raise FileNotFoundError(f"{where / name}: run bench_footage.py order for this subject first")
+            folders[name] = where / name
     rows = {"truth": scores(truth)}
     for name in wanted_runs(args.steps, TRAINED_STEPS, "decompose --steps"):
         slug = name.replace("-", "_")
@@ -1568,6 +1624,308 @@ def cues(args) -> dict:
             twist.append(abs(np.degrees(2 * np.arctan2(half @ axis, np.cos(angle / 2)))))
         joints[JOINT_NAMES[j]] = {"error_deg": float(np.mean(err)), "twist_deg": float(np.mean(twist))}
     return {"frames": len(fit), "bones": bones, "bone_length_ratio": lengths, "joints": joints}
+
+
+def blazepose_world_points(folder: Path, frames):
+    """BlazePose's metric 3D points (F, 33, 3; NaN where it found nobody) for ``frames`` of a
+    ``pose_variants`` folder's images, detected afresh (the tracker keeps only its fit)."""
+    import cv2
+    import numpy as np
+
+    from stg_node.tracking.detectors import make_detector
+
+    detector = make_detector("blazepose", threads=1)
+    world = []
+    for frame in np.asarray(frames).astype(int):
+        image = cv2.imread(str(folder / "images" / "camera" / f"{frame:06d}.jpg"))
+        if image is None:
+            raise FileNotFoundError(f"{folder}/images/camera/{frame:06d}.jpg")
+        points = detector(cv2.cvtColor(image, cv2.COLOR_BGR2RGB))
+        world.append(np.full((33, 3), np.nan) if points is None or points.world is None else points.world)
+    return np.asarray(world, np.float64)
+
+
+def flipped_direction(p, q):
+    """The other direction of the bone from ``p`` to ``q`` (camera frame, metres) that keeps ``q``'s
+    pixel and the bone's length: ``q`` slid along its ray to the second root of ``|s u - p| = L``
+    (its depth order the other way round). Unit vector."""
+    import numpy as np
+
+    u = q / np.linalg.norm(q)
+    s2 = 2.0 * float(u @ p) - float(np.linalg.norm(q))
+    d = s2 * u - p
+    return d / np.linalg.norm(d)
+
+
+def with_bones_flipped(rows: dict, flips: dict) -> dict:
+    """``rows`` (poses.npz columns, camera frame) with each bone ``(j, c)`` of ``flips`` (a boolean
+    per row) turned, where set, to :func:`flipped_direction`: ``j``'s rotation in the camera's
+    frame pre-multiplied by the smallest rotation between the two directions, every other joint's
+    rotation in the camera's frame kept (each local rotation re-solved from its parent's), so only
+    that bone's depth order changes."""
+    import cv2
+    import numpy as np
+    import torch
+
+    from stg_node.body import load_body_model
+
+    body = load_body_model()
+    parents = body.parents.tolist()
+
+    def tensor(x):
+        return torch.as_tensor(np.asarray(x), dtype=torch.float32)
+
+    joints = body(betas=tensor(rows["shapes"][:, :10]), poses=tensor(rows["poses"]).reshape(-1, 72),
+                  Rh=tensor(rows["Rh"]), Th=tensor(rows["Th"])).joints.numpy().astype(np.float64)  # fmt: skip
+    out = {k: v.copy() for k, v in rows.items()}
+    for i in range(len(rows["poses"])):
+        G = joint_world_rotations(rows, i, parents)
+        changed = False
+        for (j, c), mask in flips.items():
+            if not mask[i]:
+                continue
+            p, q = joints[i, j], joints[i, c]
+            d = (q - p) / np.linalg.norm(q - p)
+            axis = np.cross(d, flipped_direction(p, q))
+            angle = math.atan2(np.linalg.norm(axis), float(d @ flipped_direction(p, q)))
+            if np.linalg.norm(axis) < 1e-9:
+                continue
+            G[j] = cv2.Rodrigues(axis / np.linalg.norm(axis) * angle)[0] @ G[j]
+            changed = True
+        if changed:
+            poses = out["poses"][i].reshape(24, 3)
+            for j in range(1, 24):
+                poses[j] = cv2.Rodrigues(G[parents[j]].T @ G[j])[0].ravel()
+            out["poses"][i] = poses.reshape(-1)
+    return out
+
+
+ORDER_MIN_LEAN_DEG = 10.0  # a bone nearer the image plane than this: its depth order is left alone
+
+
+def voted_flips(fit_joints, world, layout, min_lean_deg: float = ORDER_MIN_LEAN_DEG) -> dict:
+    """Per limb bone, the frames whose depth order the detector's 3D points outvote, decided over
+    the sequence: the frames where the fitted bone leans towards or away from the camera by more
+    than ``min_lean_deg`` form runs of one depth order (a limb changes order only by passing the
+    image plane); in each run BlazePose's metric 3D points vote, each frame weighted by how far its
+    bone leans (a bone it sees side-on says little), and the run is flipped where the weighted
+    vote goes against the fit."""
+    import numpy as np
+
+    lean_min = math.sin(math.radians(min_lean_deg))
+    flips = {}
+    for (j, c), (a, b) in CUE_BONES.values():
+        d = fit_joints[:, c] - fit_joints[:, j]
+        d /= np.linalg.norm(d, axis=-1, keepdims=True)
+        ray = fit_joints[:, j] / np.linalg.norm(fit_joints[:, j], axis=-1, keepdims=True)
+        towards = -(d * ray).sum(-1)  # > 0: the child end nearer the camera
+        w = world[:, layout.index(b)] - world[:, layout.index(a)]
+        w_towards = -w[:, 2] / np.linalg.norm(w, axis=-1)  # BlazePose's z points away from the camera
+        w_towards = np.nan_to_num(w_towards)
+        mask = np.zeros(len(d), bool)
+        i = 0
+        while i < len(d):
+            if abs(towards[i]) < lean_min:
+                i += 1
+                continue
+            k = i
+            while (
+                k + 1 < len(d)
+                and abs(towards[k + 1]) >= lean_min
+                and np.sign(towards[k + 1]) == np.sign(towards[i])
+            ):
+                k += 1
+            vote = float(w_towards[i : k + 1].sum())  # signed, weighted by each frame's lean
+            if vote * np.sign(towards[i]) < 0:
+                mask[i : k + 1] = True
+            i = k + 1
+        flips[(j, c)] = mask
+    return flips
+
+
+def order(args) -> dict:
+    """Each limb bone's depth order (which end is nearer the camera), on ``decompose``'s tracked
+    folder (``--runs gap`` or ``closeup``; run ``decompose --runs gap-trained`` / ``closeup-trained``
+    first): the tracked poses, the same with every bone's order set by the truth where the other
+    order is closer to it (``order-oracle``: what an order decider could be worth at most; a
+    diagnostic), and with the order decided over the sequence by the detector's 3D points
+    (``order-voted``, :func:`voted_flips`). Each bone's direction in the camera's frame and the
+    joints' local rotations against the truth, over the training frames; the two folders are
+    written beside ``tracked`` for ``decompose --steps order-oracle,order-voted``."""
+    import numpy as np
+    import torch
+
+    from stg_node.body import load_body_model
+    from stg_node.safe_load import load_npz
+    from stg_node.tracking.layouts import get_layout
+
+    name = args.runs or "gap"
+    tag = (
+        f"{args.size}_s{args.seed}"
+        if name == "gap"
+        else f"{args.size}_{args.frames}_{args.closeup_m:g}m_s{args.seed}"
+    )
+    folder = args.out / "decompose" / f"data_{name}_{tag}"
+    if not (folder / "true" / "poses.npz").is_file():
+        raise FileNotFoundError(f"{folder}: run decompose --runs {name}-trained first")
+    body = load_body_model()
+    layout = get_layout("blazepose33")
+    rows = {
+        k: {c: np.asarray(v) for c, v in load_npz(folder / k / "poses.npz").items()}
+        for k in ("tracked", "true")
+    }
+
+    def joints_of(r):
+        def tensor(x):
+            return torch.as_tensor(np.asarray(x), dtype=torch.float32)
+
+        return body(betas=tensor(r["shapes"][:, :10]), poses=tensor(r["poses"]).reshape(-1, 72),
+                    Rh=tensor(r["Rh"]), Th=tensor(r["Th"])).joints.numpy().astype(np.float64)  # fmt: skip
+
+    fit, true = joints_of(rows["tracked"]), joints_of(rows["true"])
+    world = blazepose_world_points(folder / "tracked", rows["tracked"]["frames"])
+
+    def unit(v):
+        return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+    oracle = {}
+    for (j, c), _points in CUE_BONES.values():
+        t = unit(true[:, c] - true[:, j])
+        other = np.stack([flipped_direction(fit[i, j], fit[i, c]) for i in range(len(fit))])
+        oracle[(j, c)] = (other * t).sum(-1) > (unit(fit[:, c] - fit[:, j]) * t).sum(-1)
+    voted = voted_flips(fit, world, layout)
+    decided = {"order-oracle": oracle, "order-voted": voted}
+    variants = {
+        "tracked": rows["tracked"],
+        **{k: with_bones_flipped(rows["tracked"], v) for k, v in decided.items()},
+    }
+    n = round(0.8 * args.frames)
+    true_local = rows["true"]["poses"][:n].reshape(n, 24, 3)[:, 1:]
+    report = {"training_frames": n}
+    for label, r in variants.items():
+        mine = joints_of(r)
+        bones = {
+            bone: float(np.degrees(np.arccos(np.clip(
+                (unit(mine[:n, c] - mine[:n, j]) * unit(true[:n, c] - true[:n, j])).sum(-1), -1, 1))).mean())
+            for bone, ((j, c), _points) in CUE_BONES.items()
+        }  # fmt: skip
+        err = rotation_angles_deg(r["poses"][:n].reshape(n, 24, 3)[:, 1:], true_local).reshape(n, 23)
+        groups = {g: float(err[:, [k - 1 for k in js]].mean()) for g, js in JOINT_GROUPS.items()}
+        report[label] = {"limb_bones_deg": float(np.mean(list(bones.values()))), "bones": bones,
+                         "joint_rotation_deg": float(err.mean()), **groups}  # fmt: skip
+        if label != "tracked":
+            report[label]["flipped_pct"] = float(
+                100 * np.mean([m[:n].mean() for m in decided[label].values()])
+            )
+            write_pose_variant(folder / label, folder / "tracked", r)
+    return report
+
+
+ORDER_TEST_BONES = ((16, 18), (17, 19), (1, 4), (2, 5))  # upper arms, thighs: ball joints
+
+
+def ordertest(args) -> dict:
+    """The fit's own depth-order test (FitConfig.order_test_bones): the subject's camera (``--runs
+    gap`` or ``closeup``) tracked again as ``--format video`` tracks it (unsmoothed, true
+    intrinsics), as is and with the test on the upper arms and thighs (:data:`ORDER_TEST_BONES`;
+    ``--variant limbs`` adds the forearms and shins); each limb bone's direction and
+    depth order and the joints' local rotations against the truth over the training frames. The
+    tested poses become the folder ``order-test`` (``order-test-VARIANT``) beside ``decompose``'s
+    ``tracked`` (run ``decompose --runs gap-trained`` / ``closeup-trained`` first) for ``decompose
+    --steps order-test``, and the default re-tracked the same way (its baseline; it should match
+    ``tracked``) the folder ``retracked``."""
+    import numpy as np
+    import torch
+
+    from stg_node.body import load_body_model
+    from stg_node.safe_load import load_npz
+    from stg_node.tracking.fitting import FitConfig
+    from stg_node.tracking.pipeline import TrackOptions, build_tracker
+    from stg_node.tracking.sources import open_source
+
+    name = args.runs or "gap"
+    if name == "gap":
+        data = subject(args.out, f"mixed_{args.size}", num_frames=args.frames, size=args.size)
+        tag = f"{args.size}_s{args.seed}"
+    else:
+        data = closeup_subject(args)
+        tag = f"{args.size}_{args.frames}_{args.closeup_m:g}m_s{args.seed}"
+    folder = args.out / "decompose" / f"data_{name}_{tag}"
+    if not (folder / "true" / "poses.npz").is_file():
+        raise FileNotFoundError(f"{folder}: run decompose --runs {name}-trained first")
+    rows = {
+        k: {c: np.asarray(v) for c, v in load_npz(folder / k / "poses.npz").items()}
+        for k in ("tracked", "true")
+    }
+    metadata = json.loads((data / "synth.json").read_text())
+    options = TrackOptions(intrinsics=str(intrinsics_file(data)), fps=float(metadata["fps"]), smoothing=False)
+    source = open_source(data / "Camera_B1", options.fps)
+    frames = [(f.image, f.timestamp) for f in source]
+    kept = rows["tracked"]["frames"].astype(int)
+    bones = ORDER_TEST_BONES
+    if args.variant == "limbs":
+        bones = bones + ((18, 20), (19, 21), (4, 7), (5, 8))
+    configs = {"retracked": FitConfig(), "order-test": FitConfig(order_test_bones=bones)}
+    tracked_rows = {}
+    seconds = {}
+    for label, config in configs.items():
+        started = time.perf_counter()
+        tracker, _body = build_tracker(options, source.width, source.height, fit=config)
+        out = {k: v.copy() for k, v in rows["tracked"].items()}
+        for row, i in enumerate(kept):
+            e = tracker.estimate(frames[i][0], frames[i][1])
+            out["poses"][row] = np.asarray(e.smpl.poses, np.float64).reshape(72)
+            out["Rh"][row], out["Th"][row] = e.smpl.Rh, e.smpl.Th
+            out["shapes"][row] = np.asarray(e.smpl.betas)[: out["shapes"].shape[1]]
+        tracked_rows[label] = out
+        seconds[label] = time.perf_counter() - started
+    body = load_body_model()
+
+    def joints_of(r):
+        def tensor(x):
+            return torch.as_tensor(np.asarray(x), dtype=torch.float32)
+
+        return body(betas=tensor(r["shapes"][:, :10]), poses=tensor(r["poses"]).reshape(-1, 72),
+                    Rh=tensor(r["Rh"]), Th=tensor(r["Th"])).joints.numpy().astype(np.float64)  # fmt: skip
+
+    def unit(v):
+        return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+    n = round(0.8 * args.frames)
+    true = joints_of(rows["true"])[:n]
+    true_local = rows["true"]["poses"][:n].reshape(n, 24, 3)[:, 1:]
+    retrack_diff = np.abs(tracked_rows["retracked"]["poses"] - rows["tracked"]["poses"]).max()
+    report = {"training_frames": n, "bones_tested": [list(b) for b in bones], "track_seconds": seconds,
+              "retracked_max_pose_diff_rad": float(retrack_diff)}  # fmt: skip
+    for label, r in (
+        ("tracked", rows["tracked"]),
+        ("retracked", tracked_rows["retracked"]),
+        ("order-test", tracked_rows["order-test"]),
+    ):
+        mine = joints_of(r)[:n]
+        per_bone = {}
+        for bone, ((j, c), _points) in CUE_BONES.items():
+            d, t = unit(mine[:, c] - mine[:, j]), unit(true[:, c] - true[:, j])
+            towards = -(d * unit(mine[:, j])).sum(-1)
+            true_towards = -(t * unit(true[:, j])).sum(-1)
+            leaning = np.abs(true_towards) > math.sin(math.radians(15))
+            wrong = np.sign(towards[leaning]) != np.sign(true_towards[leaning])
+            per_bone[bone] = {
+                "direction_deg": float(np.degrees(np.arccos(np.clip((d * t).sum(-1), -1, 1))).mean()),
+                "order_wrong_pct": float(100 * wrong.mean()) if leaning.any() else float("nan"),
+            }
+        err = rotation_angles_deg(r["poses"][:n].reshape(n, 24, 3)[:, 1:], true_local).reshape(n, 23)
+        report[label] = {
+            "limb_bones_deg": float(np.mean([b["direction_deg"] for b in per_bone.values()])),
+            "joint_rotation_deg": float(err.mean()),
+            **{g: float(err[:, [k - 1 for k in js]].mean()) for g, js in JOINT_GROUPS.items()},
+            "bones": per_bone,
+        }
+    written = "order-test" + (f"-{args.variant}" if args.variant else "")
+    write_pose_variant(folder / written, folder / "tracked", tracked_rows["order-test"])
+    write_pose_variant(folder / "retracked", folder / "tracked", tracked_rows["retracked"])
+    report["folder"] = str(folder / written)
+    return report
 
 
 def twopass(args) -> dict:
@@ -1732,6 +2090,8 @@ EXPERIMENTS = {
     "decompose": decompose,
     "cues": cues,
     "twopass": twopass,
+    "order": order,
+    "ordertest": ordertest,
 }
 
 

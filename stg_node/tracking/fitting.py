@@ -111,6 +111,15 @@ class FitConfig:
     silhouette_trust_units: float = 3.0
     damping: float = 1e-2
     step_eps: float = 1e-6  # forward-difference step
+    # The depth-order test (issue 26, round 10): on a tracked frame, each of ``order_test_bones``
+    # (SMPL (joint, child) pairs) that leans towards or away from the camera by more than
+    # order_min_lean_deg is also tried the other way round (its far end slid along its ray to
+    # the other depth of the same length: the same pixels) and re-solved without the temporal
+    # term; the lower cost wins. The temporal term otherwise holds a limb on whichever side of
+    # the image plane it was first fitted. Off by default: docs/BENCHMARKS.md (round 10).
+    order_test_bones: tuple = ()
+    order_min_lean_deg: float = 10.0
+    order_iterations: int = 3
 
     def validate(self) -> None:
         if self.iterations < 1 or self.init_iterations < 1 or self.global_iterations < 0:
@@ -125,6 +134,13 @@ class FitConfig:
             raise ValueError(
                 "temporal_max_rad_per_s must be >= temporal_rad_per_s and temporal_jitter_units >= 0"
             )
+        if self.order_iterations < 1 or not 0.0 <= self.order_min_lean_deg < 90.0:
+            raise ValueError("order_iterations must be >= 1 and order_min_lean_deg in [0, 90)")
+        for bone in self.order_test_bones:
+            if len(bone) != 2 or not all(isinstance(k, int) and 1 <= k < 1 + NUM_BODY_JOINTS for k in bone):
+                raise ValueError(
+                    f"order_test_bones holds (joint, child) pairs of SMPL joints 1..23, got {bone!r}"
+                )
         for name in ("noise_fraction", "robust_scale", "world_sigma", "shape_sigma", "step_eps",
                      "silhouette_robust_units", "silhouette_trust_units",
                      "temporal_min_length_units"):  # fmt: skip
@@ -542,6 +558,66 @@ class SmplFitter:
                     (theta, ctx), rescued = fresh, True
         return theta, ctx, active, reinit or rescued
 
+    def _test_depth_order(self, theta, active, obs: _Observation, ctx: dict) -> torch.Tensor:
+        """``theta`` or, bone by bone (FitConfig.order_test_bones), the other depth order of a
+        leaning limb where, re-solved without the temporal term, it explains the frame at a lower
+        cost than ``theta`` re-solved the same way."""
+        cfg = self.config
+        plain = dict(ctx, previous=None)
+        settled, _ = self._solve(theta.clone(), active, obs, dict(plain), cfg.order_iterations)
+        best_cost = self._cost(settled, obs, plain)
+        chosen = theta
+        for bone in cfg.order_test_bones:
+            flipped = self._depth_flipped(chosen, ctx, bone)
+            if flipped is None:
+                continue
+            trial, _ = self._solve(flipped, active, obs, dict(plain), cfg.order_iterations)
+            cost = self._cost(trial, obs, plain)
+            if cost < best_cost:
+                chosen, best_cost = trial, cost
+        return chosen
+
+    def _depth_flipped(self, theta: torch.Tensor, ctx: dict, bone) -> torch.Tensor | None:
+        """``theta`` with ``bone`` (SMPL joint, child) turned to the other direction that keeps its
+        child's pixel and its length (the child slid along its ray to the second root of
+        ``|s u - p| = L``), every other joint kept at its orientation in the camera's frame; None
+        when the bone leans less than order_min_lean_deg or the other root is behind the camera."""
+        j, c = bone
+        with torch.no_grad():
+            betas = theta[None, GLOBAL_PARAMS + POSE_PARAMS :] if ctx["calibrating"] else ctx["betas"]
+            rotation = ctx["base_rotation"] @ lbs.axis_angle_to_matrix(theta[:3])
+            pose = theta[GLOBAL_PARAMS : GLOBAL_PARAMS + POSE_PARAMS].reshape(NUM_BODY_JOINTS, 3)
+            local = torch.cat([self._root_rotation[0], lbs.axis_angle_to_matrix(pose)])[None]
+            joints, transforms = lbs.rigid_chain(local, self.model.rest_joints(betas), self.model.parents)
+            camera = joints[0] @ rotation.T + theta[3:6]
+            p, q = camera[j], camera[c]
+            length = (q - p).norm()
+            ray = q / q.norm()
+            direction = (q - p) / length
+            if abs(float(direction @ (p / p.norm()))) < math.sin(
+                math.radians(self.config.order_min_lean_deg)
+            ):
+                return None
+            depth = 2.0 * float(ray @ p) - float(q.norm())
+            if depth <= MIN_DEPTH_M:
+                return None
+            other = depth * ray - p
+            other = other / other.norm()
+            axis = torch.linalg.cross(direction, other)
+            if float(axis.norm()) < 1e-9:
+                return None
+            turn = lbs.axis_angle_to_matrix(axis / axis.norm() * torch.atan2(axis.norm(), direction @ other))
+            world = rotation @ transforms[0, :, :3, :3]  # (24, 3, 3) in the camera's frame
+            parents = self.model.parents.tolist()
+            new_world = world.clone()
+            new_world[j] = turn @ world[j]
+            out = theta.clone()
+            for k in [j] + [k for k in range(1, 24) if parents[k] == j]:
+                rel = new_world[parents[k]].T @ new_world[k]
+                start = GLOBAL_PARAMS + 3 * (k - 1)
+                out[start : start + 3] = lbs.matrix_to_axis_angle(rel)
+            return out
+
     def _joint_sigma(self, limb_turn: np.ndarray | None, dt: float):
         """The temporal term's sigma over a frame gap ``dt``: temporal_rad_per_s x dt, or per joint
         (a (69,) tensor) the evidence's turn where it says more, up to temporal_max_rad_per_s x dt."""
@@ -592,7 +668,9 @@ class SmplFitter:
             "robust": torch.ones(obs.xy.shape[0], dtype=DTYPE),
             "limb_turn": self._limb_turn(obs),
         }
-        theta, ctx, _active, reinitialised = self._fit_frame(obs, ctx, timestamp, self._initialise)
+        theta, ctx, active, reinitialised = self._fit_frame(obs, ctx, timestamp, self._initialise)
+        if self.config.order_test_bones and ctx["previous"] is not None:
+            theta = self._test_depth_order(theta, active, obs, ctx)
         betas = self._keep_state(theta, ctx, timestamp)
         self._last_targets = (obs.xy.clone(), obs.weight > 0)
         self._last_fit = (obs, ctx, reinitialised)

@@ -319,3 +319,68 @@ def test_bench_footage_twopass_step_replaces_only_the_training_frames_poses(tmp_
     np.testing.assert_allclose(out["Th"][:3], average[:, 75:])
     np.testing.assert_allclose(out["poses"][3:], rows["poses"][3:])
     assert (folder / "images").resolve() == (tracked / "images").resolve()
+
+
+def test_bench_footage_toward_truth_moves_every_rotation_that_fraction_of_its_arc():
+    """decompose's toward-N steps: each local rotation and the global orientation turned N % of
+    the way to the truth along the shortest arc (the angle left is (1 - N) of the angle between
+    them, about the same axis), position and shape in a straight line; 0 and 1 are the ends."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(5)
+    tracked = {"poses": rng.normal(0, 0.4, (3, 72)), "Rh": rng.normal(0, 0.4, (3, 3)),
+               "Th": rng.normal(size=(3, 3)), "shapes": rng.normal(size=(3, 10))}  # fmt: skip
+    truth = {k: v + rng.normal(0, 0.3, v.shape) for k, v in tracked.items()}
+    bench = _bench_footage()
+
+    def gap_deg(a, b):
+        return np.degrees(
+            (
+                Rotation.from_rotvec(a.reshape(-1, 3)).inv() * Rotation.from_rotvec(b.reshape(-1, 3))
+            ).magnitude()
+        )
+
+    full = gap_deg(tracked["poses"], truth["poses"])
+    for alpha in (0.0, 0.25, 1.0):
+        moved = bench.toward_truth(tracked, truth, alpha)
+        np.testing.assert_allclose(gap_deg(moved["poses"], truth["poses"]), (1 - alpha) * full, atol=1e-6)
+        np.testing.assert_allclose(gap_deg(moved["poses"], tracked["poses"]), alpha * full, atol=1e-6)
+        np.testing.assert_allclose(gap_deg(moved["Rh"], truth["Rh"]),
+                                   (1 - alpha) * gap_deg(tracked["Rh"], truth["Rh"]), atol=1e-6)  # fmt: skip
+        np.testing.assert_allclose(moved["Th"], tracked["Th"] + alpha * (truth["Th"] - tracked["Th"]))
+    assert full.mean() > 10.0  # the test moved something
+    joints = bench.toward_truth(tracked, truth, 0.5, which="joints")  # the joints alone
+    np.testing.assert_allclose(gap_deg(joints["poses"], truth["poses"]), 0.5 * full, atol=1e-6)
+    for key in ("Rh", "Th", "shapes"):
+        np.testing.assert_array_equal(joints[key], tracked[key])
+    placed = bench.toward_truth(tracked, truth, 0.5, which="body")  # everything but the joints
+    np.testing.assert_array_equal(placed["poses"], tracked["poses"])
+    np.testing.assert_allclose(placed["shapes"], 0.5 * (tracked["shapes"] + truth["shapes"]))
+
+
+def test_bench_footage_flipped_bone_keeps_its_childs_pixel_and_turns_only_that_bone():
+    """order's diagnostic flip: the child joint stays on its pixel at the other depth of the same
+    bone length, and every other joint keeps its orientation in the camera's frame."""
+    import torch
+
+    body = load_body_model()
+    rng = np.random.default_rng(2)
+    rows = {"poses": rng.normal(0, 0.3, (1, 72)), "Rh": np.array([[np.pi, 0.0, 0.0]]),
+            "Th": np.array([[0.0, 0.2, 3.0]]), "shapes": np.zeros((1, 10))}  # fmt: skip
+    rows["poses"][0, :3] = 0.0
+    bench = _bench_footage()
+    bone = (16, 18)
+    out = bench.with_bones_flipped(rows, {bone: np.array([True])})
+
+    def forward(r):
+        t = {k: torch.as_tensor(np.asarray(v), dtype=torch.float32) for k, v in r.items()}
+        res = body(betas=t["shapes"], poses=t["poses"], Rh=t["Rh"], Th=t["Th"])
+        return res.joints[0].double().numpy(), res.bone_transforms[0, :, :3, :3].double().numpy()
+
+    (j0, g0), (j1, g1) = forward(rows), forward(out)
+    p, q = j0[bone[0]], j0[bone[1]]
+    ray = q / np.linalg.norm(q)
+    np.testing.assert_allclose(j1[bone[1]], (2 * ray @ p - np.linalg.norm(q)) * ray, atol=2e-4)
+    others = [k for k in range(24) if k != bone[0]]
+    np.testing.assert_allclose(g1[others], g0[others], atol=1e-4)
+    assert np.abs(g1[bone[0]] - g0[bone[0]]).max() > 0.05

@@ -77,16 +77,21 @@ def test_the_rise_is_the_parabolas_at_a_20_percent_step():
     assert _rise(log_f, np.arange(5.0) + 1.0) == 0.0  # minimum at the edge
 
 
-def frames_with_profile(monkeypatch, depth: float, fovs, width: int, true_fov: float, frames: int = 24):
+def frames_with_profile(
+    monkeypatch, depth: float, fovs, width: int, true_fov: float, frames: int = 24, unfitted: int = 0
+):
     """estimate_focal with every frame's cost a parabola in log focal length around ``true_fov``
-    (plus a little noise), ``depth`` its relative rise at a 20 % step: the decision rule alone."""
+    (plus a little noise), ``depth`` its relative rise at a 20 % step: the decision rule alone.
+    ``unfitted`` frames fail (NaN) at one focal length, as a fit that does not converge does."""
     log_true = math.log((width / 2) / math.tan(math.radians(true_fov) / 2))
     rng = np.random.default_rng(1)
 
     def profile(observations, picks, body, layout, w, h, grid, intrinsics_dist=None):
         log_f = np.log([(w / 2) / math.tan(math.radians(f) / 2) for f in grid])
         shape = 1.0 + depth * ((log_f - log_true) / RISE_STEP) ** 2
-        return 10.0 * shape[None, :] * (1.0 + 1e-4 * rng.standard_normal((len(picks), len(grid))))
+        costs = 10.0 * shape[None, :] * (1.0 + 1e-4 * rng.standard_normal((len(picks), len(grid))))
+        costs[:unfitted, 0] = np.nan
+        return costs
 
     monkeypatch.setattr(focal, "_profile", profile)
     no_stride = stride.StrideEstimate(math.nan, math.nan, math.nan, 0, 0.0, frames)  # a walk in place
@@ -109,6 +114,15 @@ def test_a_flat_profile_is_unsure_however_tight_its_bootstrap(monkeypatch):
     found = frames_with_profile(monkeypatch, 0.005, focal.GRID_FOV_DEG, 256, 50.0)
     assert found.high_fov_deg - found.low_fov_deg < 2.0  # the bootstrap alone would say sure
     assert not found.sure and "changes by only" in found.reason, found.describe()
+
+
+def test_a_deep_profile_from_too_few_fitted_frames_is_unsure(monkeypatch):
+    """20 confident frames, 6 of them not fitted at one focal length: the 14 left make two
+    bootstrap blocks, whose interval is tight around any minimum; the answer is given, never sure."""
+    found = frames_with_profile(monkeypatch, 0.05, focal.GRID_FOV_DEG, 256, 50.0, frames=20, unfitted=6)
+    assert found.frames == 14 and found.fov_deg == pytest.approx(50.0, abs=1.0)
+    assert not found.sure and "frames fitted at every focal length" in found.reason, found.describe()
+    assert frames_with_profile(monkeypatch, 0.05, focal.GRID_FOV_DEG, 256, 50.0, frames=20).sure
 
 
 def test_too_few_frames_are_unsure(body):
