@@ -68,7 +68,7 @@ class AvatarRenderer:
         self.color_refresh_every = int(color_refresh_every)
         self.light = light  # None: the model's learned light (shading.py)
         self._last_key: int | None = None
-        self._mean: tuple[AvatarModel, AvatarModel] | None = None  # (model, its rigid part), built on first use
+        self._mean: tuple[AvatarModel, AvatarModel] | None = None  # (model, its rigid part): on first use
         self._streams: OrderedDict[str, ColorCache] = OrderedDict()
         # The model evaluates the motion terms of the moving rows only unless most rows move; on a
         # CPU the dense terms are then cheaper than the index bookkeeping (docs/BENCHMARKS.md, "Live
@@ -215,7 +215,7 @@ class AvatarRenderer:
         if camera_center is None:
             camera_center = np.asarray(smpl.Th, np.float64).reshape(3) + np.array([0.0, 0.0, 3.0])
         center = torch.as_tensor(np.asarray(camera_center, np.float32).reshape(3), device=self.device)
-        posed = self.model.pose(body, u, center, skip_inactive=self.skip_inactive)
+        posed = self.model_for(smpl, time).pose(body, u, center, skip_inactive=self.skip_inactive)
         return PointsOutput(
             positions=posed.means.cpu().numpy().astype(np.float32),
             colors=_to_uint8(posed.colors),

@@ -713,5 +713,6 @@ def test_a_pose_beyond_the_index_reach_renders_the_mean_placement_one_within_it_
     assert not index.within_reach(far_poses)
     beyond = renderer.render(camera, far).image
     assert np.array_equal(beyond, mean.render(camera, far).image)
+    assert np.array_equal(renderer.points(far).positions, mean.points(far).positions)  # as render poses it
     instant = renderer.render(camera, far, model.time_axis.origin_s + u * model.time_axis.unit_s).image
     assert not np.array_equal(beyond, instant)  # the motion terms do change this view
