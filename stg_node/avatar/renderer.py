@@ -3,7 +3,10 @@ renderer node call.
 
 Built from a model or straight from a GaussianSnapshot (the renderer node hot-swaps those).
 Without a time the pose's time code comes from the nearest training pose (timecode.py); with
-``follow`` state kept between calls, an animation keeps its time code stable (hysteresis).
+``follow`` state kept between calls, an animation keeps its time code stable (hysteresis). A pose
+without a time that is beyond the index's reach (farther from every training pose than training
+poses adjacent in time are from each other) renders the model's mean placement, its rigid part
+(nonrigid.rigid_part): no training instant's garment state stands for it (timecode.py).
 Rendering runs without gradients, evaluates the motion terms only on the rows that move (found
 once per model state, AvatarModel._render_spacetime), and colours only the Gaussians the camera
 can see. A live
@@ -25,6 +28,7 @@ import torch
 
 from stg_node.avatar.color_cache import ColorCache
 from stg_node.avatar.model import AvatarModel, BodyState, Camera3, render
+from stg_node.avatar.nonrigid import rigid_part
 from stg_node.avatar.shading import LightSpec
 
 
@@ -64,6 +68,7 @@ class AvatarRenderer:
         self.color_refresh_every = int(color_refresh_every)
         self.light = light  # None: the model's learned light (shading.py)
         self._last_key: int | None = None
+        self._mean: tuple[AvatarModel, AvatarModel] | None = None  # (model, its rigid part): on first use
         self._streams: OrderedDict[str, ColorCache] = OrderedDict()
         # The model evaluates the motion terms of the moving rows only unless most rows move; on a
         # CPU the dense terms are then cheaper than the index bookkeeping (docs/BENCHMARKS.md, "Live
@@ -112,6 +117,18 @@ class AvatarRenderer:
         if follow:
             self._last_key = key
         return u
+
+    def model_for(self, smpl, time_s: float | None) -> AvatarModel:
+        """The model that renders ``smpl``: the avatar, or its rigid part (the mean placement) for a
+        pose without a time beyond the pose index's reach (module docstring)."""
+        model = self.model
+        if time_s is not None or not model.config.spacetime:
+            return model
+        if model.pose_index.within_reach(np.asarray(smpl.poses)):
+            return model
+        if self._mean is None or self._mean[0] is not model:
+            self._mean = (model, rigid_part(model)[0].eval())
+        return self._mean[1]
 
     @torch.no_grad()
     def posed_points(
@@ -162,15 +179,16 @@ class AvatarRenderer:
         render."""
         started = _now()
         u = self.time_for(smpl, time, follow=follow)
+        model = self.model_for(smpl, time)
         cam = Camera3.from_camera(camera, device=self.device)
         body = BodyState.from_smpl(smpl, self.device)
-        posed = self.model.pose(
+        posed = model.pose(
             body,
             u,
             cam.center,
             skip_inactive=self.skip_inactive,
             camera=cam,
-            color_cache=self._color_cache(stream),
+            color_cache=self._color_cache(stream) if model is self.model else None,
             light=light or self.light,
         )
         bg = torch.as_tensor(background, dtype=torch.float32, device=self.device)
@@ -197,7 +215,7 @@ class AvatarRenderer:
         if camera_center is None:
             camera_center = np.asarray(smpl.Th, np.float64).reshape(3) + np.array([0.0, 0.0, 3.0])
         center = torch.as_tensor(np.asarray(camera_center, np.float32).reshape(3), device=self.device)
-        posed = self.model.pose(body, u, center, skip_inactive=self.skip_inactive)
+        posed = self.model_for(smpl, time).pose(body, u, center, skip_inactive=self.skip_inactive)
         return PointsOutput(
             positions=posed.means.cpu().numpy().astype(np.float32),
             colors=_to_uint8(posed.colors),

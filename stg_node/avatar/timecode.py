@@ -12,6 +12,16 @@ training times whose poses are about equally close, which would make time-local 
 blink. :meth:`PoseTimeIndex.time_for` therefore keeps the previous choice unless another frame
 is closer by a margin (hysteresis, ``HYSTERESIS`` of the current distance).
 
+How far the rule reaches: the garment's state is a function of its history, not of the pose
+alone, so an instant's non-rigid state carries over to a new pose only as it does to the next
+frame, by continuity. A pose farther from every training pose than the largest step between
+training poses adjacent in time (:meth:`PoseTimeIndex.reach`) has no such neighbour; it renders
+the model's mean placement (no motion terms, stg_node.avatar.renderer). Measured (issue 22,
+docs/BENCHMARKS.md round 10b): on the dancing subject the instant of a pose 2.5 frame-steps away
+costs a held-out frame 1.2 dB against the mean on one subject draw and gains 0.3 on the other;
+training frames rendered at the instant of their nearest pose more than 5 frames away score
+-0.60 / -0.01 dB against the mean.
+
 The index keeps at most ``capacity`` keys (a stream evicts the oldest half-stride by
 reservoir-style thinning: every other key is dropped when full), so it stays small; a bounded
 trainer keeps only the entries of the frames it still holds (:meth:`PoseTimeIndex.retain`).
@@ -70,6 +80,22 @@ class PoseTimeIndex:
     def set(self, keys: np.ndarray, times: np.ndarray) -> None:
         self.keys = np.asarray(keys, np.float32).reshape(-1, 23 * 9)
         self.times = np.asarray(times, np.float32).reshape(-1)
+
+    def reach(self) -> float:
+        """The largest pose distance between training poses adjacent in time (0 with fewer than two):
+        how far a pose may be from its nearest training pose and still count as a neighbour of an instant."""
+        if len(self) < 2:
+            return 0.0
+        keys = self.keys[np.argsort(self.times, kind="stable")]
+        return float(np.linalg.norm(np.diff(keys, axis=0), axis=1).max())
+
+    def within_reach(self, poses: np.ndarray) -> bool:
+        """Whether a pose is as near a training pose as consecutive training poses are to each other
+        (module docstring); an index of fewer than two poses has no measure of that and says yes."""
+        if len(self) < 2:
+            return True
+        nearest = float(np.linalg.norm(self.keys - pose_key(poses), axis=1).min())
+        return nearest <= self.reach() + 1e-6
 
     def time_for(self, poses: np.ndarray, previous: int | None = None) -> tuple[float, int]:
         """(time, key index) for one pose; ``previous`` is the index chosen for the last frame."""

@@ -3,6 +3,7 @@ frames of the trial, the rigid model a switch-off continues with, and the gain's
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -681,3 +682,37 @@ def test_a_checkpoint_without_per_row_step_counts_resumes_with_every_row_there_a
     alive = checkpoint.load(path).densify["alive_count"]
     assert alive.shape == trainer.densify_state["vis_count"].shape
     assert bool((alive == steps).all())
+
+
+def test_a_pose_beyond_the_index_reach_renders_the_mean_placement_one_within_it_its_instant(tiny_frames):
+    """Without a time, a pose as near a training pose as consecutive training poses are renders that
+    instant's non-rigid state; one farther renders the rigid part (timecode.py: no instant stands for it)."""
+    from stg_node.avatar.renderer import AvatarRenderer
+
+    trainer, _ = _trainer(tiny_frames, _trial_config(nonrigid="on"), 2)
+    model = trainer.model
+    table, bases = model.table, model.motion_bases
+    g = torch.Generator().manual_seed(3)
+    with torch.no_grad():  # every row moves, differently at every knot
+        bases.values.copy_(0.02 * torch.randn(bases.values.shape, generator=g))
+        table["motion_gate"].fill_(1.0)
+        table["motion_coef"].copy_(torch.rand(table["motion_coef"].shape, generator=g))
+    renderer = AvatarRenderer(model)
+    mean = AvatarRenderer(nonrigid.rigid_part(model)[0])
+    frame = tiny_frames[3]
+    camera = frame.camera
+    index = model.pose_index
+    near = frame.smpl
+    u, _ = index.time_for(np.asarray(near.poses))
+    at_instant = renderer.render(camera, near, model.time_axis.origin_s + u * model.time_axis.unit_s).image
+    assert index.within_reach(np.asarray(near.poses))
+    assert np.array_equal(renderer.render(camera, near).image, at_instant)
+    far_poses = np.array(near.poses, np.float32).reshape(24, 3)
+    far_poses[16] += [0.0, 0.0, 1.2]  # the left shoulder far beyond any training pose
+    far = dataclasses.replace(near, poses=far_poses)
+    assert not index.within_reach(far_poses)
+    beyond = renderer.render(camera, far).image
+    assert np.array_equal(beyond, mean.render(camera, far).image)
+    assert np.array_equal(renderer.points(far).positions, mean.points(far).positions)  # as render poses it
+    instant = renderer.render(camera, far, model.time_axis.origin_s + u * model.time_axis.unit_s).image
+    assert not np.array_equal(beyond, instant)  # the motion terms do change this view

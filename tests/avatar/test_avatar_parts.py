@@ -276,3 +276,18 @@ def test_the_render_time_skin_weights_follow_a_prune_and_an_append_of_as_many_ro
             got, truth = model._render_skin_weights(), model.skin_weights()
         assert got.shape == before.shape and torch.equal(got, truth)
         assert not torch.allclose(got[-1], truth[0])  # the appended row is not a copy of row 0's weights
+
+
+def test_the_pose_index_reaches_as_far_as_consecutive_training_poses_are_apart():
+    """Closed form: two rotations about one axis differ by 2 sqrt(2) |sin(d/2)| (Frobenius); keys added
+    out of time order are measured in time order."""
+    index = PoseTimeIndex()
+    angles = [0.0, 0.1, 0.2, 0.4, 0.5]  # a step of 0.2 between the times 2 and 3
+    for i in (3, 0, 4, 1, 2):
+        index.add(_pose(angles[i]), float(i))
+    assert index.reach() == pytest.approx(2 * math.sqrt(2) * math.sin(0.1), rel=1e-5)
+    assert index.within_reach(_pose(0.65)) and index.within_reach(_pose(0.3))
+    assert not index.within_reach(_pose(0.75))  # 0.25 beyond the last key: farther than any step
+    single = PoseTimeIndex()
+    single.add(_pose(0.0), 0.0)
+    assert single.reach() == 0.0 and single.within_reach(_pose(1.0))  # no measure of a step: today's rule
