@@ -42,7 +42,7 @@ import torch
 
 from stg_node.avatar.gaussians import GaussianTable
 from stg_node.avatar.model import AvatarModel, Camera3, render
-from stg_node.avatar.spacetime import PERSISTENT_SCALE
+from stg_node.avatar.spacetime import PERSISTENT_SCALE, SpacetimeState
 
 NONRIGID_COLUMNS = ("motion", "motion_coef", "rot_motion", "motion_gate", "t_center", "t_log_scale")
 CHANGED_LEVEL = 1.0 / 255.0  # renders differing by less than one grey level count as equal
@@ -104,6 +104,31 @@ def rigid_part(model: AvatarModel) -> tuple[AvatarModel, torch.Tensor]:
     if model.shading is not None:  # the same learned light and mean training orientation
         rigid.shading.load_state_dict(model.shading.state_dict())
     return rigid, keep
+
+
+@torch.no_grad()
+def faded_state(
+    model: AvatarModel, state: SpacetimeState, weight: float, keep: torch.Tensor, mean_offsets: torch.Tensor
+) -> SpacetimeState:
+    """``model``'s spacetime terms ``state`` (at some instant) taken ``weight`` of the way from its
+    rigid part (0: each moving row at its mean offset, base rotation, the rows :func:`rigid_part`
+    drops at zero opacity; ``keep`` is its mask, ``mean_offsets`` :func:`mean_offsets`) to the
+    instant (1): offsets, rotation deltas and
+    temporal opacity blended linearly, one render of the full model (renderer.py's fade beyond
+    the pose index's reach, timecode.py). The ends agree with the two renders to float rounding."""
+    table = model.table
+    offsets = mean_offsets if state.offsets is None else torch.lerp(mean_offsets, state.offsets, weight)
+    base_quats = table["quats"].detach()
+    quats = torch.lerp(base_quats, state.quats, weight)
+    temporal = torch.ones(table.num, device=keep.device) if state.temporal is None else state.temporal
+    rigid_opacity = keep.to(temporal.dtype)  # kept rows show fully, dropped ones not at all
+    return SpacetimeState(offsets, quats, torch.lerp(rigid_opacity, temporal, weight))
+
+
+def mean_offsets(model: AvatarModel) -> torch.Tensor:
+    """(N, 3) the offset :func:`rigid_part` gives each row (its mean over the knots; zero where static)."""
+    with torch.no_grad():
+        return _mean_placed(model) - model.table["means"].detach()
 
 
 def _mean_placed(model: AvatarModel) -> torch.Tensor:

@@ -5,8 +5,11 @@ Built from a model or straight from a GaussianSnapshot (the renderer node hot-sw
 Without a time the pose's time code comes from the nearest training pose (timecode.py); with
 ``follow`` state kept between calls, an animation keeps its time code stable (hysteresis). A pose
 without a time that is beyond the index's reach (farther from every training pose than training
-poses adjacent in time are from each other) renders the model's mean placement, its rigid part
-(nonrigid.rigid_part): no training instant's garment state stands for it (timecode.py).
+poses adjacent in time are from each other) has no training instant whose garment state stands for
+it (timecode.py): from twice the reach on (timecode.FADE_END) it renders the model's mean
+placement, its rigid part (nonrigid.rigid_part), and between the two the instant's non-rigid part
+fades out with the distance (PoseTimeIndex.trust, nonrigid.faded_state), in the same one render,
+so an animation crossing the reach changes continuously instead of popping.
 Rendering runs without gradients, evaluates the motion terms only on the rows that move (found
 once per model state, AvatarModel._render_spacetime), and colours only the Gaussians the camera
 can see. A live
@@ -28,8 +31,9 @@ import torch
 
 from stg_node.avatar.color_cache import ColorCache
 from stg_node.avatar.model import AvatarModel, BodyState, Camera3, render
-from stg_node.avatar.nonrigid import rigid_part
+from stg_node.avatar.nonrigid import faded_state, mean_offsets, rigid_part
 from stg_node.avatar.shading import LightSpec
+from stg_node.avatar.spacetime import SpacetimeState
 
 
 @dataclass
@@ -68,7 +72,8 @@ class AvatarRenderer:
         self.color_refresh_every = int(color_refresh_every)
         self.light = light  # None: the model's learned light (shading.py)
         self._last_key: int | None = None
-        self._mean: tuple[AvatarModel, AvatarModel] | None = None  # (model, its rigid part): on first use
+        # (model, its rigid part, the rows that part keeps, its mean offsets): on first use
+        self._mean: tuple[AvatarModel, AvatarModel, torch.Tensor, torch.Tensor] | None = None
         self._streams: OrderedDict[str, ColorCache] = OrderedDict()
         # The model evaluates the motion terms of the moving rows only unless most rows move; on a
         # CPU the dense terms are then cheaper than the index bookkeeping (docs/BENCHMARKS.md, "Live
@@ -118,17 +123,25 @@ class AvatarRenderer:
             self._last_key = key
         return u
 
-    def model_for(self, smpl, time_s: float | None) -> AvatarModel:
-        """The model that renders ``smpl``: the avatar, or its rigid part (the mean placement) for a
-        pose without a time beyond the pose index's reach (module docstring)."""
+    def model_for(self, smpl, time_s: float | None, u: float) -> tuple[AvatarModel, SpacetimeState | None]:
+        """(model, spacetime terms or None: the model's own at ``u``) that render ``smpl``: the avatar
+        (a time given, or a pose within the pose index's reach), its rigid part (the mean placement)
+        for a pose without a time from ``FADE_END`` reaches on, the avatar with its terms at ``u``
+        faded toward that part between the two (module docstring)."""
         model = self.model
         if time_s is not None or not model.config.spacetime:
-            return model
-        if model.pose_index.within_reach(np.asarray(smpl.poses)):
-            return model
+            return model, None
+        weight = model.pose_index.trust(np.asarray(smpl.poses))
+        if weight == 1.0:
+            return model, None
         if self._mean is None or self._mean[0] is not model:
-            self._mean = (model, rigid_part(model)[0].eval())
-        return self._mean[1]
+            rigid, keep = rigid_part(model)
+            self._mean = (model, rigid.eval(), keep, mean_offsets(model))
+        _, rigid, keep, offsets = self._mean
+        if weight == 0.0:
+            return rigid, None
+        state = model.spacetime(u, skip_inactive=True)
+        return model, faded_state(model, state, weight, keep, offsets)
 
     @torch.no_grad()
     def posed_points(
@@ -179,7 +192,7 @@ class AvatarRenderer:
         render."""
         started = _now()
         u = self.time_for(smpl, time, follow=follow)
-        model = self.model_for(smpl, time)
+        model, state = self.model_for(smpl, time, u)
         cam = Camera3.from_camera(camera, device=self.device)
         body = BodyState.from_smpl(smpl, self.device)
         posed = model.pose(
@@ -187,8 +200,9 @@ class AvatarRenderer:
             u,
             cam.center,
             skip_inactive=self.skip_inactive,
+            state=state,
             camera=cam,
-            color_cache=self._color_cache(stream) if model is self.model else None,
+            color_cache=self._color_cache(stream) if model is self.model and state is None else None,
             light=light or self.light,
         )
         bg = torch.as_tensor(background, dtype=torch.float32, device=self.device)
@@ -215,7 +229,8 @@ class AvatarRenderer:
         if camera_center is None:
             camera_center = np.asarray(smpl.Th, np.float64).reshape(3) + np.array([0.0, 0.0, 3.0])
         center = torch.as_tensor(np.asarray(camera_center, np.float32).reshape(3), device=self.device)
-        posed = self.model_for(smpl, time).pose(body, u, center, skip_inactive=self.skip_inactive)
+        model, state = self.model_for(smpl, time, u)
+        posed = model.pose(body, u, center, skip_inactive=self.skip_inactive, state=state)
         return PointsOutput(
             positions=posed.means.cpu().numpy().astype(np.float32),
             colors=_to_uint8(posed.colors),

@@ -15,8 +15,10 @@ is closer by a margin (hysteresis, ``HYSTERESIS`` of the current distance).
 How far the rule reaches: the garment's state is a function of its history, not of the pose
 alone, so an instant's non-rigid state carries over to a new pose only as it does to the next
 frame, by continuity. A pose farther from every training pose than the largest step between
-training poses adjacent in time (:meth:`PoseTimeIndex.reach`) has no such neighbour; it renders
-the model's mean placement (no motion terms, stg_node.avatar.renderer). Measured (issue 22,
+training poses adjacent in time (:meth:`PoseTimeIndex.reach`) has no such neighbour; from ``FADE_END``
+times the reach on it renders the model's mean placement (no motion terms, stg_node.avatar.renderer),
+and between the two the instant's non-rigid part fades out (:meth:`PoseTimeIndex.trust`), so an
+animation that crosses the reach does not pop from one to the other. Measured (issue 22,
 docs/BENCHMARKS.md round 10b): on the dancing subject the instant of a pose 2.5 frame-steps away
 costs a held-out frame 1.2 dB against the mean on one subject draw and gains 0.3 on the other;
 training frames rendered at the instant of their nearest pose more than 5 frames away score
@@ -34,6 +36,11 @@ import numpy as np
 from stg_node.body import lbs
 
 HYSTERESIS = 0.15
+# Where the nearest instant's non-rigid state has faded out entirely, in multiples of the reach: the
+# fade is one full (largest) training step wide, so crossing it takes at least as much pose change as
+# one training frame brings (a narrower fade is a pop again), and it ends before 2.5 steps, where the
+# instant measured 1.2 dB worse than the mean placement on one subject draw (docs/BENCHMARKS.md).
+FADE_END = 2.0
 
 
 def pose_key(poses: np.ndarray) -> np.ndarray:
@@ -92,10 +99,25 @@ class PoseTimeIndex:
     def within_reach(self, poses: np.ndarray) -> bool:
         """Whether a pose is as near a training pose as consecutive training poses are to each other
         (module docstring); an index of fewer than two poses has no measure of that and says yes."""
+        return self.trust(poses) == 1.0
+
+    def trust(self, poses: np.ndarray) -> float:
+        """How far the nearest instant's non-rigid state stands for a pose: 1 within the reach, 0 at
+        ``FADE_END`` times the reach and beyond, a smoothstep of the distance between (continuous with
+        a continuous slope: the garment neither pops nor starts drifting abruptly). 1 for an index of
+        fewer than two poses (no measure of a step)."""
         if len(self) < 2:
-            return True
+            return 1.0
+        reach = self.reach()
         nearest = float(np.linalg.norm(self.keys - pose_key(poses), axis=1).min())
-        return nearest <= self.reach() + 1e-6
+        if nearest <= reach + 1e-6:
+            return 1.0
+        if reach <= 0.0:  # every training pose the same: no width to fade over
+            return 0.0
+        x = (nearest - reach) / ((FADE_END - 1.0) * reach)
+        if x >= 1.0:
+            return 0.0
+        return 1.0 - x * x * (3.0 - 2.0 * x)
 
     def time_for(self, poses: np.ndarray, previous: int | None = None) -> tuple[float, int]:
         """(time, key index) for one pose; ``previous`` is the index chosen for the last frame."""

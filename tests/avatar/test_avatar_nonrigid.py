@@ -684,19 +684,26 @@ def test_a_checkpoint_without_per_row_step_counts_resumes_with_every_row_there_a
     assert bool((alive == steps).all())
 
 
-def test_a_pose_beyond_the_index_reach_renders_the_mean_placement_one_within_it_its_instant(tiny_frames):
-    """Without a time, a pose as near a training pose as consecutive training poses are renders that
-    instant's non-rigid state; one farther renders the rigid part (timecode.py: no instant stands for it)."""
-    from stg_node.avatar.renderer import AvatarRenderer
-
-    trainer, _ = _trainer(tiny_frames, _trial_config(nonrigid="on"), 2)
+def _moving_everywhere(frames):
+    """A model whose every row moves, differently at every knot (its motion terms change every view)."""
+    trainer, _ = _trainer(frames, _trial_config(nonrigid="on"), 2)
     model = trainer.model
     table, bases = model.table, model.motion_bases
     g = torch.Generator().manual_seed(3)
-    with torch.no_grad():  # every row moves, differently at every knot
+    with torch.no_grad():
         bases.values.copy_(0.02 * torch.randn(bases.values.shape, generator=g))
         table["motion_gate"].fill_(1.0)
         table["motion_coef"].copy_(torch.rand(table["motion_coef"].shape, generator=g))
+    return model
+
+
+def test_a_pose_beyond_the_index_reach_renders_the_mean_placement_one_within_it_its_instant(tiny_frames):
+    """Without a time, a pose as near a training pose as consecutive training poses are renders that
+    instant's non-rigid state; one farther than twice that renders the rigid part (timecode.py: no
+    instant stands for it)."""
+    from stg_node.avatar.renderer import AvatarRenderer
+
+    model = _moving_everywhere(tiny_frames)
     renderer = AvatarRenderer(model)
     mean = AvatarRenderer(nonrigid.rigid_part(model)[0])
     frame = tiny_frames[3]
@@ -710,9 +717,54 @@ def test_a_pose_beyond_the_index_reach_renders_the_mean_placement_one_within_it_
     far_poses = np.array(near.poses, np.float32).reshape(24, 3)
     far_poses[16] += [0.0, 0.0, 1.2]  # the left shoulder far beyond any training pose
     far = dataclasses.replace(near, poses=far_poses)
-    assert not index.within_reach(far_poses)
+    assert index.trust(far_poses) == 0.0
     beyond = renderer.render(camera, far).image
     assert np.array_equal(beyond, mean.render(camera, far).image)
     assert np.array_equal(renderer.points(far).positions, mean.points(far).positions)  # as render poses it
     instant = renderer.render(camera, far, model.time_axis.origin_s + u * model.time_axis.unit_s).image
     assert not np.array_equal(beyond, instant)  # the motion terms do change this view
+
+
+def test_an_animation_crossing_the_index_reach_changes_continuously_where_a_hard_switch_pops(tiny_frames):
+    """A shoulder swung out of the training poses in 49 even steps, rendered without a time: from the
+    reach to twice it the instant's motion terms fade out (timecode.PoseTimeIndex.trust), so no
+    frame-to-frame change (mean absolute grey levels) exceeds 3x the largest the instant rule itself
+    shows between the same neighbouring poses (rendered at the nearest instant throughout; the fade
+    spreads the instant-to-mean change over one reach of pose, about 11 of these steps). Switching hard
+    (round 10b's rule) changes the image at once by the instant-to-mean difference: 20x that step."""
+    from stg_node.avatar.renderer import AvatarRenderer
+
+    model = _moving_everywhere(tiny_frames)
+    renderer = AvatarRenderer(model)
+    mean = AvatarRenderer(nonrigid.rigid_part(model)[0])
+    frame = tiny_frames[3]
+    index, axis = model.pose_index, model.time_axis
+    faded, instant, weights, jumps = [], [], [], []
+    for angle in np.linspace(0.0, 1.2, 49):
+        poses = np.array(frame.smpl.poses, np.float32).reshape(24, 3)
+        poses[16] += [0.0, 0.0, angle]  # the left shoulder, out of every training pose
+        smpl = dataclasses.replace(frame.smpl, poses=poses)
+        u, _ = index.time_for(poses)
+        weight = index.trust(poses)
+        image = renderer.render(frame.camera, smpl).image.astype(np.float64)
+        at_instant = renderer.render(frame.camera, smpl, axis.origin_s + u * axis.unit_s).image
+        at_instant = at_instant.astype(np.float64)
+        at_mean = mean.render(frame.camera, smpl).image.astype(np.float64)
+        if weight == 1.0:
+            assert np.array_equal(image, at_instant)  # within the reach: the instant, bit for bit
+        if weight == 0.0:
+            assert np.array_equal(image, at_mean)  # from twice it on: the mean placement, bit for bit
+        faded.append(image)
+        instant.append(at_instant)
+        weights.append(weight)
+        jumps.append(float(np.abs(at_instant - at_mean).mean()))
+    assert weights[0] == 1.0 and weights[-1] == 0.0
+
+    def steps(images):
+        return [float(np.abs(b - a).mean()) for a, b in zip(images[:-1], images[1:], strict=True)]
+
+    bound = 3.0 * max(steps(instant))
+    assert max(steps(faded)) <= bound
+    assert sum(0.0 < w < 1.0 for w in weights) >= 8  # the fade spans many steps
+    first_beyond = next(i for i, w in enumerate(weights) if w < 1.0)
+    assert jumps[first_beyond] > 5.0 * bound  # what a hard switch there would change at once

@@ -15,7 +15,7 @@ from stg_node.avatar.frames import crop_box
 from stg_node.avatar.gaussians import GaussianTable
 from stg_node.avatar.optim import TableOptimizer
 from stg_node.avatar.presets import PRESETS, preset
-from stg_node.avatar.timecode import HYSTERESIS, PoseTimeIndex
+from stg_node.avatar.timecode import FADE_END, HYSTERESIS, PoseTimeIndex
 
 
 def test_sh_basis_is_orthonormal_on_the_sphere():
@@ -291,3 +291,28 @@ def test_the_pose_index_reaches_as_far_as_consecutive_training_poses_are_apart()
     single = PoseTimeIndex()
     single.add(_pose(0.0), 0.0)
     assert single.reach() == 0.0 and single.within_reach(_pose(1.0))  # no measure of a step: today's rule
+
+
+def test_an_instants_trust_fades_from_the_reach_to_twice_it_as_a_smoothstep_of_the_distance():
+    """Closed form on the keys above (reach r = 2 sqrt(2) sin 0.1; the last key at 0.5 rad): a pose at
+    0.5 + a lies 2 sqrt(2) sin(a / 2) from it, and its trust is 1 - 3x^2 + 2x^3 with x = (d - r) / r,
+    1 within the reach and 0 from twice it on."""
+    assert FADE_END == 2.0
+    index = PoseTimeIndex()
+    for i, angle in enumerate([0.0, 0.1, 0.2, 0.4, 0.5]):
+        index.add(_pose(angle), float(i))
+    r = 2 * math.sqrt(2) * math.sin(0.1)
+
+    def beyond(d):  # the pose d (Frobenius) past the last key
+        return _pose(0.5 + 2 * math.asin(d / (2 * math.sqrt(2))))
+
+    assert index.trust(_pose(0.3)) == 1.0 and index.trust(beyond(0.999 * r)) == 1.0
+    for x in (0.25, 0.5, 0.75):
+        assert index.trust(beyond((1 + x) * r)) == pytest.approx(1 - 3 * x**2 + 2 * x**3, abs=1e-4)
+    assert index.trust(beyond(1.001 * r)) > 0.999 and index.trust(beyond(1.999 * r)) < 1e-5  # no step
+    assert index.trust(beyond(2.001 * r)) == 0.0 and index.trust(_pose(1.5)) == 0.0
+    assert not index.within_reach(beyond(1.25 * r))
+    same = PoseTimeIndex()  # training poses all alike: no width to fade over
+    same.add(_pose(0.0), 0.0)
+    same.add(_pose(0.0), 1.0)
+    assert same.trust(_pose(0.0)) == 1.0 and same.trust(_pose(0.1)) == 0.0
