@@ -111,11 +111,11 @@ def faded_state(
     model: AvatarModel, state: SpacetimeState, weight: float, keep: torch.Tensor, mean_offsets: torch.Tensor
 ) -> SpacetimeState:
     """``model``'s spacetime terms ``state`` (at some instant) taken ``weight`` of the way from its
-    rigid part (0: each moving row at its mean offset, base rotation, the rows :func:`rigid_part`
-    drops at zero opacity; ``keep`` is its mask, ``mean_offsets`` :func:`mean_offsets`) to the
-    instant (1): offsets, rotation deltas and
-    temporal opacity blended linearly, one render of the full model (renderer.py's fade beyond
-    the pose index's reach, timecode.py). The ends agree with the two renders to float rounding."""
+    rigid part (0: each moving row at its mean offset, its base rotation, the rows :func:`rigid_part`
+    drops at zero opacity; ``keep`` is that part's mask, ``mean_offsets`` :func:`mean_offsets`) to
+    the instant (1): offsets, rotation deltas and temporal opacity blended linearly, rendered in one
+    pass of the full model (the renderer's fade beyond the pose index's reach, timecode.py). The
+    ends agree with the two renders to float rounding (the renderer takes those renders there)."""
     table = model.table
     offsets = mean_offsets if state.offsets is None else torch.lerp(mean_offsets, state.offsets, weight)
     base_quats = table["quats"].detach()

@@ -19,7 +19,8 @@ training poses adjacent in time (:meth:`PoseTimeIndex.reach`) has no such neighb
 times the reach on it renders the model's mean placement (no motion terms, stg_node.avatar.renderer),
 and between the two the instant's non-rigid part fades out (:meth:`PoseTimeIndex.trust`), so an
 animation that crosses the reach does not pop from one to the other. Measured (issue 22,
-docs/BENCHMARKS.md round 10b): on the dancing subject the instant of a pose 2.5 frame-steps away
+docs/BENCHMARKS.md round 10b): on the dancing subject the instant of a pose 2.5 median frame-steps
+(1.8-1.9 reaches) away
 costs a held-out frame 1.2 dB against the mean on one subject draw and gains 0.3 on the other;
 training frames rendered at the instant of their nearest pose more than 5 frames away score
 -0.60 / -0.01 dB against the mean.
@@ -36,10 +37,11 @@ import numpy as np
 from stg_node.body import lbs
 
 HYSTERESIS = 0.15
-# Where the nearest instant's non-rigid state has faded out entirely, in multiples of the reach: the
-# fade is one full (largest) training step wide, so crossing it takes at least as much pose change as
-# one training frame brings (a narrower fade is a pop again), and it ends before 2.5 steps, where the
-# instant measured 1.2 dB worse than the mean placement on one subject draw (docs/BENCHMARKS.md).
+# Where the nearest instant's non-rigid state has faded out entirely, in multiples of the reach. The
+# fade is one (largest) training step wide: the garment goes from the instant's state to the mean over
+# as much pose change as lay between two training frames, no faster than training saw it change; a
+# narrower fade is a faster change, in the limit a pop. Cost measured (docs/BENCHMARKS.md, issue 22):
+# the dancer's far held-out frame, 1.8-1.9 reaches out, keeps 1-10 % of its instant's state.
 FADE_END = 2.0
 
 
