@@ -1435,6 +1435,23 @@ TRAINED_STEPS = (
 )  # fmt: skip
 
 
+def decompose_tag(args, subject_name: str) -> str:
+    """The suffix naming one subject's ``decompose`` runs and folders (``data_{subject}_{tag}``)."""
+    if subject_name == "gap":
+        return f"{args.size}_s{args.seed}"
+    return f"{args.size}_{args.frames}_{args.closeup_m:g}m_s{args.seed}"
+
+
+def trained_folders(args) -> tuple[str, Path]:
+    """(subject, folder) of the training folders ``decompose --runs SUBJECT-trained`` wrote, which the
+    later experiments (cues, order, ordertest) read; a clear error if that has not run."""
+    name = args.runs or "gap"
+    folder = args.out / "decompose" / f"data_{name}_{decompose_tag(args, name)}"
+    if not (folder / "true" / "poses.npz").is_file():
+        raise FileNotFoundError(f"{folder}: run decompose --runs {name}-trained first")
+    return name, folder
+
+
 def decompose_trained(args, subject_name: str = "gap") -> dict:
     """``decompose --runs gap-trained`` (or ``closeup-trained``): the same question answered by
     training, free of what an avatar learnt on the tracked poses does when rendered with others.
@@ -1453,13 +1470,13 @@ def decompose_trained(args, subject_name: str = "gap") -> dict:
         tracked_run = train(out, f"gap_tracked_{args.size}", args, *camera_video_args(data), *frames)
         truth = train(out, f"gap_truth_{args.size}", args, "--data", str(data), "--format", "synthetic",
                       "--size", str(args.size))  # fmt: skip
-        tag = f"{args.size}_s{args.seed}"
+        tag = decompose_tag(args, subject_name)
 
         def scores(run: Path) -> dict:
             return {split: score(run, data, split) for split in ("novel_view", "novel_pose")}
     else:
         data = closeup_subject(args)
-        tag = f"{args.size}_{args.frames}_{args.closeup_m:g}m_s{args.seed}"
+        tag = decompose_tag(args, subject_name)
         tracked_run = train(out, f"closeup_tracked_{tag}", args, *camera_video_args(data), *frames)
         truth = train(out, f"closeup_truth_{tag}", args, "--data", str(data), "--format", "synthetic",
                       "--size", str(args.size))  # fmt: skip
@@ -1542,15 +1559,7 @@ def cues(args) -> dict:
     from stg_node.tracking.detectors import make_detector
     from stg_node.tracking.layouts import get_layout
 
-    name = args.runs or "gap"
-    tag = (
-        f"{args.size}_s{args.seed}"
-        if name == "gap"
-        else f"{args.size}_{args.frames}_{args.closeup_m:g}m_s{args.seed}"
-    )
-    folder = args.out / "decompose" / f"data_{name}_{tag}"
-    if not (folder / "true" / "poses.npz").is_file():
-        raise FileNotFoundError(f"{folder}: run decompose --runs {name}-trained first")
+    name, folder = trained_folders(args)
     body = load_body_model()
     parents = body.parents.tolist()
     layout = get_layout("blazepose33")
@@ -1759,15 +1768,7 @@ def order(args) -> dict:
     from stg_node.safe_load import load_npz
     from stg_node.tracking.layouts import get_layout
 
-    name = args.runs or "gap"
-    tag = (
-        f"{args.size}_s{args.seed}"
-        if name == "gap"
-        else f"{args.size}_{args.frames}_{args.closeup_m:g}m_s{args.seed}"
-    )
-    folder = args.out / "decompose" / f"data_{name}_{tag}"
-    if not (folder / "true" / "poses.npz").is_file():
-        raise FileNotFoundError(f"{folder}: run decompose --runs {name}-trained first")
+    name, folder = trained_folders(args)
     body = load_body_model()
     layout = get_layout("blazepose33")
     rows = {
@@ -1843,16 +1844,11 @@ def ordertest(args) -> dict:
     from stg_node.tracking.pipeline import TrackOptions, build_tracker
     from stg_node.tracking.sources import open_source
 
-    name = args.runs or "gap"
+    name, folder = trained_folders(args)
     if name == "gap":
         data = subject(args.out, f"mixed_{args.size}", num_frames=args.frames, size=args.size)
-        tag = f"{args.size}_s{args.seed}"
     else:
         data = closeup_subject(args)
-        tag = f"{args.size}_{args.frames}_{args.closeup_m:g}m_s{args.seed}"
-    folder = args.out / "decompose" / f"data_{name}_{tag}"
-    if not (folder / "true" / "poses.npz").is_file():
-        raise FileNotFoundError(f"{folder}: run decompose --runs {name}-trained first")
     rows = {
         k: {c: np.asarray(v) for c, v in load_npz(folder / k / "poses.npz").items()}
         for k in ("tracked", "true")

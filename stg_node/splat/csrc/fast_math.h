@@ -5,6 +5,7 @@
 #pragma once
 
 #include <cstdint>
+#include <cstdlib>
 #include <cstring>
 
 #if defined(__AVX__)
@@ -112,3 +113,13 @@ inline uint32_t v8_movemask(v8i mask) {
 }
 
 }  // namespace stg_math
+
+// Whether a kernel's 16-lane AVX-512 path may run (a run-time choice: the build stays portable
+// x86-64-v3 and each wide path is compiled with a function-level target): the CPU and its OS have
+// AVX-512F and STG_SPLAT_NO_AVX512 is not set (the switch the tests use to compare the two paths).
+inline bool stg_avx512_allowed() {
+    static const bool cpu = __builtin_cpu_supports("avx512f");
+    if (!cpu) return false;
+    const char* off = std::getenv("STG_SPLAT_NO_AVX512");
+    return off == nullptr || off[0] == '\0' || off[0] == '0';
+}

@@ -110,10 +110,7 @@ STG_WIDE_TARGET void gemm16(int m, int nc, int K, const float* A, int64_t lda, i
 // STG_SPLAT_NO_AVX512 is not set (the switch the tests use to compare the two paths).
 bool wide_vectors() {
 #ifdef STG_MLP_WIDE
-    static const bool cpu = __builtin_cpu_supports("avx512f");
-    if (!cpu) return false;
-    const char* off = std::getenv("STG_SPLAT_NO_AVX512");
-    return off == nullptr || off[0] == '\0' || off[0] == '0';
+    return stg_avx512_allowed();
 #else
     return false;
 #endif

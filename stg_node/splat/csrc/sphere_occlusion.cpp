@@ -104,13 +104,10 @@ __attribute__((target("avx512f"))) void visibility_pair(const float* p, const fl
 }
 #endif
 
-// Whether the points go in pairs on AVX-512 (the CPU has it; STG_SPLAT_NO_AVX512 unset, as small_mlp).
+// Whether the points go in pairs on AVX-512 (fast_math.h: the CPU has it, STG_SPLAT_NO_AVX512 unset).
 bool wide_vectors() {
 #ifdef STG_OCC_WIDE
-    static const bool cpu = __builtin_cpu_supports("avx512f");
-    if (!cpu) return false;
-    const char* off = std::getenv("STG_SPLAT_NO_AVX512");
-    return off == nullptr || off[0] == '\0' || off[0] == '0';
+    return stg_avx512_allowed();
 #else
     return false;
 #endif
