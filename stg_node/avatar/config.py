@@ -404,7 +404,8 @@ def apply_settings(config: TrainConfig, items) -> TrainConfig:
     """``config`` with ``KEY=VALUE`` settings applied (``model.spacetime=false``, ``iterations=800``).
 
     Values are read as YAML scalars and must have the type of the setting they replace (an int
-    is accepted for a float), so a typo fails here with the known names rather than deep in a run.
+    is accepted for a float; a string setting takes a word YAML would read as a boolean as that
+    word: ``nonrigid=off``), so a typo fails here with the known names rather than deep in a run.
     Raises ValueError.
     """
     import yaml
@@ -420,6 +421,8 @@ def apply_settings(config: TrainConfig, items) -> TrainConfig:
             value = yaml.safe_load(text)
         except yaml.YAMLError as exc:
             raise ValueError(f"{key}: cannot read the value {text!r}") from exc
+        if isinstance(current, str) and isinstance(value, bool):
+            value = text.strip()  # YAML reads on/off/yes/no as booleans; a string setting means the word
         changes[key] = _same_type(key, value, current)
     try:
         return config.replace(**changes)

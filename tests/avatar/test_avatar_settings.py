@@ -42,6 +42,16 @@ def test_an_int_is_accepted_for_a_float_and_a_string_setting_takes_a_string():
     assert out.model.color == "sh"
 
 
+@pytest.mark.parametrize("word", ["off", "on", "auto"])
+def test_a_string_setting_takes_a_word_yaml_would_read_as_a_boolean(word):
+    # YAML 1.1 reads on/off as booleans: `--set nonrigid=off` means the mode, not False
+    out = apply_settings(preset("fast"), [f"nonrigid={word}"])
+    assert out.nonrigid == word
+    out.validate()
+    with pytest.raises(ValueError, match="nonrigid must be one of"):
+        apply_settings(preset("fast"), ["nonrigid=yes"]).validate()  # the word, refused by the mode's check
+
+
 @pytest.mark.parametrize(
     ("item", "words"),
     [
