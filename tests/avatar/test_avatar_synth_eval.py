@@ -296,6 +296,37 @@ def test_bench_footage_chain_step_turns_only_that_chain_to_its_true_orientation_
     assert np.abs(want_true[list(arms)] - want_tracked[list(arms)]).max() > 0.1  # the swap did something
 
 
+def test_bench_footage_limb_roots_take_the_donors_orientation_in_the_camera():
+    """chains' "true torso world limbs": the hips' and shoulders' local rotations re-solved so that,
+    under the base's torso, the body model's own forward kinematics puts them at the donor's
+    orientation in the camera's frame; the torso itself stays the base's."""
+    import torch
+
+    body = load_body_model()
+    truth, tracked, _ = _truth_and_tracked(12)
+
+    def rows(params):
+        return {"poses": np.asarray(params.poses, np.float64).reshape(1, 72).copy(),
+                "Rh": np.asarray(params.Rh, np.float64)[None]}  # fmt: skip
+
+    def world_rotations(r):
+        out = body(betas=torch.zeros(1, 10), poses=torch.as_tensor(r["poses"], dtype=torch.float32),
+                   Rh=torch.as_tensor(r["Rh"], dtype=torch.float32), Th=torch.zeros(1, 3))  # fmt: skip
+        return out.bone_transforms[0, :, :3, :3].double().numpy()
+
+    bench = _bench_footage()
+    roots = list(bench.LIMB_ROOTS)
+    base, donor = rows(truth), rows(tracked)
+    turned = {"poses": base["poses"].reshape(1, 24, 3).copy(), "Rh": base["Rh"]}
+    turned["poses"][:, roots] = bench.limb_roots_in_world(base, donor)
+    turned["poses"] = turned["poses"].reshape(1, 72)
+    got, want_donor, want_base = world_rotations(turned), world_rotations(donor), world_rotations(base)
+    np.testing.assert_allclose(got[roots], want_donor[roots], atol=1e-5)
+    torso = sorted({0, 3, 6, 9, 12, 13, 14, 15} - set(roots))
+    np.testing.assert_allclose(got[torso], want_base[torso], atol=1e-5)
+    assert np.abs(want_donor[roots] - want_base[roots]).max() > 0.05  # the turn did something
+
+
 def test_bench_footage_twopass_step_replaces_only_the_training_frames_poses(tmp_path):
     """decompose's twopass step: the first rows (the frames twopass fitted) take its average, the
     frames after them keep the tracked poses; the images and camera are the tracked folder's."""
