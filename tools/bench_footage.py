@@ -291,7 +291,6 @@ def pose_variants(video_data: Path, data: Path, out: Path) -> dict[str, Path]:
     ``toward-body-N`` the global orientation, position and shape alone. Each is ``out/NAME``."""
     import dataclasses
 
-    import cv2
     import numpy as np
 
     from stg_node.avatar.data_spec import DataSpec
@@ -316,16 +315,11 @@ def pose_variants(video_data: Path, data: Path, out: Path) -> dict[str, Path]:
     gauge = tracked_alignment(camera, true_sequence, tracked_joints).scale  # the scoring's depth ratio
     for i, frame in enumerate(tracked["frames"].astype(int)):
         true = truth.smpl(int(frame))
-        poses = np.asarray(true.poses, np.float64).reshape(24, 3).copy()
-        rotation = R1 @ cv2.Rodrigues(np.asarray(true.Rh, np.float64))[0] @ cv2.Rodrigues(poses[0])[0]
-        Rh = cv2.Rodrigues(rotation)[0].ravel()
-        poses[0] = 0.0  # the root rotation folded into Rh, as the tracker writes it
-        placed = dataclasses.replace(true, poses=poses.astype(np.float32), Rh=Rh.astype(np.float32),
-                                     Th=np.zeros(3, np.float32))  # fmt: skip
+        poses, Rh, Th = in_camera_frame(body, true, R1, t1)
         true_joints = _joints(body, [true])[0] @ R1.T + t1
         row = variants["true"]
-        row["poses"][i], row["Rh"][i], row["shapes"][i] = poses.reshape(72), Rh, np.asarray(true.betas)[:10]
-        row["Th"][i] = (true_joints - _joints(body, [placed])[0]).mean(axis=0)  # a translation: exact
+        row["poses"][i], row["Rh"][i], row["shapes"][i] = poses, Rh, np.asarray(true.betas)[:10]
+        row["Th"][i] = Th
         mine = sequence[i]
         turned = dataclasses.replace(mine, Rh=Rh.astype(np.float32), Th=np.zeros(3, np.float32))
         row = variants["true-orientation"]
@@ -343,6 +337,84 @@ def pose_variants(video_data: Path, data: Path, out: Path) -> dict[str, Path]:
                 variants["tracked"], true_rows, percent / 100.0, which=which
             )
     return {name: write_pose_variant(out / name, video_data, rows) for name, rows in variants.items()}
+
+
+def in_camera_frame(body, smpl, R, t) -> tuple:
+    """``smpl`` (world frame) in the frame of the camera ``X_cam = R X + t``, as the tracker writes
+    its rows: (poses (72,) with the root rotation folded into ``Rh``, ``Rh`` (3,), ``Th`` (3,))."""
+    import dataclasses
+
+    import cv2
+    import numpy as np
+
+    from stg_node.avatar.synth_eval import _joints
+
+    poses = np.asarray(smpl.poses, np.float64).reshape(24, 3).copy()
+    rotation = R @ cv2.Rodrigues(np.asarray(smpl.Rh, np.float64).reshape(3))[0] @ cv2.Rodrigues(poses[0])[0]
+    Rh = cv2.Rodrigues(rotation)[0].ravel()
+    poses[0] = 0.0  # the root rotation folded into Rh, as the tracker writes it
+    placed = dataclasses.replace(smpl, poses=poses.astype(np.float32), Rh=Rh.astype(np.float32),
+                                 Th=np.zeros(3, np.float32))  # fmt: skip
+    joints = _joints(body, [smpl])[0] @ np.asarray(R).T + np.asarray(t).reshape(3)
+    return poses.reshape(72), Rh, (joints - _joints(body, [placed])[0]).mean(axis=0)  # a translation: exact
+
+
+RIG_CAMERAS = ("1", "7", "13", "18")  # eval_track --rig 4's of the 23-camera ring: 0, 94, 188, 266 deg
+
+
+def rig_folder(args, data: Path, tracked: Path) -> Path:
+    """``tracked`` (a ``pose_variants`` folder: camera 1's images, masks and camera) with its poses
+    from the multi-view tracker (``stg_node.tracking.rig_pipeline``) run on the same subject (seed,
+    motion, frames, size) filmed by :data:`RIG_CAMERAS` as MJPG videos, its world-frame fit put in
+    camera 1's frame: what training gains from a rig's tracking, nothing else changed. The folder
+    ``rig`` beside ``tracked``; the rig's subject ``data/NAME_rig4``, its fit ``rig_poses.npz``."""
+    import dataclasses
+    import tempfile
+
+    import cv2
+    import numpy as np
+
+    from stg_node.avatar.data_spec import DataSpec
+    from stg_node.body import load_body_model
+    from stg_node.body.motion import load_smpl_params
+    from stg_node.calibration.rig import write_rig
+    from stg_node.data.synth import read_metadata
+    from stg_node.safe_load import load_npz
+    from stg_node.tracking.evaluation import write_video
+    from stg_node.tracking.pipeline import TrackOptions
+    from stg_node.tracking.rig_evaluation import synth_rig
+    from stg_node.tracking.rig_pipeline import track_rig_to_file
+
+    meta = read_metadata(data)
+    count = int(meta["num_frames"])
+    rig_data = subject(args.out, f"{data.name}_rig4", seed=int(meta["seed"]), motion=meta["motion"],
+                       num_frames=count, size=int(meta["size"][0]), num_novel_views=22, view_every=count,
+                       train_cameras=tuple(int(c) - 1 for c in RIG_CAMERAS))  # fmt: skip
+    first = [sorted((folder / "Camera_B1").glob("*.png")) for folder in (data, rig_data)]
+    for mine, theirs in zip(*first, strict=True):
+        if not np.array_equal(cv2.imread(str(mine)), cv2.imread(str(theirs))):
+            raise ValueError(f"{rig_data}: camera 1 does not render {data}'s images ({theirs.name})")
+    fit = tracked.parent / "rig_poses.npz"
+    if not fit.is_file():
+        with tempfile.TemporaryDirectory() as tmp:
+            tmp = Path(tmp)
+            fps = float(meta["fps"])
+            rig_path = write_rig(tmp / "rig.json", synth_rig(rig_data, list(RIG_CAMERAS)))
+            videos = [write_video(sorted((rig_data / f"Camera_B{n}").glob("*.png")), tmp / f"{n}.avi", fps)
+                      for n in RIG_CAMERAS]  # fmt: skip
+            options = dataclasses.replace(TrackOptions(), fps=fps)
+            track_rig_to_file(videos, rig_path, fit, options, progress=False)
+    rows = {k: np.asarray(v).copy() for k, v in load_npz(tracked / "poses.npz").items()}
+    sequence = load_smpl_params(fit)
+    truth = DataSpec(str(data.resolve()), "synthetic", None, None, None).open("train")
+    camera = truth.camera(truth.camera_names[0])
+    R1, t1 = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64).reshape(3)
+    body = load_body_model()
+    for i, frame in enumerate(rows["frames"].astype(int)):
+        mine = sequence[int(frame)]
+        rows["poses"][i], rows["Rh"][i], rows["Th"][i] = in_camera_frame(body, mine, R1, t1)
+        rows["shapes"][i] = np.asarray(mine.betas)[:10]
+    return write_pose_variant(tracked.parent / "rig", tracked, rows)
 
 
 def write_pose_variant(folder: Path, source: Path, rows: dict) -> Path:
@@ -1430,7 +1502,7 @@ TOWARD_TRUTH_PERCENT = (50, 75, 90)  # pose_variants' toward-N: the tracked pose
 
 TRAINED_STEPS = (
     "tracked", "true-depth", "true-orientation", "true", "true-arms", "true-legs", "true-torso", "twopass",
-    "order-oracle", "order-voted", "order-test", "retracked",
+    "order-oracle", "order-voted", "order-test", "retracked", "rig",
     *(f"toward-{w}{p}" for w in ("", "joints-", "body-") for p in TOWARD_TRUTH_PERCENT),
 )  # fmt: skip
 
@@ -1494,6 +1566,8 @@ def decompose_trained(args, subject_name: str = "gap") -> dict:
         folders["twopass"] = two_pass_folder(
             folders["tracked"], out / "twopass" / f"{subject_name}_{args.size}_s0.npz"
         )
+    if "rig" in (args.steps or "").split(","):
+        folders["rig"] = rig_folder(args, data, folders["tracked"])
     for name in ("order-oracle", "order-voted", "order-test", "retracked"):
         if name in (args.steps or "").split(","):
             if not (where / name / "poses.npz").is_file():

@@ -415,3 +415,21 @@ def test_bench_footage_flipped_bone_keeps_its_childs_pixel_and_turns_only_that_b
     others = [k for k in range(24) if k != bone[0]]
     np.testing.assert_allclose(g1[others], g0[others], atol=1e-4)
     assert np.abs(g1[bone[0]] - g0[bone[0]]).max() > 0.05
+
+
+def test_bench_footage_in_camera_frame_moves_every_joint_by_the_cameras_transform():
+    """decompose's rig step puts a world-frame fit in the training camera's frame: the body model
+    run on the returned rows puts every joint at R X + t of the world joints (the root's pose row
+    zero, its rotation in Rh, as the tracker writes it)."""
+    body = load_body_model()
+    rng = np.random.default_rng(5)
+    world = SmplParams(poses=rng.normal(0, 0.3, 72).astype(np.float32),
+                       Rh=np.array([0.4, -1.1, 0.2], np.float32), Th=np.array([0.3, -0.1, 0.8], np.float32),
+                       betas=rng.normal(0, 1, 10).astype(np.float32))  # fmt: skip
+    R = Rotation.from_rotvec([0.2, 2.5, -0.3]).as_matrix()
+    t = np.array([0.1, 0.4, 3.2])
+    poses, Rh, Th = _bench_footage().in_camera_frame(body, world, R, t)
+    assert np.all(poses[:3] == 0.0)
+    placed = SmplParams(poses=poses.astype(np.float32), Rh=Rh.astype(np.float32), Th=Th.astype(np.float32),
+                        betas=world.betas)  # fmt: skip
+    np.testing.assert_allclose(_joints(body, [placed])[0], _joints(body, [world])[0] @ R.T + t, atol=2e-5)
