@@ -61,6 +61,7 @@ class PoseTimeIndex:
         self.capacity = int(capacity)
         self.keys = np.zeros((0, 23 * 9), np.float32)
         self.times = np.zeros((0,), np.float32)
+        self._reach: tuple[np.ndarray, float] | None = None  # (the keys it was measured on, the reach)
 
     def __len__(self) -> int:
         return int(self.times.shape[0])
@@ -95,8 +96,13 @@ class PoseTimeIndex:
         how far a pose may be from its nearest training pose and still count as a neighbour of an instant."""
         if len(self) < 2:
             return 0.0
+        cached = self._reach
+        if cached is not None and cached[0] is self.keys:  # every change assigns new key arrays
+            return cached[1]
         keys = self.keys[np.argsort(self.times, kind="stable")]
-        return float(np.linalg.norm(np.diff(keys, axis=0), axis=1).max())
+        value = float(np.linalg.norm(np.diff(keys, axis=0), axis=1).max())
+        self._reach = (self.keys, value)  # a render without a time asks once per frame: ~1.4 ms at 2k keys
+        return value
 
     def within_reach(self, poses: np.ndarray) -> bool:
         """Whether a pose is as near a training pose as consecutive training poses are to each other

@@ -288,6 +288,10 @@ def test_the_pose_index_reaches_as_far_as_consecutive_training_poses_are_apart()
     assert index.reach() == pytest.approx(2 * math.sqrt(2) * math.sin(0.1), rel=1e-5)
     assert index.within_reach(_pose(0.65)) and index.within_reach(_pose(0.3))
     assert not index.within_reach(_pose(0.75))  # 0.25 beyond the last key: farther than any step
+    index.add(_pose(0.9), 5.0)  # a step of 0.4 after the last time: the reach (kept between calls) follows
+    assert index.reach() == pytest.approx(2 * math.sqrt(2) * math.sin(0.2), rel=1e-5)
+    index.retain(np.asarray([0.0, 1.0, 2.0], np.float32))  # and the retained keys' steps of 0.1 only
+    assert index.reach() == pytest.approx(2 * math.sqrt(2) * math.sin(0.05), rel=1e-5)
     single = PoseTimeIndex()
     single.add(_pose(0.0), 0.0)
     assert single.reach() == 0.0 and single.within_reach(_pose(1.0))  # no measure of a step: today's rule
