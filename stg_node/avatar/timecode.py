@@ -62,6 +62,7 @@ class PoseTimeIndex:
         self.keys = np.zeros((0, 23 * 9), np.float32)
         self.times = np.zeros((0,), np.float32)
         self._reach: tuple[np.ndarray, float] | None = None  # (the keys it was measured on, the reach)
+        self._last: tuple[np.ndarray, bytes, np.ndarray] | None = None  # (keys, pose bytes, distances)
 
     def __len__(self) -> int:
         return int(self.times.shape[0])
@@ -104,6 +105,18 @@ class PoseTimeIndex:
         self._reach = (self.keys, value)  # a render without a time asks once per frame: ~1.4 ms at 2k keys
         return value
 
+    def distances(self, poses: np.ndarray) -> np.ndarray:
+        """(K,) pose distance from ``poses`` to every key. A render without a time asks twice for the
+        same pose (its time, then its trust): the last answer is kept until the pose or the keys change."""
+        pose = np.ascontiguousarray(poses, dtype=np.float32)
+        tag = pose.tobytes()
+        last = self._last
+        if last is not None and last[0] is self.keys and last[1] == tag:
+            return last[2]
+        dist = np.linalg.norm(self.keys - pose_key(pose), axis=1)
+        self._last = (self.keys, tag, dist)
+        return dist
+
     def within_reach(self, poses: np.ndarray) -> bool:
         """Whether a pose is as near a training pose as consecutive training poses are to each other
         (module docstring); an index of fewer than two poses has no measure of that and says yes."""
@@ -117,7 +130,7 @@ class PoseTimeIndex:
         if len(self) < 2:
             return 1.0
         reach = self.reach()
-        nearest = float(np.linalg.norm(self.keys - pose_key(poses), axis=1).min())
+        nearest = float(self.distances(poses).min())
         if nearest <= reach + 1e-6:
             return 1.0
         if reach <= 0.0:  # every training pose the same: no width to fade over
@@ -131,7 +144,7 @@ class PoseTimeIndex:
         """(time, key index) for one pose; ``previous`` is the index chosen for the last frame."""
         if len(self) == 0:
             return 0.0, -1
-        dist = np.linalg.norm(self.keys - pose_key(poses), axis=1)
+        dist = self.distances(poses)
         best = int(dist.argmin())
         if previous is not None and 0 <= previous < len(self):
             if dist[previous] <= dist[best] * (1.0 + HYSTERESIS) + 1e-6:

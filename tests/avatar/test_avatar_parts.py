@@ -15,7 +15,7 @@ from stg_node.avatar.frames import crop_box
 from stg_node.avatar.gaussians import GaussianTable
 from stg_node.avatar.optim import TableOptimizer
 from stg_node.avatar.presets import PRESETS, preset
-from stg_node.avatar.timecode import FADE_END, HYSTERESIS, PoseTimeIndex
+from stg_node.avatar.timecode import FADE_END, HYSTERESIS, PoseTimeIndex, pose_key
 
 
 def test_sh_basis_is_orthonormal_on_the_sphere():
@@ -295,6 +295,28 @@ def test_the_pose_index_reaches_as_far_as_consecutive_training_poses_are_apart()
     single = PoseTimeIndex()
     single.add(_pose(0.0), 0.0)
     assert single.reach() == 0.0 and single.within_reach(_pose(1.0))  # no measure of a step: today's rule
+
+
+def test_the_pose_distances_kept_between_time_and_trust_follow_the_pose_and_the_keys():
+    """A render without a time asks for a pose's time and then its trust; the distances kept between
+    the two calls must be those of the pose asked and the keys of now (a stale answer would give the
+    old instant or the old fade)."""
+    index = PoseTimeIndex()
+    for i, angle in enumerate([0.0, 0.1, 0.2]):
+        index.add(_pose(angle), float(i))
+    far = _pose(0.9)
+    assert index.time_for(far) == (2.0, 2) and index.trust(far) == 0.0
+    assert index.distances(far) is index.distances(far.astype(np.float64))  # same pose: kept
+    assert index.time_for(_pose(0.0)) == (0.0, 0)  # another pose: measured again
+    index.add(far, 3.0)  # the pose becomes a key: its distance 0, its own instant
+    assert index.distances(far)[-1] == 0.0
+    assert index.time_for(far) == (3.0, 3) and index.trust(far) == 1.0
+    index.retain(np.asarray([0.0, 1.0], np.float32))  # and gone again
+    assert index.distances(far).shape == (2,) and index.time_for(far) == (1.0, 1)
+    index.set(index.keys[:1].copy(), index.times[:1].copy())
+    assert index.time_for(far) == (0.0, 0)
+    truth = np.linalg.norm(index.keys - pose_key(far), axis=1)
+    np.testing.assert_array_equal(index.distances(far), truth)
 
 
 def test_an_instants_trust_fades_from_the_reach_to_twice_it_as_a_smoothstep_of_the_distance():
