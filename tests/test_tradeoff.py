@@ -151,6 +151,16 @@ def test_pareto_front_is_the_set_of_undominated_points():
             assert {(xs[i], ys[i]) for i in front} == {(xs[i], ys[i]) for i in truth}
 
 
+def test_the_plot_draws_a_point_far_below_the_rest_at_a_floor_three_db_under_the_median():
+    """A broken ablation (SH colour under shading, 2026-11-27: 27.7 dB among 32-33 dB rows) squashed
+    every other point into a line; below the floor it is drawn at the floor with its value."""
+    assert tradeoff_report.plot_floor([33.0, 33.1, 32.2, 27.7]) == pytest.approx(30.0)  # median 33.0
+    assert tradeoff_report.plot_floor([33.0, 32.5, 31.0]) is None  # all within 3 dB of the median
+    odd = [33.0, math.nan, 29.9, 33.2, 33.1, 32.8]  # NaN left out: median of five, 33.0
+    assert tradeoff_report.plot_floor(odd, span_db=3.0) == pytest.approx(30.0)
+    assert tradeoff_report.plot_floor([]) is None and tradeoff_report.plot_floor([math.nan]) is None
+
+
 def test_the_docs_section_is_replaced_between_its_markers_and_nothing_else_changes(tmp_path):
     doc = tmp_path / "BENCH.md"
     doc.write_text("# Benchmarks\n\nintro\n\n## Other\n\nkeep me\n")

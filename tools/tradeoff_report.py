@@ -343,17 +343,23 @@ def write_plot(report: Report, path: Path) -> Path:
         (axes[0], "train_seconds", "training time (s, log scale)", True),
         (axes[1], "fps_cpu", "render FPS on the CPU (log scale)", False),
     )
+    ys_all = [p["novel_view"]["psnr"] for p in points]
+    floor = plot_floor(ys_all)
     for ax, key, xlabel, minimize in panels:
         xs = [p[key] for p in points]
-        ys = [p["novel_view"]["psnr"] for p in points]
+        ys = ys_all
         for p, x, y in zip(points, xs, ys, strict=True):
             style = (
                 dict(marker="s", color="C3", s=60)
                 if p["group"] == "preset"
                 else dict(marker="o", color="C0", s=30)
             )
+            label = p["name"]
+            if floor is not None and y < floor:  # far below the rest: an arrow at the floor, its value
+                style = dict(style, marker="v", color="C1")
+                label, y = f"{label} ({y:.1f} dB, below)", floor
             ax.scatter([x], [y], zorder=3, **style)
-            ax.annotate(p["name"], (x, y), textcoords="offset points", xytext=(4, 3), fontsize=7)
+            ax.annotate(label, (x, y), textcoords="offset points", xytext=(4, 3), fontsize=7)
         front = sorted(pareto_front(xs, ys, minimize_x=minimize), key=lambda i: xs[i])
         if front:
             # The attainment staircase: the best quality reachable at each x
@@ -370,6 +376,8 @@ def write_plot(report: Report, path: Path) -> Path:
             ax.legend(loc="best", fontsize=8)
         if all(x > 0 for x in xs if math.isfinite(x)) and xs:
             ax.set_xscale("log")
+            # less than a decade wide (FPS 20-55): label 1-2-3-5 steps, not only powers of ten
+            ax.xaxis.set_major_locator(matplotlib.ticker.LogLocator(base=10, subs=(1.0, 2.0, 3.0, 5.0)))
             ax.xaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
             ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         ax.set_xlabel(xlabel)
@@ -385,6 +393,17 @@ def write_plot(report: Report, path: Path) -> Path:
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def plot_floor(ys: list[float], span_db: float = 3.0) -> float | None:
+    """The lowest PSNR drawn to scale: ``span_db`` under the median, or None when every point is
+    within it. A point far below the rest (a broken ablation) would squash the others into a line;
+    it is drawn at the floor with its value in its label instead."""
+    finite = sorted(y for y in ys if math.isfinite(y))
+    if not finite:
+        return None
+    floor = finite[len(finite) // 2] - span_db
+    return floor if finite[0] < floor else None
 
 
 def report_machine_line(report: Report) -> str:
