@@ -204,16 +204,8 @@ def test_the_rigid_part_keeps_each_moving_rows_mean_offset_over_the_knots(tiny_f
     model poses with) goes into its rigid centre; static rows keep theirs exactly."""
     from stg_node.avatar.motion_basis import MotionBases
 
-    trainer, _ = _trainer(tiny_frames, _trial_config(nonrigid="on"), 2)
-    model = trainer.model
+    model = _moving(tiny_frames, rows=4, spread=0.01)
     table, bases = model.table, model.motion_bases
-    g = torch.Generator().manual_seed(3)
-    with torch.no_grad():
-        bases.values.copy_(0.01 * torch.randn(bases.values.shape, generator=g))
-        table["motion_gate"].zero_()
-        table["motion_gate"][:4] = 1.0
-        table["motion_coef"][:4] = torch.rand(4, bases.count, generator=g)
-        table["motion_coef"][4:] = 0.0
     means = table["means"].detach()
     knot_times = [int(k) * bases.knot_units for k in bases.knot_ids]
     offsets = [
@@ -684,16 +676,20 @@ def test_a_checkpoint_without_per_row_step_counts_resumes_with_every_row_there_a
     assert bool((alive == steps).all())
 
 
-def _moving_everywhere(frames):
-    """A model whose every row moves, differently at every knot (its motion terms change every view)."""
+def _moving(frames, rows: int | None = None, spread: float = 0.02):
+    """A model whose first ``rows`` rows (all: None) move, differently at every knot (random bases of
+    ``spread`` metres, random coefficients); the other rows are static (gate and coefficients 0)."""
     trainer, _ = _trainer(frames, _trial_config(nonrigid="on"), 2)
     model = trainer.model
     table, bases = model.table, model.motion_bases
+    n = table.num if rows is None else rows
     g = torch.Generator().manual_seed(3)
     with torch.no_grad():
-        bases.values.copy_(0.02 * torch.randn(bases.values.shape, generator=g))
-        table["motion_gate"].fill_(1.0)
-        table["motion_coef"].copy_(torch.rand(table["motion_coef"].shape, generator=g))
+        bases.values.copy_(spread * torch.randn(bases.values.shape, generator=g))
+        table["motion_gate"].zero_()
+        table["motion_gate"][:n] = 1.0
+        table["motion_coef"][:n] = torch.rand(n, bases.count, generator=g)
+        table["motion_coef"][n:] = 0.0
     return model
 
 
@@ -703,7 +699,7 @@ def test_a_pose_beyond_the_index_reach_renders_the_mean_placement_one_within_it_
     instant stands for it)."""
     from stg_node.avatar.renderer import AvatarRenderer
 
-    model = _moving_everywhere(tiny_frames)
+    model = _moving(tiny_frames)
     renderer = AvatarRenderer(model)
     mean = AvatarRenderer(nonrigid.rigid_part(model)[0])
     frame = tiny_frames[3]
@@ -734,7 +730,7 @@ def test_an_animation_crossing_the_index_reach_changes_continuously_where_a_hard
     (round 10b's rule) changes the image at once by the instant-to-mean difference: 20x that step."""
     from stg_node.avatar.renderer import AvatarRenderer
 
-    model = _moving_everywhere(tiny_frames)
+    model = _moving(tiny_frames)
     renderer = AvatarRenderer(model)
     mean = AvatarRenderer(nonrigid.rigid_part(model)[0])
     frame = tiny_frames[3]
