@@ -22,30 +22,34 @@ the camera's sign, safe on flat light, stays. The run's summary says which and w
 
 from __future__ import annotations
 
-import math
 
 import torch
 
+from stg_node.avatar import shading
+
 NORMAL_SIGN_KEY = "model.normal_sign"
 CONTRAST_NOTE = "normal_sign.contrast"  # Trainer.notes: the evidence, kept with the checkpoint
+SEEN_CONTRAST_NOTE = "normal_sign.seen_contrast"
 ITERATION_NOTE = "normal_sign.iteration"
 _SAMPLES = 2048  # directions on the sphere the contrast is averaged over
 
 
 def sphere_directions(count: int = _SAMPLES, device=None) -> torch.Tensor:
     """(count, 3) unit directions spread evenly over the sphere (Fibonacci lattice)."""
-    i = torch.arange(count, dtype=torch.float64) + 0.5
-    z = 1.0 - 2.0 * i / count
-    r = (1.0 - z * z).sqrt()
-    phi = i * math.pi * (3.0 - math.sqrt(5.0))
-    return torch.stack([r * phi.cos(), r * phi.sin(), z], dim=1).float().to(device)
+    return shading.sphere_directions(count, device)
 
 
 @torch.no_grad()
-def light_contrast(shading) -> float:
+def light_contrast(shading, seen_only: bool = False) -> float:
     """Std of the learned light's irradiance over all directions over its mean, the largest over
-    RGB (0: uniform; the benchmark's room light, ambient 0.3 and one lamp 0.7: 0.48)."""
-    e = shading.light.irradiance(sphere_directions(device=shading.reference.device))
+    RGB (0: uniform; the benchmark's room light, ambient 0.3 and one lamp 0.7: 0.48). With
+    ``seen_only``, over the directions a training view faced (``Shading.seen``) only."""
+    directions = sphere_directions(device=shading.reference.device)
+    e = shading.light.irradiance(directions)
+    if seen_only:
+        faced = shading.seen_at(directions)
+        if bool(faced.any()):
+            e = e[faced]
     return float((e.std(dim=0) / e.mean(dim=0).clamp_min(1e-9)).max())
 
 
@@ -73,7 +77,10 @@ def report(config, notes: dict) -> dict:
             "chose": sign,
             "why": why,
             "iteration": int(notes.get(ITERATION_NOTE, 0)),
-            "evidence": {"light_contrast": notes[CONTRAST_NOTE]},
+            "evidence": {
+                "light_contrast": notes[CONTRAST_NOTE],
+                **({"seen_contrast": notes[SEEN_CONTRAST_NOTE]} if SEEN_CONTRAST_NOTE in notes else {}),
+            },
         }
     if sign == "auto":
         return {

@@ -40,6 +40,14 @@ everything else:
 
   A small penalty (``loss.light``) keeps the learned light near uniform unless the images ask
   otherwise: a clip that never shows how the light falls leaves the avatar near its baked colour.
+  A second one (``loss.light_unseen``) removes what no training view can confirm: a distant
+  light that casts more of its light on normals no training camera faces (``Shading.seen``) than
+  on those one does (:meth:`DistantLights.unseen_excess`).
+  Such a lamp changes the images of the training views only through the normalisation (it
+  raises the mean, so it dims every seen normal alike, which the albedo undoes): a direction the
+  loss is flat along, which Adam's normalised steps walk. Grown there, it lights the side of the
+  subject the clip never showed: measured with SH colour, a lamp straight away from the camera
+  rendered the back 2-2.5x too bright (-5.4 dB on novel views; docs/BENCHMARKS.md).
 
 Render modes (:class:`LightSpec`): ``learned`` (the default: the learned light, fixed in the
 world, so a turning avatar is lit by the room as it turns), ``given`` (a caller's light: SH
@@ -74,7 +82,17 @@ from stg_node.splat import shade_ops
 SH_BANDS = 9  # second order: l = 0, 1, 2
 KERNEL = (math.pi,) + (2.0 * math.pi / 3.0,) * 3 + (math.pi / 4.0,) * 5  # clamped cosine, per coefficient
 UNIFORM_DC = 1.0 / SH_C0  # e_00 of E(n) = 1 everywhere
+SEEN_DIRECTIONS = 512  # the sphere of normals, Fibonacci lattice: which ones a training view faces
 LIGHT_MODES = ("learned", "baked", "albedo", "given")
+
+
+def sphere_directions(count: int, device=None) -> torch.Tensor:
+    """(count, 3) unit directions spread evenly over the sphere (Fibonacci lattice)."""
+    i = torch.arange(count, dtype=torch.float64) + 0.5
+    z = 1.0 - 2.0 * i / count
+    r = (1.0 - z * z).sqrt()
+    phi = i * math.pi * (3.0 - math.sqrt(5.0))
+    return torch.stack([r * phi.cos(), r * phi.sin(), z], dim=1).float().to(device)
 
 
 def irradiance(normals: torch.Tensor, coefficients: torch.Tensor) -> torch.Tensor:
@@ -347,6 +365,21 @@ class DistantLights(nn.Module):
         _, c, _, mean = self.parts()
         return ((c.sum(dim=0) / 4.0) / mean).pow(2).mean()
 
+    def unseen_excess(self, directions: torch.Tensor, seen: torch.Tensor) -> torch.Tensor:
+        """The share of the mean irradiance cast by lights that light unseen normals more than seen
+        ones, by that excess (mean over RGB).
+
+        With ``u_k`` the part of light k's lobe ``max(0, n . d_k)`` that falls on ``directions``
+        (D, 3) whose ``seen`` (D,) is 0, light k pays its share of the mean, ``c_k / 4 / mean``,
+        times ``max(0, u_k - (1 - u_k))``: nothing while at least half its light falls where a
+        training view looked (a light from the side, whose direction the images fix: a linear
+        charge on ``u_k`` tilted the benchmark's room lamp 10 degrees towards the camera and cost
+        its held-out turn 0.5 dB), its whole share when it faces only unseen normals."""
+        _, c, d, mean = self.parts()
+        lobe = torch.relu(directions @ d.T)  # (D, K)
+        unseen = (lobe * (1.0 - seen)[:, None]).sum(0) / lobe.sum(0).clamp_min(1e-9)  # (K,)
+        return ((c / 4.0 / mean) * torch.relu(2.0 * unseen - 1.0)[:, None]).sum(0).mean()
+
 
 class Shading(nn.Module):
     """The learned light (``light_model``: ``distant`` lights or ``sh``) and the mean training
@@ -361,6 +394,9 @@ class Shading(nn.Module):
         self.occlusion = BodyOcclusion() if occlusion else None
         self.register_buffer("reference", torch.eye(3))  # mean training root orientation (world)
         self.register_buffer("orientation_sum", torch.zeros(3, 3))  # of the frames seen so far
+        # Which normals (of SEEN_DIRECTIONS, world frame) some training view faces (add_view):
+        # 1 seen, 0 not. A snapshot from before it loads with all seen (no unseen penalty).
+        self.register_buffer("seen", torch.zeros(SEEN_DIRECTIONS))
 
     def learned_sh(self) -> torch.Tensor:
         """(9, 3) the learned light as SH irradiance (what stg-render --light takes back)."""
@@ -373,8 +409,33 @@ class Shading(nn.Module):
         mean = polar_rotation(self.orientation_sum.cpu().numpy())
         self.reference.copy_(torch.as_tensor(mean, dtype=self.reference.dtype))
 
+    @torch.no_grad()
+    def add_view(self, towards_camera: torch.Tensor) -> None:
+        """Count the normals a training view faces: those within 90 degrees of the direction (3,)
+        from the subject to its camera (world frame)."""
+        v = towards_camera.to(self.seen) / towards_camera.norm().clamp_min(1e-9)
+        faced = sphere_directions(SEEN_DIRECTIONS, self.seen.device) @ v > 0.0
+        self.seen[faced] = 1.0
+
+    def seen_at(self, directions: torch.Tensor) -> torch.Tensor:
+        """(M,) bool: whether each unit direction (M, 3) is seen (that of its nearest lattice point)."""
+        lattice = sphere_directions(SEEN_DIRECTIONS, self.seen.device)
+        return self.seen[(directions.to(lattice) @ lattice.T).argmax(dim=1)] > 0.5
+
     def penalty(self) -> torch.Tensor:
         return self.light.penalty()
+
+    def unseen_penalty(self) -> torch.Tensor | None:
+        """The light cast mostly where no training view looked (distant lights; None for SH light,
+        whose lobes are not separable by direction)."""
+        if not isinstance(self.light, DistantLights):
+            return None
+        return self.light.unseen_excess(sphere_directions(SEEN_DIRECTIONS, self.seen.device), self.seen)
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        if prefix + "seen" not in state_dict:  # saved before the buffer existed: everything seen
+            state_dict[prefix + "seen"] = torch.ones(SEEN_DIRECTIONS)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def _fused(self, albedo, normals, visible) -> bool:
         """Whether the learned distant lights shade these rows in the kernel (splat.shade_ops: the

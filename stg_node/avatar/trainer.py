@@ -196,6 +196,8 @@ class Trainer:
             index.add(np.asarray(frame.smpl.poses), u)
             if self.model.shading is not None:  # the mean training orientation (the baked light mode)
                 self.model.shading.add_orientation(_root_rotation(frame.smpl))
+        if self.model.shading is not None:  # the normals this view faces (every frame: idempotent)
+            self.model.shading.add_view(_towards_camera(frame))
         if self.config.lr_pose > 0:
             self._pose_slot(frame.index)
             if self.config.loss.pose_smooth > 0:
@@ -484,6 +486,7 @@ class Trainer:
             "pose": c.loss.pose_refine,
             "isometry": c.loss.isometry * c.loss.isometry_every,  # present on every k-th step only
             "light": c.loss.light,
+            "light_unseen": c.loss.light_unseen,
             "pose_smooth": c.loss.pose_smooth,
         }
         total, applied = self.weights.combine(terms, weights, it)
@@ -665,6 +668,7 @@ class Trainer:
         contrast = normal_trial.light_contrast(self.model.shading)
         sign, why = normal_trial.choose(contrast, self.config.normal_min_contrast)
         self.notes[normal_trial.CONTRAST_NOTE] = contrast
+        self.notes[normal_trial.SEEN_CONTRAST_NOTE] = normal_trial.light_contrast(self.model.shading, seen_only=True)
         self.notes[normal_trial.ITERATION_NOTE] = float(self.iteration)
         self.config = self.config.replace(**{normal_trial.NORMAL_SIGN_KEY: sign})
         self.model.config = dataclasses.replace(self.model.config, normal_sign=sign)
@@ -792,6 +796,10 @@ class Trainer:
             out["pose"] = self.pose_deltas.pow(2).sum(1).mean()
         if self.model.shading is not None and c.light > 0:
             out["light"] = self.model.shading.penalty()
+        if self.model.shading is not None and c.light_unseen > 0:
+            unseen = self.model.shading.unseen_penalty()
+            if unseen is not None:
+                out["light_unseen"] = unseen
         return out
 
     def _grads_finite(self) -> bool:
@@ -918,6 +926,12 @@ def _root_rotation(smpl) -> torch.Tensor:
     poses = torch.as_tensor(np.array(smpl.poses, np.float32)).reshape(24, 3)
     Rh = torch.as_tensor(np.array(smpl.Rh, np.float32)).reshape(3)
     return lbs.axis_angle_to_matrix(Rh) @ lbs.axis_angle_to_matrix(poses[0])
+
+
+def _towards_camera(frame) -> torch.Tensor:
+    """(3,) from the body's root to the frame's camera centre, world frame (not normalised)."""
+    centre = -np.asarray(frame.camera.R, np.float64).T @ np.asarray(frame.camera.t, np.float64)
+    return torch.as_tensor(centre - np.asarray(frame.smpl.Th, np.float64).reshape(3), dtype=torch.float32)
 
 
 def _load_body(body_model, device):

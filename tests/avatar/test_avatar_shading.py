@@ -512,3 +512,81 @@ def test_training_shades_outward_normals_and_renders_face_the_viewer(tiny_frames
     data = trainer.config.to_dict()
     del data["model"]["normal_sign"]
     assert TrainConfig.from_dict(data).model.normal_sign == "camera"
+
+
+def _unseen_share_by_sampling(direction: np.ndarray, towards: np.ndarray, samples: int = 400_000) -> float:
+    """The part of a clamped-cosine lobe about ``direction`` on normals facing away from ``towards``,
+    by Monte Carlo over uniform random directions (independent of the lattice the model uses)."""
+    rng = np.random.default_rng(0)
+    n = rng.normal(size=(samples, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    lobe = np.maximum(n @ direction, 0.0)
+    return float((lobe * (n @ towards <= 0.0)).sum() / lobe.sum())
+
+
+@pytest.mark.parametrize("angle_deg", [0.0, 60.0, 90.0, 120.0, 135.0, 180.0])
+def test_the_unseen_penalty_charges_a_lamp_lighting_more_unseen_than_seen_normals(angle_deg):
+    """One camera along +z: a lamp at angle theta from it pays its share of the mean irradiance
+    times the excess of its lobe's part on the far hemisphere over the part on the near one, u - (1
+    - u) with u against sampling: nothing up to 90 degrees, all of it facing away."""
+    shading = Shading(light_count=1)
+    towards = np.array([0.0, 0.0, 1.0])
+    shading.add_view(torch.tensor([0.0, 0.0, 2.5]))  # only the direction counts
+    t = math.radians(angle_deg)
+    direction = np.array([math.sin(t), 0.0, math.cos(t)])
+    light = shading.light
+    with torch.no_grad():
+        light.directions.copy_(torch.tensor(direction, dtype=torch.float32)[None])
+        light.colors.fill_(0.5)
+    a, c, _, mean = (v.detach() for v in light.parts())
+    share = float((c[0] / 4.0 / mean).mean())
+    expected = share * max(0.0, 2.0 * _unseen_share_by_sampling(direction, towards) - 1.0)
+    penalty = float(shading.unseen_penalty().detach())
+    assert penalty == pytest.approx(expected, abs=0.01 * share)
+    if angle_deg <= 90.0:
+        assert penalty < 0.01 * share
+    if angle_deg == 180.0:
+        assert penalty == pytest.approx(share, rel=1e-5)
+
+
+def test_the_unseen_penalty_pulls_down_only_the_lamp_no_view_faces():
+    """Its gradient pulls down the lamp pointing away from the camera and never the one pointing at
+    it (that one only dilutes the other's share), and a second camera behind the subject sees that
+    side and frees it again."""
+    shading = Shading(light_count=2)
+    shading.add_view(torch.tensor([0.0, 0.0, 1.0]))
+    with torch.no_grad():
+        shading.light.directions.copy_(torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]]))
+        shading.light.colors.fill_(0.0)
+    shading.unseen_penalty().backward()
+    grad = shading.light.colors.grad
+    assert torch.all(grad[1] > 0) and torch.all(grad[0] <= 0)
+    shading.add_view(torch.tensor([0.0, 0.0, -1.0]))
+    assert float(shading.seen.min()) == 1.0 and float(shading.unseen_penalty().detach()) == 0.0
+
+
+def test_training_marks_the_normals_its_cameras_face(tiny_frames):
+    """The trainer counts each frame's view: the normals within 90 degrees of the direction from
+    the body to the camera centre are seen, the others not; a snapshot keeps them, and one from
+    before the buffer existed loads with every normal seen (no penalty)."""
+    import dataclasses
+
+    from avatar_helpers import small_config
+
+    from stg_node.avatar.shading import SEEN_DIRECTIONS, sphere_directions
+    from stg_node.avatar.snapshot import model_from_snapshot
+    from stg_node.avatar.trainer import Trainer
+
+    trainer = Trainer(small_config(iterations=2), seed=0)
+    trainer.add_frames(tiny_frames[:3])
+    dirs = sphere_directions(SEEN_DIRECTIONS).double().numpy()
+    faced = np.zeros(SEEN_DIRECTIONS, bool)
+    for f in tiny_frames[:3]:
+        centre = -f.camera.R.T @ f.camera.t
+        faced |= dirs @ (centre - np.asarray(f.smpl.Th).reshape(3)) > 0.0
+    seen = trainer.model.shading.seen.numpy() > 0.5
+    assert 0.4 < seen.mean() < 0.7 and np.array_equal(seen, faced)
+    msg = trainer.snapshot()
+    assert np.array_equal(model_from_snapshot(msg).shading.seen.numpy() > 0.5, faced)
+    old = dataclasses.replace(msg, arrays={k: v for k, v in msg.arrays.items() if k != "shading.seen"})
+    assert float(model_from_snapshot(old).shading.seen.min()) == 1.0
