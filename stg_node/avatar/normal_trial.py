@@ -22,7 +22,6 @@ the camera's sign, safe on flat light, stays. The run's summary says which and w
 
 from __future__ import annotations
 
-
 import torch
 
 from stg_node.avatar import shading

@@ -668,7 +668,8 @@ class Trainer:
         contrast = normal_trial.light_contrast(self.model.shading)
         sign, why = normal_trial.choose(contrast, self.config.normal_min_contrast)
         self.notes[normal_trial.CONTRAST_NOTE] = contrast
-        self.notes[normal_trial.SEEN_CONTRAST_NOTE] = normal_trial.light_contrast(self.model.shading, seen_only=True)
+        seen = normal_trial.light_contrast(self.model.shading, seen_only=True)  # a diagnostic, beside it
+        self.notes[normal_trial.SEEN_CONTRAST_NOTE] = seen
         self.notes[normal_trial.ITERATION_NOTE] = float(self.iteration)
         self.config = self.config.replace(**{normal_trial.NORMAL_SIGN_KEY: sign})
         self.model.config = dataclasses.replace(self.model.config, normal_sign=sign)
