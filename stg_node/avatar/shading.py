@@ -397,6 +397,8 @@ class Shading(nn.Module):
         # Which normals (of SEEN_DIRECTIONS, world frame) some training view faces (add_view):
         # 1 seen, 0 not. A snapshot from before it loads with all seen (no unseen penalty).
         self.register_buffer("seen", torch.zeros(SEEN_DIRECTIONS))
+        # Their directions, made once (the penalty reads them every step); not saved: derived.
+        self.register_buffer("lattice", sphere_directions(SEEN_DIRECTIONS), persistent=False)
 
     def learned_sh(self) -> torch.Tensor:
         """(9, 3) the learned light as SH irradiance (what stg-render --light takes back)."""
@@ -414,13 +416,11 @@ class Shading(nn.Module):
         """Count the normals a training view faces: those within 90 degrees of the direction (3,)
         from the subject to its camera (world frame)."""
         v = towards_camera.to(self.seen) / towards_camera.norm().clamp_min(1e-9)
-        faced = sphere_directions(SEEN_DIRECTIONS, self.seen.device) @ v > 0.0
-        self.seen[faced] = 1.0
+        self.seen[self.lattice @ v > 0.0] = 1.0
 
     def seen_at(self, directions: torch.Tensor) -> torch.Tensor:
         """(M,) bool: whether each unit direction (M, 3) is seen (that of its nearest lattice point)."""
-        lattice = sphere_directions(SEEN_DIRECTIONS, self.seen.device)
-        return self.seen[(directions.to(lattice) @ lattice.T).argmax(dim=1)] > 0.5
+        return self.seen[(directions.to(self.lattice) @ self.lattice.T).argmax(dim=1)] > 0.5
 
     def penalty(self) -> torch.Tensor:
         return self.light.penalty()
@@ -430,7 +430,7 @@ class Shading(nn.Module):
         whose lobes are not separable by direction)."""
         if not isinstance(self.light, DistantLights):
             return None
-        return self.light.unseen_excess(sphere_directions(SEEN_DIRECTIONS, self.seen.device), self.seen)
+        return self.light.unseen_excess(self.lattice, self.seen)
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
         if prefix + "seen" not in state_dict:  # saved before the buffer existed: everything seen
