@@ -109,3 +109,17 @@ def test_no_decision_without_shading_or_with_a_fixed_sign(tiny_frames):
             trainer.step()
         assert trainer.config.model.normal_sign == chose
         assert "normal_sign.contrast" not in trainer.notes
+
+
+def test_the_seen_contrast_ignores_a_lamp_only_unseen_normals_receive():
+    """One camera along +z and a lamp straight behind the subject: over the whole sphere the light
+    has contrast, over the normals the camera faces (all lit by the ambient alone) it has none."""
+    from stg_node.avatar.shading import Shading
+
+    shading = Shading(light_count=1)
+    shading.add_view(torch.tensor([0.0, 0.0, 1.0]))
+    with torch.no_grad():
+        shading.light.directions.copy_(torch.tensor([[0.0, 0.0, -1.0]]))
+        shading.light.colors.fill_(2.0)
+    assert light_contrast(shading) > 0.3
+    assert light_contrast(shading, seen_only=True) < 0.02
