@@ -15,15 +15,15 @@ is closer by a margin (hysteresis, ``HYSTERESIS`` of the current distance).
 How far the rule reaches: the garment's state is a function of its history, not of the pose
 alone, so an instant's non-rigid state carries over to a new pose only as it does to the next
 frame, by continuity. A pose farther from every training pose than the largest step between
-training poses adjacent in time (:meth:`PoseTimeIndex.reach`) has no such neighbour; from ``FADE_END``
-times the reach on it renders the model's mean placement (no motion terms, stg_node.avatar.renderer),
-and between the two the instant's non-rigid part fades out (:meth:`PoseTimeIndex.trust`), so an
-animation that crosses the reach does not pop from one to the other. Measured (issue 22,
-docs/BENCHMARKS.md round 10b): on the dancing subject the instant of a pose 2.5 median frame-steps
-(1.8-1.9 reaches) away
-costs a held-out frame 1.2 dB against the mean on one subject draw and gains 0.3 on the other;
-training frames rendered at the instant of their nearest pose more than 5 frames away score
--0.60 / -0.01 dB against the mean.
+training poses adjacent in time (:meth:`PoseTimeIndex.reach`; steps of the motion only, not those
+across skipped frames or through a one-frame tracking glitch: :func:`motion_steps`) has no such
+neighbour; from ``FADE_END`` times the reach on it renders the model's mean placement (no motion
+terms, stg_node.avatar.renderer), and between the two the instant's non-rigid part fades out
+(:meth:`PoseTimeIndex.trust`), so an animation that crosses the reach does not pop from one to the
+other. Measured (issue 22, docs/BENCHMARKS.md round 10b): on the dancing subject the instant of a
+pose 2.5 median frame-steps (1.8-1.9 reaches) away costs a held-out frame 1.2 dB against the mean
+on one subject draw and gains 0.3 on the other; training frames rendered at the instant of their
+nearest pose more than 5 frames away score -0.60 / -0.01 dB against the mean.
 
 The index keeps at most ``capacity`` keys (a stream evicts the oldest half-stride by
 reservoir-style thinning: every other key is dropped when full), so it stays small; a bounded
@@ -43,6 +43,10 @@ HYSTERESIS = 0.15
 # narrower fade is a faster change, in the limit a pop. Cost measured (docs/BENCHMARKS.md, issue 22):
 # the dancer's far held-out frame, 1.8-1.9 reaches out, keeps 1-10 % of its instant's state.
 FADE_END = 2.0
+# What the reach leaves out (motion_steps): a step over more than GAP_FACTOR median time steps, and a
+# pose GLITCH_FACTOR times farther from both neighbours than they are from each other.
+GAP_FACTOR = 1.5
+GLITCH_FACTOR = 3.0
 
 
 def pose_key(poses: np.ndarray) -> np.ndarray:
@@ -52,6 +56,34 @@ def pose_key(poses: np.ndarray) -> np.ndarray:
     p = np.array(poses, dtype=np.float32).reshape(-1, 24, 3)  # a copy: bus arrays are read-only
     mats = lbs.axis_angle_to_matrix(torch.from_numpy(p[:, 1:]))
     return mats.reshape(p.shape[0], 23 * 9).numpy()
+
+
+def motion_steps(keys: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """Pose distances between consecutive ``keys`` (sorted by ``times``, at least two) that measure how
+    far the pose moves from one frame to the next. Left out, where others remain:
+
+    - a step across a gap in time (more than ``GAP_FACTOR`` times the median time step): frames the
+      tracker skipped as untrusted, a stream's dropped messages; the pose travels several frames'
+      worth over it;
+    - the two steps in and out of a single-frame glitch: a pose at least ``GLITCH_FACTOR`` times
+      farther from both neighbours than they are from each other (and than the median step), the
+      tracker's one-frame limb flip. A real motion cannot do that: by the triangle inequality a pose
+      on the way from one neighbour to the other is at most as far from either as they are apart.
+
+    One such step would otherwise set the reach of a whole clip (the largest step), and every new
+    pose within it would render a training instant's non-rigid state however far it is from it.
+    """
+    steps = np.linalg.norm(np.diff(keys, axis=0), axis=1)
+    keep = np.ones(steps.shape[0], bool)
+    dt = np.diff(np.asarray(times, np.float64))
+    keep &= dt <= GAP_FACTOR * float(np.median(dt))
+    if steps.shape[0] >= 2:
+        across = np.linalg.norm(keys[2:] - keys[:-2], axis=1)  # frame i's neighbours, i = 1..n-2
+        floor = np.maximum(across, float(np.median(steps)))
+        glitch = np.minimum(steps[:-1], steps[1:]) > GLITCH_FACTOR * floor
+        keep[:-1] &= ~glitch  # the step into frame i
+        keep[1:] &= ~glitch  # and out of it
+    return steps[keep] if keep.any() else steps
 
 
 class PoseTimeIndex:
@@ -94,14 +126,16 @@ class PoseTimeIndex:
 
     def reach(self) -> float:
         """The largest pose distance between training poses adjacent in time (0 with fewer than two):
-        how far a pose may be from its nearest training pose and still count as a neighbour of an instant."""
+        how far a pose may be from its nearest training pose and still count as a neighbour of an instant.
+        Steps that are not the motion's are left out (:func:`motion_steps`): across frames the
+        tracker skipped, and in and out of a single-frame tracking glitch."""
         if len(self) < 2:
             return 0.0
         cached = self._reach
         if cached is not None and cached[0] is self.keys:  # every change assigns new key arrays
             return cached[1]
-        keys = self.keys[np.argsort(self.times, kind="stable")]
-        value = float(np.linalg.norm(np.diff(keys, axis=0), axis=1).max())
+        order = np.argsort(self.times, kind="stable")
+        value = float(motion_steps(self.keys[order], self.times[order]).max())
         self._reach = (self.keys, value)  # a render without a time asks once per frame: ~1.4 ms at 2k keys
         return value
 

@@ -297,6 +297,45 @@ def test_the_pose_index_reaches_as_far_as_consecutive_training_poses_are_apart()
     assert single.reach() == 0.0 and single.within_reach(_pose(1.0))  # no measure of a step: today's rule
 
 
+def _chord(delta: float) -> float:
+    """Frobenius distance between two rotations about one axis ``delta`` apart (closed form)."""
+    return 2 * math.sqrt(2) * abs(math.sin(delta / 2))
+
+
+def test_the_reach_ignores_a_one_frame_tracking_glitch_and_the_step_across_skipped_frames():
+    """A walk of 0.1 rad a frame. One frame flipped by 1.2 rad (the tracker's glitch) would set the
+    reach to that flip's chord; a run of skipped frames (times 10 -> 14) to the 0.4 rad jump across
+    them. Neither is the motion's step: the reach stays the 0.1 rad chord."""
+    smooth = PoseTimeIndex()
+    for i in range(20):
+        smooth.add(_pose(0.1 * i), float(i))
+    assert smooth.reach() == pytest.approx(_chord(0.1), rel=1e-5)
+
+    glitch = PoseTimeIndex()
+    for i in range(20):
+        glitch.add(_pose(0.1 * i + (1.2 if i == 7 else 0.0)), float(i))
+    assert glitch.reach() == pytest.approx(_chord(0.1), rel=1e-5)
+    elsewhere = _pose(0.7)
+    elsewhere[17, 2] = 0.3  # the other shoulder raised: 3 steps off every training pose, < the flip
+    assert not glitch.within_reach(elsewhere)
+
+    skipped = PoseTimeIndex()
+    for i in [*range(10), *range(14, 24)]:
+        skipped.add(_pose(0.1 * i), float(i))
+    assert skipped.reach() == pytest.approx(_chord(0.1), rel=1e-5)
+
+
+def test_the_reach_keeps_a_fast_stretch_of_real_motion():
+    """Steps five times the median over a run of frames (a kick) are the motion's: kept, unlike a
+    glitch, because each pose lies on the way between its neighbours."""
+    index = PoseTimeIndex()
+    angle = 0.0
+    for i in range(30):
+        index.add(_pose(angle), float(i))
+        angle += 0.5 if 10 <= i < 14 else 0.1
+    assert index.reach() == pytest.approx(_chord(0.5), rel=1e-5)
+
+
 def test_the_pose_distances_kept_between_time_and_trust_follow_the_pose_and_the_keys():
     """A render without a time asks for a pose's time and then its trust; the distances kept between
     the two calls must be those of the pose asked and the keys of now (a stale answer would give the
