@@ -62,3 +62,43 @@ def test_unfused_adam_is_left_to_torch():
     before = p.detach().clone()
     assert not _fused_adam_step(adam)
     assert torch.equal(p.detach(), before)
+
+
+def test_a_torch_whose_private_op_takes_other_arguments_falls_back_to_adam_step(monkeypatch, caplog):
+    """The op is private: another torch may rename its arguments. The step then hands the update to
+    Adam.step with the step counts as they were (the result still equals torch's), says so once, and
+    does not try the op again."""
+    from stg_node.avatar import optim
+
+    (ours, adam_a), (theirs, adam_b), gen = _pair(1)
+    for _ in range(2):  # states exist from here on
+        state = gen.get_state()
+        _grads(ours, gen)
+        gen.set_state(state)
+        _grads(theirs, gen)
+        adam_a.step()
+        adam_b.step()
+    calls = []
+
+    def renamed(*args, **kwargs):
+        calls.append(1)
+        raise TypeError("_fused_adam_() got an unexpected keyword argument 'lr'")
+
+    real = torch._fused_adam_
+    monkeypatch.setattr(optim, "_FUSED_CALL", {"broken": False})  # this test's own process-wide flag
+    for _ in range(3):
+        state = gen.get_state()
+        _grads(ours, gen)
+        gen.set_state(state)
+        _grads(theirs, gen)
+        monkeypatch.setattr(torch, "_fused_adam_", renamed)
+        with caplog.at_level("WARNING", logger="stg_node.avatar.optim"):
+            assert not _fused_adam_step(adam_a)
+        monkeypatch.setattr(torch, "_fused_adam_", real)  # torch's own Adam.step runs the real op
+        adam_a.step()
+        adam_b.step()
+    assert len(calls) == 1  # tried once, then left alone
+    assert sum("refused the call" in r.getMessage() for r in caplog.records) == 1
+    for a, b in zip(ours, theirs, strict=True):
+        assert torch.equal(a, b)
+        assert torch.equal(adam_a.state[a]["step"], adam_b.state[b]["step"])

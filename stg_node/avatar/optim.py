@@ -8,6 +8,7 @@ to exactly zero.
 
 from __future__ import annotations
 
+import logging
 import math
 
 import torch
@@ -15,6 +16,8 @@ from torch import nn
 
 from stg_node.avatar.gaussians import GaussianTable
 from stg_node.splat.build import kernels_take, load_kernels
+
+log = logging.getLogger(__name__)
 
 
 def _fusable(groups) -> bool | None:
@@ -25,11 +28,16 @@ def _fusable(groups) -> bool | None:
     return True if ok else None
 
 
+# Set once the private op refuses its arguments (another torch): never tried again in this process.
+_FUSED_CALL = {"broken": False}
+
+
 def _fused_adam_step(adam: torch.optim.Adam) -> bool:
     """One step of a fused ``adam`` straight through ``torch._fused_adam_``, one call per group and
     one step-count increment for all of them; False (nothing done) where that is not exactly what
     ``adam.step()`` would do (a parameter without state yet, options the call does not take,
-    mixed devices or dtypes): the caller then runs ``adam.step()``.
+    mixed devices or dtypes, a torch without the op or whose op takes other arguments: the
+    process then keeps to ``adam.step()``): the caller then runs ``adam.step()``.
 
     The same kernel on the same state as torch's fused path (bit-identical), without its per-group
     Python (state lookups, grouping by device and dtype, profiling and grad-mode wrappers): ~0.4 ms
@@ -53,27 +61,44 @@ def _fused_adam_step(adam: torch.optim.Adam) -> bool:
         work.append((group, params, states))
     if not work:
         return True
-    torch._foreach_add_([s["step"] for _, _, states in work for s in states], 1)
-    for group, params, states in work:
+    if _FUSED_CALL["broken"] or not hasattr(torch, "_fused_adam_"):
+        return False
+    steps = [s["step"] for _, _, states in work for s in states]
+    torch._foreach_add_(steps, 1)
+    for number, (group, params, states) in enumerate(work):
         beta1, beta2 = group["betas"]
-        torch._fused_adam_(
-            params,
-            [p.grad for p in params],
-            [s["exp_avg"] for s in states],
-            [s["exp_avg_sq"] for s in states],
-            [],
-            [s["step"] for s in states],
-            amsgrad=False,
-            lr=group["lr"],
-            beta1=beta1,
-            beta2=beta2,
-            weight_decay=group["weight_decay"],
-            eps=group["eps"],
-            maximize=False,
-            grad_scale=None,
-            found_inf=None,
-        )
+        try:
+            _call_fused_adam(group, params, states, beta1, beta2)
+        except (TypeError, RuntimeError) as error:
+            if number > 0:  # groups already stepped: nothing to hand back
+                raise
+            # A torch whose private op takes other arguments: undo the count, and leave this
+            # and every later step to torch's public Adam.step (the same update, ~0.4 ms slower).
+            torch._foreach_sub_(steps, 1)
+            _FUSED_CALL["broken"] = True
+            log.warning("torch._fused_adam_ refused the call (%s): using Adam.step", error)
+            return False
     return True
+
+
+def _call_fused_adam(group, params, states, beta1, beta2) -> None:
+    torch._fused_adam_(
+        params,
+        [p.grad for p in params],
+        [s["exp_avg"] for s in states],
+        [s["exp_avg_sq"] for s in states],
+        [],
+        [s["step"] for s in states],
+        amsgrad=False,
+        lr=group["lr"],
+        beta1=beta1,
+        beta2=beta2,
+        weight_decay=group["weight_decay"],
+        eps=group["eps"],
+        maximize=False,
+        grad_scale=None,
+        found_inf=None,
+    )
 
 
 def all_finite(tensors: list[torch.Tensor]) -> bool:
