@@ -16,9 +16,9 @@ How far the rule reaches: the garment's state is a function of its history, not 
 alone, so an instant's non-rigid state carries over to a new pose only as it does to the next
 frame, by continuity. A pose farther from every training pose than the largest step between
 training poses adjacent in time (:meth:`PoseTimeIndex.reach`; steps of the motion only, not those
-across skipped frames or through a one-frame tracking glitch: :func:`motion_steps`) has no such
-neighbour; from ``FADE_END`` times the reach on it renders the model's mean placement (no motion
-terms, stg_node.avatar.renderer), and between the two the instant's non-rigid part fades out
+across skipped frames or the tracker's jumps: :func:`motion_steps`) has no such neighbour; from
+``FADE_END`` times the reach on it renders the model's mean placement (no motion terms,
+stg_node.avatar.renderer), and between the two the instant's non-rigid part fades out
 (:meth:`PoseTimeIndex.trust`), so an animation that crosses the reach does not pop from one to the
 other. Measured (issue 22, docs/BENCHMARKS.md round 10b): on the dancing subject the instant of a
 pose 2.5 median frame-steps (1.8-1.9 reaches) away costs a held-out frame 1.2 dB against the mean
@@ -43,10 +43,10 @@ HYSTERESIS = 0.15
 # narrower fade is a faster change, in the limit a pop. Cost measured (docs/BENCHMARKS.md, issue 22):
 # the dancer's far held-out frame, 1.8-1.9 reaches out, keeps 1-10 % of its instant's state.
 FADE_END = 2.0
-# What the reach leaves out (motion_steps): a step over more than GAP_FACTOR median time steps, and a
-# pose GLITCH_FACTOR times farther from both neighbours than they are from each other.
+# What the reach leaves out (motion_steps): a step over more than GAP_FACTOR median time steps, and
+# the tracker's jumps and one-frame glitches, JUMP_FACTOR times the steps around them.
 GAP_FACTOR = 1.5
-GLITCH_FACTOR = 3.0
+JUMP_FACTOR = 3.0
 
 
 def pose_key(poses: np.ndarray) -> np.ndarray:
@@ -65,23 +65,29 @@ def motion_steps(keys: np.ndarray, times: np.ndarray) -> np.ndarray:
     - a step across a gap in time (more than ``GAP_FACTOR`` times the median time step): frames the
       tracker skipped as untrusted, a stream's dropped messages; the pose travels several frames'
       worth over it;
-    - the two steps in and out of a single-frame glitch: a pose at least ``GLITCH_FACTOR`` times
-      farther from both neighbours than they are from each other (and than the median step), the
-      tracker's one-frame limb flip. A real motion cannot do that: by the triangle inequality a pose
-      on the way from one neighbour to the other is at most as far from either as they are apart.
+    - a jump: a step ``JUMP_FACTOR`` times larger than the steps either side of it (and than the
+      median step). The tracker's limb that flips and stays flipped for a while makes one; a real
+      motion speeds up over frames, so its steps grow with their neighbours (the true motions of
+      stg-synth's subjects: at most 1.08x the larger neighbour; BlazePose on the benchmark's dancer:
+      two jumps of 5.5x and 12x, docs/BENCHMARKS.md "The reach on tracked poses");
+    - the two steps in and out of a one-frame glitch: a pose ``JUMP_FACTOR`` times farther from
+      both neighbours than they are from each other (and than the median step). A pose on the way
+      from one neighbour to the other is at most as far from either as they are apart.
 
     One such step would otherwise set the reach of a whole clip (the largest step), and every new
     pose within it would render a training instant's non-rigid state however far it is from it.
     """
     steps = np.linalg.norm(np.diff(keys, axis=0), axis=1)
-    keep = np.ones(steps.shape[0], bool)
     dt = np.diff(np.asarray(times, np.float64))
-    keep &= dt <= GAP_FACTOR * float(np.median(dt))
+    keep = dt <= GAP_FACTOR * float(np.median(dt))  # the median time step's own steps are kept
+    median = float(np.median(steps[keep]))
+    around = np.where(keep, steps, 0.0)  # a neighbour across a gap says nothing of the pace
+    sides = np.maximum(np.r_[0.0, around[:-1]], np.r_[around[1:], 0.0])
+    keep &= ~(steps > JUMP_FACTOR * np.maximum(sides, median))
     if steps.shape[0] >= 2:
         across = np.linalg.norm(keys[2:] - keys[:-2], axis=1)  # frame i's neighbours, i = 1..n-2
-        floor = np.maximum(across, float(np.median(steps)))
-        glitch = np.minimum(steps[:-1], steps[1:]) > GLITCH_FACTOR * floor
-        keep[:-1] &= ~glitch  # the step into frame i
+        glitch = np.minimum(steps[:-1], steps[1:]) > JUMP_FACTOR * np.maximum(across, median)
+        keep[:-1] &= ~glitch  # the step into the frame
         keep[1:] &= ~glitch  # and out of it
     return steps[keep] if keep.any() else steps
 
@@ -128,7 +134,7 @@ class PoseTimeIndex:
         """The largest pose distance between training poses adjacent in time (0 with fewer than two):
         how far a pose may be from its nearest training pose and still count as a neighbour of an instant.
         Steps that are not the motion's are left out (:func:`motion_steps`): across frames the
-        tracker skipped, and in and out of a single-frame tracking glitch."""
+        tracker skipped, and the tracker's jumps."""
         if len(self) < 2:
             return 0.0
         cached = self._reach

@@ -288,8 +288,8 @@ def test_the_pose_index_reaches_as_far_as_consecutive_training_poses_are_apart()
     assert index.reach() == pytest.approx(2 * math.sqrt(2) * math.sin(0.1), rel=1e-5)
     assert index.within_reach(_pose(0.65)) and index.within_reach(_pose(0.3))
     assert not index.within_reach(_pose(0.75))  # 0.25 beyond the last key: farther than any step
-    index.add(_pose(0.9), 5.0)  # a step of 0.4 after the last time: the reach (kept between calls) follows
-    assert index.reach() == pytest.approx(2 * math.sqrt(2) * math.sin(0.2), rel=1e-5)
+    index.add(_pose(0.75), 5.0)  # a step of 0.25 after the last time: the reach (kept between calls) follows
+    assert index.reach() == pytest.approx(2 * math.sqrt(2) * math.sin(0.125), rel=1e-5)
     index.retain(np.asarray([0.0, 1.0, 2.0], np.float32))  # and the retained keys' steps of 0.1 only
     assert index.reach() == pytest.approx(2 * math.sqrt(2) * math.sin(0.05), rel=1e-5)
     single = PoseTimeIndex()
@@ -302,38 +302,43 @@ def _chord(delta: float) -> float:
     return 2 * math.sqrt(2) * abs(math.sin(delta / 2))
 
 
-def test_the_reach_ignores_a_one_frame_tracking_glitch_and_the_step_across_skipped_frames():
-    """A walk of 0.1 rad a frame. One frame flipped by 1.2 rad (the tracker's glitch) would set the
-    reach to that flip's chord; a run of skipped frames (times 10 -> 14) to the 0.4 rad jump across
-    them. Neither is the motion's step: the reach stays the 0.1 rad chord."""
-    smooth = PoseTimeIndex()
-    for i in range(20):
-        smooth.add(_pose(0.1 * i), float(i))
-    assert smooth.reach() == pytest.approx(_chord(0.1), rel=1e-5)
+def _walk(angles, times=None) -> PoseTimeIndex:
+    index = PoseTimeIndex()
+    for i, angle in enumerate(angles):
+        index.add(_pose(angle), float(i if times is None else times[i]))
+    return index
 
-    glitch = PoseTimeIndex()
-    for i in range(20):
-        glitch.add(_pose(0.1 * i + (1.2 if i == 7 else 0.0)), float(i))
+
+def test_the_reach_ignores_the_trackers_glitches_jumps_and_the_step_across_skipped_frames():
+    """A walk of 0.1 rad a frame. One frame flipped by 1.2 rad (a one-frame glitch), a flip by 1.2 rad
+    that stays for three frames (two jumps), and a run of skipped frames (times 10 -> 14: a 0.4 rad
+    step) would each set the reach to their step's chord. None is the motion's step: the reach stays
+    the 0.1 rad chord, and a pose three steps off every training pose is out of it."""
+    walk = [0.1 * i for i in range(20)]
+    assert _walk(walk).reach() == pytest.approx(_chord(0.1), rel=1e-5)
+
+    glitch = _walk([a + (1.2 if i == 7 else 0.0) for i, a in enumerate(walk)])
     assert glitch.reach() == pytest.approx(_chord(0.1), rel=1e-5)
     elsewhere = _pose(0.7)
     elsewhere[17, 2] = 0.3  # the other shoulder raised: 3 steps off every training pose, < the flip
     assert not glitch.within_reach(elsewhere)
 
-    skipped = PoseTimeIndex()
-    for i in [*range(10), *range(14, 24)]:
-        skipped.add(_pose(0.1 * i), float(i))
+    flipped = _walk([a + (1.2 if 7 <= i < 10 else 0.0) for i, a in enumerate(walk)])
+    assert flipped.reach() == pytest.approx(_chord(0.1), rel=1e-5)
+
+    times = [*range(10), *range(14, 24)]
+    skipped = _walk([0.1 * t for t in times], times)
     assert skipped.reach() == pytest.approx(_chord(0.1), rel=1e-5)
 
 
-def test_the_reach_keeps_a_fast_stretch_of_real_motion():
-    """Steps five times the median over a run of frames (a kick) are the motion's: kept, unlike a
-    glitch, because each pose lies on the way between its neighbours."""
-    index = PoseTimeIndex()
-    angle = 0.0
+def test_the_reach_keeps_real_motion_that_speeds_up_and_starts_from_rest():
+    """Steps five times the walk's over a run of frames (a kick), and a start from standing still:
+    the motion's own steps grow with their neighbours, so they are kept (the reach is the kick's)."""
+    angles, angle = [], 0.0
     for i in range(30):
-        index.add(_pose(angle), float(i))
-        angle += 0.5 if 10 <= i < 14 else 0.1
-    assert index.reach() == pytest.approx(_chord(0.5), rel=1e-5)
+        angles.append(angle)
+        angle += 0.5 if 10 <= i < 14 else (0.0 if i < 5 else 0.1)
+    assert _walk(angles).reach() == pytest.approx(_chord(0.5), rel=1e-5)
 
 
 def test_the_pose_distances_kept_between_time_and_trust_follow_the_pose_and_the_keys():
