@@ -47,6 +47,7 @@ FADE_END = 2.0
 # the tracker's jumps and one-frame glitches, JUMP_FACTOR times the steps around them.
 GAP_FACTOR = 1.5
 JUMP_FACTOR = 3.0
+STEP_KINDS = ("motion", "gap", "jump", "glitch")
 
 
 def pose_key(poses: np.ndarray) -> np.ndarray:
@@ -77,19 +78,29 @@ def motion_steps(keys: np.ndarray, times: np.ndarray) -> np.ndarray:
     One such step would otherwise set the reach of a whole clip (the largest step), and every new
     pose within it would render a training instant's non-rigid state however far it is from it.
     """
+    steps, kinds = classify_steps(keys, times)
+    motion = kinds == STEP_KINDS.index("motion")
+    return steps[motion] if motion.any() else steps
+
+
+def classify_steps(keys: np.ndarray, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(steps, kinds): the pose distances between consecutive ``keys`` (sorted by ``times``) and each
+    one's kind, an index into ``STEP_KINDS`` (:func:`motion_steps` says which is which)."""
     steps = np.linalg.norm(np.diff(keys, axis=0), axis=1)
+    kinds = np.zeros(steps.shape[0], np.int64)
     dt = np.diff(np.asarray(times, np.float64))
-    keep = dt <= GAP_FACTOR * float(np.median(dt))  # the median time step's own steps are kept
-    median = float(np.median(steps[keep]))
-    around = np.where(keep, steps, 0.0)  # a neighbour across a gap says nothing of the pace
+    gap = dt > GAP_FACTOR * float(np.median(dt))  # the median time step's own steps are never a gap
+    median = float(np.median(steps[~gap]))
+    around = np.where(gap, 0.0, steps)  # a neighbour across a gap says nothing of the pace
     sides = np.maximum(np.r_[0.0, around[:-1]], np.r_[around[1:], 0.0])
-    keep &= ~(steps > JUMP_FACTOR * np.maximum(sides, median))
+    kinds[steps > JUMP_FACTOR * np.maximum(sides, median)] = STEP_KINDS.index("jump")
     if steps.shape[0] >= 2:
         across = np.linalg.norm(keys[2:] - keys[:-2], axis=1)  # frame i's neighbours, i = 1..n-2
         glitch = np.minimum(steps[:-1], steps[1:]) > JUMP_FACTOR * np.maximum(across, median)
-        keep[:-1] &= ~glitch  # the step into the frame
-        keep[1:] &= ~glitch  # and out of it
-    return steps[keep] if keep.any() else steps
+        kinds[:-1][glitch] = STEP_KINDS.index("glitch")  # the step into the frame
+        kinds[1:][glitch] = STEP_KINDS.index("glitch")  # and out of it
+    kinds[gap] = STEP_KINDS.index("gap")
+    return steps, kinds
 
 
 class PoseTimeIndex:
