@@ -13,7 +13,8 @@ run actually used. Formats:
 - ``thuman``: THuman4.0 (SMPL-X fits; see docs/DATASETS.md).
 - ``folder``: the folder format (docs/DATASETS.md), e.g. a capture of your own.
 - ``video``: a video file or image folder; the tracker (stg-track) fits SMPL and masks first. With
-  a rig's calibration, one video per camera (tracked together: docs/RIGS.md).
+  a rig's calibration, one video per camera (tracked together: docs/RIGS.md). ``train_frames``
+  counts the video's own frames (:func:`video_positions`), skipped ones included.
 
 ``train_cameras`` (several cameras: ``stg-train --train-cameras A,B,C``) trains on all of them;
 the novel-view split is then every other camera (:class:`stg_node.data.splits.RigProtocol`).
@@ -106,6 +107,8 @@ class DataSpec:
         frames = FrameRange(*self.train_frames) if self.train_frames else None
         if self.format == "synthetic":
             return self._open_synth(root, split)
+        if frames is not None and self.format == "video":
+            frames = video_positions(root, frames)
         from stg_node.data.factory import open_dataset
 
         kind = {"zju": "zju", "thuman": "thuman4"}.get(self.format, "folder")
@@ -172,3 +175,27 @@ class DataSpec:
         else:
             spec = SplitSpec("novel_pose", FrameRange(n_train, None, every))
         return open_synth(root, spec, size=self.size)
+
+
+def video_positions(root: Path, frames: FrameRange) -> FrameRange:
+    """A video's ``--train-frames A:B`` (the video's frame numbers, as a player shows them) as
+    positions in its tracked folder, which holds only the frames the tracker was sure of (its
+    images keep their frame numbers): training takes the kept frames numbered A..B-1 and the
+    novel-pose split every 30th kept frame from B on. Counted as positions, a clip with skipped
+    frames would train past B on frames the user holds out (the benchmark's tracked dancer, 17 of
+    90 frames skipped: ``0:72`` trained up to frame 88 and left one held-out frame)."""
+    from bisect import bisect_left
+
+    from stg_node.data.factory import open_dataset
+
+    numbers = sorted(open_dataset(root, "folder", "all", size=None).all_frames)
+    start = bisect_left(numbers, frames.start)
+    stop = None if frames.stop is None else bisect_left(numbers, frames.stop)
+    if stop is not None and stop <= start:
+        raise DatasetError(
+            root,
+            f"has no tracked frame in --train-frames {frames.start}:{frames.stop} (the tracker kept "
+            f"{len(numbers)} frames, {numbers[0]}..{numbers[-1]})",
+            "a training range with frames the tracker was sure of (RUN_DIR/fit_preview.mp4 shows them)",
+        )
+    return FrameRange(start, stop, frames.step)

@@ -54,7 +54,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="SMPL-format body file the parameters refer to (default: the open body)",
     )
     p.add_argument(
-        "--train-frames", default=None, help="training frame range A:B (default: the dataset's protocol)"
+        "--train-frames",
+        default=None,
+        help="training frame range A:B (default: the dataset's protocol; a video: its own frame numbers)",
     )
     p.add_argument(
         "--train-camera", default=None, help="training camera name (default: the protocol's, camera 1)"
