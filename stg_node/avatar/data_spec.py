@@ -14,7 +14,8 @@ run actually used. Formats:
 - ``folder``: the folder format (docs/DATASETS.md), e.g. a capture of your own.
 - ``video``: a video file or image folder; the tracker (stg-track) fits SMPL and masks first. With
   a rig's calibration, one video per camera (tracked together: docs/RIGS.md). ``train_frames``
-  counts the video's own frames (:func:`video_positions`), skipped ones included.
+  counts the video's own frames (:func:`video_positions`), skipped ones included; novel pose is
+  every tracked frame after the range.
 
 ``train_cameras`` (several cameras: ``stg-train --train-cameras A,B,C``) trains on all of them;
 the novel-view split is then every other camera (:class:`stg_node.data.splits.RigProtocol`).
@@ -125,6 +126,12 @@ class DataSpec:
             return open_dataset(root, "thuman4", split, size=self.size, **options)
         # folder (docs/DATASETS.md), or video: the tracker turned it into the folder format
         # (see stg_node.avatar.video).
+        held_out = frames is not None and frames.stop is not None
+        if self.format == "video" and split == "novel_pose" and held_out:
+            # Every frame after the training range, not every 30th: a clip's held-out tail is a few
+            # hundred frames at most (the walking clip's 99 would give 4), and consecutive frames of
+            # one camera are what a viewer of the clip sees.
+            split = SplitSpec("novel_pose", FrameRange(frames.stop, None))
         return open_dataset(root, "folder", split, size=self.size, **options)
 
     def _rig_protocol(self, root: Path, frames: FrameRange | None):
