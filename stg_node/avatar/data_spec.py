@@ -188,7 +188,7 @@ def video_positions(root: Path, frames: FrameRange) -> FrameRange:
     """A video's ``--train-frames A:B`` (the video's frame numbers, as a player shows them) as
     positions in its tracked folder, which holds only the frames the tracker was sure of (its
     images keep their frame numbers): training takes the kept frames numbered A..B-1 and the
-    novel-pose split every 30th kept frame from B on. Counted as positions, a clip with skipped
+    novel-pose split the kept frames from B on. Counted as positions, a clip with skipped
     frames would train past B on frames the user holds out (the benchmark's tracked dancer, 17 of
     90 frames skipped: ``0:72`` trained up to frame 88 and left one held-out frame)."""
     from bisect import bisect_left
