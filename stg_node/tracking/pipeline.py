@@ -3,8 +3,9 @@
 - :func:`track_to_file`: input -> POSES.npz (+ optional masks folder and fit preview), with a
   progress bar. Without a calibration or a given field of view, the focal length is estimated
   from the sequence (focal.py): the first pass tracks at the default field of view and keeps
-  each frame's keypoints; when the estimate is sure, a second pass re-fits those keypoints with
-  it (nothing is detected twice). Frames that cannot be trusted (frame_checks.py, tracker.py)
+  each frame's keypoints; when the estimate is sure, or unsure but still a better guess than the
+  default (focal.MIN_USE_RISE), a second pass re-fits those keypoints with it (nothing is
+  detected twice). Frames that cannot be trusted (frame_checks.py, tracker.py)
   are counted by reason.
 - :func:`track_video`: the same into a cache folder keyed by the input's content and every
   setting that changes the result, so running it twice on the same video costs one hash.
@@ -252,10 +253,17 @@ def track_to_file(
         )
         log.info("%s", found.describe())
         camera = {"method": "estimate", **json.loads(found.to_json()), "used": "default"}
-        if found.sure:
+        if found.usable:  # sure, or unsure and still a better guess than the default
             camera["used"] = "estimate"
             intrinsics = from_fov(source.width, source.height, found.fov_deg)
             rows, betas = _refit(tracker, body, intrinsics, rows, observations, shape, image_factor)
+            if not found.sure:
+                log.warning(
+                    "the field of view is the footage's estimate, %.0f degrees, but unsure: %s (give --fov "
+                    "or --intrinsics if you know it)",
+                    found.fov_deg,
+                    found.reason,
+                )
         else:
             log.warning(
                 "the field of view stays at the default %g degrees: %s (give --fov or --intrinsics)",
@@ -347,10 +355,16 @@ def describe_camera(camera: dict | None) -> str:
     if camera["method"] == "fov":
         return f"camera: the given {camera['fov_deg']:g} degree field of view"
     interval = f"{camera['low_fov_deg']:.0f}-{camera['high_fov_deg']:.0f}"
-    if camera["used"] == "estimate":
+    if camera["used"] == "estimate" and camera["sure"]:
         return (
             f"camera: {camera['fov_deg']:.1f} degree field of view estimated from the footage "
             f"(68 % interval {interval} degrees, sure)"
+        )
+    if camera["used"] == "estimate":
+        return (
+            f"camera: {camera['fov_deg']:.1f} degree field of view estimated from the footage, UNSURE "
+            f"(interval {interval} degrees: {camera['reason']}); used, as a better guess than the default "
+            f"{DEFAULT_FOV_DEG:g} degrees: give --fov or --intrinsics if you know it"
         )
     return (
         f"camera: UNSURE of the field of view (estimate {camera['fov_deg']:.0f}, interval {interval} "

@@ -195,6 +195,30 @@ def test_video_to_folder_gives_a_folder_dataset_of_the_confident_frames(tmp_path
 
 
 @needs_blazepose
+def test_an_unsure_estimate_that_beats_the_default_is_used(tmp_path, synth_video, monkeypatch, capsys):
+    """The estimator's verdict is unsure but its profile has a minimum that rises (focal.usable): the
+    tracking is re-fitted with the estimate, and the report says it is unsure and used."""
+    import json
+
+    from stg_node.tracking import focal
+
+    unsure = focal.FocalEstimate(
+        focal_px=128 / np.tan(np.radians(25.0)), fov_deg=50.0, low_fov_deg=44.0, high_fov_deg=56.0,
+        sure=False, reason="the fit cost changes by only 1.1 %", frames=24, rise=0.011, usable=True,
+    )  # fmt: skip
+    monkeypatch.setattr(focal, "estimate_focal", lambda *a, **k: unsure)
+    out = tmp_path / "POSES.npz"
+    assert main([str(synth_video), "--out", str(out), "--no-progress"]) == 0
+    printed = capsys.readouterr().out
+    assert "50.0 degree field of view estimated from the footage, UNSURE" in printed
+    assert "used, as a better guess than the default 65 degrees" in printed
+    tracked = read_poses(out)
+    camera = json.loads(tracked.camera)
+    assert camera["used"] == "estimate" and not camera["sure"]
+    assert tracked.K[0, 0] == pytest.approx(128 / np.tan(np.radians(25.0)))
+
+
+@needs_blazepose
 def test_stg_track_reports_skips_and_camera_and_writes_the_preview(tmp_path, synth_video, capsys):
     """No calibration, no field of view: the focal length is estimated (12 frames are too few: unsure,
     the default kept, said so); the preview has one frame per input frame."""
