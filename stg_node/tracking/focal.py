@@ -56,9 +56,9 @@ MIN_CONFIDENCE = 0.5
 SURE_RELATIVE = 0.10  # the 16-84 % interval within +-10 % of the estimate
 # An unsure estimate still replaces the default field of view when its profile has a minimum inside
 # the grid and rises at least this much: on BlazePose keypoints of stg-synth subjects filmed at 30-90
-# degrees, every such estimate was at least as close to the truth as the default 65 degrees, and the
-# flat profile below it (a subject standing still, 0.1 %) was not (docs/BENCHMARKS.md, "The
-# focal length from the footage: the estimate or the default").
+# degrees such estimates were 2-23 % off where the default 65 degrees was 9-46 % off (one tie: 10
+# against 9 % at 60 degrees); the flat profile of a subject standing still (0.1 %) stays below it
+# (docs/BENCHMARKS.md, "The focal length from the footage: the estimate or the default").
 MIN_USE_RISE = 0.005
 BOOTSTRAP = 200
 BLOCK = 8  # frames per bootstrap block
