@@ -197,7 +197,8 @@ def test_video_to_folder_gives_a_folder_dataset_of_the_confident_frames(tmp_path
 @needs_blazepose
 def test_an_unsure_estimate_that_beats_the_default_is_used(tmp_path, synth_video, monkeypatch, capsys):
     """The estimator's verdict is unsure but its profile has a minimum that rises (focal.usable): the
-    tracking is re-fitted with the estimate, and the report says it is unsure and used."""
+    tracking is re-fitted with the estimate, to the first pass's masks, and the report says it is
+    unsure and used."""
     import json
 
     from stg_node.tracking import focal
@@ -207,8 +208,18 @@ def test_an_unsure_estimate_that_beats_the_default_is_used(tmp_path, synth_video
         sure=False, reason="the fit cost changes by only 1.1 %", frames=24, rise=0.011, usable=True,
     )  # fmt: skip
     monkeypatch.setattr(focal, "estimate_focal", lambda *a, **k: unsure)
+    refits = []  # the second pass fits to the first pass's person masks (the silhouette term)
+    first_pass = pipeline._first_pass_silhouette
+
+    def recorded(tracker, masks_dir, index):
+        silhouette = first_pass(tracker, masks_dir, index)
+        refits.append(None if silhouette is None else int((silhouette(None) > 127).sum()))
+        return silhouette
+
+    monkeypatch.setattr(pipeline, "_first_pass_silhouette", recorded)
     out = tmp_path / "POSES.npz"
     assert main([str(synth_video), "--out", str(out), "--no-progress"]) == 0
+    assert refits and all(r is not None for r in refits) and max(refits) > 100, refits
     printed = capsys.readouterr().out
     assert "50.0 degree field of view estimated from the footage, UNSURE" in printed
     assert "used, as a better guess than the default 65 degrees" in printed
