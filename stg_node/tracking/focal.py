@@ -54,12 +54,6 @@ MIN_RISE = 0.02  # the profile's parabola must rise this much (relative) at RISE
 RISE_STEP = math.log(1.2)  # a 20 % change of focal length
 MIN_CONFIDENCE = 0.5
 SURE_RELATIVE = 0.10  # the 16-84 % interval within +-10 % of the estimate
-# An unsure estimate still replaces the default field of view when its profile has a minimum inside
-# the grid and rises at least this much: on BlazePose keypoints of stg-synth subjects filmed at 30-90
-# degrees such estimates were 2-23 % off where the default 65 degrees was 9-46 % off (one tie: 10
-# against 9 % at 60 degrees); the flat profile of a subject standing still (0.1 %) stays below it
-# (docs/BENCHMARKS.md, "The focal length from the footage: the estimate or the default").
-MIN_USE_RISE = 0.005
 BOOTSTRAP = 200
 BLOCK = 8  # frames per bootstrap block
 MIN_STANCE_RUNS = 4  # the stride cue (stride.py) decides with at least this many stance runs
@@ -87,10 +81,9 @@ class FocalEstimate:
     profile: list[tuple[float, float]] = field(default_factory=list)  # (fov_deg, summed cost)
     cue: str = "perspective"  # what decided: "stride" (planted feet, stride.py) or the profile
     stride: dict | None = None  # the stride estimate (stride.StrideEstimate.as_dict), when tried
-    usable: bool = False  # closer to the truth than the default, sure or not (MIN_USE_RISE)
 
     def describe(self) -> str:
-        verdict = "sure" if self.sure else ("UNSURE, used" if self.usable else "UNSURE")
+        verdict = "sure" if self.sure else "UNSURE"
         return (
             f"focal length from the footage: {self.fov_deg:.1f} deg horizontal field of view "
             f"(f = {self.focal_px:.0f} px; 68 % interval {self.low_fov_deg:.1f}-{self.high_fov_deg:.1f} deg, "
@@ -251,7 +244,6 @@ def estimate_focal(
         reason=reason,
         frames=len(costs),
         rise=rise,
-        usable=sure or (inside and rise >= MIN_USE_RISE),
         profile=[(float(f), float(c)) for f, c in zip(fovs, profile, strict=True)],
         stride=stride.as_dict(),
     )
@@ -295,7 +287,6 @@ def _from_stride(stride: StrideEstimate, width: int, frames: int) -> FocalEstima
         sure=True,
         reason=reason,
         frames=stride.frames,
-        usable=True,
         cue="stride",
         stride=stride.as_dict(),
     )

@@ -195,20 +195,19 @@ def test_video_to_folder_gives_a_folder_dataset_of_the_confident_frames(tmp_path
 
 
 @needs_blazepose
-def test_an_unsure_estimate_that_beats_the_default_is_used(tmp_path, synth_video, monkeypatch, capsys):
-    """The estimator's verdict is unsure but its profile has a minimum that rises (focal.usable): the
-    tracking is re-fitted with the estimate, to the first pass's masks, and the report says it is
-    unsure and used."""
+def test_a_sure_estimate_refits_to_the_first_pass_masks(tmp_path, synth_video, monkeypatch, capsys):
+    """A sure focal estimate: the tracking is re-fitted with it, the keypoints and the first pass's
+    person masks (the silhouette term, as the first pass fitted), and the report says so."""
     import json
 
     from stg_node.tracking import focal
 
-    unsure = focal.FocalEstimate(
-        focal_px=128 / np.tan(np.radians(25.0)), fov_deg=50.0, low_fov_deg=44.0, high_fov_deg=56.0,
-        sure=False, reason="the fit cost changes by only 1.1 %", frames=24, rise=0.011, usable=True,
+    sure = focal.FocalEstimate(
+        focal_px=128 / np.tan(np.radians(25.0)), fov_deg=50.0, low_fov_deg=48.0, high_fov_deg=52.0,
+        sure=True, reason="the interval spans +-4 %", frames=24, rise=0.03,
     )  # fmt: skip
-    monkeypatch.setattr(focal, "estimate_focal", lambda *a, **k: unsure)
-    refits = []  # the second pass fits to the first pass's person masks (the silhouette term)
+    monkeypatch.setattr(focal, "estimate_focal", lambda *a, **k: sure)
+    refits = []
     first_pass = pipeline._first_pass_silhouette
 
     def recorded(tracker, masks_dir, index):
@@ -220,12 +219,10 @@ def test_an_unsure_estimate_that_beats_the_default_is_used(tmp_path, synth_video
     out = tmp_path / "POSES.npz"
     assert main([str(synth_video), "--out", str(out), "--no-progress"]) == 0
     assert refits and all(r is not None for r in refits) and max(refits) > 100, refits
-    printed = capsys.readouterr().out
-    assert "50.0 degree field of view estimated from the footage, UNSURE" in printed
-    assert "used, as a better guess than the default 65 degrees" in printed
+    assert "50.0 degree field of view estimated from the footage" in capsys.readouterr().out
     tracked = read_poses(out)
     camera = json.loads(tracked.camera)
-    assert camera["used"] == "estimate" and not camera["sure"]
+    assert camera["used"] == "estimate" and camera["sure"]
     assert tracked.K[0, 0] == pytest.approx(128 / np.tan(np.radians(25.0)))
 
 
@@ -239,6 +236,7 @@ def test_stg_track_reports_skips_and_camera_and_writes_the_preview(tmp_path, syn
     assert main([str(synth_video), "--out", str(out), "--preview", str(preview), "--no-progress"]) == 0
     printed = capsys.readouterr().out
     assert "skipped" in printed and "camera: UNSURE" in printed and "fit preview" in printed
+    assert "trains with the estimate" in printed  # the flag that takes the estimate anyway
     tracked = read_poses(out)
     camera = json.loads(tracked.camera)
     assert camera["method"] == "estimate" and camera["used"] == "default" and not camera["sure"]

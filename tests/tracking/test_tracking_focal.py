@@ -116,19 +116,6 @@ def test_a_flat_profile_is_unsure_however_tight_its_bootstrap(monkeypatch):
     assert not found.sure and "changes by only" in found.reason, found.describe()
 
 
-def test_an_unsure_profile_that_rises_is_used_and_a_flat_one_is_not(monkeypatch):
-    """Between MIN_USE_RISE and MIN_RISE the verdict is unsure but the estimate replaces the default
-    (usable); below it, or with the minimum at the grid's edge, the default stays."""
-    rising = frames_with_profile(monkeypatch, 0.01, focal.GRID_FOV_DEG, 256, 50.0)
-    assert not rising.sure and rising.usable and rising.fov_deg == pytest.approx(50.0, abs=1.0)
-    assert "UNSURE, used" in rising.describe()
-    flat = frames_with_profile(monkeypatch, 0.002, focal.GRID_FOV_DEG, 256, 50.0)
-    assert not flat.sure and not flat.usable, flat.describe()
-    edge = frames_with_profile(monkeypatch, 0.05, focal.GRID_FOV_DEG, 256, 20.0)  # below the grid
-    assert not edge.sure and not edge.usable, edge.describe()
-    assert frames_with_profile(monkeypatch, 0.05, focal.GRID_FOV_DEG, 256, 50.0).usable  # sure: used
-
-
 def test_a_deep_profile_from_too_few_fitted_frames_is_unsure(monkeypatch):
     """20 confident frames, 6 of them not fitted at one focal length: the 14 left make two
     bootstrap blocks, whose interval is tight around any minimum; the answer is given, never sure."""
