@@ -22,7 +22,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from stg_node.avatar.timecode import STEP_KINDS, classify_steps, pose_key  # noqa: E402
+from stg_node.avatar.timecode import STEP_KINDS, classify_steps, motion_steps, pose_key  # noqa: E402
 
 
 def run_index(folder: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -44,13 +44,13 @@ def synth_index(folder: Path, frames: int | None) -> tuple[np.ndarray, np.ndarra
 
 def report(keys: np.ndarray, times: np.ndarray) -> dict:
     order = np.argsort(times, kind="stable")
-    steps, kinds = classify_steps(keys[order], times[order])
-    motion = steps[kinds == 0] if (kinds == 0).any() else steps
+    keys, times = keys[order], times[order]
+    steps, kinds = classify_steps(keys, times)
     out = {
         "keys": int(keys.shape[0]),
         "median_step": float(np.median(steps)),
         "largest_step": float(steps.max()),
-        "reach": float(motion.max()),
+        "reach": float(motion_steps(keys, times).max()),  # what PoseTimeIndex.reach measures
     }
     for number, kind in enumerate(STEP_KINDS[1:], start=1):
         left = steps[kinds == number]
